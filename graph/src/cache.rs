@@ -1,0 +1,236 @@
+//! Result caches: a byte-budgeted in-memory LRU and a content-addressed,
+//! bounded on-disk store. Both are keyed by the Merkle [`Key`] of a node.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::SystemTime;
+
+use crate::codec;
+use crate::key::Key;
+use crate::node::Outputs;
+
+/// In-memory LRU holding at most `budget_bytes` of values.
+pub struct MemoryCache {
+    budget_bytes: usize,
+    used: usize,
+    tick: u64,
+    entries: HashMap<Key, (Arc<Outputs>, usize, u64)>,
+    by_age: BTreeMap<u64, Key>,
+}
+
+impl MemoryCache {
+    pub fn new(budget_bytes: usize) -> Self {
+        Self {
+            budget_bytes,
+            used: 0,
+            tick: 0,
+            entries: HashMap::new(),
+            by_age: BTreeMap::new(),
+        }
+    }
+    pub fn budget_bytes(&self) -> usize {
+        self.budget_bytes
+    }
+    /// Bytes currently held.
+    pub fn used_bytes(&self) -> usize {
+        self.used
+    }
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+    /// Looks up and marks as recently used.
+    pub fn get(&mut self, key: &Key) -> Option<Arc<Outputs>> {
+        self.tick += 1;
+        let tick = self.tick;
+        let (out, _, age) = self.entries.get_mut(key)?;
+        self.by_age.remove(age);
+        *age = tick;
+        self.by_age.insert(tick, *key);
+        Some(out.clone())
+    }
+    /// Inserts; a result larger than the whole budget is not kept.
+    pub fn put(&mut self, key: Key, out: Arc<Outputs>) {
+        let size = out.bytes();
+        if size > self.budget_bytes {
+            return;
+        }
+        if let Some((_, old, age)) = self.entries.remove(&key) {
+            self.used -= old;
+            self.by_age.remove(&age);
+        }
+        while self.used + size > self.budget_bytes {
+            let Some((_, victim)) = self.by_age.pop_first() else { break };
+            if let Some((_, s, _)) = self.entries.remove(&victim) {
+                self.used -= s;
+            }
+        }
+        self.tick += 1;
+        self.entries.insert(key, (out, size, self.tick));
+        self.by_age.insert(self.tick, key);
+        self.used += size;
+    }
+    pub fn clear(&mut self) {
+        self.entries.clear();
+        self.by_age.clear();
+        self.used = 0;
+    }
+}
+
+/// Content-addressed files `<dir>/<first two hex>/<key>.bin`, at most
+/// `budget_bytes` in all; the least recently used (by modification time,
+/// refreshed on read) are removed first.
+///
+/// A corrupt or truncated file reads as a miss. Writes go to a temporary
+/// file renamed into place, so a crash never leaves a partial entry.
+#[derive(Debug, Clone)]
+pub struct DiskCache {
+    dir: PathBuf,
+    budget_bytes: u64,
+}
+
+impl DiskCache {
+    pub fn new(dir: impl Into<PathBuf>, budget_bytes: u64) -> Self {
+        Self {
+            dir: dir.into(),
+            budget_bytes,
+        }
+    }
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+    fn path(&self, key: &Key) -> PathBuf {
+        let hex = key.to_hex();
+        self.dir.join(&hex[..2]).join(format!("{hex}.bin"))
+    }
+    /// Reads an entry; `None` on a miss or an unreadable entry.
+    pub fn get(&self, key: &Key) -> Option<Outputs> {
+        let path = self.path(key);
+        let bytes = fs::read(&path).ok()?;
+        let out = codec::decode(&bytes);
+        if out.is_none() {
+            let _ = fs::remove_file(&path);
+        } else if let Ok(f) = fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(SystemTime::now());
+        }
+        out
+    }
+    /// Writes an entry, then trims the store to its budget.
+    pub fn put(&self, key: &Key, out: &Outputs) -> std::io::Result<()> {
+        let bytes = codec::encode(out);
+        if bytes.len() as u64 > self.budget_bytes {
+            return Ok(());
+        }
+        let path = self.path(key);
+        let parent = path.parent().unwrap_or(&self.dir);
+        fs::create_dir_all(parent)?;
+        let tmp = parent.join(format!(".{}.{}.tmp", key.to_hex(), std::process::id()));
+        {
+            let mut f = fs::File::create(&tmp)?;
+            f.write_all(&bytes)?;
+            f.sync_data()?;
+        }
+        fs::rename(&tmp, &path)?;
+        self.trim()
+    }
+    /// Total bytes of the entries on disk.
+    pub fn used_bytes(&self) -> u64 {
+        self.entries().iter().map(|(_, s, _)| s).sum()
+    }
+    fn entries(&self) -> Vec<(PathBuf, u64, SystemTime)> {
+        let mut out = Vec::new();
+        let Ok(dirs) = fs::read_dir(&self.dir) else { return out };
+        for d in dirs.flatten() {
+            let Ok(files) = fs::read_dir(d.path()) else { continue };
+            for f in files.flatten() {
+                let p = f.path();
+                if p.extension().is_some_and(|e| e == "bin") {
+                    if let Ok(m) = f.metadata() {
+                        out.push((p, m.len(), m.modified().unwrap_or(SystemTime::UNIX_EPOCH)));
+                    }
+                }
+            }
+        }
+        out
+    }
+    /// Removes least recently used entries until the store fits its budget.
+    pub fn trim(&self) -> std::io::Result<()> {
+        let mut entries = self.entries();
+        let mut total: u64 = entries.iter().map(|(_, s, _)| s).sum();
+        if total <= self.budget_bytes {
+            return Ok(());
+        }
+        entries.sort_by_key(|(_, _, t)| *t);
+        for (p, s, _) in entries {
+            if total <= self.budget_bytes {
+                break;
+            }
+            fs::remove_file(&p)?;
+            total -= s;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::value::Value;
+
+    fn key(n: u8) -> Key {
+        Key::from_bytes([n; 32])
+    }
+    fn out(n: usize) -> Arc<Outputs> {
+        let img = crate::value::Image::filled(n, 1, 0.0f32);
+        Arc::new(Outputs::new().with("d", Value::Depth(Arc::new(img))))
+    }
+
+    #[test]
+    fn memory_cache_evicts_least_recent_within_budget() {
+        let mut c = MemoryCache::new(100);
+        c.put(key(1), out(10)); // 40 bytes
+        c.put(key(2), out(10)); // 80
+        assert!(c.get(&key(1)).is_some()); // 1 is now most recent
+        c.put(key(3), out(10)); // needs eviction of 2
+        assert!(c.get(&key(2)).is_none());
+        assert!(c.get(&key(1)).is_some());
+        assert!(c.get(&key(3)).is_some());
+        assert!(c.used_bytes() <= 100);
+        c.put(key(4), out(1000)); // bigger than the budget: ignored
+        assert!(c.get(&key(4)).is_none());
+    }
+
+    #[test]
+    fn disk_cache_round_trip_and_budget() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = codec::encode(&out(100)).len() as u64;
+        let c = DiskCache::new(dir.path(), one * 2 + 10);
+        c.put(&key(1), &out(100)).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        c.put(&key(2), &out(100)).unwrap();
+        assert_eq!(c.get(&key(1)).unwrap().values, out(100).values);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        c.put(&key(3), &out(100)).unwrap();
+        assert!(c.used_bytes() <= one * 2 + 10);
+        // key 2 was the least recently used
+        assert!(c.get(&key(2)).is_none());
+        assert!(c.get(&key(1)).is_some());
+        assert!(c.get(&key(3)).is_some());
+    }
+
+    #[test]
+    fn corrupt_disk_entry_is_a_miss() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = DiskCache::new(dir.path(), 1 << 20);
+        c.put(&key(7), &out(4)).unwrap();
+        let p = c.path(&key(7));
+        fs::write(&p, b"garbage").unwrap();
+        assert!(c.get(&key(7)).is_none());
+        assert!(!p.exists());
+    }
+}

@@ -1,0 +1,343 @@
+//! Binary encoding of node outputs for the on-disk cache.
+//!
+//! Little-endian, versioned, with lengths checked against the remaining
+//! bytes before anything is allocated, so a truncated or corrupt cache file
+//! is a miss, never a panic or a huge allocation.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::node::Outputs;
+use crate::value::{ExposureStack, Image, Intrinsics, Mesh, PointCloud, Value};
+
+const MAGIC: &[u8; 8] = b"DGCACHE1";
+
+/// Encodes outputs (values and the pass-through reason).
+pub fn encode(out: &Outputs) -> Vec<u8> {
+    let mut w = Vec::with_capacity(out.bytes() + 64);
+    w.extend_from_slice(MAGIC);
+    put_str(&mut w, out.passthrough.as_deref().unwrap_or(""));
+    w.push(out.passthrough.is_some() as u8);
+    put_u64(&mut w, out.values.len() as u64);
+    for (k, v) in &out.values {
+        put_str(&mut w, k);
+        put_value(&mut w, v);
+    }
+    w
+}
+
+/// Decodes what [`encode`] wrote; `None` for anything malformed.
+pub fn decode(bytes: &[u8]) -> Option<Outputs> {
+    let mut r = Reader { b: bytes, i: 0 };
+    if r.take(8)? != MAGIC {
+        return None;
+    }
+    let reason = r.string()?;
+    let has_reason = r.u8()? != 0;
+    let n = r.u64()? as usize;
+    let mut values = BTreeMap::new();
+    for _ in 0..n {
+        let k = r.string()?;
+        let v = r.value()?;
+        values.insert(k, v);
+    }
+    if r.i != bytes.len() {
+        return None;
+    }
+    Some(Outputs {
+        values,
+        passthrough: has_reason.then_some(reason),
+    })
+}
+
+fn put_u64(w: &mut Vec<u8>, x: u64) {
+    w.extend_from_slice(&x.to_le_bytes());
+}
+fn put_f64(w: &mut Vec<u8>, x: f64) {
+    w.extend_from_slice(&x.to_le_bytes());
+}
+fn put_str(w: &mut Vec<u8>, s: &str) {
+    put_u64(w, s.len() as u64);
+    w.extend_from_slice(s.as_bytes());
+}
+fn put_f32s(w: &mut Vec<u8>, xs: &[f32]) {
+    put_u64(w, xs.len() as u64);
+    w.reserve(xs.len() * 4);
+    for x in xs {
+        w.extend_from_slice(&x.to_le_bytes());
+    }
+}
+fn put_u32s(w: &mut Vec<u8>, xs: &[u32]) {
+    put_u64(w, xs.len() as u64);
+    for x in xs {
+        w.extend_from_slice(&x.to_le_bytes());
+    }
+}
+fn flat3(v: &[[f32; 3]]) -> &[f32] {
+    v.as_flattened()
+}
+fn put_image3(w: &mut Vec<u8>, img: &Image<[f32; 3]>) {
+    put_u64(w, img.width() as u64);
+    put_u64(w, img.height() as u64);
+    put_f32s(w, flat3(img.as_slice()));
+}
+fn put_image1(w: &mut Vec<u8>, img: &Image<f32>) {
+    put_u64(w, img.width() as u64);
+    put_u64(w, img.height() as u64);
+    put_f32s(w, img.as_slice());
+}
+
+fn put_value(w: &mut Vec<u8>, v: &Value) {
+    match v {
+        Value::Color(i) => {
+            w.push(0);
+            put_image3(w, i)
+        }
+        Value::Depth(i) => {
+            w.push(1);
+            put_image1(w, i)
+        }
+        Value::Mask(i) => {
+            w.push(2);
+            put_image1(w, i)
+        }
+        Value::Confidence(i) => {
+            w.push(3);
+            put_image1(w, i)
+        }
+        Value::Normals(i) => {
+            w.push(4);
+            put_image3(w, i)
+        }
+        Value::Labels(i) => {
+            w.push(5);
+            put_u64(w, i.width() as u64);
+            put_u64(w, i.height() as u64);
+            put_u32s(w, i.as_slice());
+        }
+        Value::Intrinsics(k) => {
+            w.push(6);
+            for x in [k.fx, k.fy, k.cx, k.cy] {
+                put_f64(w, x);
+            }
+            put_u64(w, k.width as u64);
+            put_u64(w, k.height as u64);
+        }
+        Value::PointCloud(p) => {
+            w.push(7);
+            put_f32s(w, flat3(&p.positions));
+            put_f32s(w, flat3(&p.colors));
+            put_f32s(w, flat3(&p.normals));
+        }
+        Value::Mesh(m) => {
+            w.push(8);
+            put_f32s(w, flat3(&m.positions));
+            put_f32s(w, flat3(&m.colors));
+            put_f32s(w, flat3(&m.normals));
+            put_u32s(w, m.triangles.as_flattened());
+        }
+        Value::ExposureStack(s) => {
+            w.push(9);
+            put_u64(w, s.images.len() as u64);
+            for (img, t) in s.images.iter().zip(&s.times_s) {
+                put_f64(w, *t);
+                put_image3(w, img);
+            }
+        }
+        Value::Scalar(x) => {
+            w.push(10);
+            put_f64(w, *x);
+        }
+        Value::File(p) => {
+            w.push(11);
+            put_str(w, &p.to_string_lossy());
+        }
+    }
+}
+
+struct Reader<'a> {
+    b: &'a [u8],
+    i: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Option<&'a [u8]> {
+        let end = self.i.checked_add(n)?;
+        let s = self.b.get(self.i..end)?;
+        self.i = end;
+        Some(s)
+    }
+    fn u8(&mut self) -> Option<u8> {
+        Some(self.take(1)?[0])
+    }
+    fn u64(&mut self) -> Option<u64> {
+        Some(u64::from_le_bytes(self.take(8)?.try_into().ok()?))
+    }
+    fn f64(&mut self) -> Option<f64> {
+        Some(f64::from_le_bytes(self.take(8)?.try_into().ok()?))
+    }
+    fn usize(&mut self) -> Option<usize> {
+        usize::try_from(self.u64()?).ok()
+    }
+    fn string(&mut self) -> Option<String> {
+        let n = self.usize()?;
+        String::from_utf8(self.take(n)?.to_vec()).ok()
+    }
+    fn f32s(&mut self) -> Option<Vec<f32>> {
+        let n = self.usize()?;
+        let bytes = self.take(n.checked_mul(4)?)?;
+        Some(
+            bytes
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        )
+    }
+    fn u32s(&mut self) -> Option<Vec<u32>> {
+        let n = self.usize()?;
+        let bytes = self.take(n.checked_mul(4)?)?;
+        Some(
+            bytes
+                .chunks_exact(4)
+                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        )
+    }
+    fn triples(&mut self) -> Option<Vec<[f32; 3]>> {
+        let f = self.f32s()?;
+        if f.len() % 3 != 0 {
+            return None;
+        }
+        Some(f.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+    fn image3(&mut self) -> Option<Image<[f32; 3]>> {
+        let (w, h) = (self.usize()?, self.usize()?);
+        Image::from_vec(w, h, self.triples()?).ok()
+    }
+    fn image1(&mut self) -> Option<Image<f32>> {
+        let (w, h) = (self.usize()?, self.usize()?);
+        Image::from_vec(w, h, self.f32s()?).ok()
+    }
+    fn value(&mut self) -> Option<Value> {
+        Some(match self.u8()? {
+            0 => Value::Color(Arc::new(self.image3()?)),
+            1 => Value::Depth(Arc::new(self.image1()?)),
+            2 => Value::Mask(Arc::new(self.image1()?)),
+            3 => Value::Confidence(Arc::new(self.image1()?)),
+            4 => Value::Normals(Arc::new(self.image3()?)),
+            5 => {
+                let (w, h) = (self.usize()?, self.usize()?);
+                Value::Labels(Arc::new(Image::from_vec(w, h, self.u32s()?).ok()?))
+            }
+            6 => {
+                let (fx, fy, cx, cy) = (self.f64()?, self.f64()?, self.f64()?, self.f64()?);
+                let (width, height) = (self.usize()?, self.usize()?);
+                Value::Intrinsics(Intrinsics {
+                    fx,
+                    fy,
+                    cx,
+                    cy,
+                    width,
+                    height,
+                })
+            }
+            7 => Value::PointCloud(Arc::new(PointCloud {
+                positions: self.triples()?,
+                colors: self.triples()?,
+                normals: self.triples()?,
+            })),
+            8 => {
+                let positions = self.triples()?;
+                let colors = self.triples()?;
+                let normals = self.triples()?;
+                let t = self.u32s()?;
+                if t.len() % 3 != 0 {
+                    return None;
+                }
+                Value::Mesh(Arc::new(Mesh {
+                    positions,
+                    colors,
+                    normals,
+                    triangles: t.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+                }))
+            }
+            9 => {
+                let n = self.usize()?;
+                let mut s = ExposureStack::default();
+                for _ in 0..n {
+                    s.times_s.push(self.f64()?);
+                    s.images.push(self.image3()?);
+                }
+                Value::ExposureStack(Arc::new(s))
+            }
+            10 => Value::Scalar(self.f64()?),
+            11 => Value::File(PathBuf::from(self.string()?)),
+            _ => return None,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_every_kind() {
+        let img3 = Image::from_fn(3, 2, |x, y| [x as f32, y as f32, 0.5]);
+        let img1 = Image::from_fn(3, 2, |x, y| (x * y) as f32 - 0.25);
+        let out = Outputs::new()
+            .with("c", Value::Color(Arc::new(img3.clone())))
+            .with("d", Value::Depth(Arc::new(img1.clone())))
+            .with("m", Value::Mask(Arc::new(img1.clone())))
+            .with("n", Value::Normals(Arc::new(img3.clone())))
+            .with("l", Value::Labels(Arc::new(Image::from_fn(2, 2, |x, _| x as u32))))
+            .with(
+                "k",
+                Value::Intrinsics(Intrinsics {
+                    fx: 1.0,
+                    fy: 2.0,
+                    cx: 3.0,
+                    cy: 4.0,
+                    width: 5,
+                    height: 6,
+                }),
+            )
+            .with(
+                "mesh",
+                Value::Mesh(Arc::new(Mesh {
+                    positions: vec![[0.0, 1.0, 2.0]; 3],
+                    colors: vec![],
+                    normals: vec![],
+                    triangles: vec![[0, 1, 2]],
+                })),
+            )
+            .with(
+                "e",
+                Value::ExposureStack(Arc::new(ExposureStack {
+                    images: vec![img3.clone(), img3],
+                    times_s: vec![0.5, 2.0],
+                })),
+            )
+            .with("s", Value::Scalar(-1.5))
+            .with("f", Value::File("a/b.png".into()))
+            .passthrough("no holes to fill");
+        let bytes = encode(&out);
+        let back = decode(&bytes).unwrap();
+        assert_eq!(back.values, out.values);
+        assert_eq!(back.passthrough.as_deref(), Some("no holes to fill"));
+    }
+
+    #[test]
+    fn corrupt_input_is_none() {
+        let out = Outputs::new().with("d", Value::Scalar(1.0));
+        let bytes = encode(&out);
+        for cut in 0..bytes.len() {
+            assert!(decode(&bytes[..cut]).is_none());
+        }
+        let mut huge = bytes.clone();
+        // claim an absurd string length right after the magic
+        huge[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(decode(&huge).is_none());
+    }
+}

@@ -1,0 +1,544 @@
+//! The pipeline document: what a RON file says, with positions, before any
+//! checking against the registry.
+//!
+//! ```ron
+//! (
+//!     version: 1,
+//!     nodes: {
+//!         "scene": (kind: "SyntheticScene", params: (preset: "tabletop")),
+//!         "save":  (kind: "SaveColor", params: (path: "color.png"),
+//!                   inputs: (color: "scene.color")),
+//!     },
+//!     outputs: ["save"],
+//!     // optional, written by the editor, ignored by the CLI:
+//!     layout: { "scene": (10.0, 20.0) },
+//! )
+//! ```
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use crate::error::{CheckError, Location};
+use crate::params::quote;
+use crate::ron_text::{self, Pos, RonValue, Spanned};
+
+/// The newest document format this build reads and writes.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// A parsed pipeline file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Document {
+    /// Name used in messages (usually the path).
+    pub file: String,
+    pub version: u32,
+    /// Nodes in file order.
+    pub nodes: Vec<NodeDecl>,
+    /// Requested outputs: `"node"` (all its outputs) or `"node.port"`.
+    /// Empty means every sink.
+    pub outputs: Vec<Spanned<String>>,
+    /// Editor positions by node name; the CLI ignores them.
+    pub layout: BTreeMap<String, [f64; 2]>,
+    /// Notices from reading (e.g. a migrated older format).
+    pub notices: Vec<String>,
+}
+
+/// One node of a document.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeDecl {
+    pub name: Spanned<String>,
+    pub kind: Spanned<String>,
+    /// Parameter values as written, converted when checked against the schema.
+    pub params: Vec<(Spanned<String>, Spanned<RonValue>)>,
+    /// Input port -> `"node.port"` reference.
+    pub inputs: Vec<(Spanned<String>, Spanned<String>)>,
+    /// File the values came from (`--set` overrides have their own).
+    pub param_files: BTreeMap<String, String>,
+}
+
+impl NodeDecl {
+    pub fn new(name: &str, kind: &str) -> Self {
+        Self {
+            name: Spanned {
+                pos: Pos::default(),
+                value: name.to_string(),
+            },
+            kind: Spanned {
+                pos: Pos::default(),
+                value: kind.to_string(),
+            },
+            params: Vec::new(),
+            inputs: Vec::new(),
+            param_files: BTreeMap::new(),
+        }
+    }
+}
+
+/// A reference `node.port` split in two.
+pub fn split_ref(r: &str) -> Option<(&str, &str)> {
+    let (n, p) = r.rsplit_once('.')?;
+    if n.is_empty() || p.is_empty() {
+        None
+    } else {
+        Some((n, p))
+    }
+}
+
+impl Document {
+    /// Reads a document from RON text; `file` names it in messages.
+    pub fn parse(text: &str, file: &str) -> Result<Document, Vec<CheckError>> {
+        let loc = |pos: Pos| Location::new(file, pos);
+        let root = ron_text::parse(text).map_err(|e| {
+            vec![CheckError::Syntax {
+                loc: loc(e.pos),
+                message: e.message,
+            }]
+        })?;
+        let mut errors = Vec::new();
+        let mut doc = Document {
+            file: file.to_string(),
+            version: FORMAT_VERSION,
+            nodes: Vec::new(),
+            outputs: Vec::new(),
+            layout: BTreeMap::new(),
+            notices: Vec::new(),
+        };
+        let shape = |pos: Pos, what: &str, found: &RonValue| CheckError::Format {
+            loc: loc(pos),
+            message: format!("expected {what}, found {}", found.describe()),
+        };
+        let RonValue::Struct { fields, .. } = &root.value else {
+            return Err(vec![shape(
+                root.pos,
+                "a pipeline `(version: 1, nodes: {...}, outputs: [...])`",
+                &root.value,
+            )]);
+        };
+        let mut saw_version = false;
+        for (key, val) in fields {
+            match key.value.as_str() {
+                "version" => {
+                    saw_version = true;
+                    match val.value {
+                        RonValue::Int(v) if v >= 1 && v <= FORMAT_VERSION as i64 => {
+                            doc.version = v as u32
+                        }
+                        RonValue::Int(v) if v > FORMAT_VERSION as i64 => errors.push(CheckError::Format {
+                            loc: loc(val.pos),
+                            message: format!(
+                                "format version {v} was written by a newer depthgraph; this one reads up to {FORMAT_VERSION}"
+                            ),
+                        }),
+                        _ => errors.push(CheckError::Format {
+                            loc: loc(val.pos),
+                            message: format!("expected a format version from 1 to {FORMAT_VERSION}"),
+                        }),
+                    }
+                }
+                "nodes" => {
+                    let RonValue::Map(entries) = &val.value else {
+                        errors.push(shape(val.pos, "a map of nodes `{\"name\": (kind: ...)}`", &val.value));
+                        continue;
+                    };
+                    for (k, v) in entries {
+                        match parse_node(k, v, file) {
+                            Ok(n) => {
+                                if let Some(prev) = doc.nodes.iter().find(|p| p.name.value == n.name.value) {
+                                    errors.push(CheckError::Format {
+                                        loc: loc(n.name.pos),
+                                        message: format!(
+                                            "node `{}` is declared twice (first at line {})",
+                                            n.name.value, prev.name.pos.line
+                                        ),
+                                    });
+                                } else {
+                                    doc.nodes.push(n);
+                                }
+                            }
+                            Err(mut e) => errors.append(&mut e),
+                        }
+                    }
+                }
+                "outputs" => match &val.value {
+                    RonValue::List(items) => {
+                        for it in items {
+                            match &it.value {
+                                RonValue::Str(s) => doc.outputs.push(Spanned {
+                                    pos: it.pos,
+                                    value: s.clone(),
+                                }),
+                                other => errors.push(shape(it.pos, "a string \"node\" or \"node.port\"", other)),
+                            }
+                        }
+                    }
+                    other => errors.push(shape(val.pos, "a list of outputs", other)),
+                },
+                "layout" => match &val.value {
+                    RonValue::Map(entries) => {
+                        for (k, v) in entries {
+                            let pos = match &v.value {
+                                RonValue::Tuple { items, .. } | RonValue::List(items) if items.len() == 2 => {
+                                    match (num(&items[0].value), num(&items[1].value)) {
+                                        (Some(x), Some(y)) => Some([x, y]),
+                                        _ => None,
+                                    }
+                                }
+                                _ => None,
+                            };
+                            match (&k.value, pos) {
+                                (RonValue::Str(name), Some(p)) => {
+                                    doc.layout.insert(name.clone(), p);
+                                }
+                                _ => errors.push(CheckError::Format {
+                                    loc: loc(k.pos),
+                                    message: "layout entries are `\"node\": (x, y)`".into(),
+                                }),
+                            }
+                        }
+                    }
+                    other => errors.push(shape(val.pos, "a map of node positions", other)),
+                },
+                other => {
+                    let suggestion = crate::registry::closest(other, ["version", "nodes", "outputs", "layout"]);
+                    errors.push(CheckError::Format {
+                        loc: loc(key.pos),
+                        message: format!(
+                            "unknown field `{other}`; a pipeline has `version`, `nodes`, `outputs` and `layout`{}",
+                            suggestion.map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default()
+                        ),
+                    });
+                }
+            }
+        }
+        if !saw_version {
+            doc.notices.push(format!(
+                "{file}: no `version` field; read as format version {FORMAT_VERSION}"
+            ));
+        }
+        if errors.is_empty() { Ok(doc) } else { Err(errors) }
+    }
+
+    /// Finds a node by name.
+    pub fn node(&self, name: &str) -> Option<&NodeDecl> {
+        self.nodes.iter().find(|n| n.name.value == name)
+    }
+    pub fn node_mut(&mut self, name: &str) -> Option<&mut NodeDecl> {
+        self.nodes.iter_mut().find(|n| n.name.value == name)
+    }
+
+    /// Applies `node.param=value` (value in RON syntax; a bare word is read as
+    /// text). The value is checked later, exactly like one written in the file.
+    pub fn apply_set(&mut self, assignment: &str) -> Result<(), CheckError> {
+        let file = format!("--set {assignment}");
+        let at = |col: usize| Location::new(&file, Pos { line: 1, col });
+        let Some((target, value_text)) = assignment.split_once('=') else {
+            return Err(CheckError::Format {
+                loc: at(1),
+                message: "expected `node.param=value`".into(),
+            });
+        };
+        let Some((node, param)) = split_ref(target.trim()) else {
+            return Err(CheckError::Format {
+                loc: at(1),
+                message: format!("expected `node.param` before `=`, found `{target}`"),
+            });
+        };
+        let value_col = target.chars().count() + 2;
+        let value_text = value_text.trim();
+        let parsed = match ron_text::parse(value_text) {
+            Ok(v) => v.value,
+            // A bare word or a path is text.
+            Err(_) if !value_text.is_empty() => RonValue::Str(value_text.to_string()),
+            Err(e) => {
+                return Err(CheckError::Syntax {
+                    loc: at(value_col + e.pos.col - 1),
+                    message: e.message,
+                });
+            }
+        };
+        let parsed = match parsed {
+            RonValue::Ident(s) if s != "None" => RonValue::Str(s),
+            other => other,
+        };
+        let names: Vec<String> = self.nodes.iter().map(|n| n.name.value.clone()).collect();
+        let Some(decl) = self.node_mut(node) else {
+            let suggestion = crate::registry::closest(node, names.iter().map(String::as_str));
+            return Err(CheckError::UnknownNode {
+                loc: at(1),
+                name: node.to_string(),
+                suggestion: suggestion.map(str::to_string),
+            });
+        };
+        let spanned_value = Spanned {
+            pos: Pos {
+                line: 1,
+                col: value_col,
+            },
+            value: parsed,
+        };
+        decl.param_files.insert(param.to_string(), file.clone());
+        if let Some(slot) = decl.params.iter_mut().find(|(k, _)| k.value == param) {
+            slot.0.pos = Pos { line: 1, col: 1 + node.len() + 1 };
+            slot.1 = spanned_value;
+        } else {
+            decl.params.push((
+                Spanned {
+                    pos: Pos { line: 1, col: 1 + node.len() + 1 },
+                    value: param.to_string(),
+                },
+                spanned_value,
+            ));
+        }
+        Ok(())
+    }
+
+    /// Writes the document as RON a person can read and edit.
+    pub fn to_ron(&self) -> String {
+        let mut s = String::new();
+        s.push_str("(\n");
+        s.push_str(&format!("    version: {},\n", self.version));
+        s.push_str("    nodes: {\n");
+        for n in &self.nodes {
+            s.push_str(&format!("        {}: (\n", quote(&n.name.value)));
+            s.push_str(&format!("            kind: {},\n", quote(&n.kind.value)));
+            if !n.params.is_empty() {
+                s.push_str("            params: (\n");
+                for (k, v) in &n.params {
+                    s.push_str(&format!("                {}: {},\n", k.value, ron_to_text(&v.value)));
+                }
+                s.push_str("            ),\n");
+            }
+            if !n.inputs.is_empty() {
+                s.push_str("            inputs: (\n");
+                for (k, v) in &n.inputs {
+                    s.push_str(&format!("                {}: {},\n", k.value, quote(&v.value)));
+                }
+                s.push_str("            ),\n");
+            }
+            s.push_str("        ),\n");
+        }
+        s.push_str("    },\n");
+        let outs: Vec<String> = self.outputs.iter().map(|o| quote(&o.value)).collect();
+        s.push_str(&format!("    outputs: [{}],\n", outs.join(", ")));
+        if !self.layout.is_empty() {
+            s.push_str("    layout: {\n");
+            for (k, [x, y]) in &self.layout {
+                s.push_str(&format!("        {}: ({x:?}, {y:?}),\n", quote(k)));
+            }
+            s.push_str("    },\n");
+        }
+        s.push_str(")\n");
+        s
+    }
+}
+
+fn num(v: &RonValue) -> Option<f64> {
+    match v {
+        RonValue::Int(i) => Some(*i as f64),
+        RonValue::Float(f) => Some(*f),
+        _ => None,
+    }
+}
+
+/// RON text of a value (inverse of the reader for the subset it reads).
+pub fn ron_to_text(v: &RonValue) -> String {
+    match v {
+        RonValue::Str(s) => quote(s),
+        RonValue::Int(i) => i.to_string(),
+        RonValue::Float(f) => {
+            if f.is_nan() {
+                "NaN".into()
+            } else if f.is_infinite() {
+                if *f > 0.0 { "inf".into() } else { "-inf".into() }
+            } else {
+                format!("{f:?}")
+            }
+        }
+        RonValue::Bool(b) => b.to_string(),
+        RonValue::Ident(s) => s.clone(),
+        RonValue::List(items) => {
+            let parts: Vec<String> = items.iter().map(|i| ron_to_text(&i.value)).collect();
+            format!("[{}]", parts.join(", "))
+        }
+        RonValue::Map(entries) => {
+            let parts: Vec<String> = entries
+                .iter()
+                .map(|(k, v)| format!("{}: {}", ron_to_text(&k.value), ron_to_text(&v.value)))
+                .collect();
+            format!("{{{}}}", parts.join(", "))
+        }
+        RonValue::Struct { name, fields } => {
+            let parts: Vec<String> = fields
+                .iter()
+                .map(|(k, v)| format!("{}: {}", k.value, ron_to_text(&v.value)))
+                .collect();
+            format!("{}({})", name.clone().unwrap_or_default(), parts.join(", "))
+        }
+        RonValue::Tuple { name, items } => {
+            let parts: Vec<String> = items.iter().map(|i| ron_to_text(&i.value)).collect();
+            format!("{}({})", name.clone().unwrap_or_default(), parts.join(", "))
+        }
+    }
+}
+
+fn parse_node(
+    key: &Spanned<RonValue>,
+    val: &Spanned<RonValue>,
+    file: &str,
+) -> Result<NodeDecl, Vec<CheckError>> {
+    let loc = |pos: Pos| Location::new(file, pos);
+    let mut errors = Vec::new();
+    let RonValue::Str(name) = &key.value else {
+        return Err(vec![CheckError::Format {
+            loc: loc(key.pos),
+            message: format!("node names are strings, found {}", key.value.describe()),
+        }]);
+    };
+    if name.contains('.') || name.is_empty() {
+        errors.push(CheckError::Format {
+            loc: loc(key.pos),
+            message: format!("node name `{name}` must be non-empty and contain no `.`"),
+        });
+    }
+    let RonValue::Struct { fields, .. } = &val.value else {
+        return Err(vec![CheckError::Format {
+            loc: loc(val.pos),
+            message: format!(
+                "node `{name}`: expected `(kind: \"...\", params: (...), inputs: (...))`, found {}",
+                val.value.describe()
+            ),
+        }]);
+    };
+    let mut decl = NodeDecl::new(name, "");
+    decl.name.pos = key.pos;
+    let mut saw_kind = false;
+    for (k, v) in fields {
+        match k.value.as_str() {
+            "kind" => match &v.value {
+                RonValue::Str(s) | RonValue::Ident(s) => {
+                    saw_kind = true;
+                    decl.kind = Spanned {
+                        pos: v.pos,
+                        value: s.clone(),
+                    };
+                }
+                other => errors.push(CheckError::Format {
+                    loc: loc(v.pos),
+                    message: format!("node `{name}`: `kind` is a string, found {}", other.describe()),
+                }),
+            },
+            "params" => match &v.value {
+                RonValue::Struct { fields, .. } => decl.params = fields.clone(),
+                RonValue::Tuple { items, .. } if items.is_empty() => {}
+                other => errors.push(CheckError::Format {
+                    loc: loc(v.pos),
+                    message: format!(
+                        "node `{name}`: `params` is `(name: value, ...)`, found {}",
+                        other.describe()
+                    ),
+                }),
+            },
+            "inputs" => match &v.value {
+                RonValue::Struct { fields, .. } => {
+                    for (port, src) in fields {
+                        match &src.value {
+                            RonValue::Str(s) => decl.inputs.push((
+                                port.clone(),
+                                Spanned {
+                                    pos: src.pos,
+                                    value: s.clone(),
+                                },
+                            )),
+                            other => errors.push(CheckError::Format {
+                                loc: loc(src.pos),
+                                message: format!(
+                                    "node `{name}` input `{}`: expected \"node.port\", found {}",
+                                    port.value,
+                                    other.describe()
+                                ),
+                            }),
+                        }
+                    }
+                }
+                RonValue::Tuple { items, .. } if items.is_empty() => {}
+                other => errors.push(CheckError::Format {
+                    loc: loc(v.pos),
+                    message: format!(
+                        "node `{name}`: `inputs` is `(port: \"node.port\", ...)`, found {}",
+                        other.describe()
+                    ),
+                }),
+            },
+            other => errors.push(CheckError::Format {
+                loc: loc(k.pos),
+                message: format!(
+                    "node `{name}`: unknown field `{other}`; a node has `kind`, `params` and `inputs`"
+                ),
+            }),
+        }
+    }
+    if !saw_kind {
+        errors.push(CheckError::Format {
+            loc: loc(val.pos),
+            message: format!("node `{name}` has no `kind`"),
+        });
+    }
+    if errors.is_empty() { Ok(decl) } else { Err(errors) }
+}
+
+impl fmt::Display for Document {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.to_ron())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TEXT: &str = r#"(
+    version: 1,
+    nodes: {
+        "a": (kind: "Source", params: (x: 1.5, name: "hi")),
+        "b": (kind: "Sink", inputs: (v: "a.out")),
+    },
+    outputs: ["b"],
+    layout: { "a": (1.0, 2.0) },
+)"#;
+
+    #[test]
+    fn parse_and_round_trip() {
+        let d = Document::parse(TEXT, "t.ron").unwrap();
+        assert_eq!(d.nodes.len(), 2);
+        assert_eq!(d.nodes[1].inputs[0].1.value, "a.out");
+        assert_eq!(d.nodes[1].inputs[0].1.pos, Pos { line: 5, col: 41 });
+        assert_eq!(d.layout["a"], [1.0, 2.0]);
+        let again = Document::parse(&d.to_ron(), "t.ron").unwrap();
+        assert_eq!(again.to_ron(), d.to_ron());
+        assert_eq!(again.nodes[0].params.len(), 2);
+    }
+
+    #[test]
+    fn set_overrides_and_adds() {
+        let mut d = Document::parse(TEXT, "t.ron").unwrap();
+        d.apply_set("a.x=2").unwrap();
+        d.apply_set("a.path=out/x.png").unwrap();
+        let a = d.node("a").unwrap();
+        assert_eq!(a.params[0].1.value, RonValue::Int(2));
+        assert_eq!(a.params[2].1.value, RonValue::Str("out/x.png".into()));
+        let e = d.apply_set("aa.x=1").unwrap_err();
+        assert!(e.to_string().contains("did you mean `a`"), "{e}");
+        assert!(d.apply_set("nodot=1").is_err());
+    }
+
+    #[test]
+    fn newer_version_is_refused() {
+        let e = Document::parse("(version: 99, nodes: {})", "t.ron").unwrap_err();
+        assert!(e[0].to_string().contains("newer"), "{}", e[0]);
+    }
+
+    #[test]
+    fn missing_version_gives_notice() {
+        let d = Document::parse("(nodes: {})", "t.ron").unwrap();
+        assert_eq!(d.notices.len(), 1);
+    }
+}

@@ -1,0 +1,358 @@
+//! The cached, demand-driven scheduler.
+//!
+//! 1. Every node's Merkle [`Key`] is computed before anything runs.
+//! 2. Starting from the requested outputs, each node is looked up in the
+//!    memory cache, then the disk cache; only on a miss are its inputs
+//!    demanded in turn. Nodes upstream of a hit are "not needed".
+//! 3. The nodes to run are grouped in dependency levels; the nodes of a level
+//!    run in parallel on a rayon pool of the requested size.
+//! 4. Each node's status (ran / cached / passthrough / not_needed), reason,
+//!    time and bytes go into the [`Trace`] that `explain` prints.
+//!
+//! Results do not depend on the thread count as long as nodes are
+//! deterministic (the contract of [`Node`](crate::node::Node)).
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use crate::cache::{DiskCache, MemoryCache};
+use crate::error::RunError;
+use crate::key::{Key, node_key};
+use crate::node::{CancelToken, EvalCtx, Inputs, NodeError, Outputs, ProgressFn};
+use crate::pipeline::Pipeline;
+use crate::trace::{NodeRecord, Status, Trace};
+use crate::value::Value;
+
+/// How an [`Engine`] keeps results and how many threads it uses.
+#[derive(Debug, Clone)]
+pub struct EngineOptions {
+    /// In-memory cache budget in bytes.
+    pub memory_budget_bytes: usize,
+    /// Persistent cache, or `None` to keep results only in memory.
+    pub disk: Option<DiskCache>,
+    /// Worker threads (0 = rayon's default, one per core).
+    pub threads: usize,
+}
+
+impl Default for EngineOptions {
+    fn default() -> Self {
+        Self {
+            memory_budget_bytes: 1 << 30,
+            disk: None,
+            threads: 0,
+        }
+    }
+}
+
+/// Options of one run.
+#[derive(Clone, Default)]
+pub struct RunOptions {
+    pub cancel: CancelToken,
+    pub progress: Option<ProgressFn>,
+    /// Where relative output paths of sinks go.
+    pub out_dir: PathBuf,
+    /// Nodes (by index) that must run even when cached (used by `sweep` to time them).
+    pub force: Vec<usize>,
+    /// Skip cache lookups entirely (results are still stored).
+    pub no_cache_lookup: bool,
+}
+
+/// Everything a run produced.
+#[derive(Debug, Clone)]
+pub struct RunResult {
+    /// Requested values by `"node.port"`.
+    pub outputs: BTreeMap<String, Value>,
+    pub trace: Trace,
+}
+
+/// Evaluates pipelines, keeping results between runs.
+pub struct Engine {
+    memory: Mutex<MemoryCache>,
+    disk: Option<DiskCache>,
+    pool: rayon::ThreadPool,
+    threads: usize,
+}
+
+enum State {
+    Unvisited,
+    Hit(Arc<Outputs>, f64),
+    Run,
+}
+
+impl Engine {
+    pub fn new(options: EngineOptions) -> Result<Self, RunError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(options.threads)
+            .thread_name(|i| format!("depthgraph-{i}"))
+            .build()
+            .map_err(|e| RunError::Threads(e.to_string()))?;
+        Ok(Self {
+            memory: Mutex::new(MemoryCache::new(options.memory_budget_bytes)),
+            disk: options.disk,
+            threads: pool.current_num_threads(),
+            pool,
+        })
+    }
+
+    /// Number of worker threads.
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Drops every in-memory result.
+    pub fn clear_memory(&self) {
+        self.lock_memory().clear();
+    }
+
+    fn lock_memory(&self) -> std::sync::MutexGuard<'_, MemoryCache> {
+        // A panic in another thread while holding the lock leaves a valid
+        // cache (every mutation completes before unlocking), so recover it.
+        self.memory.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Every node's cache key, by node index.
+    pub fn keys(pipeline: &Pipeline) -> Vec<Key> {
+        let mut keys: Vec<Option<Key>> = vec![None; pipeline.nodes.len()];
+        for &i in &pipeline.order {
+            let n = &pipeline.nodes[i];
+            let schema = n.node.schema();
+            let inputs: Vec<(&str, &str, Key)> = n
+                .inputs
+                .iter()
+                .map(|(port, src)| {
+                    // toposort guarantees the source was keyed first
+                    let k = keys[src.node].unwrap_or(Key::from_bytes([0; 32]));
+                    (port.as_str(), src.port.as_str(), k)
+                })
+                .collect();
+            keys[i] = Some(node_key(schema.kind, schema.version, &n.params, &inputs));
+        }
+        keys.into_iter().map(|k| k.unwrap_or(Key::from_bytes([0; 32]))).collect()
+    }
+
+    /// Runs what the pipeline's requested outputs need.
+    pub fn run(&self, pipeline: &Pipeline, options: &RunOptions) -> Result<RunResult, RunError> {
+        self.pool.install(|| self.run_inner(pipeline, options))
+    }
+
+    fn run_inner(&self, p: &Pipeline, opts: &RunOptions) -> Result<RunResult, RunError> {
+        let n = p.nodes.len();
+        let keys = Self::keys(p);
+        let mut state: Vec<State> = (0..n).map(|_| State::Unvisited).collect();
+
+        // Demand: from the requested outputs, stop at cache hits.
+        let mut stack: Vec<usize> = p.outputs.iter().map(|o| o.node).collect();
+        while let Some(i) = stack.pop() {
+            if !matches!(state[i], State::Unvisited) {
+                continue;
+            }
+            let node = &p.nodes[i];
+            let cacheable = !node.node.schema().sink && !opts.force.contains(&i);
+            let hit = if cacheable && !opts.no_cache_lookup {
+                self.lookup(&keys[i])
+            } else {
+                None
+            };
+            match hit {
+                Some((out, ms)) => state[i] = State::Hit(out, ms),
+                None => {
+                    state[i] = State::Run;
+                    stack.extend(node.inputs.values().map(|s| s.node));
+                }
+            }
+        }
+
+        // Levels of the nodes to run.
+        let mut level = vec![0usize; n];
+        let mut max_level = 0;
+        for &i in &p.order {
+            if matches!(state[i], State::Run) {
+                level[i] = p.nodes[i]
+                    .inputs
+                    .values()
+                    .filter(|s| matches!(state[s.node], State::Run))
+                    .map(|s| level[s.node] + 1)
+                    .max()
+                    .unwrap_or(0);
+                max_level = max_level.max(level[i]);
+            }
+        }
+
+        let mut results: Vec<Option<Arc<Outputs>>> = state
+            .iter()
+            .map(|s| match s {
+                State::Hit(o, _) => Some(o.clone()),
+                _ => None,
+            })
+            .collect();
+        let mut timings: Vec<f64> = vec![0.0; n];
+        let input_files = p.input_files();
+
+        for l in 0..=max_level {
+            let batch: Vec<usize> = p
+                .order
+                .iter()
+                .copied()
+                .filter(|&i| matches!(state[i], State::Run) && level[i] == l)
+                .collect();
+            if batch.is_empty() {
+                continue;
+            }
+            let done: Mutex<Vec<(usize, Result<(Outputs, f64), RunError>)>> = Mutex::new(Vec::new());
+            let results_ref = &results;
+            rayon::scope(|s| {
+                for &i in &batch {
+                    let done = &done;
+                    let input_files = &input_files;
+                    s.spawn(move |_| {
+                        let r = self.eval_node(p, i, results_ref, opts, input_files);
+                        done.lock().unwrap_or_else(|e| e.into_inner()).push((i, r));
+                    });
+                }
+            });
+            let mut done = done.into_inner().unwrap_or_else(|e| e.into_inner());
+            // Deterministic error reporting: the first failing node in order.
+            done.sort_by_key(|(i, _)| p.order.iter().position(|o| o == i));
+            for (i, r) in done {
+                let (out, ms) = r?;
+                let out = Arc::new(out);
+                if !p.nodes[i].node.schema().sink {
+                    self.lock_memory().put(keys[i], out.clone());
+                    if let Some(disk) = &self.disk {
+                        // A cache that cannot be written is not an error of the run.
+                        let _ = disk.put(&keys[i], &out);
+                    }
+                }
+                timings[i] = ms;
+                results[i] = Some(out);
+            }
+        }
+
+        // Requested values.
+        let mut outputs = BTreeMap::new();
+        for o in &p.outputs {
+            let node = &p.nodes[o.node];
+            if let Some(r) = &results[o.node] {
+                for (port, v) in &r.values {
+                    if o.port.as_deref().is_none_or(|want| want == port) {
+                        outputs.insert(format!("{}.{}", node.name, port), v.clone());
+                    }
+                }
+            }
+        }
+
+        // Trace in file order.
+        let records = (0..n)
+            .map(|i| {
+                let node = &p.nodes[i];
+                let (status, reason, ms) = match &state[i] {
+                    State::Unvisited => (Status::NotNeeded, None, 0.0),
+                    State::Hit(o, ms) => (Status::Cached, o.passthrough.clone(), *ms),
+                    State::Run => {
+                        let r = results[i].as_ref().and_then(|o| o.passthrough.clone());
+                        let st = if r.is_some() { Status::Passthrough } else { Status::Ran };
+                        (st, r, timings[i])
+                    }
+                };
+                NodeRecord {
+                    node: node.name.clone(),
+                    kind: node.kind.clone(),
+                    status,
+                    reason,
+                    ms,
+                    bytes: results[i].as_ref().map(|o| o.bytes()).unwrap_or(0),
+                    backend: node.node.backend().to_string(),
+                    key: keys[i].to_hex(),
+                }
+            })
+            .collect();
+        Ok(RunResult {
+            outputs,
+            trace: Trace {
+                nodes: records,
+                threads: self.threads,
+            },
+        })
+    }
+
+    fn lookup(&self, key: &Key) -> Option<(Arc<Outputs>, f64)> {
+        let t = Instant::now();
+        if let Some(o) = self.lock_memory().get(key) {
+            return Some((o, t.elapsed().as_secs_f64() * 1e3));
+        }
+        let disk = self.disk.as_ref()?;
+        let out = Arc::new(disk.get(key)?);
+        self.lock_memory().put(*key, out.clone());
+        Some((out, t.elapsed().as_secs_f64() * 1e3))
+    }
+
+    fn eval_node(
+        &self,
+        p: &Pipeline,
+        i: usize,
+        results: &[Option<Arc<Outputs>>],
+        opts: &RunOptions,
+        input_files: &[PathBuf],
+    ) -> Result<(Outputs, f64), RunError> {
+        let node = &p.nodes[i];
+        let schema = node.node.schema();
+        let fail = |source: NodeError| RunError::Node {
+            node: node.name.clone(),
+            kind: node.kind.clone(),
+            source,
+        };
+        if opts.cancel.is_cancelled() {
+            return Err(RunError::Cancelled);
+        }
+        let mut inputs = Inputs::new();
+        for (port, src) in &node.inputs {
+            let v = results[src.node]
+                .as_ref()
+                .and_then(|o| o.values.get(&src.port))
+                .ok_or_else(|| RunError::MissingOutput {
+                    node: p.nodes[src.node].name.clone(),
+                    kind: p.nodes[src.node].kind.clone(),
+                    port: src.port.clone(),
+                })?;
+            inputs.insert(port.clone(), v.clone());
+        }
+        let ctx = EvalCtx {
+            node: &node.name,
+            cancel: &opts.cancel,
+            progress: opts.progress.as_ref(),
+            out_dir: &opts.out_dir,
+            input_files,
+        };
+        let t = Instant::now();
+        let out = node.node.eval(&ctx, &inputs, &node.params).map_err(|e| match e {
+            NodeError::Cancelled => RunError::Cancelled,
+            e => fail(e),
+        })?;
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        for spec in &schema.outputs {
+            match out.values.get(spec.name) {
+                None => {
+                    return Err(RunError::MissingOutput {
+                        node: node.name.clone(),
+                        kind: node.kind.clone(),
+                        port: spec.name.to_string(),
+                    });
+                }
+                Some(v) if !v.value_type().connects_to(spec.ty) => {
+                    return Err(RunError::WrongOutputType {
+                        node: node.name.clone(),
+                        kind: node.kind.clone(),
+                        port: spec.name.to_string(),
+                        expected: spec.ty,
+                        found: v.value_type(),
+                    });
+                }
+                _ => {}
+            }
+        }
+        ctx.progress(1.0);
+        Ok((out, ms))
+    }
+}

@@ -1,0 +1,114 @@
+//! The record of a run: what each node did and why (what `explain` prints).
+
+use std::fmt::Write as _;
+
+use serde::Serialize;
+
+/// What happened to a node in a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Status {
+    /// Evaluated.
+    Ran,
+    /// Taken from the memory or disk cache.
+    Cached,
+    /// Evaluated, and it passed its input through (see the reason).
+    Passthrough,
+    /// Not evaluated: no requested output needs it (or a cached result downstream covers it).
+    NotNeeded,
+}
+
+impl Status {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Status::Ran => "ran",
+            Status::Cached => "cached",
+            Status::Passthrough => "passthrough",
+            Status::NotNeeded => "not_needed",
+        }
+    }
+}
+
+/// One node's line of the trace.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct NodeRecord {
+    pub node: String,
+    pub kind: String,
+    pub status: Status,
+    /// Why the node passed through (also kept when the result came from the cache).
+    pub reason: Option<String>,
+    /// Evaluation (or cache fetch) time in milliseconds.
+    pub ms: f64,
+    /// Bytes of the node's outputs.
+    pub bytes: usize,
+    pub backend: String,
+    /// Hex cache key.
+    pub key: String,
+}
+
+/// The whole run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Trace {
+    pub nodes: Vec<NodeRecord>,
+    pub threads: usize,
+}
+
+impl Trace {
+    pub fn get(&self, node: &str) -> Option<&NodeRecord> {
+        self.nodes.iter().find(|r| r.node == node)
+    }
+    /// Names of the nodes with the given status.
+    pub fn with_status(&self, status: Status) -> Vec<&str> {
+        self.nodes
+            .iter()
+            .filter(|r| r.status == status)
+            .map(|r| r.node.as_str())
+            .collect()
+    }
+    /// Names of the nodes that were evaluated (ran or passed through).
+    pub fn evaluated(&self) -> Vec<&str> {
+        self.nodes
+            .iter()
+            .filter(|r| matches!(r.status, Status::Ran | Status::Passthrough))
+            .map(|r| r.node.as_str())
+            .collect()
+    }
+    /// A readable table.
+    pub fn table(&self) -> String {
+        let w_node = self.nodes.iter().map(|r| r.node.len()).max().unwrap_or(4).max(4);
+        let w_kind = self.nodes.iter().map(|r| r.kind.len()).max().unwrap_or(4).max(4);
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "{:<w_node$}  {:<w_kind$}  {:<11}  {:>9}  {:>10}  reason",
+            "node", "kind", "status", "ms", "bytes"
+        );
+        for r in &self.nodes {
+            let _ = writeln!(
+                s,
+                "{:<w_node$}  {:<w_kind$}  {:<11}  {:>9.2}  {:>10}  {}",
+                r.node,
+                r.kind,
+                r.status.as_str(),
+                r.ms,
+                human_bytes(r.bytes),
+                r.reason.as_deref().unwrap_or("")
+            );
+        }
+        let total: f64 = self.nodes.iter().map(|r| r.ms).sum();
+        let _ = writeln!(s, "total node time {total:.2} ms on {} threads", self.threads);
+        s
+    }
+}
+
+/// `1.5 MiB` style.
+pub fn human_bytes(b: usize) -> String {
+    let b = b as f64;
+    if b >= 1024.0 * 1024.0 {
+        format!("{:.1} MiB", b / 1024.0 / 1024.0)
+    } else if b >= 1024.0 {
+        format!("{:.1} KiB", b / 1024.0)
+    } else {
+        format!("{b} B")
+    }
+}
