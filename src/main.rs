@@ -1,1 +1,432 @@
-fn main(){}
+//! `depthgraph`: run, check, explain and sweep RGB-D pipelines.
+
+use std::collections::BTreeMap;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::{Arc, Mutex};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use depthgraph::graph::prelude::*;
+use depthgraph::metrics::Metric;
+use depthgraph::sweep::{SweepSpec, plot_svg, run_sweep, to_csv};
+use depthgraph::{LoadError, default_cache_dir, load_pipeline, read_document};
+
+#[derive(Parser)]
+#[command(name = "depthgraph", version, about = "Edit color+depth photographs with typed node graphs")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a pipeline and write its outputs.
+    Run {
+        #[command(flatten)]
+        common: RunArgs,
+    },
+    /// Check a pipeline (syntax, kinds, ports, parameters, types, cycles) without running it.
+    Check {
+        file: PathBuf,
+        /// Override a parameter: node.param=value (RON syntax; bare words are text).
+        #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+        sets: Vec<String>,
+    },
+    /// List node kinds, or describe one: ports, types, parameters with defaults and ranges.
+    Nodes {
+        kind: Option<String>,
+        /// Print the schema as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Run a pipeline and report, per node, whether it ran, came from the cache, passed through or was not needed.
+    Explain {
+        #[command(flatten)]
+        common: RunArgs,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Error against time over the values of one parameter.
+    Sweep {
+        #[command(flatten)]
+        common: RunArgs,
+        /// The parameter and its values: node.param=v1,v2,...
+        #[arg(long)]
+        param: String,
+        /// Reference setting: node.param=value (its output is the reference).
+        #[arg(long)]
+        reference: Option<String>,
+        /// Ground-truth port to compare with instead of a reference run: node.port.
+        #[arg(long)]
+        truth: Option<String>,
+        /// The judged output: node.port.
+        #[arg(long)]
+        output: String,
+        #[arg(long, value_enum, default_value = "rmse")]
+        metric: Metric,
+        /// Timed repeats per value (median reported).
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        /// CSV file to write (default: <out>/sweep-<node>-<param>.csv).
+        #[arg(long)]
+        csv: Option<PathBuf>,
+        /// SVG plot to write (default: <out>/sweep-<node>-<param>.svg).
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// Pipeline file (RON).
+    file: PathBuf,
+    /// Override a parameter: node.param=value (RON syntax; bare words are text).
+    #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+    sets: Vec<String>,
+    /// Directory for relative output paths.
+    #[arg(long, default_value = "out")]
+    out: PathBuf,
+    /// Do not read or write the on-disk cache.
+    #[arg(long)]
+    no_cache: bool,
+    /// Where the on-disk cache lives (default: $DEPTHGRAPH_CACHE_DIR, $XDG_CACHE_HOME/depthgraph or ~/.cache/depthgraph).
+    #[arg(long)]
+    cache_dir: Option<PathBuf>,
+    /// On-disk cache budget in MiB; least recently used entries go first.
+    #[arg(long, default_value_t = 4096)]
+    cache_mb: u64,
+    /// In-memory cache budget in MiB.
+    #[arg(long, default_value_t = 2048)]
+    memory_mb: usize,
+    /// Worker threads (0 = one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// No progress bars.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+fn registry() -> Result<Registry> {
+    depthgraph::nodes::registry().context("building the node registry")
+}
+
+/// Prints check errors (one per line) and turns them into a failure.
+fn load(args: &RunArgs, reg: &Registry) -> Result<(Document, Pipeline), ExitCode> {
+    match load_pipeline(&args.file, &args.sets, reg) {
+        Ok((doc, p)) => {
+            for n in &doc.notices {
+                eprintln!("note: {n}");
+            }
+            Ok((doc, p))
+        }
+        Err(e) => {
+            report_load_error(&e);
+            Err(ExitCode::from(2))
+        }
+    }
+}
+
+fn report_load_error(e: &LoadError) {
+    match e {
+        LoadError::Check(errs) => eprintln!("{errs}"),
+        other => eprintln!("error: {other}"),
+    }
+}
+
+fn engine(args: &RunArgs) -> Result<Engine> {
+    let disk = (!args.no_cache).then(|| {
+        let dir = args.cache_dir.clone().unwrap_or_else(default_cache_dir);
+        DiskCache::new(dir, args.cache_mb.saturating_mul(1 << 20))
+    });
+    Ok(Engine::new(EngineOptions {
+        memory_budget_bytes: args.memory_mb.saturating_mul(1 << 20),
+        disk,
+        threads: args.threads,
+    })?)
+}
+
+fn progress_bar(quiet: bool) -> Option<depthgraph::graph::node::ProgressFn> {
+    if quiet || !std::io::stderr().is_terminal() {
+        return None;
+    }
+    let multi = indicatif::MultiProgress::new();
+    let bars: Mutex<BTreeMap<String, indicatif::ProgressBar>> = Mutex::new(BTreeMap::new());
+    let style = indicatif::ProgressStyle::with_template("{prefix:>16} [{bar:30}] {percent:>3}%")
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> ");
+    Some(Arc::new(move |node: &str, f: f32| {
+        let mut bars = bars.lock().unwrap_or_else(|e| e.into_inner());
+        let bar = bars.entry(node.to_string()).or_insert_with(|| {
+            let b = multi.add(indicatif::ProgressBar::new(1000));
+            b.set_style(style.clone());
+            b.set_prefix(node.to_string());
+            b
+        });
+        bar.set_position((f * 1000.0) as u64);
+        if f >= 1.0 {
+            bar.finish_and_clear();
+        }
+    }))
+}
+
+fn run_options(args: &RunArgs) -> RunOptions {
+    RunOptions {
+        progress: progress_bar(args.quiet),
+        out_dir: args.out.clone(),
+        protected_files: vec![args.file.clone()],
+        ..RunOptions::default()
+    }
+}
+
+fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
+    let reg = registry()?;
+    let (_, p) = match load(args, &reg) {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
+    let engine = engine(args)?;
+    let t = std::time::Instant::now();
+    let result = engine.run(&p, &run_options(args))?;
+    let wall = t.elapsed().as_secs_f64() * 1e3;
+    for (name, v) in &result.outputs {
+        match v {
+            Value::File(f) => println!("wrote {}", f.display()),
+            Value::Scalar(x) => println!("{name} = {x}"),
+            other => println!("{name}: {} {}", other.value_type(), dims_text(other)),
+        }
+    }
+    let ran = result.trace.evaluated().len();
+    let cached = result.trace.with_status(Status::Cached).len();
+    eprintln!("{ran} nodes evaluated, {cached} cached, {wall:.0} ms");
+    Ok(ExitCode::SUCCESS)
+}
+
+fn dims_text(v: &Value) -> String {
+    v.image_dims().map(|(w, h)| format!("{w}x{h}")).unwrap_or_default()
+}
+
+fn cmd_check(file: &Path, sets: &[String]) -> Result<ExitCode> {
+    let reg = registry()?;
+    match load_pipeline(file, sets, &reg) {
+        Ok((doc, p)) => {
+            for n in &doc.notices {
+                eprintln!("note: {n}");
+            }
+            println!("{}: ok ({} nodes, {} requested outputs)", file.display(), p.nodes.len(), p.outputs.len());
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => {
+            report_load_error(&e);
+            Ok(ExitCode::from(2))
+        }
+    }
+}
+
+fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
+    let reg = registry()?;
+    let kinds: Vec<&str> = match kind {
+        Some(k) => {
+            if reg.get(k).is_none() {
+                let hint = reg.suggest(k).map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default();
+                bail!("unknown node kind `{k}`{hint}");
+            }
+            vec![k]
+        }
+        None => reg.kinds().collect(),
+    };
+    if json {
+        let list: Vec<serde_json::Value> = kinds
+            .iter()
+            .filter_map(|k| reg.get(k))
+            .map(|n| schema_json(n.schema()))
+            .collect();
+        println!("{}", serde_json::to_string_pretty(&list)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    if kind.is_none() {
+        for k in kinds {
+            if let Some(n) = reg.get(k) {
+                println!("{:<18} {}", k, n.schema().doc.lines().next().unwrap_or(""));
+            }
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    for k in kinds {
+        let Some(n) = reg.get(k) else { continue };
+        let s = n.schema();
+        println!("{} (version {}){}\n  {}\n", s.kind, s.version, if s.sink { ", sink" } else { "" }, s.doc);
+        println!("  inputs:");
+        if s.inputs.is_empty() {
+            println!("    (none)");
+        }
+        for p in &s.inputs {
+            println!("    {:<14} {:<13} {}{}", p.name, p.ty, if p.optional { "(optional) " } else { "" }, p.doc);
+        }
+        println!("  outputs:");
+        for p in &s.outputs {
+            println!("    {:<14} {:<13} {}", p.name, p.ty, p.doc);
+        }
+        println!("  parameters:");
+        if s.params.is_empty() {
+            println!("    (none)");
+        }
+        for p in &s.params {
+            let range = p.kind.range_text();
+            println!(
+                "    {:<14} {:<12} default {}{}\n        {}",
+                p.name,
+                p.kind.type_name(),
+                p.default,
+                if range.is_empty() { String::new() } else { format!(", {range}") },
+                p.doc.replace('\n', "\n        ")
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn schema_json(s: &NodeSchema) -> serde_json::Value {
+    let ports = |ps: &[depthgraph::graph::node::PortSpec]| -> Vec<serde_json::Value> {
+        ps.iter()
+            .map(|p| serde_json::json!({"name": p.name, "type": p.ty.name(), "optional": p.optional, "doc": p.doc}))
+            .collect()
+    };
+    serde_json::json!({
+        "kind": s.kind,
+        "version": s.version,
+        "doc": s.doc,
+        "sink": s.sink,
+        "inputs": ports(&s.inputs),
+        "outputs": ports(&s.outputs),
+        "params": s.params.iter().map(|p| serde_json::json!({
+            "name": p.name,
+            "type": p.kind.type_name(),
+            "range": p.kind.range_text(),
+            "default": p.default.to_ron(),
+            "doc": p.doc,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
+    let reg = registry()?;
+    let (_, p) = match load(args, &reg) {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
+    let engine = engine(args)?;
+    let result = engine.run(&p, &run_options(args))?;
+    if json {
+        let rows: Vec<serde_json::Value> = result
+            .trace
+            .nodes
+            .iter()
+            .map(|r| {
+                serde_json::json!({
+                    "node": r.node, "kind": r.kind, "status": r.status.as_str(),
+                    "reason": r.reason, "ms": r.ms, "bytes": r.bytes, "backend": r.backend,
+                })
+            })
+            .collect();
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    } else {
+        print!("{}", result.trace.table());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn cmd_sweep(
+    args: &RunArgs,
+    param: &str,
+    reference: Option<String>,
+    truth: Option<String>,
+    output: String,
+    metric: Metric,
+    repeats: usize,
+    csv: Option<PathBuf>,
+    plot: Option<PathBuf>,
+) -> Result<ExitCode> {
+    let reg = registry()?;
+    let doc = match read_document(&args.file, &args.sets) {
+        Ok(d) => d,
+        Err(e) => {
+            report_load_error(&e);
+            return Ok(ExitCode::from(2));
+        }
+    };
+    let Some((target, values)) = param.split_once('=') else {
+        bail!("--param must be node.param=v1,v2,...");
+    };
+    let values: Vec<String> = values.split(',').map(|v| v.trim().to_string()).filter(|v| !v.is_empty()).collect();
+    if values.is_empty() {
+        bail!("--param {target}= lists no values");
+    }
+    let spec = SweepSpec {
+        param: target.to_string(),
+        values,
+        reference,
+        truth,
+        output,
+        metric,
+        repeats,
+    };
+    let engine = engine(args)?;
+    let mut opts = run_options(args);
+    opts.progress = None;
+    println!("{:>14}  {:>12}  {:>12}  {:>8}", "value", "ms (median)", format!("{metric:?}").to_lowercase(), "missing");
+    let rows = match run_sweep(&engine, &doc, &reg, &spec, &opts, |r| {
+        let e = r.error.map(|e| format!("{:.6}", e.value)).unwrap_or_else(|| r.note.clone().unwrap_or_default());
+        let miss = r.error.map(|e| e.missing.to_string()).unwrap_or_default();
+        println!("{:>14}  {:>12.2}  {:>12}  {:>8}", r.value, r.ms_median, e, miss);
+    }) {
+        Ok(r) => r,
+        Err(depthgraph::sweep::SweepError::Check(errs)) => {
+            eprintln!("{errs}");
+            return Ok(ExitCode::from(2));
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let stem = format!("sweep-{}", target.replace('.', "-"));
+    let csv = csv.unwrap_or_else(|| args.out.join(format!("{stem}.csv")));
+    let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
+    let text = to_csv(target, metric, &rows);
+    depthgraph::nodes::io::write_atomic(&csv, |tmp| std::fs::write(tmp, &text).map_err(|e| e.to_string()))?;
+    println!("wrote {}", csv.display());
+    match depthgraph::nodes::io::write_atomic(&plot, |tmp| plot_svg(tmp, target, metric, &rows)) {
+        Ok(_) => println!("wrote {}", plot.display()),
+        Err(e) => eprintln!("warning: no plot: {e}"),
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let r = match cli.command {
+        Command::Run { common } => cmd_run(&common),
+        Command::Check { file, sets } => cmd_check(&file, &sets),
+        Command::Nodes { kind, json } => cmd_nodes(kind.as_deref(), json),
+        Command::Explain { common, json } => cmd_explain(&common, json),
+        Command::Sweep {
+            common,
+            param,
+            reference,
+            truth,
+            output,
+            metric,
+            repeats,
+            csv,
+            plot,
+        } => cmd_sweep(&common, &param, reference, truth, output, metric, repeats, csv, plot),
+    };
+    match r {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

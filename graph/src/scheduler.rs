@@ -57,6 +57,9 @@ pub struct RunOptions {
     pub force: Vec<usize>,
     /// Skip cache lookups entirely (results are still stored).
     pub no_cache_lookup: bool,
+    /// More files sinks must never overwrite (e.g. the pipeline file itself),
+    /// besides those the load nodes read.
+    pub protected_files: Vec<PathBuf>,
 }
 
 /// Everything a run produced.
@@ -188,7 +191,8 @@ impl Engine {
             })
             .collect();
         let mut timings: Vec<f64> = vec![0.0; n];
-        let input_files = p.input_files();
+        let mut input_files = p.input_files();
+        input_files.extend(opts.protected_files.iter().cloned());
 
         for l in 0..=max_level {
             let batch: Vec<usize> = p

@@ -1,1 +1,32 @@
-pub fn _x(){}
+//! # depthgraph-nodes
+//!
+//! The stages of depthgraph's two pipelines. Each module is one concept: its
+//! algorithm is a plain public function (usable on plain arrays without the
+//! graph), with a parameter struct and doc comments citing the paper's
+//! equations, and a thin [`Node`](depthgraph_graph::node::Node) adapter
+//! registered by the module's `register` function.
+//!
+//! Adding a node: write `src/<concept>.rs` with the function, its
+//! `node_params!` struct and a `register` function, then add one line to
+//! [`registry`].
+
+pub mod camera;
+pub mod imageops;
+pub mod io;
+pub mod sensor;
+pub mod synthetic;
+pub mod unproject;
+
+use depthgraph_graph::registry::{Registry, RegistryError};
+
+/// Every node kind of this crate.
+pub fn registry() -> Result<Registry, RegistryError> {
+    let mut reg = Registry::new();
+    camera::register(&mut reg)?;
+    io::register(&mut reg)?;
+    synthetic::register(&mut reg)?;
+    sensor::register(&mut reg)?;
+    unproject::register(&mut reg)?;
+    imageops::register(&mut reg)?;
+    Ok(reg)
+}

@@ -1,0 +1,90 @@
+//! Camera intrinsics: presets of common RGB-D cameras and custom values.
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+
+/// Names of the presets, for the `preset` parameter.
+pub const PRESETS: &[&str] = &["kinect_v1", "tum_fr1", "tum_fr2", "tum_fr3", "nyu", "custom"];
+
+/// Intrinsics of a preset at its native 640x480, or `None` for an unknown name.
+///
+/// Sources: Kinect v1 / ROS default (fx = fy = 525, c = 319.5, 239.5);
+/// TUM RGB-D calibrated colour cameras fr1, fr2, fr3 (Sturm et al. 2012);
+/// NYU Depth v2 colour camera (Silberman et al. 2012 toolbox).
+pub fn preset(name: &str) -> Option<Intrinsics> {
+    let (fx, fy, cx, cy) = match name {
+        "kinect_v1" => (525.0, 525.0, 319.5, 239.5),
+        "tum_fr1" => (517.3, 516.5, 318.6, 255.3),
+        "tum_fr2" => (520.9, 521.0, 325.1, 249.7),
+        "tum_fr3" => (535.4, 539.2, 320.1, 247.6),
+        "nyu" => (518.8579, 519.4696, 325.5824, 253.7362),
+        _ => return None,
+    };
+    Some(Intrinsics { fx, fy, cx, cy, width: 640, height: 480 })
+}
+
+node_params! {
+    /// Parameters of the `Camera` node.
+    pub struct CameraParams {
+        /// A known camera, or "custom" to use fx, fy, cx, cy as given.
+        pub preset: String = "kinect_v1", ParamKind::Choice(PRESETS);
+        /// Image width in pixels; presets are rescaled to it.
+        pub width: usize = 640usize, ParamKind::Int { min: 1, max: 65536 };
+        /// Image height in pixels; presets are rescaled to it.
+        pub height: usize = 480usize, ParamKind::Int { min: 1, max: 65536 };
+        /// Focal length along x in pixels (custom only).
+        pub fx: f64 = 525.0, ParamKind::Float { min: 1e-3, max: 1e6 };
+        /// Focal length along y in pixels (custom only).
+        pub fy: f64 = 525.0, ParamKind::Float { min: 1e-3, max: 1e6 };
+        /// Principal point x in pixels (custom only).
+        pub cx: f64 = 319.5, ParamKind::Float { min: -1e6, max: 1e6 };
+        /// Principal point y in pixels (custom only).
+        pub cy: f64 = 239.5, ParamKind::Float { min: -1e6, max: 1e6 };
+    }
+}
+
+/// The intrinsics the parameters describe.
+///
+/// ```
+/// use depthgraph_nodes::camera::{camera_intrinsics, CameraParams};
+/// let k = camera_intrinsics(&CameraParams { width: 320, height: 240, ..Default::default() }).unwrap();
+/// assert_eq!(k.fx, 262.5);
+/// ```
+pub fn camera_intrinsics(p: &CameraParams) -> Result<Intrinsics, NodeError> {
+    if p.preset == "custom" {
+        return Ok(Intrinsics { fx: p.fx, fy: p.fy, cx: p.cx, cy: p.cy, width: p.width, height: p.height });
+    }
+    let k = preset(&p.preset)
+        .ok_or_else(|| NodeError::param("preset", format!("unknown preset `{}`", p.preset)))?;
+    Ok(k.scaled_to(p.width, p.height))
+}
+
+fn eval(_: &EvalCtx, _: &Inputs, p: &CameraParams) -> Result<Outputs, NodeError> {
+    Ok(Outputs::new().with("intrinsics", camera_intrinsics(p)?))
+}
+
+/// Registers `Camera`.
+pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::RegistryError> {
+    reg.register(TypedNode::new(
+        "Camera",
+        1,
+        "Pinhole intrinsics of a known RGB-D camera (Kinect v1, TUM fr1-3, NYU) or custom values.",
+        vec![],
+        vec![PortSpec::output("intrinsics", ValueType::Intrinsics, "fx, fy, cx, cy in pixels")],
+        eval,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_scale_with_resolution() {
+        let k = camera_intrinsics(&CameraParams { preset: "tum_fr1".into(), width: 320, height: 240, ..Default::default() }).unwrap();
+        assert!((k.fx - 258.65).abs() < 1e-9 && (k.cy - 127.65).abs() < 1e-9);
+        for name in PRESETS.iter().filter(|n| **n != "custom") {
+            assert!(preset(name).is_some(), "{name}");
+        }
+    }
+}

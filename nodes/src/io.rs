@@ -1,0 +1,944 @@
+//! Reading and writing images, depth maps, point clouds and meshes.
+//!
+//! Loaders refuse absurd dimensions before allocating ([`MAX_SIDE`],
+//! [`MAX_PIXELS`]) and turn every decoding failure into an error naming the
+//! file. Writers write a temporary file beside the target and rename it into
+//! place, so a reader never sees a half-written file, and refuse to write
+//! over a file the pipeline reads.
+
+use std::fs;
+use std::io::{BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::registry::RegistryError;
+use image::{DynamicImage, ImageFormat};
+
+use crate::imageops::{colormap_depth, depth_range};
+
+/// Largest accepted image side in pixels.
+pub const MAX_SIDE: usize = 1 << 15;
+/// Largest accepted pixel count (256 MP).
+pub const MAX_PIXELS: usize = 1 << 28;
+
+fn decode_err(path: &Path, message: impl Into<String>) -> NodeError {
+    NodeError::Decode {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+fn check_dims(path: &Path, w: usize, h: usize) -> Result<(), NodeError> {
+    if w == 0 || h == 0 {
+        return Err(decode_err(path, format!("image is {w}x{h}; expected at least 1x1")));
+    }
+    if w > MAX_SIDE || h > MAX_SIDE || w.saturating_mul(h) > MAX_PIXELS {
+        return Err(decode_err(
+            path,
+            format!("image is {w}x{h}; the limit is {MAX_SIDE} per side and {MAX_PIXELS} pixels"),
+        ));
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------- sRGB
+
+/// sRGB electro-optical transfer: encoded value in [0, 1] to linear.
+#[inline]
+pub fn srgb_to_linear(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Linear to sRGB-encoded value; input clamped to [0, 1].
+#[inline]
+pub fn linear_to_srgb(v: f32) -> f32 {
+    let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+    if v <= 0.003_130_8 {
+        v * 12.92
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+fn srgb8_table() -> &'static [f32; 256] {
+    static T: OnceLock<[f32; 256]> = OnceLock::new();
+    T.get_or_init(|| std::array::from_fn(|i| srgb_to_linear(i as f32 / 255.0)))
+}
+
+fn srgb16_table() -> &'static [f32] {
+    static T: OnceLock<Vec<f32>> = OnceLock::new();
+    T.get_or_init(|| (0..65536).map(|i| srgb_to_linear(i as f32 / 65535.0)).collect())
+}
+
+// ---------------------------------------------------------------- color
+
+fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
+    let reader = image::ImageReader::open(path)
+        .map_err(|source| NodeError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .with_guessed_format()
+        .map_err(|source| NodeError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    let (w, h) = reader
+        .into_dimensions()
+        .map_err(|e| decode_err(path, e.to_string()))?;
+    check_dims(path, w as usize, h as usize)?;
+    let mut reader = image::ImageReader::open(path)
+        .map_err(|source| NodeError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .with_guessed_format()
+        .map_err(|source| NodeError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_SIDE as u32);
+    limits.max_image_height = Some(MAX_SIDE as u32);
+    limits.max_alloc = Some((MAX_PIXELS as u64) * 16);
+    reader.limits(limits);
+    reader.decode().map_err(|e| decode_err(path, e.to_string()))
+}
+
+/// Color space of integer-valued color files.
+pub const COLOR_SPACES: &[&str] = &["srgb", "linear"];
+
+node_params! {
+    /// Parameters of `LoadColor`.
+    pub struct LoadColorParams {
+        /// PNG, JPEG, TIFF (8 or 16 bit) or EXR file.
+        pub path: String = "", ParamKind::InputPath;
+        /// Encoding of 8/16-bit files: "srgb" (almost every photo) is linearised; float files are always linear.
+        pub color_space: String = "srgb", ParamKind::Choice(COLOR_SPACES);
+    }
+}
+
+/// Reads a color image as linear RGB (alpha is dropped).
+///
+/// ```no_run
+/// let img = depthgraph_nodes::io::load_color(std::path::Path::new("photo.png"), "srgb").unwrap();
+/// println!("{}x{}", img.width(), img.height());
+/// ```
+pub fn load_color(path: &Path, color_space: &str) -> Result<ColorImage, NodeError> {
+    let img = open_image(path)?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let srgb = color_space == "srgb";
+    let data: Vec<[f32; 3]> = match &img {
+        DynamicImage::ImageLuma8(_)
+        | DynamicImage::ImageLumaA8(_)
+        | DynamicImage::ImageRgb8(_)
+        | DynamicImage::ImageRgba8(_) => {
+            let t = srgb8_table();
+            let conv = |v: u8| if srgb { t[v as usize] } else { v as f32 / 255.0 };
+            img.to_rgb8()
+                .pixels()
+                .map(|p| [conv(p[0]), conv(p[1]), conv(p[2])])
+                .collect()
+        }
+        DynamicImage::ImageLuma16(_)
+        | DynamicImage::ImageLumaA16(_)
+        | DynamicImage::ImageRgb16(_)
+        | DynamicImage::ImageRgba16(_) => {
+            let t = srgb16_table();
+            let conv = |v: u16| if srgb { t[v as usize] } else { v as f32 / 65535.0 };
+            img.to_rgb16()
+                .pixels()
+                .map(|p| [conv(p[0]), conv(p[1]), conv(p[2])])
+                .collect()
+        }
+        _ => img.to_rgb32f().pixels().map(|p| [p[0], p[1], p[2]]).collect(),
+    };
+    Image::from_vec(w, h, data).map_err(|e| decode_err(path, e.to_string()))
+}
+
+fn load_color_eval(_: &EvalCtx, _: &Inputs, p: &LoadColorParams) -> Result<Outputs, NodeError> {
+    if p.path.is_empty() {
+        return Err(NodeError::param("path", "no file given; set it with --set <node>.path=FILE"));
+    }
+    Ok(Outputs::new().with("color", load_color(Path::new(&p.path), &p.color_space)?))
+}
+
+// ---------------------------------------------------------------- depth
+
+/// What the stored numbers mean.
+pub const DEPTH_ENCODINGS: &[&str] = &["depth", "disparity"];
+
+node_params! {
+    /// Parameters of `LoadDepth`.
+    pub struct LoadDepthParams {
+        /// 8/16-bit grey PNG or TIFF, PFM (float), or EXR (float; channel Z, Y or R).
+        pub path: String = "", ParamKind::InputPath;
+        /// "depth": values are distances along z; "disparity": values are stereo disparities.
+        pub encoding: String = "depth", ParamKind::Choice(DEPTH_ENCODINGS);
+        /// Stored units per metre (depth) or per pixel of disparity. 0 = auto: 1000 (millimetres) for
+        /// integer files, 1 for float files. TUM uses 5000; Middlebury 2003 quarter-size disparity 4.
+        pub scale: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e9 };
+        /// Disparity only: focal length in pixels at the disparity's resolution.
+        pub focal_px: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e7 };
+        /// Disparity only: stereo baseline in metres.
+        pub baseline_m: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e3 };
+        /// Disparity only: offset added to the disparity (Middlebury `doffs`), in pixels.
+        pub doffs_px: f64 = 0.0, ParamKind::Float { min: -1e6, max: 1e6 };
+    }
+}
+
+/// Samples of a single-channel file, row-major, top row first.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Samples {
+    pub width: usize,
+    pub height: usize,
+    pub values: Vec<f32>,
+}
+
+/// Raw samples and whether the file stored integers.
+struct RawDepth {
+    samples: Samples,
+    integer: bool,
+}
+
+fn read_raw_depth(path: &Path) -> Result<RawDepth, NodeError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    match ext.as_str() {
+        "pfm" => read_pfm(path).map(|s| RawDepth { samples: s, integer: false }),
+        "exr" => read_exr_channel(path),
+        _ => {
+            let img = open_image(path)?;
+            let (w, h) = (img.width() as usize, img.height() as usize);
+            let values: Vec<f32> = match &img {
+                DynamicImage::ImageLuma8(b) => b.as_raw().iter().map(|v| *v as f32).collect(),
+                DynamicImage::ImageLuma16(b) => b.as_raw().iter().map(|v| *v as f32).collect(),
+                other => {
+                    return Err(decode_err(
+                        path,
+                        format!(
+                            "expected a single-channel (grey) 8 or 16-bit depth image, found {:?}",
+                            other.color()
+                        ),
+                    ));
+                }
+            };
+            Ok(RawDepth {
+                samples: Samples { width: w, height: h, values },
+                integer: true,
+            })
+        }
+    }
+}
+
+/// Reads a PFM file (grey `Pf`, or `PF` whose first channel is used);
+/// rows are stored bottom-up; a negative scale means little-endian.
+pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
+    let mut bytes = Vec::new();
+    fs::File::open(path)
+        .and_then(|mut f| f.read_to_end(&mut bytes))
+        .map_err(|source| NodeError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
+    let mut tokens = Vec::new();
+    let mut i = 0;
+    while tokens.len() < 4 {
+        while i < bytes.len() && bytes[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        let start = i;
+        while i < bytes.len() && !bytes[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        if start == i || i - start > 32 {
+            return Err(decode_err(path, "truncated or malformed PFM header"));
+        }
+        tokens.push(String::from_utf8_lossy(&bytes[start..i]).to_string());
+    }
+    i += 1; // the single whitespace after the scale
+    let channels = match tokens[0].as_str() {
+        "Pf" => 1,
+        "PF" => 3,
+        m => return Err(decode_err(path, format!("not a PFM file (magic `{m}`)"))),
+    };
+    let w: usize = tokens[1]
+        .parse()
+        .map_err(|_| decode_err(path, format!("bad PFM width `{}`", tokens[1])))?;
+    let h: usize = tokens[2]
+        .parse()
+        .map_err(|_| decode_err(path, format!("bad PFM height `{}`", tokens[2])))?;
+    let scale: f64 = tokens[3]
+        .parse()
+        .map_err(|_| decode_err(path, format!("bad PFM scale `{}`", tokens[3])))?;
+    check_dims(path, w, h)?;
+    let need = w * h * channels * 4;
+    let data = bytes.get(i..).unwrap_or(&[]);
+    if data.len() < need {
+        return Err(decode_err(
+            path,
+            format!("PFM data holds {} bytes, expected {need} for {w}x{h}x{channels}", data.len()),
+        ));
+    }
+    let little = scale < 0.0;
+    let mut values = vec![0.0f32; w * h];
+    for y in 0..h {
+        let src_row = h - 1 - y; // bottom-up
+        for x in 0..w {
+            let o = ((src_row * w + x) * channels) * 4;
+            let b = [data[o], data[o + 1], data[o + 2], data[o + 3]];
+            values[y * w + x] = if little {
+                f32::from_le_bytes(b)
+            } else {
+                f32::from_be_bytes(b)
+            };
+        }
+    }
+    Ok(Samples { width: w, height: h, values })
+}
+
+fn read_exr_channel(path: &Path) -> Result<RawDepth, NodeError> {
+    use exr::prelude::*;
+    let image = read_first_flat_layer_from_file(path).map_err(|e| decode_err(path, e.to_string()))?;
+    let layer = image.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    check_dims(path, w, h)?;
+    let channels = &layer.channel_data.list;
+    let pick = ["Z", "Y", "R", "depth", "Z.Z"]
+        .iter()
+        .find_map(|n| channels.iter().find(|c| c.name.to_string() == *n))
+        .or_else(|| channels.first())
+        .ok_or_else(|| decode_err(path, "EXR layer has no channels"))?;
+    let values: Vec<f32> = match &pick.sample_data {
+        FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        FlatSamples::F32(v) => v.clone(),
+        FlatSamples::U32(v) => v.iter().map(|x| *x as f32).collect(),
+    };
+    if values.len() != w * h {
+        return Err(decode_err(path, "EXR channel size does not match the layer size"));
+    }
+    Ok(RawDepth {
+        samples: Samples { width: w, height: h, values },
+        integer: false,
+    })
+}
+
+/// Reads a depth map in metres (0 = no measurement) from a file.
+///
+/// Depth: `z = raw / scale`. Disparity: `z = baseline_m * focal_px / (raw / scale + doffs_px)`
+/// (Middlebury's `Z = baseline * f / (d + doffs)`). Raw zeros in integer files, non-finite
+/// values, and non-positive results are holes.
+pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeError> {
+    let raw = read_raw_depth(path)?;
+    let scale = if p.scale > 0.0 {
+        p.scale
+    } else if raw.integer {
+        1000.0
+    } else {
+        1.0
+    };
+    let disparity = p.encoding == "disparity";
+    if disparity && (p.focal_px <= 0.0 || p.baseline_m <= 0.0) {
+        return Err(NodeError::param(
+            if p.focal_px <= 0.0 { "focal_px" } else { "baseline_m" },
+            "disparity files need focal_px and baseline_m (both > 0) to give metres",
+        ));
+    }
+    let fb = p.focal_px * p.baseline_m;
+    let values: Vec<f32> = raw
+        .samples
+        .values
+        .iter()
+        .map(|&v| {
+            if !v.is_finite() || (raw.integer && v == 0.0) {
+                return 0.0;
+            }
+            let v = v as f64 / scale;
+            let z = if disparity {
+                let d = v + p.doffs_px;
+                // guard: a non-positive disparity has no finite depth
+                if d <= 0.0 { 0.0 } else { fb / d }
+            } else {
+                v
+            };
+            if z.is_finite() && z > 0.0 { z as f32 } else { 0.0 }
+        })
+        .collect();
+    Image::from_vec(raw.samples.width, raw.samples.height, values).map_err(|e| decode_err(path, e.to_string()))
+}
+
+fn load_depth_eval(_: &EvalCtx, _: &Inputs, p: &LoadDepthParams) -> Result<Outputs, NodeError> {
+    if p.path.is_empty() {
+        return Err(NodeError::param("path", "no file given; set it with --set <node>.path=FILE"));
+    }
+    let d = load_depth(Path::new(&p.path), p)?;
+    // guard: images have at least one pixel (check_dims), max(1) for safety
+    let fraction = d.hole_count() as f64 / d.len().max(1) as f64;
+    Ok(Outputs::new().with("depth", d).with("hole_fraction", fraction))
+}
+
+// ---------------------------------------------------------------- writing
+
+/// Writes `bytes` produced by `write` to `path` atomically: a temporary file
+/// in the same directory, flushed, then renamed over the target.
+pub fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), String>,
+) -> Result<PathBuf, NodeError> {
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    fs::create_dir_all(&parent).map_err(|source| NodeError::Io {
+        path: parent.clone(),
+        source,
+    })?;
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
+    let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
+    if let Err(message) = write(&tmp) {
+        let _ = fs::remove_file(&tmp);
+        return Err(NodeError::Encode {
+            path: path.to_path_buf(),
+            message,
+        });
+    }
+    fs::rename(&tmp, path).map_err(|source| {
+        let _ = fs::remove_file(&tmp);
+        NodeError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    })?;
+    Ok(path.to_path_buf())
+}
+
+fn write_dynamic(tmp: &Path, img: DynamicImage, fmt: ImageFormat) -> Result<(), String> {
+    let f = fs::File::create(tmp).map_err(|e| e.to_string())?;
+    let mut w = BufWriter::new(f);
+    img.write_to(&mut w, fmt).map_err(|e| e.to_string())?;
+    w.flush().map_err(|e| e.to_string())
+}
+
+fn extension(path: &Path) -> String {
+    path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
+}
+
+/// Bit depths for PNG color output.
+pub const PNG_BITS: &[&str] = &["8", "16"];
+
+node_params! {
+    /// Parameters of `SaveColor`.
+    pub struct SaveColorParams {
+        /// Output file; `.png` (sRGB, 8 or 16 bit) or `.exr` (linear float). Relative paths go under `--out`.
+        pub path: String = "color.png", ParamKind::OutputPath;
+        /// PNG bit depth.
+        pub bits: String = "8", ParamKind::Choice(PNG_BITS);
+        /// Exposure adjustment in stops applied before encoding (PNG clips at 1 after it).
+        pub exposure_stops: f64 = 0.0, ParamKind::Float { min: -30.0, max: 30.0 };
+    }
+}
+
+/// Writes a linear color image: PNG is sRGB-encoded (values clipped to [0, 1]
+/// after `exposure_stops`), EXR keeps linear floats.
+pub fn save_color(img: &ColorImage, path: &Path, bits16: bool, exposure_stops: f64) -> Result<PathBuf, NodeError> {
+    let (w, h) = (img.width() as u32, img.height() as u32);
+    let gain = 2f32.powf(exposure_stops as f32);
+    match extension(path).as_str() {
+        "exr" => {
+            let data: Vec<f32> = img
+                .as_slice()
+                .iter()
+                .flat_map(|p| p.map(|v| if v.is_finite() { v * gain } else { 0.0 }))
+                .collect();
+            let buf = image::Rgb32FImage::from_raw(w, h, data)
+                .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
+            write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb32F(buf), ImageFormat::OpenExr))
+        }
+        "png" => {
+            if bits16 {
+                let data: Vec<u16> = img
+                    .as_slice()
+                    .iter()
+                    .flat_map(|p| p.map(|v| (linear_to_srgb(v * gain) * 65535.0).round() as u16))
+                    .collect();
+                let buf = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_raw(w, h, data)
+                    .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
+                write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb16(buf), ImageFormat::Png))
+            } else {
+                let data: Vec<u8> = img
+                    .as_slice()
+                    .iter()
+                    .flat_map(|p| p.map(|v| (linear_to_srgb(v * gain) * 255.0).round() as u8))
+                    .collect();
+                let buf = image::RgbImage::from_raw(w, h, data)
+                    .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
+                write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png))
+            }
+        }
+        other => Err(NodeError::param(
+            "path",
+            format!("cannot write color as `.{other}`; use .png or .exr"),
+        )),
+    }
+}
+
+fn save_color_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SaveColorParams) -> Result<Outputs, NodeError> {
+    let img = inputs.color("color")?;
+    let path = ctx.output_path(&p.path)?;
+    let written = save_color(img, &path, p.bits == "16", p.exposure_stops)?;
+    Ok(Outputs::new().with("file", written))
+}
+
+/// Depth output forms.
+pub const DEPTH_FORMATS: &[&str] = &["auto", "png16", "exr", "preview"];
+
+node_params! {
+    /// Parameters of `SaveDepth`.
+    pub struct SaveDepthParams {
+        /// Output file. Relative paths go under `--out`.
+        pub path: String = "depth.png", ParamKind::OutputPath;
+        /// "png16" (integer, `scale` units per metre), "exr" (float metres), "preview"
+        /// (colormapped 8-bit PNG, holes black), or "auto" (from the extension: .exr, else png16).
+        pub format: String = "auto", ParamKind::Choice(DEPTH_FORMATS);
+        /// png16 only: stored units per metre (1000 = millimetres, TUM uses 5000).
+        pub scale: f64 = 1000.0, ParamKind::Float { min: 1e-6, max: 1e9 };
+        /// preview only: depth mapped to the first color; 0 with max 0 = 2nd percentile of the data.
+        pub min_m: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e6 };
+        /// preview only: depth mapped to the last color; 0 = 98th percentile of the data.
+        pub max_m: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e6 };
+    }
+}
+
+/// Writes a depth map (see [`SaveDepthParams`] for the forms). In png16, depths
+/// beyond 65535 units are stored as 65535 and holes as 0; the count of clipped
+/// pixels is returned.
+pub fn save_depth(depth: &DepthMap, path: &Path, p: &SaveDepthParams) -> Result<(PathBuf, usize), NodeError> {
+    let (w, h) = (depth.width() as u32, depth.height() as u32);
+    let format = match p.format.as_str() {
+        "auto" if extension(path) == "exr" => "exr",
+        "auto" => "png16",
+        f => f,
+    };
+    match format {
+        "exr" => {
+            use exr::prelude::*;
+            let data: Vec<f32> = depth
+                .as_slice()
+                .iter()
+                .map(|z| if DepthMap::is_valid(*z) { *z } else { 0.0 })
+                .collect();
+            let channel = AnyChannel::new("Z", FlatSamples::F32(data));
+            let layer = Layer::new(
+                (w as usize, h as usize),
+                LayerAttributes::named("depth_m"),
+                Encoding::FAST_LOSSLESS,
+                AnyChannels::sort(SmallVec::from_vec(vec![channel])),
+            );
+            let written = write_atomic(path, |tmp| {
+                exr::prelude::Image::from_layer(layer)
+                    .write()
+                    .to_file(tmp)
+                    .map_err(|e| e.to_string())
+            })?;
+            Ok((written, 0))
+        }
+        "png16" => {
+            let mut clipped = 0;
+            let data: Vec<u16> = depth
+                .as_slice()
+                .iter()
+                .map(|z| {
+                    if !DepthMap::is_valid(*z) {
+                        return 0;
+                    }
+                    let v = (*z as f64 * p.scale).round();
+                    if v > 65535.0 {
+                        clipped += 1;
+                        65535
+                    } else {
+                        v.max(1.0) as u16
+                    }
+                })
+                .collect();
+            let buf = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(w, h, data)
+                .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
+            let written = write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageLuma16(buf), ImageFormat::Png))?;
+            Ok((written, clipped))
+        }
+        _ => {
+            let (lo, hi) = if p.max_m > p.min_m {
+                (p.min_m as f32, p.max_m as f32)
+            } else {
+                depth_range(depth, 0.02, 0.98)
+            };
+            let rgb = colormap_depth(depth, lo, hi);
+            let data: Vec<u8> = rgb
+                .as_slice()
+                .iter()
+                .flat_map(|p| p.map(|v| (linear_to_srgb(v) * 255.0).round() as u8))
+                .collect();
+            let buf = image::RgbImage::from_raw(w, h, data)
+                .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
+            let written = write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png))?;
+            Ok((written, 0))
+        }
+    }
+}
+
+fn save_depth_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SaveDepthParams) -> Result<Outputs, NodeError> {
+    let depth = inputs.depth("depth")?;
+    let path = ctx.output_path(&p.path)?;
+    let (written, clipped) = save_depth(depth, &path, p)?;
+    Ok(Outputs::new().with("file", written).with("clipped", clipped as f64))
+}
+
+// ---------------------------------------------------------------- PLY
+
+/// PLY encodings.
+pub const PLY_FORMATS: &[&str] = &["binary", "ascii"];
+
+node_params! {
+    /// Parameters of `SavePointCloud` and `SaveMesh`.
+    pub struct SavePlyParams {
+        /// Output `.ply` file. Relative paths go under `--out`.
+        pub path: String = "points.ply", ParamKind::OutputPath;
+        /// "binary" (little-endian, compact) or "ascii" (readable).
+        pub format: String = "binary", ParamKind::Choice(PLY_FORMATS);
+    }
+}
+
+/// Writes points (with optional colors, sRGB 8-bit, and normals) and optional
+/// triangles as PLY.
+pub fn write_ply(
+    path: &Path,
+    positions: &[[f32; 3]],
+    colors: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    ascii: bool,
+) -> Result<PathBuf, NodeError> {
+    let has_c = !colors.is_empty() && colors.len() == positions.len();
+    let has_n = !normals.is_empty() && normals.len() == positions.len();
+    if let Some(t) = triangles.iter().find(|t| t.iter().any(|i| *i as usize >= positions.len())) {
+        return Err(NodeError::Invalid(format!(
+            "triangle {t:?} refers to a vertex beyond the {} given",
+            positions.len()
+        )));
+    }
+    write_atomic(path, |tmp| {
+        let f = fs::File::create(tmp).map_err(|e| e.to_string())?;
+        let mut w = BufWriter::new(f);
+        let mut header = format!(
+            "ply\nformat {} 1.0\ncomment written by depthgraph (camera frame: x right, y down, z forward; metres)\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
+            if ascii { "ascii" } else { "binary_little_endian" },
+            positions.len()
+        );
+        if has_n {
+            header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
+        }
+        if has_c {
+            header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
+        }
+        if !triangles.is_empty() {
+            header.push_str(&format!("element face {}\nproperty list uchar uint vertex_indices\n", triangles.len()));
+        }
+        header.push_str("end_header\n");
+        let io = |e: std::io::Error| e.to_string();
+        w.write_all(header.as_bytes()).map_err(io)?;
+        let c8 = |c: &[f32; 3]| c.map(|v| (linear_to_srgb(v) * 255.0).round() as u8);
+        for i in 0..positions.len() {
+            let p = positions[i];
+            if ascii {
+                let mut line = format!("{} {} {}", p[0], p[1], p[2]);
+                if has_n {
+                    let n = normals[i];
+                    line.push_str(&format!(" {} {} {}", n[0], n[1], n[2]));
+                }
+                if has_c {
+                    let c = c8(&colors[i]);
+                    line.push_str(&format!(" {} {} {}", c[0], c[1], c[2]));
+                }
+                line.push('\n');
+                w.write_all(line.as_bytes()).map_err(io)?;
+            } else {
+                for v in p {
+                    w.write_all(&v.to_le_bytes()).map_err(io)?;
+                }
+                if has_n {
+                    for v in normals[i] {
+                        w.write_all(&v.to_le_bytes()).map_err(io)?;
+                    }
+                }
+                if has_c {
+                    w.write_all(&c8(&colors[i])).map_err(io)?;
+                }
+            }
+        }
+        for t in triangles {
+            if ascii {
+                w.write_all(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes()).map_err(io)?;
+            } else {
+                w.write_all(&[3u8]).map_err(io)?;
+                for i in t {
+                    w.write_all(&i.to_le_bytes()).map_err(io)?;
+                }
+            }
+        }
+        w.flush().map_err(io)
+    })
+}
+
+fn save_points_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SavePlyParams) -> Result<Outputs, NodeError> {
+    let pc = inputs.point_cloud("points")?;
+    let path = ctx.output_path(&p.path)?;
+    let written = write_ply(&path, &pc.positions, &pc.colors, &pc.normals, &[], p.format == "ascii")?;
+    Ok(Outputs::new().with("file", written))
+}
+
+fn save_mesh_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SavePlyParams) -> Result<Outputs, NodeError> {
+    let m = inputs.mesh("mesh")?;
+    let path = ctx.output_path(&p.path)?;
+    let written = write_ply(&path, &m.positions, &m.colors, &m.normals, &m.triangles, p.format == "ascii")?;
+    Ok(Outputs::new().with("file", written))
+}
+
+/// Registers the loaders and writers.
+pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    reg.register(
+        TypedNode::new(
+            "LoadColor",
+            1,
+            "Reads a PNG/JPEG/TIFF (8/16-bit, sRGB linearised) or EXR color image as linear RGB.",
+            vec![],
+            vec![PortSpec::output("color", ValueType::Color, "linear RGB")],
+            load_color_eval,
+        )
+        .reads(|p: &LoadColorParams| vec![PathBuf::from(&p.path)]),
+    )?;
+    reg.register(
+        TypedNode::new(
+            "LoadDepth",
+            1,
+            "Reads depth in metres from a 16-bit PNG (with a scale), Middlebury PFM or 8-bit disparity (with focal length, baseline, doffs), or float EXR.",
+            vec![],
+            vec![
+                PortSpec::output("depth", ValueType::Depth, "metres, 0 = no measurement"),
+                PortSpec::output("hole_fraction", ValueType::Scalar, "fraction of pixels without a measurement"),
+            ],
+            load_depth_eval,
+        )
+        .reads(|p: &LoadDepthParams| vec![PathBuf::from(&p.path)]),
+    )?;
+    reg.register(
+        TypedNode::new(
+            "SaveColor",
+            1,
+            "Writes a color image: PNG (sRGB, 8 or 16 bit) or EXR (linear float), atomically.",
+            vec![PortSpec::required("color", ValueType::Color, "linear RGB")],
+            vec![PortSpec::output("file", ValueType::File, "the file written")],
+            save_color_eval,
+        )
+        .sink(),
+    )?;
+    reg.register(
+        TypedNode::new(
+            "SaveDepth",
+            1,
+            "Writes depth: 16-bit PNG, float EXR, or a colormapped PNG preview, atomically.",
+            vec![PortSpec::required("depth", ValueType::Depth, "metres")],
+            vec![
+                PortSpec::output("file", ValueType::File, "the file written"),
+                PortSpec::output("clipped", ValueType::Scalar, "png16: pixels beyond 65535 units, stored as 65535"),
+            ],
+            save_depth_eval,
+        )
+        .sink(),
+    )?;
+    reg.register(
+        TypedNode::new(
+            "SavePointCloud",
+            1,
+            "Writes a point cloud (positions, colors, normals) as PLY.",
+            vec![PortSpec::required("points", ValueType::PointCloud, "camera-space points")],
+            vec![PortSpec::output("file", ValueType::File, "the file written")],
+            save_points_eval,
+        )
+        .sink(),
+    )?;
+    reg.register(
+        TypedNode::new(
+            "SaveMesh",
+            1,
+            "Writes a triangle mesh as PLY.",
+            vec![PortSpec::required("mesh", ValueType::Mesh, "camera-space triangle mesh")],
+            vec![PortSpec::output("file", ValueType::File, "the file written")],
+            save_mesh_eval,
+        )
+        .sink(),
+    )?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn depth_params() -> LoadDepthParams {
+        LoadDepthParams::default()
+    }
+
+    #[test]
+    fn srgb_round_trip() {
+        for i in 0..=255u8 {
+            let lin = srgb8_table()[i as usize];
+            assert_eq!((linear_to_srgb(lin) * 255.0).round() as u8, i);
+        }
+        assert_eq!(linear_to_srgb(f32::NAN), 0.0);
+    }
+
+    #[test]
+    fn color_png_round_trip_8_and_16_bit() {
+        let dir = tempfile::tempdir().unwrap();
+        let img = Image::from_fn(7, 5, |x, y| [x as f32 / 6.0, y as f32 / 4.0, 0.25]);
+        for bits16 in [false, true] {
+            let path = dir.path().join(format!("c{bits16}.png"));
+            save_color(&img, &path, bits16, 0.0).unwrap();
+            let back = load_color(&path, "srgb").unwrap();
+            let tol = if bits16 { 1e-4 } else { 6e-3 };
+            for (a, b) in img.as_slice().iter().zip(back.as_slice()) {
+                for c in 0..3 {
+                    assert!((a[c] - b[c]).abs() < tol, "{a:?} vs {b:?}");
+                }
+            }
+        }
+        let exr = dir.path().join("c.exr");
+        let hdr = Image::from_fn(4, 3, |x, _| [x as f32 * 10.0, 0.5, 1e-3]);
+        save_color(&hdr, &exr, false, 0.0).unwrap();
+        assert_eq!(load_color(&exr, "srgb").unwrap(), hdr);
+    }
+
+    #[test]
+    fn depth_png16_and_exr_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = Image::from_fn(6, 4, |x, y| if x == 2 && y == 1 { 0.0 } else { 0.5 + x as f32 * 0.25 + y as f32 });
+        let png = dir.path().join("d.png");
+        save_depth(&d, &png, &SaveDepthParams::default()).unwrap();
+        let back = load_depth(&png, &depth_params()).unwrap();
+        for (a, b) in d.as_slice().iter().zip(back.as_slice()) {
+            assert!((a - b).abs() <= 0.0005 + 1e-6, "{a} vs {b}");
+        }
+        assert_eq!(*back.get(2, 1), 0.0);
+        let exr = dir.path().join("d.exr");
+        save_depth(&d, &exr, &SaveDepthParams::default()).unwrap();
+        assert_eq!(load_depth(&exr, &depth_params()).unwrap(), d);
+    }
+
+    #[test]
+    fn png16_clips_far_depth_and_counts_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = Image::from_vec(2, 1, vec![1.0, 100.0]).unwrap();
+        let (_, clipped) = save_depth(&d, &dir.path().join("c.png"), &SaveDepthParams::default()).unwrap();
+        assert_eq!(clipped, 1);
+    }
+
+    fn write_pfm(path: &Path, w: usize, h: usize, rows_top_first: &[f32]) {
+        let mut bytes = format!("Pf\n{w} {h}\n-1.0\n").into_bytes();
+        for y in (0..h).rev() {
+            for x in 0..w {
+                bytes.extend_from_slice(&rows_top_first[y * w + x].to_le_bytes());
+            }
+        }
+        fs::write(path, bytes).unwrap();
+    }
+
+    #[test]
+    fn pfm_disparity_to_metres_middlebury_formula() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("disp.pfm");
+        // top row: 50 px and +inf (unknown); bottom row 100, 0
+        write_pfm(&path, 2, 2, &[50.0, f32::INFINITY, 100.0, 0.0]);
+        let p = LoadDepthParams {
+            encoding: "disparity".into(),
+            focal_px: 1870.0,
+            baseline_m: 0.160,
+            doffs_px: 100.0,
+            ..Default::default()
+        };
+        let d = load_depth(&path, &p).unwrap();
+        assert!((d.get(0, 0) - (0.160 * 1870.0 / 150.0) as f32).abs() < 1e-5);
+        assert_eq!(*d.get(1, 0), 0.0);
+        assert!((d.get(0, 1) - (0.160 * 1870.0 / 200.0) as f32).abs() < 1e-5);
+        // disparity 0 with doffs 100 is a valid (far) depth for float files
+        assert!((d.get(1, 1) - (0.160 * 1870.0 / 100.0) as f32).abs() < 1e-5);
+        let e = load_depth(&path, &LoadDepthParams { encoding: "disparity".into(), ..Default::default() }).unwrap_err();
+        assert!(e.to_string().contains("focal_px"), "{e}");
+    }
+
+    #[test]
+    fn malformed_files_are_errors_not_panics() {
+        let dir = tempfile::tempdir().unwrap();
+        let cases: &[(&str, &[u8])] = &[
+            ("empty.png", b""),
+            ("garbage.png", b"\x89PNG\r\n\x1a\nnot really"),
+            ("trunc.pfm", b"Pf\n4 4\n-1.0\n\x00\x00"),
+            ("huge.pfm", b"Pf\n100000 100000\n-1.0\n"),
+            ("zero.pfm", b"Pf\n0 3\n-1.0\n"),
+            ("magic.pfm", b"P5\n1 1\n255\n\x00"),
+            ("header.pfm", b"Pf"),
+            ("bad.exr", b"v/1\x01garbage"),
+            ("bad.jpg", b"\xff\xd8\xff\xe0 nonsense"),
+        ];
+        for (name, bytes) in cases {
+            let path = dir.path().join(name);
+            fs::write(&path, bytes).unwrap();
+            let e = load_depth(&path, &depth_params());
+            assert!(e.is_err(), "{name} loaded as depth");
+            assert!(e.unwrap_err().to_string().contains(name), "error must name the file");
+            assert!(load_color(&path, "srgb").is_err(), "{name} loaded as color");
+        }
+        // a color PNG is not a depth map
+        let rgb = dir.path().join("rgb.png");
+        save_color(&Image::filled(2, 2, [0.5, 0.5, 0.5]), &rgb, false, 0.0).unwrap();
+        let e = load_depth(&rgb, &depth_params()).unwrap_err();
+        assert!(e.to_string().contains("single-channel"), "{e}");
+        assert!(load_color(&dir.path().join("missing.png"), "srgb").is_err());
+    }
+
+    #[test]
+    fn ply_binary_layout() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.ply");
+        let pos = [[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]];
+        write_ply(&path, &pos, &[[1.0; 3]; 3], &[], &[[0, 1, 2]], false).unwrap();
+        let bytes = fs::read(&path).unwrap();
+        let text = String::from_utf8_lossy(&bytes);
+        let end = text.find("end_header\n").unwrap() + "end_header\n".len();
+        assert!(text.contains("element vertex 3") && text.contains("element face 1"));
+        // 3 vertices * (12 + 3) bytes + 1 face * (1 + 12)
+        assert_eq!(bytes.len() - end, 3 * 15 + 13);
+        assert!(write_ply(&path, &pos, &[], &[], &[[0, 1, 5]], false).is_err());
+    }
+
+    #[test]
+    fn atomic_write_leaves_no_temp_on_failure() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("x.png");
+        let r = write_atomic(&target, |tmp| {
+            fs::write(tmp, b"partial").unwrap();
+            Err("boom".into())
+        });
+        assert!(r.is_err());
+        assert!(!target.exists());
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+}
