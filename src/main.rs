@@ -191,9 +191,16 @@ fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
     let t = std::time::Instant::now();
     let result = engine.run(&p, &run_options(args))?;
     let wall = t.elapsed().as_secs_f64() * 1e3;
+    // Files always; other values only where the pipeline asked for that port by name.
+    let named: Vec<String> = p
+        .outputs
+        .iter()
+        .filter_map(|o| o.port.as_ref().map(|port| format!("{}.{}", p.nodes[o.node].name, port)))
+        .collect();
     for (name, v) in &result.outputs {
         match v {
             Value::File(f) => println!("wrote {}", f.display()),
+            _ if !named.contains(name) => {}
             Value::Scalar(x) => println!("{name} = {x}"),
             other => println!("{name}: {} {}", other.value_type(), dims_text(other)),
         }

@@ -238,8 +238,9 @@ impl Pipeline {
         let mut outputs = Vec::new();
         for o in &doc.outputs {
             let loc = Location::new(file, o.pos);
+            // "node" or "node.port" (a node name itself has no dot)
             let (node_name, port) = match split_ref(&o.value) {
-                Some((n, p)) if index.contains_key(n) => (n, Some(p)),
+                Some((n, p)) if !index.contains_key(o.value.as_str()) => (n, Some(p)),
                 _ => (o.value.as_str(), None),
             };
             let Some(&i) = index.get(node_name) else {

@@ -1,0 +1,231 @@
+//! Scheduler behaviour with toy nodes that count their evaluations.
+
+use std::sync::Arc;
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+
+node_params! {
+    /// Source params.
+    pub struct SourceParams {
+        /// Image side.
+        pub size: usize = 8usize, ParamKind::Int { min: 1, max: 4096 };
+        /// Value offset.
+        pub offset: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
+    }
+}
+node_params! {
+    /// Scale params.
+    pub struct ScaleParams {
+        /// Factor.
+        pub factor: f64 = 1.0, ParamKind::Float { min: -100.0, max: 100.0 };
+    }
+}
+node_params! {
+    /// No params.
+    pub struct NoParams {}
+}
+
+fn source(ctx: &EvalCtx, _: &Inputs, p: &SourceParams) -> Result<Outputs, NodeError> {
+    ctx.progress(0.5);
+    let img = Image::from_fn(p.size, p.size, |x, y| (x * 31 + y * 7) as f32 * 0.01 + p.offset as f32);
+    Ok(Outputs::new().with("depth", img))
+}
+fn scale(_: &EvalCtx, i: &Inputs, p: &ScaleParams) -> Result<Outputs, NodeError> {
+    let d = i.depth("depth")?;
+    if p.factor == 1.0 {
+        return Ok(Outputs::new()
+            .with("depth", Value::Depth(d.clone()))
+            .passthrough("factor is 1"));
+    }
+    Ok(Outputs::new().with("depth", d.map(|v| v * p.factor as f32)))
+}
+fn add(_: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
+    let a = i.depth("a")?;
+    let b = i.depth("b")?;
+    if !a.same_dims(b) {
+        return Err(NodeError::input("b", "size differs from a"));
+    }
+    let v: Vec<f32> = a.as_slice().iter().zip(b.as_slice()).map(|(x, y)| x + y).collect();
+    Ok(Outputs::new().with("depth", Image::from_vec(a.width(), a.height(), v).map_err(|e| NodeError::Invalid(e.to_string()))?))
+}
+fn wait_cancel(ctx: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
+    // A long node: checks cancellation between chunks of work.
+    for _ in 0..1000 {
+        ctx.check_cancelled()?;
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    Ok(Outputs::new().with("depth", Value::Depth(i.depth("depth")?.clone())))
+}
+
+fn registry() -> Registry {
+    let d = |n| PortSpec::required(n, ValueType::Depth, "depth");
+    let o = || vec![PortSpec::output("depth", ValueType::Depth, "depth")];
+    let mut r = Registry::new();
+    r.register(TypedNode::new("Source", 1, "source", vec![], o(), source)).unwrap();
+    r.register(TypedNode::new("Scale", 1, "scale", vec![d("depth")], o(), scale)).unwrap();
+    r.register(TypedNode::new("Add", 1, "add", vec![d("a"), d("b")], o(), add)).unwrap();
+    r.register(TypedNode::new("Wait", 1, "wait", vec![d("depth")], o(), wait_cancel)).unwrap();
+    r
+}
+
+const DOC: &str = r#"(
+    version: 1,
+    nodes: {
+        "src": (kind: "Source", params: (size: 16)),
+        "left": (kind: "Scale", params: (factor: 2.0), inputs: (depth: "src.depth")),
+        "right": (kind: "Scale", params: (factor: 3.0), inputs: (depth: "src.depth")),
+        "sum": (kind: "Add", inputs: (a: "left.depth", b: "right.depth")),
+        "unused": (kind: "Scale", inputs: (depth: "src.depth")),
+    },
+    outputs: ["sum.depth"],
+)"#;
+
+fn pipeline(sets: &[&str]) -> Pipeline {
+    let mut doc = Document::parse(DOC, "doc.ron").unwrap();
+    for s in sets {
+        doc.apply_set(s).unwrap();
+    }
+    Pipeline::check(&doc, &registry()).unwrap()
+}
+
+fn status(t: &Trace, node: &str) -> Status {
+    t.get(node).unwrap().status
+}
+
+#[test]
+fn downstream_change_reruns_only_downstream_in_memory() {
+    let engine = Engine::new(EngineOptions::default()).unwrap();
+    let first = engine.run(&pipeline(&[]), &RunOptions::default()).unwrap();
+    let mut ran = first.trace.evaluated();
+    ran.sort();
+    assert_eq!(ran, ["left", "right", "src", "sum"]);
+    assert_eq!(status(&first.trace, "unused"), Status::NotNeeded);
+
+    // Same pipeline again: the requested node is cached; upstream is not even looked at.
+    let again = engine.run(&pipeline(&[]), &RunOptions::default()).unwrap();
+    assert_eq!(status(&again.trace, "sum"), Status::Cached);
+    assert!(again.trace.evaluated().is_empty());
+    assert_eq!(status(&again.trace, "src"), Status::NotNeeded);
+
+    // Change one branch's parameter: that branch and its consumer re-run.
+    let changed = engine.run(&pipeline(&["left.factor=5"]), &RunOptions::default()).unwrap();
+    let mut ran = changed.trace.evaluated();
+    ran.sort();
+    assert_eq!(ran, ["left", "sum"]);
+    assert_eq!(status(&changed.trace, "right"), Status::Cached);
+    assert_eq!(status(&changed.trace, "src"), Status::Cached);
+    let Value::Depth(d) = &changed.outputs["sum.depth"] else { panic!() };
+    let Value::Depth(d0) = &first.outputs["sum.depth"] else { panic!() };
+    // (5 + 3) / (2 + 3) times the first result
+    for (a, b) in d.as_slice().iter().zip(d0.as_slice()) {
+        assert!((a - b * 8.0 / 5.0).abs() <= 1e-5 * b.abs().max(1.0));
+    }
+}
+
+#[test]
+fn upstream_change_reruns_everything_that_depends_on_it() {
+    let engine = Engine::new(EngineOptions::default()).unwrap();
+    engine.run(&pipeline(&[]), &RunOptions::default()).unwrap();
+    let r = engine.run(&pipeline(&["src.offset=1.5"]), &RunOptions::default()).unwrap();
+    let mut ran = r.trace.evaluated();
+    ran.sort();
+    assert_eq!(ran, ["left", "right", "src", "sum"]);
+}
+
+#[test]
+fn disk_cache_survives_a_new_engine() {
+    let dir = tempfile::tempdir().unwrap();
+    let mk = || {
+        Engine::new(EngineOptions {
+            disk: Some(DiskCache::new(dir.path(), 1 << 30)),
+            ..EngineOptions::default()
+        })
+        .unwrap()
+    };
+    let first = mk().run(&pipeline(&["src.size=9"]), &RunOptions::default()).unwrap();
+    assert_eq!(status(&first.trace, "src"), Status::Ran);
+    // A fresh engine (as a second process would be) with a downstream change.
+    let second = mk().run(&pipeline(&["src.size=9", "right.factor=4"]), &RunOptions::default()).unwrap();
+    let mut ran = second.trace.evaluated();
+    ran.sort();
+    assert_eq!(ran, ["right", "sum"]);
+    assert_eq!(status(&second.trace, "left"), Status::Cached);
+    assert_eq!(status(&second.trace, "src"), Status::Cached);
+    assert_eq!(second.outputs.len(), 1);
+}
+
+#[test]
+fn passthrough_is_recorded_with_reason_and_kept_when_cached() {
+    let engine = Engine::new(EngineOptions::default()).unwrap();
+    let r = engine.run(&pipeline(&["left.factor=1"]), &RunOptions::default()).unwrap();
+    let rec = r.trace.get("left").unwrap();
+    assert_eq!(rec.status, Status::Passthrough);
+    assert_eq!(rec.reason.as_deref(), Some("factor is 1"));
+    let r2 = engine.run(&pipeline(&["left.factor=1", "right.factor=7"]), &RunOptions::default()).unwrap();
+    let rec = r2.trace.get("left").unwrap();
+    assert_eq!(rec.status, Status::Cached);
+    assert_eq!(rec.reason.as_deref(), Some("factor is 1"));
+}
+
+#[test]
+fn one_and_two_threads_give_identical_bits() {
+    let run = |threads| {
+        let e = Engine::new(EngineOptions {
+            threads,
+            ..EngineOptions::default()
+        })
+        .unwrap();
+        let r = e.run(&pipeline(&["src.size=64"]), &RunOptions::default()).unwrap();
+        let Value::Depth(d) = &r.outputs["sum.depth"] else { panic!() };
+        d.as_slice().iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+    };
+    assert_eq!(run(1), run(2));
+}
+
+#[test]
+fn cancellation_stops_a_long_node() {
+    let text = r#"(version: 1, nodes: {
+        "src": (kind: "Source"),
+        "w": (kind: "Wait", inputs: (depth: "src.depth")),
+    }, outputs: ["w.depth"])"#;
+    let p = Pipeline::check(&Document::parse(text, "c.ron").unwrap(), &registry()).unwrap();
+    let engine = Arc::new(Engine::new(EngineOptions::default()).unwrap());
+    let opts = RunOptions::default();
+    let cancel = opts.cancel.clone();
+    let handle = {
+        let engine = engine.clone();
+        std::thread::spawn(move || engine.run(&p, &opts))
+    };
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    cancel.cancel();
+    let r = handle.join().unwrap();
+    assert!(matches!(r, Err(RunError::Cancelled)), "{r:?}");
+}
+
+#[test]
+fn node_errors_name_the_node() {
+    let text = r#"(version: 1, nodes: {
+        "a": (kind: "Source", params: (size: 4)),
+        "b": (kind: "Source", params: (size: 5)),
+        "s": (kind: "Add", inputs: (a: "a.depth", b: "b.depth")),
+    }, outputs: ["s"])"#;
+    let p = Pipeline::check(&Document::parse(text, "e.ron").unwrap(), &registry()).unwrap();
+    let e = Engine::new(EngineOptions::default()).unwrap().run(&p, &RunOptions::default()).unwrap_err();
+    assert_eq!(e.to_string(), "node `s` (Add): input `b`: size differs from a");
+}
+
+#[test]
+fn memory_budget_is_respected_across_runs() {
+    let engine = Engine::new(EngineOptions {
+        memory_budget_bytes: 3000,
+        ..EngineOptions::default()
+    })
+    .unwrap();
+    // each 16x16 depth is 1024 bytes; five results would need 5 KiB
+    let r = engine.run(&pipeline(&[]), &RunOptions::default()).unwrap();
+    assert_eq!(r.trace.get("sum").unwrap().bytes, 1024);
+    let again = engine.run(&pipeline(&[]), &RunOptions::default()).unwrap();
+    // the most recent result (sum) is still there
+    assert_eq!(status(&again.trace, "sum"), Status::Cached);
+}

@@ -1,0 +1,248 @@
+//! Whole pipelines end to end: the shipped demo, the CLI across processes,
+//! thread-count independence, and output safety.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use depthgraph::graph::pipeline::OutputRef;
+use depthgraph::graph::prelude::*;
+
+fn graph(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("graphs").join(name)
+}
+
+const SMALL: [&str; 2] = ["scene.width=160", "scene.height=120"];
+
+fn cli(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_depthgraph")).args(args).output().unwrap()
+}
+
+#[test]
+fn demo_writes_every_output_and_they_read_back() {
+    let out = tempfile::tempdir().unwrap();
+    let cache = tempfile::tempdir().unwrap();
+    let demo = graph("demo.ron");
+    let mut args = vec!["run", demo.to_str().unwrap(), "--out", out.path().to_str().unwrap()];
+    args.extend(["--cache-dir", cache.path().to_str().unwrap(), "--quiet"]);
+    for s in &SMALL {
+        args.extend(["--set", s]);
+    }
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let d = out.path().join("demo");
+    let color = depthgraph::nodes::io::load_color(&d.join("color.png"), "srgb").unwrap();
+    assert_eq!(color.dims(), (160, 120));
+    let hdr = depthgraph::nodes::io::load_color(&d.join("color.exr"), "linear").unwrap();
+    // the 8-bit PNG is the sRGB encoding of the linear EXR (clipped at 1)
+    for (a, b) in color.as_slice().iter().zip(hdr.as_slice()) {
+        for c in 0..3 {
+            assert!((a[c] - b[c].clamp(0.0, 1.0)).abs() < 0.01, "{a:?} vs {b:?}");
+        }
+    }
+    let p = depthgraph::nodes::io::LoadDepthParams::default();
+    let truth = depthgraph::nodes::io::load_depth(&d.join("depth_truth.exr"), &p).unwrap();
+    let kinect = depthgraph::nodes::io::load_depth(&d.join("depth_kinect.png"), &p).unwrap();
+    assert_eq!(truth.dims(), (160, 120));
+    assert_eq!(truth.hole_count(), 0, "the tabletop scene has no background hole");
+    assert!(kinect.hole_count() > 0, "the simulated Kinect must leave holes");
+    // where the Kinect measured, it agrees with the truth to a few percent
+    let mut worst = 0.0f32;
+    for (k, t) in kinect.as_slice().iter().zip(truth.as_slice()) {
+        if *k > 0.0 {
+            worst = worst.max((k - t).abs() / t);
+        }
+    }
+    assert!(worst < 0.1, "worst relative error {worst}");
+    let ply = std::fs::read(d.join("points.ply")).unwrap();
+    let header = String::from_utf8_lossy(&ply[..200]);
+    let valid = kinect.len() - kinect.hole_count();
+    assert!(header.contains(&format!("element vertex {valid}")), "{header}");
+    assert!(d.join("depth_kinect_preview.png").exists());
+}
+
+fn explain(dir: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
+    let demo = graph("demo.ron");
+    let mut args = vec!["explain", demo.to_str().unwrap(), "--json", "--quiet"];
+    args.extend(["--out", dir.to_str().unwrap(), "--cache-dir", cache.to_str().unwrap()]);
+    for s in SMALL.iter().chain(sets) {
+        args.extend(["--set", s]);
+    }
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    serde_json::from_slice(&r.stdout).unwrap()
+}
+
+fn status_of<'a>(rows: &'a [serde_json::Value], node: &str) -> &'a str {
+    rows.iter().find(|r| r["node"] == node).and_then(|r| r["status"].as_str()).unwrap()
+}
+
+#[test]
+fn second_process_reruns_only_downstream_of_the_change() {
+    let out = tempfile::tempdir().unwrap();
+    let cache = tempfile::tempdir().unwrap();
+    let first = explain(out.path(), cache.path(), &[]);
+    for n in ["scene", "kinect", "points", "save_color"] {
+        assert_eq!(status_of(&first, n), "ran", "{n}");
+    }
+    for row in &first {
+        for key in ["node", "kind", "status", "reason", "ms", "bytes"] {
+            assert!(row.get(key).is_some(), "missing {key} in {row}");
+        }
+    }
+    // A new process: only the Kinect's seed changes.
+    let second = explain(out.path(), cache.path(), &["kinect.seed=7"]);
+    assert_eq!(status_of(&second, "scene"), "cached");
+    assert_eq!(status_of(&second, "kinect"), "ran");
+    assert_eq!(status_of(&second, "points"), "ran");
+    // Sinks always write; nothing else upstream of the change ran.
+    let ran: Vec<&str> = second
+        .iter()
+        .filter(|r| r["status"] == "ran" && !r["kind"].as_str().unwrap().starts_with("Save"))
+        .map(|r| r["node"].as_str().unwrap())
+        .collect();
+    assert_eq!(ran, ["kinect", "points"]);
+    // Same again: everything but the sinks comes from the cache.
+    let third = explain(out.path(), cache.path(), &["kinect.seed=7"]);
+    assert_eq!(status_of(&third, "kinect"), "cached");
+    // the sinks read the scene directly, so it is fetched from the cache, not recomputed
+    assert_eq!(status_of(&third, "scene"), "cached");
+    assert_eq!(status_of(&third, "points"), "cached");
+    // --no-cache computes everything again.
+    let demo = graph("demo.ron");
+    let r = cli(&[
+        "explain", demo.to_str().unwrap(), "--json", "--quiet", "--no-cache", "--out", out.path().to_str().unwrap(),
+        "--set", SMALL[0], "--set", SMALL[1],
+    ]);
+    let rows: Vec<serde_json::Value> = serde_json::from_slice(&r.stdout).unwrap();
+    assert_eq!(status_of(&rows, "scene"), "ran");
+}
+
+fn in_process(threads: usize) -> Vec<(String, Vec<u32>)> {
+    let reg = depthgraph::nodes::registry().unwrap();
+    let sets: Vec<String> = SMALL.iter().map(|s| s.to_string()).collect();
+    let (_, mut p) = depthgraph::load_pipeline(&graph("demo.ron"), &sets, &reg).unwrap();
+    // the values, not the files
+    p.outputs = ["scene", "kinect", "points"]
+        .iter()
+        .map(|n| OutputRef { node: p.index_of(n).unwrap(), port: None })
+        .collect();
+    let engine = Engine::new(EngineOptions { threads, ..EngineOptions::default() }).unwrap();
+    let r = engine.run(&p, &RunOptions::default()).unwrap();
+    r.outputs
+        .iter()
+        .map(|(k, v)| {
+            let bits: Vec<u32> = match v {
+                Value::Color(i) | Value::Normals(i) => i.as_slice().iter().flatten().map(|x| x.to_bits()).collect(),
+                Value::Depth(i) => i.as_slice().iter().map(|x| x.to_bits()).collect(),
+                Value::Labels(i) => i.as_slice().to_vec(),
+                Value::PointCloud(pc) => pc.positions.iter().chain(&pc.colors).flatten().map(|x| x.to_bits()).collect(),
+                Value::Intrinsics(k) => [k.fx, k.fy, k.cx, k.cy].iter().map(|x| x.to_bits() as u32).collect(),
+                other => panic!("unexpected {other:?}"),
+            };
+            (k.clone(), bits)
+        })
+        .collect()
+}
+
+#[test]
+fn one_and_two_threads_are_bit_identical_on_the_demo() {
+    let one = in_process(1);
+    let two = in_process(2);
+    assert_eq!(one.len(), two.len());
+    assert!(one.len() >= 8);
+    for ((ka, a), (kb, b)) in one.iter().zip(&two) {
+        assert_eq!(ka, kb);
+        assert!(a == b, "{ka} differs between 1 and 2 threads");
+    }
+}
+
+#[test]
+fn sinks_never_overwrite_an_input_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("photo.png");
+    let img = Image::from_fn(4, 3, |x, y| [x as f32 / 4.0, y as f32 / 3.0, 0.5]);
+    depthgraph::nodes::io::save_color(&img, &input, false, 0.0).unwrap();
+    let before = std::fs::read(&input).unwrap();
+    let pipe = dir.path().join("p.ron");
+    let text = format!(
+        r#"(version: 1, nodes: {{
+            "load": (kind: "LoadColor", params: (path: "{p}")),
+            "bright": (kind: "Exposure", params: (stops: 1.0), inputs: (color: "load.color")),
+            "save": (kind: "SaveColor", params: (path: "{p}"), inputs: (color: "bright.color")),
+        }}, outputs: ["save"])"#,
+        p = input.display()
+    );
+    std::fs::write(&pipe, text).unwrap();
+    let r = cli(&["run", pipe.to_str().unwrap(), "--no-cache", "--quiet", "--out", dir.path().to_str().unwrap()]);
+    assert!(!r.status.success());
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(err.contains("refusing to write over a file this pipeline reads"), "{err}");
+    assert_eq!(std::fs::read(&input).unwrap(), before);
+    // nor over the pipeline file itself (relative path resolved against --out)
+    let r = cli(&[
+        "run", pipe.to_str().unwrap(), "--no-cache", "--quiet", "--out", dir.path().to_str().unwrap(),
+        "--set", "save.path=p.ron",
+    ]);
+    assert!(!r.status.success());
+    assert!(std::fs::read_to_string(&pipe).unwrap().starts_with("(version: 1"));
+    // a different target works, and the result is twice as bright
+    let r = cli(&[
+        "run", pipe.to_str().unwrap(), "--no-cache", "--quiet", "--out", dir.path().to_str().unwrap(),
+        "--set", "save.path=bright.png",
+    ]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let a = depthgraph::nodes::io::load_color(&input, "srgb").unwrap();
+    let b = depthgraph::nodes::io::load_color(&dir.path().join("bright.png"), "srgb").unwrap();
+    let (pa, pb) = (a.get(1, 1), b.get(1, 1));
+    assert!((pb[0] - (2.0 * pa[0]).min(1.0)).abs() < 0.01, "{pa:?} -> {pb:?}");
+}
+
+#[test]
+fn nodes_lists_every_kind_with_its_schema() {
+    let r = cli(&["nodes", "--json"]);
+    assert!(r.status.success());
+    let list: Vec<serde_json::Value> = serde_json::from_slice(&r.stdout).unwrap();
+    let reg = depthgraph::nodes::registry().unwrap();
+    assert_eq!(list.len(), reg.kinds().count());
+    let cam = list.iter().find(|n| n["kind"] == "Camera").unwrap();
+    let width = cam["params"].as_array().unwrap().iter().find(|p| p["name"] == "width").unwrap();
+    assert_eq!(width["default"], "640");
+    assert_eq!(width["range"], "[1, 65536]");
+    let r = cli(&["nodes", "Camra"]);
+    assert!(!r.status.success());
+    assert!(String::from_utf8_lossy(&r.stderr).contains("did you mean `Camera`?"));
+}
+
+#[test]
+fn every_registered_default_is_valid_and_round_trips() {
+    let reg = depthgraph::nodes::registry().unwrap();
+    for kind in reg.kinds() {
+        let node = reg.get(kind).unwrap();
+        for spec in &node.schema().params {
+            assert!(spec.kind.validate(&spec.default).is_ok() || matches!(spec.kind, ParamKind::InputPath), "{kind}.{}", spec.name);
+            assert!(!spec.doc.is_empty(), "{kind}.{} has no doc", spec.name);
+        }
+        assert!(!node.schema().doc.is_empty(), "{kind} has no doc");
+    }
+}
+
+#[test]
+fn sweep_writes_csv_and_plot() {
+    let out = tempfile::tempdir().unwrap();
+    let demo = graph("demo.ron");
+    let r = cli(&[
+        "sweep", demo.to_str().unwrap(), "--quiet", "--no-cache", "--out", out.path().to_str().unwrap(),
+        "--set", SMALL[0], "--set", SMALL[1],
+        "--param", "kinect.noise_k=0,0.0015,0.006", "--truth", "scene.depth", "--output", "kinect.depth",
+        "--metric", "rmse", "--repeats", "1",
+    ]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let csv = std::fs::read_to_string(out.path().join("sweep-kinect-noise_k.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 3);
+    let err: Vec<f64> = rows.iter().map(|r| r[6].parse().unwrap()).collect();
+    // more noise, more error
+    assert!(err[0] < err[1] && err[1] < err[2], "{err:?}");
+    let svg = std::fs::read_to_string(out.path().join("sweep-kinect-noise_k.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("<circle"), "not a plot");
+}
