@@ -34,18 +34,27 @@ pub fn read_document(path: &Path, sets: &[String]) -> Result<Document, LoadError
         path: path.to_path_buf(),
         source,
     })?;
-    let mut doc = Document::parse(&text, &path.display().to_string()).map_err(|e| LoadError::Check(CheckErrors(e)))?;
+    let mut doc = Document::parse(&text, &path.display().to_string())
+        .map_err(|e| LoadError::Check(CheckErrors(e)))?;
     let mut errors = Vec::new();
     for s in sets {
         if let Err(e) = doc.apply_set(s) {
             errors.push(e);
         }
     }
-    if errors.is_empty() { Ok(doc) } else { Err(LoadError::Check(CheckErrors(errors))) }
+    if errors.is_empty() {
+        Ok(doc)
+    } else {
+        Err(LoadError::Check(CheckErrors(errors)))
+    }
 }
 
 /// Reads, overrides and checks a pipeline against the full registry.
-pub fn load_pipeline(path: &Path, sets: &[String], reg: &Registry) -> Result<(Document, Pipeline), LoadError> {
+pub fn load_pipeline(
+    path: &Path,
+    sets: &[String],
+    reg: &Registry,
+) -> Result<(Document, Pipeline), LoadError> {
     let doc = read_document(path, sets)?;
     let p = Pipeline::check(&doc, reg).map_err(|e| LoadError::Check(CheckErrors(e)))?;
     Ok((doc, p))

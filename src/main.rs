@@ -14,7 +14,11 @@ use depthgraph::sweep::{SweepSpec, plot_svg, run_sweep, to_csv};
 use depthgraph::{LoadError, default_cache_dir, load_pipeline, read_document};
 
 #[derive(Parser)]
-#[command(name = "depthgraph", version, about = "Edit color+depth photographs with typed node graphs")]
+#[command(
+    name = "depthgraph",
+    version,
+    about = "Edit color+depth photographs with typed node graphs"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -195,7 +199,11 @@ fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
     let named: Vec<String> = p
         .outputs
         .iter()
-        .filter_map(|o| o.port.as_ref().map(|port| format!("{}.{}", p.nodes[o.node].name, port)))
+        .filter_map(|o| {
+            o.port
+                .as_ref()
+                .map(|port| format!("{}.{}", p.nodes[o.node].name, port))
+        })
         .collect();
     for (name, v) in &result.outputs {
         match v {
@@ -212,7 +220,9 @@ fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
 }
 
 fn dims_text(v: &Value) -> String {
-    v.image_dims().map(|(w, h)| format!("{w}x{h}")).unwrap_or_default()
+    v.image_dims()
+        .map(|(w, h)| format!("{w}x{h}"))
+        .unwrap_or_default()
 }
 
 fn cmd_check(file: &Path, sets: &[String]) -> Result<ExitCode> {
@@ -222,7 +232,12 @@ fn cmd_check(file: &Path, sets: &[String]) -> Result<ExitCode> {
             for n in &doc.notices {
                 eprintln!("note: {n}");
             }
-            println!("{}: ok ({} nodes, {} requested outputs)", file.display(), p.nodes.len(), p.outputs.len());
+            println!(
+                "{}: ok ({} nodes, {} requested outputs)",
+                file.display(),
+                p.nodes.len(),
+                p.outputs.len()
+            );
             Ok(ExitCode::SUCCESS)
         }
         Err(e) => {
@@ -237,7 +252,10 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
     let kinds: Vec<&str> = match kind {
         Some(k) => {
             if reg.get(k).is_none() {
-                let hint = reg.suggest(k).map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default();
+                let hint = reg
+                    .suggest(k)
+                    .map(|s| format!(" (did you mean `{s}`?)"))
+                    .unwrap_or_default();
                 bail!("unknown node kind `{k}`{hint}");
             }
             vec![k]
@@ -264,13 +282,25 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
     for k in kinds {
         let Some(n) = reg.get(k) else { continue };
         let s = n.schema();
-        println!("{} (version {}){}\n  {}\n", s.kind, s.version, if s.sink { ", sink" } else { "" }, s.doc);
+        println!(
+            "{} (version {}){}\n  {}\n",
+            s.kind,
+            s.version,
+            if s.sink { ", sink" } else { "" },
+            s.doc
+        );
         println!("  inputs:");
         if s.inputs.is_empty() {
             println!("    (none)");
         }
         for p in &s.inputs {
-            println!("    {:<14} {:<13} {}{}", p.name, p.ty, if p.optional { "(optional) " } else { "" }, p.doc);
+            println!(
+                "    {:<14} {:<13} {}{}",
+                p.name,
+                p.ty,
+                if p.optional { "(optional) " } else { "" },
+                p.doc
+            );
         }
         println!("  outputs:");
         for p in &s.outputs {
@@ -287,7 +317,11 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
                 p.name,
                 p.kind.type_name(),
                 p.default,
-                if range.is_empty() { String::new() } else { format!(", {range}") },
+                if range.is_empty() {
+                    String::new()
+                } else {
+                    format!(", {range}")
+                },
                 p.doc.replace('\n', "\n        ")
             );
         }
@@ -368,7 +402,11 @@ fn cmd_sweep(
     let Some((target, values)) = param.split_once('=') else {
         bail!("--param must be node.param=v1,v2,...");
     };
-    let values: Vec<String> = values.split(',').map(|v| v.trim().to_string()).filter(|v| !v.is_empty()).collect();
+    let values: Vec<String> = values
+        .split(',')
+        .map(|v| v.trim().to_string())
+        .filter(|v| !v.is_empty())
+        .collect();
     if values.is_empty() {
         bail!("--param {target}= lists no values");
     }
@@ -384,11 +422,23 @@ fn cmd_sweep(
     let engine = engine(args)?;
     let mut opts = run_options(args);
     opts.progress = None;
-    println!("{:>14}  {:>12}  {:>12}  {:>8}", "value", "ms (median)", format!("{metric:?}").to_lowercase(), "missing");
+    println!(
+        "{:>14}  {:>12}  {:>12}  {:>8}",
+        "value",
+        "ms (median)",
+        format!("{metric:?}").to_lowercase(),
+        "missing"
+    );
     let rows = match run_sweep(&engine, &doc, &reg, &spec, &opts, |r| {
-        let e = r.error.map(|e| format!("{:.6}", e.value)).unwrap_or_else(|| r.note.clone().unwrap_or_default());
+        let e = r
+            .error
+            .map(|e| format!("{:.6}", e.value))
+            .unwrap_or_else(|| r.note.clone().unwrap_or_default());
         let miss = r.error.map(|e| e.missing.to_string()).unwrap_or_default();
-        println!("{:>14}  {:>12.2}  {:>12}  {:>8}", r.value, r.ms_median, e, miss);
+        println!(
+            "{:>14}  {:>12.2}  {:>12}  {:>8}",
+            r.value, r.ms_median, e, miss
+        );
     }) {
         Ok(r) => r,
         Err(depthgraph::sweep::SweepError::Check(errs)) => {
@@ -401,7 +451,9 @@ fn cmd_sweep(
     let csv = csv.unwrap_or_else(|| args.out.join(format!("{stem}.csv")));
     let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
     let text = to_csv(target, metric, &rows);
-    depthgraph::nodes::io::write_atomic(&csv, |tmp| std::fs::write(tmp, &text).map_err(|e| e.to_string()))?;
+    depthgraph::nodes::io::write_atomic(&csv, |tmp| {
+        std::fs::write(tmp, &text).map_err(|e| e.to_string())
+    })?;
     println!("wrote {}", csv.display());
     match depthgraph::nodes::io::write_atomic(&plot, |tmp| plot_svg(tmp, target, metric, &rows)) {
         Ok(_) => println!("wrote {}", plot.display()),
@@ -427,7 +479,9 @@ fn main() -> ExitCode {
             repeats,
             csv,
             plot,
-        } => cmd_sweep(&common, &param, reference, truth, output, metric, repeats, csv, plot),
+        } => cmd_sweep(
+            &common, &param, reference, truth, output, metric, repeats, csv, plot,
+        ),
     };
     match r {
         Ok(code) => code,

@@ -42,7 +42,11 @@ pub enum MetricError {
 /// Compares `result` with `reference`. For depth, only pixels valid in the
 /// reference count; result holes there are counted as `missing` and left out
 /// of the error. Sums are accumulated in f64.
-pub fn compare(result: &Value, reference: &Value, metric: Metric) -> Result<Measurement, MetricError> {
+pub fn compare(
+    result: &Value,
+    reference: &Value,
+    metric: Metric,
+) -> Result<Measurement, MetricError> {
     let mut acc = Acc::default();
     match (result, reference) {
         (Value::Depth(a), Value::Depth(b)) => {
@@ -82,7 +86,11 @@ pub fn compare(result: &Value, reference: &Value, metric: Metric) -> Result<Meas
 }
 
 fn dims(a: (usize, usize), b: (usize, usize)) -> Result<(), MetricError> {
-    if a == b { Ok(()) } else { Err(MetricError::Dims(a.0, a.1, b.0, b.1)) }
+    if a == b {
+        Ok(())
+    } else {
+        Err(MetricError::Dims(a.0, a.1, b.0, b.1))
+    }
 }
 
 #[derive(Default)]
@@ -119,7 +127,11 @@ impl Acc {
             Metric::Psnr => {
                 // guard: a zero error is reported as +inf dB; the peak is at least 1e-12
                 let peak = self.peak.max(1e-12);
-                if mse == 0.0 { f64::INFINITY } else { 10.0 * (peak * peak / mse).log10() }
+                if mse == 0.0 {
+                    f64::INFINITY
+                } else {
+                    10.0 * (peak * peak / mse).log10()
+                }
             }
         };
         Ok(Measurement {
@@ -157,8 +169,17 @@ mod tests {
     fn mismatches_are_errors() {
         let a = depth(vec![1.0, 2.0]);
         let b = depth(vec![1.0]);
-        assert!(matches!(compare(&a, &b, Metric::Rmse), Err(MetricError::Dims(..))));
-        assert!(matches!(compare(&a, &Value::Scalar(1.0), Metric::Rmse), Err(MetricError::Types(..))));
-        assert_eq!(compare(&depth(vec![1.0]), &depth(vec![0.0]), Metric::Rmse), Err(MetricError::Empty));
+        assert!(matches!(
+            compare(&a, &b, Metric::Rmse),
+            Err(MetricError::Dims(..))
+        ));
+        assert!(matches!(
+            compare(&a, &Value::Scalar(1.0), Metric::Rmse),
+            Err(MetricError::Types(..))
+        ));
+        assert_eq!(
+            compare(&depth(vec![1.0]), &depth(vec![0.0]), Metric::Rmse),
+            Err(MetricError::Empty)
+        );
     }
 }

@@ -65,10 +65,16 @@ pub enum SweepError {
     NoReference,
 }
 
-fn with_set(doc: &Document, sets: &[String], reg: &Registry, want: &[&str]) -> Result<Pipeline, SweepError> {
+fn with_set(
+    doc: &Document,
+    sets: &[String],
+    reg: &Registry,
+    want: &[&str],
+) -> Result<Pipeline, SweepError> {
     let mut d = doc.clone();
     for s in sets {
-        d.apply_set(s).map_err(|e| SweepError::Check(CheckErrors(vec![e])))?;
+        d.apply_set(s)
+            .map_err(|e| SweepError::Check(CheckErrors(vec![e])))?;
     }
     let mut p = Pipeline::check(&d, reg).map_err(|e| SweepError::Check(CheckErrors(e)))?;
     // Only the judged ports are requested: no file is written by a sweep.
@@ -76,7 +82,9 @@ fn with_set(doc: &Document, sets: &[String], reg: &Registry, want: &[&str]) -> R
         .iter()
         .map(|w| {
             let (n, port) = split_ref(w).ok_or_else(|| SweepError::BadRef(w.to_string()))?;
-            let node = p.index_of(n).ok_or_else(|| SweepError::BadRef(w.to_string()))?;
+            let node = p
+                .index_of(n)
+                .ok_or_else(|| SweepError::BadRef(w.to_string()))?;
             Ok(OutputRef {
                 node,
                 port: Some(port.to_string()),
@@ -92,7 +100,11 @@ fn median(v: &mut [f64]) -> f64 {
     if n == 0 {
         return f64::NAN;
     }
-    if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
 /// Runs the sweep. `progress` is called after each value.
@@ -104,7 +116,8 @@ pub fn run_sweep(
     base: &RunOptions,
     mut progress: impl FnMut(&SweepRow),
 ) -> Result<Vec<SweepRow>, SweepError> {
-    let (node_name, _) = split_ref(&spec.param).ok_or_else(|| SweepError::BadRef(spec.param.clone()))?;
+    let (node_name, _) =
+        split_ref(&spec.param).ok_or_else(|| SweepError::BadRef(spec.param.clone()))?;
     if spec.reference.is_none() && spec.truth.is_none() {
         return Err(SweepError::NoReference);
     }
@@ -129,7 +142,9 @@ pub fn run_sweep(
     for v in &spec.values {
         let set = format!("{}={}", spec.param, v);
         let p = with_set(doc, &[set], reg, &want)?;
-        let swept = p.index_of(node_name).ok_or_else(|| SweepError::BadRef(spec.param.clone()))?;
+        let swept = p
+            .index_of(node_name)
+            .ok_or_else(|| SweepError::BadRef(spec.param.clone()))?;
         // Warm-up: computes (or fetches) everything once, so upstream work is cached.
         let first = engine.run(&p, base)?;
         let mut opts = base.clone();
@@ -146,7 +161,10 @@ pub fn run_sweep(
             .get(&spec.output)
             .ok_or_else(|| SweepError::NoValue(spec.output.clone()))?;
         let reference = match (&spec.truth, &reference_value) {
-            (Some(t), _) => last.outputs.get(t).ok_or_else(|| SweepError::NoValue(t.clone()))?,
+            (Some(t), _) => last
+                .outputs
+                .get(t)
+                .ok_or_else(|| SweepError::NoValue(t.clone()))?,
             (None, Some(r)) => r,
             (None, None) => return Err(SweepError::NoReference),
         };
@@ -182,11 +200,23 @@ pub fn to_csv(param: &str, metric: Metric, rows: &[SweepRow]) -> String {
     let m = format!("{metric:?}").to_lowercase();
     for r in rows {
         let (e, c, miss) = match r.error {
-            Some(e) => (format!("{}", e.value), e.count.to_string(), e.missing.to_string()),
+            Some(e) => (
+                format!("{}", e.value),
+                e.count.to_string(),
+                e.missing.to_string(),
+            ),
             None => (String::new(), String::new(), String::new()),
         };
-        let value = if r.value.contains(',') { format!("\"{}\"", r.value.replace('"', "\"\"")) } else { r.value.clone() };
-        let _ = writeln!(s, "{param},{value},{:.4},{:.4},{:.4},{m},{e},{c},{miss}", r.ms_median, r.ms_min, r.ms_max);
+        let value = if r.value.contains(',') {
+            format!("\"{}\"", r.value.replace('"', "\"\""))
+        } else {
+            r.value.clone()
+        };
+        let _ = writeln!(
+            s,
+            "{param},{value},{:.4},{:.4},{:.4},{m},{e},{c},{miss}",
+            r.ms_median, r.ms_min, r.ms_max
+        );
     }
     s
 }
@@ -205,21 +235,31 @@ pub fn plot_svg(path: &Path, param: &str, metric: Metric, rows: &[SweepRow]) -> 
     if pts.is_empty() {
         return Err("no finite error to plot".into());
     }
-    let (xmin, xmax) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let (xmin, xmax) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+        (a.min(p.0), b.max(p.0))
+    });
     let (ymin, ymax) = pts
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.1), b.max(p.1)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.1), b.max(p.1))
+        });
     let ypad = ((ymax - ymin).abs() * 0.1).max(1e-9);
     let root = SVGBackend::new(path, (800, 500)).into_drawing_area();
     let err = |e: DrawingAreaErrorKind<std::io::Error>| e.to_string();
     root.fill(&WHITE).map_err(err)?;
     let metric_name = format!("{metric:?}").to_uppercase();
     let mut chart = ChartBuilder::on(&root)
-        .caption(format!("{metric_name} vs time: {param}"), ("sans-serif", 20))
+        .caption(
+            format!("{metric_name} vs time: {param}"),
+            ("sans-serif", 20),
+        )
         .margin(15)
         .x_label_area_size(40)
         .y_label_area_size(70)
-        .build_cartesian_2d((xmin * 0.8..xmax * 1.25).log_scale(), (ymin - ypad)..(ymax + ypad))
+        .build_cartesian_2d(
+            (xmin * 0.8..xmax * 1.25).log_scale(),
+            (ymin - ypad)..(ymax + ypad),
+        )
         .map_err(err)?;
     chart
         .configure_mesh()

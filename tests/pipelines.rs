@@ -8,13 +8,18 @@ use depthgraph::graph::pipeline::OutputRef;
 use depthgraph::graph::prelude::*;
 
 fn graph(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("graphs").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("graphs")
+        .join(name)
 }
 
 const SMALL: [&str; 2] = ["scene.width=160", "scene.height=120"];
 
 fn cli(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_depthgraph")).args(args).output().unwrap()
+    Command::new(env!("CARGO_BIN_EXE_depthgraph"))
+        .args(args)
+        .output()
+        .unwrap()
 }
 
 #[test]
@@ -22,7 +27,12 @@ fn demo_writes_every_output_and_they_read_back() {
     let out = tempfile::tempdir().unwrap();
     let cache = tempfile::tempdir().unwrap();
     let demo = graph("demo.ron");
-    let mut args = vec!["run", demo.to_str().unwrap(), "--out", out.path().to_str().unwrap()];
+    let mut args = vec![
+        "run",
+        demo.to_str().unwrap(),
+        "--out",
+        out.path().to_str().unwrap(),
+    ];
     args.extend(["--cache-dir", cache.path().to_str().unwrap(), "--quiet"]);
     for s in &SMALL {
         args.extend(["--set", s]);
@@ -43,8 +53,15 @@ fn demo_writes_every_output_and_they_read_back() {
     let truth = depthgraph::nodes::io::load_depth(&d.join("depth_truth.exr"), &p).unwrap();
     let kinect = depthgraph::nodes::io::load_depth(&d.join("depth_kinect.png"), &p).unwrap();
     assert_eq!(truth.dims(), (160, 120));
-    assert_eq!(truth.hole_count(), 0, "the tabletop scene has no background hole");
-    assert!(kinect.hole_count() > 0, "the simulated Kinect must leave holes");
+    assert_eq!(
+        truth.hole_count(),
+        0,
+        "the tabletop scene has no background hole"
+    );
+    assert!(
+        kinect.hole_count() > 0,
+        "the simulated Kinect must leave holes"
+    );
     // where the Kinect measured, it agrees with the truth to a few percent
     let mut worst = 0.0f32;
     for (k, t) in kinect.as_slice().iter().zip(truth.as_slice()) {
@@ -56,14 +73,22 @@ fn demo_writes_every_output_and_they_read_back() {
     let ply = std::fs::read(d.join("points.ply")).unwrap();
     let header = String::from_utf8_lossy(&ply[..200]);
     let valid = kinect.len() - kinect.hole_count();
-    assert!(header.contains(&format!("element vertex {valid}")), "{header}");
+    assert!(
+        header.contains(&format!("element vertex {valid}")),
+        "{header}"
+    );
     assert!(d.join("depth_kinect_preview.png").exists());
 }
 
 fn explain(dir: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
     let demo = graph("demo.ron");
     let mut args = vec!["explain", demo.to_str().unwrap(), "--json", "--quiet"];
-    args.extend(["--out", dir.to_str().unwrap(), "--cache-dir", cache.to_str().unwrap()]);
+    args.extend([
+        "--out",
+        dir.to_str().unwrap(),
+        "--cache-dir",
+        cache.to_str().unwrap(),
+    ]);
     for s in SMALL.iter().chain(sets) {
         args.extend(["--set", s]);
     }
@@ -73,7 +98,10 @@ fn explain(dir: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
 }
 
 fn status_of<'a>(rows: &'a [serde_json::Value], node: &str) -> &'a str {
-    rows.iter().find(|r| r["node"] == node).and_then(|r| r["status"].as_str()).unwrap()
+    rows.iter()
+        .find(|r| r["node"] == node)
+        .and_then(|r| r["status"].as_str())
+        .unwrap()
 }
 
 #[test]
@@ -110,8 +138,17 @@ fn second_process_reruns_only_downstream_of_the_change() {
     // --no-cache computes everything again.
     let demo = graph("demo.ron");
     let r = cli(&[
-        "explain", demo.to_str().unwrap(), "--json", "--quiet", "--no-cache", "--out", out.path().to_str().unwrap(),
-        "--set", SMALL[0], "--set", SMALL[1],
+        "explain",
+        demo.to_str().unwrap(),
+        "--json",
+        "--quiet",
+        "--no-cache",
+        "--out",
+        out.path().to_str().unwrap(),
+        "--set",
+        SMALL[0],
+        "--set",
+        SMALL[1],
     ]);
     let rows: Vec<serde_json::Value> = serde_json::from_slice(&r.stdout).unwrap();
     assert_eq!(status_of(&rows, "scene"), "ran");
@@ -124,19 +161,37 @@ fn in_process(threads: usize) -> Vec<(String, Vec<u32>)> {
     // the values, not the files
     p.outputs = ["scene", "kinect", "points"]
         .iter()
-        .map(|n| OutputRef { node: p.index_of(n).unwrap(), port: None })
+        .map(|n| OutputRef {
+            node: p.index_of(n).unwrap(),
+            port: None,
+        })
         .collect();
-    let engine = Engine::new(EngineOptions { threads, ..EngineOptions::default() }).unwrap();
+    let engine = Engine::new(EngineOptions {
+        threads,
+        ..EngineOptions::default()
+    })
+    .unwrap();
     let r = engine.run(&p, &RunOptions::default()).unwrap();
     r.outputs
         .iter()
         .map(|(k, v)| {
             let bits: Vec<u32> = match v {
-                Value::Color(i) | Value::Normals(i) => i.as_slice().iter().flatten().map(|x| x.to_bits()).collect(),
+                Value::Color(i) | Value::Normals(i) => {
+                    i.as_slice().iter().flatten().map(|x| x.to_bits()).collect()
+                }
                 Value::Depth(i) => i.as_slice().iter().map(|x| x.to_bits()).collect(),
                 Value::Labels(i) => i.as_slice().to_vec(),
-                Value::PointCloud(pc) => pc.positions.iter().chain(&pc.colors).flatten().map(|x| x.to_bits()).collect(),
-                Value::Intrinsics(k) => [k.fx, k.fy, k.cx, k.cy].iter().map(|x| x.to_bits() as u32).collect(),
+                Value::PointCloud(pc) => pc
+                    .positions
+                    .iter()
+                    .chain(&pc.colors)
+                    .flatten()
+                    .map(|x| x.to_bits())
+                    .collect(),
+                Value::Intrinsics(k) => [k.fx, k.fy, k.cx, k.cy]
+                    .iter()
+                    .map(|x| x.to_bits() as u32)
+                    .collect(),
                 other => panic!("unexpected {other:?}"),
             };
             (k.clone(), bits)
@@ -173,28 +228,57 @@ fn sinks_never_overwrite_an_input_file() {
         p = input.display()
     );
     std::fs::write(&pipe, text).unwrap();
-    let r = cli(&["run", pipe.to_str().unwrap(), "--no-cache", "--quiet", "--out", dir.path().to_str().unwrap()]);
+    let r = cli(&[
+        "run",
+        pipe.to_str().unwrap(),
+        "--no-cache",
+        "--quiet",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
     assert!(!r.status.success());
     let err = String::from_utf8_lossy(&r.stderr);
-    assert!(err.contains("refusing to write over a file this pipeline reads"), "{err}");
+    assert!(
+        err.contains("refusing to write over a file this pipeline reads"),
+        "{err}"
+    );
     assert_eq!(std::fs::read(&input).unwrap(), before);
     // nor over the pipeline file itself (relative path resolved against --out)
     let r = cli(&[
-        "run", pipe.to_str().unwrap(), "--no-cache", "--quiet", "--out", dir.path().to_str().unwrap(),
-        "--set", "save.path=p.ron",
+        "run",
+        pipe.to_str().unwrap(),
+        "--no-cache",
+        "--quiet",
+        "--out",
+        dir.path().to_str().unwrap(),
+        "--set",
+        "save.path=p.ron",
     ]);
     assert!(!r.status.success());
-    assert!(std::fs::read_to_string(&pipe).unwrap().starts_with("(version: 1"));
+    assert!(
+        std::fs::read_to_string(&pipe)
+            .unwrap()
+            .starts_with("(version: 1")
+    );
     // a different target works, and the result is twice as bright
     let r = cli(&[
-        "run", pipe.to_str().unwrap(), "--no-cache", "--quiet", "--out", dir.path().to_str().unwrap(),
-        "--set", "save.path=bright.png",
+        "run",
+        pipe.to_str().unwrap(),
+        "--no-cache",
+        "--quiet",
+        "--out",
+        dir.path().to_str().unwrap(),
+        "--set",
+        "save.path=bright.png",
     ]);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let a = depthgraph::nodes::io::load_color(&input, "srgb").unwrap();
     let b = depthgraph::nodes::io::load_color(&dir.path().join("bright.png"), "srgb").unwrap();
     let (pa, pb) = (a.get(1, 1), b.get(1, 1));
-    assert!((pb[0] - (2.0 * pa[0]).min(1.0)).abs() < 0.01, "{pa:?} -> {pb:?}");
+    assert!(
+        (pb[0] - (2.0 * pa[0]).min(1.0)).abs() < 0.01,
+        "{pa:?} -> {pb:?}"
+    );
 }
 
 #[test]
@@ -205,7 +289,12 @@ fn nodes_lists_every_kind_with_its_schema() {
     let reg = depthgraph::nodes::registry().unwrap();
     assert_eq!(list.len(), reg.kinds().count());
     let cam = list.iter().find(|n| n["kind"] == "Camera").unwrap();
-    let width = cam["params"].as_array().unwrap().iter().find(|p| p["name"] == "width").unwrap();
+    let width = cam["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "width")
+        .unwrap();
     assert_eq!(width["default"], "640");
     assert_eq!(width["range"], "[1, 65536]");
     let r = cli(&["nodes", "Camra"]);
@@ -219,7 +308,12 @@ fn every_registered_default_is_valid_and_round_trips() {
     for kind in reg.kinds() {
         let node = reg.get(kind).unwrap();
         for spec in &node.schema().params {
-            assert!(spec.kind.validate(&spec.default).is_ok() || matches!(spec.kind, ParamKind::InputPath), "{kind}.{}", spec.name);
+            assert!(
+                spec.kind.validate(&spec.default).is_ok()
+                    || matches!(spec.kind, ParamKind::InputPath),
+                "{kind}.{}",
+                spec.name
+            );
             assert!(!spec.doc.is_empty(), "{kind}.{} has no doc", spec.name);
         }
         assert!(!node.schema().doc.is_empty(), "{kind} has no doc");
@@ -231,18 +325,41 @@ fn sweep_writes_csv_and_plot() {
     let out = tempfile::tempdir().unwrap();
     let demo = graph("demo.ron");
     let r = cli(&[
-        "sweep", demo.to_str().unwrap(), "--quiet", "--no-cache", "--out", out.path().to_str().unwrap(),
-        "--set", SMALL[0], "--set", SMALL[1],
-        "--param", "kinect.noise_k=0,0.0015,0.006", "--truth", "scene.depth", "--output", "kinect.depth",
-        "--metric", "rmse", "--repeats", "1",
+        "sweep",
+        demo.to_str().unwrap(),
+        "--quiet",
+        "--no-cache",
+        "--out",
+        out.path().to_str().unwrap(),
+        "--set",
+        SMALL[0],
+        "--set",
+        SMALL[1],
+        "--param",
+        "kinect.noise_k=0,0.0015,0.006",
+        "--truth",
+        "scene.depth",
+        "--output",
+        "kinect.depth",
+        "--metric",
+        "rmse",
+        "--repeats",
+        "1",
     ]);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let csv = std::fs::read_to_string(out.path().join("sweep-kinect-noise_k.csv")).unwrap();
-    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
     assert_eq!(rows.len(), 3);
     let err: Vec<f64> = rows.iter().map(|r| r[6].parse().unwrap()).collect();
     // more noise, more error
     assert!(err[0] < err[1] && err[1] < err[2], "{err:?}");
     let svg = std::fs::read_to_string(out.path().join("sweep-kinect-noise_k.svg")).unwrap();
-    assert!(svg.starts_with("<svg") && svg.contains("<circle"), "not a plot");
+    assert!(
+        svg.starts_with("<svg") && svg.contains("<circle"),
+        "not a plot"
+    );
 }

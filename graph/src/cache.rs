@@ -65,7 +65,9 @@ impl MemoryCache {
             self.by_age.remove(&age);
         }
         while self.used + size > self.budget_bytes {
-            let Some((_, victim)) = self.by_age.pop_first() else { break };
+            let Some((_, victim)) = self.by_age.pop_first() else {
+                break;
+            };
             if let Some((_, s, _)) = self.entries.remove(&victim) {
                 self.used -= s;
             }
@@ -144,9 +146,13 @@ impl DiskCache {
     }
     fn entries(&self) -> Vec<(PathBuf, u64, SystemTime)> {
         let mut out = Vec::new();
-        let Ok(dirs) = fs::read_dir(&self.dir) else { return out };
+        let Ok(dirs) = fs::read_dir(&self.dir) else {
+            return out;
+        };
         for d in dirs.flatten() {
-            let Ok(files) = fs::read_dir(d.path()) else { continue };
+            let Ok(files) = fs::read_dir(d.path()) else {
+                continue;
+            };
             for f in files.flatten() {
                 let p = f.path();
                 if p.extension().is_some_and(|e| e == "bin") {

@@ -291,7 +291,10 @@ mod tests {
             .with("d", Value::Depth(Arc::new(img1.clone())))
             .with("m", Value::Mask(Arc::new(img1.clone())))
             .with("n", Value::Normals(Arc::new(img3.clone())))
-            .with("l", Value::Labels(Arc::new(Image::from_fn(2, 2, |x, _| x as u32))))
+            .with(
+                "l",
+                Value::Labels(Arc::new(Image::from_fn(2, 2, |x, _| x as u32))),
+            )
             .with(
                 "k",
                 Value::Intrinsics(Intrinsics {

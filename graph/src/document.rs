@@ -136,13 +136,19 @@ impl Document {
                 }
                 "nodes" => {
                     let RonValue::Map(entries) = &val.value else {
-                        errors.push(shape(val.pos, "a map of nodes `{\"name\": (kind: ...)}`", &val.value));
+                        errors.push(shape(
+                            val.pos,
+                            "a map of nodes `{\"name\": (kind: ...)}`",
+                            &val.value,
+                        ));
                         continue;
                     };
                     for (k, v) in entries {
                         match parse_node(k, v, file) {
                             Ok(n) => {
-                                if let Some(prev) = doc.nodes.iter().find(|p| p.name.value == n.name.value) {
+                                if let Some(prev) =
+                                    doc.nodes.iter().find(|p| p.name.value == n.name.value)
+                                {
                                     errors.push(CheckError::Format {
                                         loc: loc(n.name.pos),
                                         message: format!(
@@ -166,7 +172,11 @@ impl Document {
                                     pos: it.pos,
                                     value: s.clone(),
                                 }),
-                                other => errors.push(shape(it.pos, "a string \"node\" or \"node.port\"", other)),
+                                other => errors.push(shape(
+                                    it.pos,
+                                    "a string \"node\" or \"node.port\"",
+                                    other,
+                                )),
                             }
                         }
                     }
@@ -176,7 +186,9 @@ impl Document {
                     RonValue::Map(entries) => {
                         for (k, v) in entries {
                             let pos = match &v.value {
-                                RonValue::Tuple { items, .. } | RonValue::List(items) if items.len() == 2 => {
+                                RonValue::Tuple { items, .. } | RonValue::List(items)
+                                    if items.len() == 2 =>
+                                {
                                     match (num(&items[0].value), num(&items[1].value)) {
                                         (Some(x), Some(y)) => Some([x, y]),
                                         _ => None,
@@ -198,7 +210,8 @@ impl Document {
                     other => errors.push(shape(val.pos, "a map of node positions", other)),
                 },
                 other => {
-                    let suggestion = crate::registry::closest(other, ["version", "nodes", "outputs", "layout"]);
+                    let suggestion =
+                        crate::registry::closest(other, ["version", "nodes", "outputs", "layout"]);
                     errors.push(CheckError::Format {
                         loc: loc(key.pos),
                         message: format!(
@@ -214,7 +227,11 @@ impl Document {
                 "{file}: no `version` field; read as format version {FORMAT_VERSION}"
             ));
         }
-        if errors.is_empty() { Ok(doc) } else { Err(errors) }
+        if errors.is_empty() {
+            Ok(doc)
+        } else {
+            Err(errors)
+        }
     }
 
     /// Finds a node by name.
@@ -277,12 +294,18 @@ impl Document {
         };
         decl.param_files.insert(param.to_string(), file.clone());
         if let Some(slot) = decl.params.iter_mut().find(|(k, _)| k.value == param) {
-            slot.0.pos = Pos { line: 1, col: 1 + node.len() + 1 };
+            slot.0.pos = Pos {
+                line: 1,
+                col: 1 + node.len() + 1,
+            };
             slot.1 = spanned_value;
         } else {
             decl.params.push((
                 Spanned {
-                    pos: Pos { line: 1, col: 1 + node.len() + 1 },
+                    pos: Pos {
+                        line: 1,
+                        col: 1 + node.len() + 1,
+                    },
                     value: param.to_string(),
                 },
                 spanned_value,
@@ -303,14 +326,22 @@ impl Document {
             if !n.params.is_empty() {
                 s.push_str("            params: (\n");
                 for (k, v) in &n.params {
-                    s.push_str(&format!("                {}: {},\n", k.value, ron_to_text(&v.value)));
+                    s.push_str(&format!(
+                        "                {}: {},\n",
+                        k.value,
+                        ron_to_text(&v.value)
+                    ));
                 }
                 s.push_str("            ),\n");
             }
             if !n.inputs.is_empty() {
                 s.push_str("            inputs: (\n");
                 for (k, v) in &n.inputs {
-                    s.push_str(&format!("                {}: {},\n", k.value, quote(&v.value)));
+                    s.push_str(&format!(
+                        "                {}: {},\n",
+                        k.value,
+                        quote(&v.value)
+                    ));
                 }
                 s.push_str("            ),\n");
             }
@@ -348,7 +379,11 @@ pub fn ron_to_text(v: &RonValue) -> String {
             if f.is_nan() {
                 "NaN".into()
             } else if f.is_infinite() {
-                if *f > 0.0 { "inf".into() } else { "-inf".into() }
+                if *f > 0.0 {
+                    "inf".into()
+                } else {
+                    "-inf".into()
+                }
             } else {
                 format!("{f:?}")
             }
@@ -482,7 +517,11 @@ fn parse_node(
             message: format!("node `{name}` has no `kind`"),
         });
     }
-    if errors.is_empty() { Ok(decl) } else { Err(errors) }
+    if errors.is_empty() {
+        Ok(decl)
+    } else {
+        Err(errors)
+    }
 }
 
 impl fmt::Display for Document {

@@ -44,7 +44,10 @@ pub enum CheckError {
     Syntax { loc: Location, message: String },
     #[error("{loc}: {message}")]
     Format { loc: Location, message: String },
-    #[error("{loc}: node `{node}`: unknown node kind `{kind}`{}", did_you_mean(suggestion))]
+    #[error(
+        "{loc}: node `{node}`: unknown node kind `{kind}`{}",
+        did_you_mean(suggestion)
+    )]
     UnknownKind {
         loc: Location,
         node: String,
@@ -68,7 +71,10 @@ pub enum CheckError {
         suggestion: Option<String>,
         available: Vec<String>,
     },
-    #[error("{loc}: node `{node}` ({kind}) has no parameter `{param}`{}", did_you_mean(suggestion))]
+    #[error(
+        "{loc}: node `{node}` ({kind}) has no parameter `{param}`{}",
+        did_you_mean(suggestion)
+    )]
     UnknownParam {
         loc: Location,
         node: String,
@@ -83,7 +89,9 @@ pub enum CheckError {
         param: String,
         message: String,
     },
-    #[error("{loc}: node `{node}` input `{port}` expects {expected}, but `{source_ref}` is {found}")]
+    #[error(
+        "{loc}: node `{node}` input `{port}` expects {expected}, but `{source_ref}` is {found}"
+    )]
     TypeMismatch {
         loc: Location,
         node: String,

@@ -82,9 +82,15 @@ mod tests {
         assert_ne!(base, node_key("L", 1, &p, &[("in", "out", k0)]));
         assert_ne!(base, node_key("K", 2, &p, &[("in", "out", k0)]));
         assert_ne!(base, node_key("K", 1, &p, &[("in", "other", k0)]));
-        assert_ne!(base, node_key("K", 1, &p, &[("in", "out", Key::from_bytes([1; 32]))]));
+        assert_ne!(
+            base,
+            node_key("K", 1, &p, &[("in", "out", Key::from_bytes([1; 32]))])
+        );
         let mut q = p.clone();
-        q.insert("a".into(), ParamValue::Float(f64::from_bits(1.0f64.to_bits() + 1)));
+        q.insert(
+            "a".into(),
+            ParamValue::Float(f64::from_bits(1.0f64.to_bits() + 1)),
+        );
         assert_ne!(base, node_key("K", 1, &q, &[("in", "out", k0)]));
     }
 

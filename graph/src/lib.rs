@@ -37,6 +37,10 @@
 //! assert_eq!(result.outputs["c.out"], Value::Scalar(2.5));
 //! ```
 
+// Check errors carry their location and suggestions by value: they are built
+// on the cold path, reported in bulk, and boxing them would only add noise.
+#![allow(clippy::result_large_err)]
+
 pub mod cache;
 pub mod codec;
 pub mod document;

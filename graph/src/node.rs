@@ -168,7 +168,11 @@ impl EvalCtx<'_> {
     /// paths the pipeline reads.
     pub fn output_path(&self, path: &str) -> Result<PathBuf, NodeError> {
         let p = PathBuf::from(path);
-        let p = if p.is_absolute() { p } else { self.out_dir.join(p) };
+        let p = if p.is_absolute() {
+            p
+        } else {
+            self.out_dir.join(p)
+        };
         let canon_target = canonical_for_compare(&p);
         if self
             .input_files
@@ -353,7 +357,8 @@ impl From<PathBuf> for Value {
 pub trait Node: Send + Sync {
     fn schema(&self) -> &NodeSchema;
     /// Evaluates the node. `params` have been checked against the schema.
-    fn eval(&self, ctx: &EvalCtx, inputs: &Inputs, params: &ParamMap) -> Result<Outputs, NodeError>;
+    fn eval(&self, ctx: &EvalCtx, inputs: &Inputs, params: &ParamMap)
+    -> Result<Outputs, NodeError>;
     /// Input files this node reads with the given parameters (sinks never
     /// overwrite them).
     fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {
@@ -429,7 +434,12 @@ impl<P: NodeParams> Node for TypedNode<P> {
     fn schema(&self) -> &NodeSchema {
         &self.schema
     }
-    fn eval(&self, ctx: &EvalCtx, inputs: &Inputs, params: &ParamMap) -> Result<Outputs, NodeError> {
+    fn eval(
+        &self,
+        ctx: &EvalCtx,
+        inputs: &Inputs,
+        params: &ParamMap,
+    ) -> Result<Outputs, NodeError> {
         let p: P = typed_params(params)?;
         ctx.check_cancelled()?;
         (self.eval)(ctx, inputs, &p)

@@ -9,9 +9,15 @@ use std::fmt;
 #[derive(Debug, Clone, PartialEq)]
 pub enum ParamKind {
     /// A real number in `[min, max]` (inclusive).
-    Float { min: f64, max: f64 },
+    Float {
+        min: f64,
+        max: f64,
+    },
     /// An integer in `[min, max]` (inclusive).
-    Int { min: i64, max: i64 },
+    Int {
+        min: i64,
+        max: i64,
+    },
     Bool,
     /// Free text.
     Text,
@@ -24,9 +30,15 @@ pub enum ParamKind {
     /// A list of `(x, y)` pixel positions, e.g. lasso clicks.
     Points,
     /// A list of real numbers, each in `[min, max]`.
-    Floats { min: f64, max: f64 },
+    Floats {
+        min: f64,
+        max: f64,
+    },
     /// Three real numbers, each in `[min, max]`.
-    Vec3 { min: f64, max: f64 },
+    Vec3 {
+        min: f64,
+        max: f64,
+    },
 }
 
 impl ParamKind {
@@ -84,7 +96,10 @@ impl ParamKind {
                 }
             }
             (ParamKind::Bool, ParamValue::Bool(_)) => {}
-            (ParamKind::Text | ParamKind::InputPath | ParamKind::OutputPath, ParamValue::Text(_)) => {}
+            (
+                ParamKind::Text | ParamKind::InputPath | ParamKind::OutputPath,
+                ParamValue::Text(_),
+            ) => {}
             (ParamKind::Choice(c), ParamValue::Text(s)) => {
                 if !c.contains(&s.as_str()) {
                     return Err(ParamCheck::Choice {
@@ -401,7 +416,10 @@ impl FromParam for Vec<f64> {
     fn from_param(v: &ParamValue) -> Result<Self, String> {
         match v {
             ParamValue::Floats(p) => Ok(p.clone()),
-            other => Err(format!("expected list of floats, found {}", other.type_name())),
+            other => Err(format!(
+                "expected list of floats, found {}",
+                other.type_name()
+            )),
         }
     }
 }
@@ -537,9 +555,18 @@ mod tests {
     #[test]
     fn validation_names_range_and_type() {
         let k = ParamKind::Float { min: 0.0, max: 1.0 };
-        assert!(matches!(k.validate(&ParamValue::Float(2.0)), Err(ParamCheck::Range { .. })));
-        assert!(matches!(k.validate(&ParamValue::Float(f64::NAN)), Err(ParamCheck::Range { .. })));
-        assert!(matches!(k.validate(&ParamValue::Bool(true)), Err(ParamCheck::Type { .. })));
+        assert!(matches!(
+            k.validate(&ParamValue::Float(2.0)),
+            Err(ParamCheck::Range { .. })
+        ));
+        assert!(matches!(
+            k.validate(&ParamValue::Float(f64::NAN)),
+            Err(ParamCheck::Range { .. })
+        ));
+        assert!(matches!(
+            k.validate(&ParamValue::Bool(true)),
+            Err(ParamCheck::Type { .. })
+        ));
         let c = ParamKind::Choice(&["a", "b"]);
         let e = c.validate(&ParamValue::Text("z".into())).unwrap_err();
         assert_eq!(e.to_string(), "\"z\" is not one of \"a\", \"b\"");

@@ -84,7 +84,11 @@ impl Pipeline {
                     params.insert(spec.name.to_string(), spec.default.clone());
                 }
                 for (key, val) in &decl.params {
-                    let pfile = decl.param_files.get(&key.value).map(String::as_str).unwrap_or(file);
+                    let pfile = decl
+                        .param_files
+                        .get(&key.value)
+                        .map(String::as_str)
+                        .unwrap_or(file);
                     let Some(spec) = schema.param(&key.value) else {
                         errors.push(CheckError::UnknownParam {
                             loc: Location::new(pfile, key.pos),
@@ -171,9 +175,16 @@ impl Pipeline {
                                 kind: src_schema.kind.to_string(),
                                 direction: "output",
                                 port: src_port.to_string(),
-                                suggestion: closest(src_port, src_schema.outputs.iter().map(|p| p.name))
-                                    .map(str::to_string),
-                                available: src_schema.outputs.iter().map(|p| p.name.to_string()).collect(),
+                                suggestion: closest(
+                                    src_port,
+                                    src_schema.outputs.iter().map(|p| p.name),
+                                )
+                                .map(str::to_string),
+                                available: src_schema
+                                    .outputs
+                                    .iter()
+                                    .map(|p| p.name.to_string())
+                                    .collect(),
                             });
                             continue;
                         }
@@ -260,7 +271,8 @@ impl Pipeline {
                         kind: s.kind.to_string(),
                         direction: "output",
                         port: p.to_string(),
-                        suggestion: closest(p, s.outputs.iter().map(|p| p.name)).map(str::to_string),
+                        suggestion: closest(p, s.outputs.iter().map(|p| p.name))
+                            .map(str::to_string),
                         available: s.outputs.iter().map(|p| p.name.to_string()).collect(),
                     });
                     continue;
@@ -302,12 +314,17 @@ impl Pipeline {
             .collect();
         if outputs.is_empty() {
             // Default: every sink, or every node nothing consumes.
-            let sinks: Vec<usize> = (0..nodes.len()).filter(|i| nodes[*i].node.schema().sink).collect();
+            let sinks: Vec<usize> = (0..nodes.len())
+                .filter(|i| nodes[*i].node.schema().sink)
+                .collect();
             let leaves: Vec<usize> = (0..nodes.len())
                 .filter(|i| graph.neighbors(gi[*i]).next().is_none())
                 .collect();
             let chosen = if sinks.is_empty() { leaves } else { sinks };
-            outputs = chosen.into_iter().map(|node| OutputRef { node, port: None }).collect();
+            outputs = chosen
+                .into_iter()
+                .map(|node| OutputRef { node, port: None })
+                .collect();
         }
         Ok(Pipeline {
             file: doc.file.clone(),
@@ -348,16 +365,19 @@ impl Pipeline {
 }
 
 /// Orders the members of a cycle along its wires, for the message.
-fn cycle_path(members: &[usize], inputs: &[BTreeMap<String, Source>], names: &[&str]) -> Vec<String> {
+fn cycle_path(
+    members: &[usize],
+    inputs: &[BTreeMap<String, Source>],
+    names: &[&str],
+) -> Vec<String> {
     let start = members[0];
     let mut path = vec![names[start].to_string()];
     let mut cur = start;
     for _ in 0..members.len() {
         // find a member whose input comes from `cur`
-        let next = members
-            .iter()
-            .copied()
-            .find(|m| inputs[*m].values().any(|s| s.node == cur) && (*m != start || path.len() > 1));
+        let next = members.iter().copied().find(|m| {
+            inputs[*m].values().any(|s| s.node == cur) && (*m != start || path.len() > 1)
+        });
         match next {
             Some(n) if n == start => {
                 path.push(names[start].to_string());
@@ -419,7 +439,9 @@ pub fn convert(kind: &ParamKind, v: &RonValue) -> Result<ParamValue, String> {
         ParamKind::Floats { .. } => match v {
             RonValue::List(items) => items
                 .iter()
-                .map(|it| num(&it.value).ok_or_else(|| format!("item at {}: expected a number", it.pos)))
+                .map(|it| {
+                    num(&it.value).ok_or_else(|| format!("item at {}: expected a number", it.pos))
+                })
                 .collect::<Result<Vec<_>, _>>()
                 .map(ParamValue::Floats),
             _ => Err(expected()),

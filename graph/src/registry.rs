@@ -19,7 +19,9 @@ pub struct Registry {
 pub enum RegistryError {
     #[error("node kind `{0}` is registered twice")]
     Duplicate(&'static str),
-    #[error("backend `{backend}` of `{kind}` has a schema that differs from the first registered one")]
+    #[error(
+        "backend `{backend}` of `{kind}` has a schema that differs from the first registered one"
+    )]
     SchemaMismatch {
         kind: &'static str,
         backend: &'static str,

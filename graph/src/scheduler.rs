@@ -78,6 +78,9 @@ pub struct Engine {
     threads: usize,
 }
 
+/// A node index with its outputs and time (ms), or the error it raised.
+type Finished = (usize, Result<(Outputs, f64), RunError>);
+
 enum State {
     Unvisited,
     Hit(Arc<Outputs>, f64),
@@ -132,7 +135,9 @@ impl Engine {
                 .collect();
             keys[i] = Some(node_key(schema.kind, schema.version, &n.params, &inputs));
         }
-        keys.into_iter().map(|k| k.unwrap_or(Key::from_bytes([0; 32]))).collect()
+        keys.into_iter()
+            .map(|k| k.unwrap_or(Key::from_bytes([0; 32])))
+            .collect()
     }
 
     /// Runs what the pipeline's requested outputs need.
@@ -204,7 +209,7 @@ impl Engine {
             if batch.is_empty() {
                 continue;
             }
-            let done: Mutex<Vec<(usize, Result<(Outputs, f64), RunError>)>> = Mutex::new(Vec::new());
+            let done: Mutex<Vec<Finished>> = Mutex::new(Vec::new());
             let results_ref = &results;
             rayon::scope(|s| {
                 for &i in &batch {
@@ -256,7 +261,11 @@ impl Engine {
                     State::Hit(o, ms) => (Status::Cached, o.passthrough.clone(), *ms),
                     State::Run => {
                         let r = results[i].as_ref().and_then(|o| o.passthrough.clone());
-                        let st = if r.is_some() { Status::Passthrough } else { Status::Ran };
+                        let st = if r.is_some() {
+                            Status::Passthrough
+                        } else {
+                            Status::Ran
+                        };
                         (st, r, timings[i])
                     }
                 };
@@ -330,10 +339,13 @@ impl Engine {
             input_files,
         };
         let t = Instant::now();
-        let out = node.node.eval(&ctx, &inputs, &node.params).map_err(|e| match e {
-            NodeError::Cancelled => RunError::Cancelled,
-            e => fail(e),
-        })?;
+        let out = node
+            .node
+            .eval(&ctx, &inputs, &node.params)
+            .map_err(|e| match e {
+                NodeError::Cancelled => RunError::Cancelled,
+                e => fail(e),
+            })?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
         for spec in &schema.outputs {
             match out.values.get(spec.name) {

@@ -75,8 +75,20 @@ impl Trace {
     }
     /// A readable table.
     pub fn table(&self) -> String {
-        let w_node = self.nodes.iter().map(|r| r.node.len()).max().unwrap_or(4).max(4);
-        let w_kind = self.nodes.iter().map(|r| r.kind.len()).max().unwrap_or(4).max(4);
+        let w_node = self
+            .nodes
+            .iter()
+            .map(|r| r.node.len())
+            .max()
+            .unwrap_or(4)
+            .max(4);
+        let w_kind = self
+            .nodes
+            .iter()
+            .map(|r| r.kind.len())
+            .max()
+            .unwrap_or(4)
+            .max(4);
         let mut s = String::new();
         let _ = writeln!(
             s,
@@ -96,7 +108,11 @@ impl Trace {
             );
         }
         let total: f64 = self.nodes.iter().map(|r| r.ms).sum();
-        let _ = writeln!(s, "total node time {total:.2} ms on {} threads", self.threads);
+        let _ = writeln!(
+            s,
+            "total node time {total:.2} ms on {} threads",
+            self.threads
+        );
         s
     }
 }

@@ -59,7 +59,7 @@ impl<T: Clone> Image<T> {
 impl<T> Image<T> {
     /// Wraps a row-major buffer; fails when its length is not `width * height`.
     pub fn from_vec(width: usize, height: usize, data: Vec<T>) -> Result<Self, ShapeError> {
-        let expected = width.checked_mul(height).unwrap_or(usize::MAX);
+        let expected = width.saturating_mul(height);
         if data.len() != expected {
             return Err(ShapeError {
                 width,
@@ -180,7 +180,10 @@ impl DepthMap {
     }
     /// Number of pixels without a measurement.
     pub fn hole_count(&self) -> usize {
-        self.as_slice().iter().filter(|z| !Self::is_valid(**z)).count()
+        self.as_slice()
+            .iter()
+            .filter(|z| !Self::is_valid(**z))
+            .count()
     }
 }
 
@@ -390,7 +393,9 @@ impl Value {
             Value::Mesh(m) => {
                 (m.positions.len() + m.colors.len() + m.normals.len() + m.triangles.len()) * 12
             }
-            Value::ExposureStack(s) => s.images.iter().map(|i| i.len() * 12).sum::<usize>() + s.times_s.len() * 8,
+            Value::ExposureStack(s) => {
+                s.images.iter().map(|i| i.len() * 12).sum::<usize>() + s.times_s.len() * 8
+            }
             Value::Scalar(_) => 8,
             Value::File(p) => p.as_os_str().len(),
         }

@@ -28,7 +28,9 @@ node_params! {
 
 fn source(ctx: &EvalCtx, _: &Inputs, p: &SourceParams) -> Result<Outputs, NodeError> {
     ctx.progress(0.5);
-    let img = Image::from_fn(p.size, p.size, |x, y| (x * 31 + y * 7) as f32 * 0.01 + p.offset as f32);
+    let img = Image::from_fn(p.size, p.size, |x, y| {
+        (x * 31 + y * 7) as f32 * 0.01 + p.offset as f32
+    });
     Ok(Outputs::new().with("depth", img))
 }
 fn scale(_: &EvalCtx, i: &Inputs, p: &ScaleParams) -> Result<Outputs, NodeError> {
@@ -46,8 +48,16 @@ fn add(_: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
     if !a.same_dims(b) {
         return Err(NodeError::input("b", "size differs from a"));
     }
-    let v: Vec<f32> = a.as_slice().iter().zip(b.as_slice()).map(|(x, y)| x + y).collect();
-    Ok(Outputs::new().with("depth", Image::from_vec(a.width(), a.height(), v).map_err(|e| NodeError::Invalid(e.to_string()))?))
+    let v: Vec<f32> = a
+        .as_slice()
+        .iter()
+        .zip(b.as_slice())
+        .map(|(x, y)| x + y)
+        .collect();
+    Ok(Outputs::new().with(
+        "depth",
+        Image::from_vec(a.width(), a.height(), v).map_err(|e| NodeError::Invalid(e.to_string()))?,
+    ))
 }
 fn wait_cancel(ctx: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
     // A long node: checks cancellation between chunks of work.
@@ -62,10 +72,35 @@ fn registry() -> Registry {
     let d = |n| PortSpec::required(n, ValueType::Depth, "depth");
     let o = || vec![PortSpec::output("depth", ValueType::Depth, "depth")];
     let mut r = Registry::new();
-    r.register(TypedNode::new("Source", 1, "source", vec![], o(), source)).unwrap();
-    r.register(TypedNode::new("Scale", 1, "scale", vec![d("depth")], o(), scale)).unwrap();
-    r.register(TypedNode::new("Add", 1, "add", vec![d("a"), d("b")], o(), add)).unwrap();
-    r.register(TypedNode::new("Wait", 1, "wait", vec![d("depth")], o(), wait_cancel)).unwrap();
+    r.register(TypedNode::new("Source", 1, "source", vec![], o(), source))
+        .unwrap();
+    r.register(TypedNode::new(
+        "Scale",
+        1,
+        "scale",
+        vec![d("depth")],
+        o(),
+        scale,
+    ))
+    .unwrap();
+    r.register(TypedNode::new(
+        "Add",
+        1,
+        "add",
+        vec![d("a"), d("b")],
+        o(),
+        add,
+    ))
+    .unwrap();
+    r.register(TypedNode::new(
+        "Wait",
+        1,
+        "wait",
+        vec![d("depth")],
+        o(),
+        wait_cancel,
+    ))
+    .unwrap();
     r
 }
 
@@ -109,14 +144,20 @@ fn downstream_change_reruns_only_downstream_in_memory() {
     assert_eq!(status(&again.trace, "src"), Status::NotNeeded);
 
     // Change one branch's parameter: that branch and its consumer re-run.
-    let changed = engine.run(&pipeline(&["left.factor=5"]), &RunOptions::default()).unwrap();
+    let changed = engine
+        .run(&pipeline(&["left.factor=5"]), &RunOptions::default())
+        .unwrap();
     let mut ran = changed.trace.evaluated();
     ran.sort();
     assert_eq!(ran, ["left", "sum"]);
     assert_eq!(status(&changed.trace, "right"), Status::Cached);
     assert_eq!(status(&changed.trace, "src"), Status::Cached);
-    let Value::Depth(d) = &changed.outputs["sum.depth"] else { panic!() };
-    let Value::Depth(d0) = &first.outputs["sum.depth"] else { panic!() };
+    let Value::Depth(d) = &changed.outputs["sum.depth"] else {
+        panic!()
+    };
+    let Value::Depth(d0) = &first.outputs["sum.depth"] else {
+        panic!()
+    };
     // (5 + 3) / (2 + 3) times the first result
     for (a, b) in d.as_slice().iter().zip(d0.as_slice()) {
         assert!((a - b * 8.0 / 5.0).abs() <= 1e-5 * b.abs().max(1.0));
@@ -127,7 +168,9 @@ fn downstream_change_reruns_only_downstream_in_memory() {
 fn upstream_change_reruns_everything_that_depends_on_it() {
     let engine = Engine::new(EngineOptions::default()).unwrap();
     engine.run(&pipeline(&[]), &RunOptions::default()).unwrap();
-    let r = engine.run(&pipeline(&["src.offset=1.5"]), &RunOptions::default()).unwrap();
+    let r = engine
+        .run(&pipeline(&["src.offset=1.5"]), &RunOptions::default())
+        .unwrap();
     let mut ran = r.trace.evaluated();
     ran.sort();
     assert_eq!(ran, ["left", "right", "src", "sum"]);
@@ -143,10 +186,17 @@ fn disk_cache_survives_a_new_engine() {
         })
         .unwrap()
     };
-    let first = mk().run(&pipeline(&["src.size=9"]), &RunOptions::default()).unwrap();
+    let first = mk()
+        .run(&pipeline(&["src.size=9"]), &RunOptions::default())
+        .unwrap();
     assert_eq!(status(&first.trace, "src"), Status::Ran);
     // A fresh engine (as a second process would be) with a downstream change.
-    let second = mk().run(&pipeline(&["src.size=9", "right.factor=4"]), &RunOptions::default()).unwrap();
+    let second = mk()
+        .run(
+            &pipeline(&["src.size=9", "right.factor=4"]),
+            &RunOptions::default(),
+        )
+        .unwrap();
     let mut ran = second.trace.evaluated();
     ran.sort();
     assert_eq!(ran, ["right", "sum"]);
@@ -158,11 +208,18 @@ fn disk_cache_survives_a_new_engine() {
 #[test]
 fn passthrough_is_recorded_with_reason_and_kept_when_cached() {
     let engine = Engine::new(EngineOptions::default()).unwrap();
-    let r = engine.run(&pipeline(&["left.factor=1"]), &RunOptions::default()).unwrap();
+    let r = engine
+        .run(&pipeline(&["left.factor=1"]), &RunOptions::default())
+        .unwrap();
     let rec = r.trace.get("left").unwrap();
     assert_eq!(rec.status, Status::Passthrough);
     assert_eq!(rec.reason.as_deref(), Some("factor is 1"));
-    let r2 = engine.run(&pipeline(&["left.factor=1", "right.factor=7"]), &RunOptions::default()).unwrap();
+    let r2 = engine
+        .run(
+            &pipeline(&["left.factor=1", "right.factor=7"]),
+            &RunOptions::default(),
+        )
+        .unwrap();
     let rec = r2.trace.get("left").unwrap();
     assert_eq!(rec.status, Status::Cached);
     assert_eq!(rec.reason.as_deref(), Some("factor is 1"));
@@ -176,8 +233,12 @@ fn one_and_two_threads_give_identical_bits() {
             ..EngineOptions::default()
         })
         .unwrap();
-        let r = e.run(&pipeline(&["src.size=64"]), &RunOptions::default()).unwrap();
-        let Value::Depth(d) = &r.outputs["sum.depth"] else { panic!() };
+        let r = e
+            .run(&pipeline(&["src.size=64"]), &RunOptions::default())
+            .unwrap();
+        let Value::Depth(d) = &r.outputs["sum.depth"] else {
+            panic!()
+        };
         d.as_slice().iter().map(|v| v.to_bits()).collect::<Vec<_>>()
     };
     assert_eq!(run(1), run(2));
@@ -211,8 +272,14 @@ fn node_errors_name_the_node() {
         "s": (kind: "Add", inputs: (a: "a.depth", b: "b.depth")),
     }, outputs: ["s"])"#;
     let p = Pipeline::check(&Document::parse(text, "e.ron").unwrap(), &registry()).unwrap();
-    let e = Engine::new(EngineOptions::default()).unwrap().run(&p, &RunOptions::default()).unwrap_err();
-    assert_eq!(e.to_string(), "node `s` (Add): input `b`: size differs from a");
+    let e = Engine::new(EngineOptions::default())
+        .unwrap()
+        .run(&p, &RunOptions::default())
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "node `s` (Add): input `b`: size differs from a"
+    );
 }
 
 #[test]

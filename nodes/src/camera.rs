@@ -4,7 +4,14 @@ use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
 /// Names of the presets, for the `preset` parameter.
-pub const PRESETS: &[&str] = &["kinect_v1", "tum_fr1", "tum_fr2", "tum_fr3", "nyu", "custom"];
+pub const PRESETS: &[&str] = &[
+    "kinect_v1",
+    "tum_fr1",
+    "tum_fr2",
+    "tum_fr3",
+    "nyu",
+    "custom",
+];
 
 /// Intrinsics of a preset at its native 640x480, or `None` for an unknown name.
 ///
@@ -20,7 +27,14 @@ pub fn preset(name: &str) -> Option<Intrinsics> {
         "nyu" => (518.8579, 519.4696, 325.5824, 253.7362),
         _ => return None,
     };
-    Some(Intrinsics { fx, fy, cx, cy, width: 640, height: 480 })
+    Some(Intrinsics {
+        fx,
+        fy,
+        cx,
+        cy,
+        width: 640,
+        height: 480,
+    })
 }
 
 node_params! {
@@ -52,7 +66,14 @@ node_params! {
 /// ```
 pub fn camera_intrinsics(p: &CameraParams) -> Result<Intrinsics, NodeError> {
     if p.preset == "custom" {
-        return Ok(Intrinsics { fx: p.fx, fy: p.fy, cx: p.cx, cy: p.cy, width: p.width, height: p.height });
+        return Ok(Intrinsics {
+            fx: p.fx,
+            fy: p.fy,
+            cx: p.cx,
+            cy: p.cy,
+            width: p.width,
+            height: p.height,
+        });
     }
     let k = preset(&p.preset)
         .ok_or_else(|| NodeError::param("preset", format!("unknown preset `{}`", p.preset)))?;
@@ -70,7 +91,11 @@ pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::Re
         1,
         "Pinhole intrinsics of a known RGB-D camera (Kinect v1, TUM fr1-3, NYU) or custom values.",
         vec![],
-        vec![PortSpec::output("intrinsics", ValueType::Intrinsics, "fx, fy, cx, cy in pixels")],
+        vec![PortSpec::output(
+            "intrinsics",
+            ValueType::Intrinsics,
+            "fx, fy, cx, cy in pixels",
+        )],
         eval,
     ))
 }
@@ -81,7 +106,13 @@ mod tests {
 
     #[test]
     fn presets_scale_with_resolution() {
-        let k = camera_intrinsics(&CameraParams { preset: "tum_fr1".into(), width: 320, height: 240, ..Default::default() }).unwrap();
+        let k = camera_intrinsics(&CameraParams {
+            preset: "tum_fr1".into(),
+            width: 320,
+            height: 240,
+            ..Default::default()
+        })
+        .unwrap();
         assert!((k.fx - 258.65).abs() < 1e-9 && (k.cy - 127.65).abs() < 1e-9);
         for name in PRESETS.iter().filter(|n| **n != "custom") {
             assert!(preset(name).is_some(), "{name}");

@@ -38,7 +38,11 @@ pub fn colormap(t: f32) -> [f32; 3] {
 /// ```
 pub fn colormap_depth(depth: &DepthMap, min_m: f32, max_m: f32) -> ColorImage {
     // guard: a zero or negative span maps everything to the first color
-    let span = if max_m > min_m { max_m - min_m } else { f32::INFINITY };
+    let span = if max_m > min_m {
+        max_m - min_m
+    } else {
+        f32::INFINITY
+    };
     depth.map(|z| {
         if DepthMap::is_valid(*z) {
             colormap((z - min_m) / span)
@@ -50,7 +54,12 @@ pub fn colormap_depth(depth: &DepthMap, min_m: f32, max_m: f32) -> ColorImage {
 
 /// The `lo` and `hi` quantiles (in [0, 1]) of the valid depths; `(0, 1)` when none is valid.
 pub fn depth_range(depth: &DepthMap, lo: f64, hi: f64) -> (f32, f32) {
-    let mut v: Vec<f32> = depth.as_slice().iter().copied().filter(|z| DepthMap::is_valid(*z)).collect();
+    let mut v: Vec<f32> = depth
+        .as_slice()
+        .iter()
+        .copied()
+        .filter(|z| DepthMap::is_valid(*z))
+        .collect();
     if v.is_empty() {
         return (0.0, 1.0);
     }
@@ -66,7 +75,9 @@ pub fn depth_range(depth: &DepthMap, lo: f64, hi: f64) -> (f32, f32) {
 pub fn exposure(img: &ColorImage, stops: f64) -> ColorImage {
     let g = 2f64.powf(stops) as f32;
     let mut out = img.clone();
-    out.as_mut_slice().par_iter_mut().for_each(|p| *p = p.map(|v| v * g));
+    out.as_mut_slice()
+        .par_iter_mut()
+        .for_each(|p| *p = p.map(|v| v * g));
     out
 }
 
@@ -98,7 +109,11 @@ node_params! {
     }
 }
 
-fn preview_eval(_: &EvalCtx, inputs: &Inputs, p: &DepthPreviewParams) -> Result<Outputs, NodeError> {
+fn preview_eval(
+    _: &EvalCtx,
+    inputs: &Inputs,
+    p: &DepthPreviewParams,
+) -> Result<Outputs, NodeError> {
     let d = inputs.depth("depth")?;
     let (lo, hi) = if p.max_m > p.min_m {
         (p.min_m as f32, p.max_m as f32)
@@ -154,7 +169,10 @@ mod tests {
     fn quantiles_ignore_holes() {
         let d = Image::from_vec(5, 1, vec![0.0, 3.0, f32::NAN, 1.0, 2.0]).unwrap();
         assert_eq!(depth_range(&d, 0.0, 1.0), (1.0, 3.0));
-        assert_eq!(depth_range(&Image::filled(2, 2, 0.0f32), 0.0, 1.0), (0.0, 1.0));
+        assert_eq!(
+            depth_range(&Image::filled(2, 2, 0.0f32), 0.0, 1.0),
+            (0.0, 1.0)
+        );
     }
 
     #[test]

@@ -32,7 +32,10 @@ fn decode_err(path: &Path, message: impl Into<String>) -> NodeError {
 
 fn check_dims(path: &Path, w: usize, h: usize) -> Result<(), NodeError> {
     if w == 0 || h == 0 {
-        return Err(decode_err(path, format!("image is {w}x{h}; expected at least 1x1")));
+        return Err(decode_err(
+            path,
+            format!("image is {w}x{h}; expected at least 1x1"),
+        ));
     }
     if w > MAX_SIDE || h > MAX_SIDE || w.saturating_mul(h) > MAX_PIXELS {
         return Err(decode_err(
@@ -73,7 +76,11 @@ fn srgb8_table() -> &'static [f32; 256] {
 
 fn srgb16_table() -> &'static [f32] {
     static T: OnceLock<Vec<f32>> = OnceLock::new();
-    T.get_or_init(|| (0..65536).map(|i| srgb_to_linear(i as f32 / 65535.0)).collect())
+    T.get_or_init(|| {
+        (0..65536)
+            .map(|i| srgb_to_linear(i as f32 / 65535.0))
+            .collect()
+    })
 }
 
 // ---------------------------------------------------------------- color
@@ -140,7 +147,13 @@ pub fn load_color(path: &Path, color_space: &str) -> Result<ColorImage, NodeErro
         | DynamicImage::ImageRgb8(_)
         | DynamicImage::ImageRgba8(_) => {
             let t = srgb8_table();
-            let conv = |v: u8| if srgb { t[v as usize] } else { v as f32 / 255.0 };
+            let conv = |v: u8| {
+                if srgb {
+                    t[v as usize]
+                } else {
+                    v as f32 / 255.0
+                }
+            };
             img.to_rgb8()
                 .pixels()
                 .map(|p| [conv(p[0]), conv(p[1]), conv(p[2])])
@@ -151,20 +164,33 @@ pub fn load_color(path: &Path, color_space: &str) -> Result<ColorImage, NodeErro
         | DynamicImage::ImageRgb16(_)
         | DynamicImage::ImageRgba16(_) => {
             let t = srgb16_table();
-            let conv = |v: u16| if srgb { t[v as usize] } else { v as f32 / 65535.0 };
+            let conv = |v: u16| {
+                if srgb {
+                    t[v as usize]
+                } else {
+                    v as f32 / 65535.0
+                }
+            };
             img.to_rgb16()
                 .pixels()
                 .map(|p| [conv(p[0]), conv(p[1]), conv(p[2])])
                 .collect()
         }
-        _ => img.to_rgb32f().pixels().map(|p| [p[0], p[1], p[2]]).collect(),
+        _ => img
+            .to_rgb32f()
+            .pixels()
+            .map(|p| [p[0], p[1], p[2]])
+            .collect(),
     };
     Image::from_vec(w, h, data).map_err(|e| decode_err(path, e.to_string()))
 }
 
 fn load_color_eval(_: &EvalCtx, _: &Inputs, p: &LoadColorParams) -> Result<Outputs, NodeError> {
     if p.path.is_empty() {
-        return Err(NodeError::param("path", "no file given; set it with --set <node>.path=FILE"));
+        return Err(NodeError::param(
+            "path",
+            "no file given; set it with --set <node>.path=FILE",
+        ));
     }
     Ok(Outputs::new().with("color", load_color(Path::new(&p.path), &p.color_space)?))
 }
@@ -214,7 +240,10 @@ fn read_raw_depth(path: &Path) -> Result<RawDepth, NodeError> {
         .map(str::to_ascii_lowercase)
         .unwrap_or_default();
     match ext.as_str() {
-        "pfm" => read_pfm(path).map(|s| RawDepth { samples: s, integer: false }),
+        "pfm" => read_pfm(path).map(|s| RawDepth {
+            samples: s,
+            integer: false,
+        }),
         "exr" => read_exr_channel(path),
         _ => {
             let img = open_image(path)?;
@@ -233,7 +262,11 @@ fn read_raw_depth(path: &Path) -> Result<RawDepth, NodeError> {
                 }
             };
             Ok(RawDepth {
-                samples: Samples { width: w, height: h, values },
+                samples: Samples {
+                    width: w,
+                    height: h,
+                    values,
+                },
                 integer: true,
             })
         }
@@ -287,7 +320,10 @@ pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
     if data.len() < need {
         return Err(decode_err(
             path,
-            format!("PFM data holds {} bytes, expected {need} for {w}x{h}x{channels}", data.len()),
+            format!(
+                "PFM data holds {} bytes, expected {need} for {w}x{h}x{channels}",
+                data.len()
+            ),
         ));
     }
     let little = scale < 0.0;
@@ -304,12 +340,17 @@ pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
             };
         }
     }
-    Ok(Samples { width: w, height: h, values })
+    Ok(Samples {
+        width: w,
+        height: h,
+        values,
+    })
 }
 
 fn read_exr_channel(path: &Path) -> Result<RawDepth, NodeError> {
     use exr::prelude::*;
-    let image = read_first_flat_layer_from_file(path).map_err(|e| decode_err(path, e.to_string()))?;
+    let image =
+        read_first_flat_layer_from_file(path).map_err(|e| decode_err(path, e.to_string()))?;
     let layer = image.layer_data;
     let (w, h) = (layer.size.width(), layer.size.height());
     check_dims(path, w, h)?;
@@ -325,10 +366,17 @@ fn read_exr_channel(path: &Path) -> Result<RawDepth, NodeError> {
         FlatSamples::U32(v) => v.iter().map(|x| *x as f32).collect(),
     };
     if values.len() != w * h {
-        return Err(decode_err(path, "EXR channel size does not match the layer size"));
+        return Err(decode_err(
+            path,
+            "EXR channel size does not match the layer size",
+        ));
     }
     Ok(RawDepth {
-        samples: Samples { width: w, height: h, values },
+        samples: Samples {
+            width: w,
+            height: h,
+            values,
+        },
         integer: false,
     })
 }
@@ -350,7 +398,11 @@ pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeErro
     let disparity = p.encoding == "disparity";
     if disparity && (p.focal_px <= 0.0 || p.baseline_m <= 0.0) {
         return Err(NodeError::param(
-            if p.focal_px <= 0.0 { "focal_px" } else { "baseline_m" },
+            if p.focal_px <= 0.0 {
+                "focal_px"
+            } else {
+                "baseline_m"
+            },
             "disparity files need focal_px and baseline_m (both > 0) to give metres",
         ));
     }
@@ -371,20 +423,30 @@ pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeErro
             } else {
                 v
             };
-            if z.is_finite() && z > 0.0 { z as f32 } else { 0.0 }
+            if z.is_finite() && z > 0.0 {
+                z as f32
+            } else {
+                0.0
+            }
         })
         .collect();
-    Image::from_vec(raw.samples.width, raw.samples.height, values).map_err(|e| decode_err(path, e.to_string()))
+    Image::from_vec(raw.samples.width, raw.samples.height, values)
+        .map_err(|e| decode_err(path, e.to_string()))
 }
 
 fn load_depth_eval(_: &EvalCtx, _: &Inputs, p: &LoadDepthParams) -> Result<Outputs, NodeError> {
     if p.path.is_empty() {
-        return Err(NodeError::param("path", "no file given; set it with --set <node>.path=FILE"));
+        return Err(NodeError::param(
+            "path",
+            "no file given; set it with --set <node>.path=FILE",
+        ));
     }
     let d = load_depth(Path::new(&p.path), p)?;
     // guard: images have at least one pixel (check_dims), max(1) for safety
     let fraction = d.hole_count() as f64 / d.len().max(1) as f64;
-    Ok(Outputs::new().with("depth", d).with("hole_fraction", fraction))
+    Ok(Outputs::new()
+        .with("depth", d)
+        .with("hole_fraction", fraction))
 }
 
 // ---------------------------------------------------------------- writing
@@ -430,7 +492,10 @@ fn write_dynamic(tmp: &Path, img: DynamicImage, fmt: ImageFormat) -> Result<(), 
 }
 
 fn extension(path: &Path) -> String {
-    path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
+    path.extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase()
 }
 
 /// Bit depths for PNG color output.
@@ -450,7 +515,12 @@ node_params! {
 
 /// Writes a linear color image: PNG is sRGB-encoded (values clipped to [0, 1]
 /// after `exposure_stops`), EXR keeps linear floats.
-pub fn save_color(img: &ColorImage, path: &Path, bits16: bool, exposure_stops: f64) -> Result<PathBuf, NodeError> {
+pub fn save_color(
+    img: &ColorImage,
+    path: &Path,
+    bits16: bool,
+    exposure_stops: f64,
+) -> Result<PathBuf, NodeError> {
     let (w, h) = (img.width() as u32, img.height() as u32);
     let gain = 2f32.powf(exposure_stops as f32);
     match extension(path).as_str() {
@@ -462,7 +532,9 @@ pub fn save_color(img: &ColorImage, path: &Path, bits16: bool, exposure_stops: f
                 .collect();
             let buf = image::Rgb32FImage::from_raw(w, h, data)
                 .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
-            write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb32F(buf), ImageFormat::OpenExr))
+            write_atomic(path, |tmp| {
+                write_dynamic(tmp, DynamicImage::ImageRgb32F(buf), ImageFormat::OpenExr)
+            })
         }
         "png" => {
             if bits16 {
@@ -473,7 +545,9 @@ pub fn save_color(img: &ColorImage, path: &Path, bits16: bool, exposure_stops: f
                     .collect();
                 let buf = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_raw(w, h, data)
                     .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
-                write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb16(buf), ImageFormat::Png))
+                write_atomic(path, |tmp| {
+                    write_dynamic(tmp, DynamicImage::ImageRgb16(buf), ImageFormat::Png)
+                })
             } else {
                 let data: Vec<u8> = img
                     .as_slice()
@@ -482,7 +556,9 @@ pub fn save_color(img: &ColorImage, path: &Path, bits16: bool, exposure_stops: f
                     .collect();
                 let buf = image::RgbImage::from_raw(w, h, data)
                     .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
-                write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png))
+                write_atomic(path, |tmp| {
+                    write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
+                })
             }
         }
         other => Err(NodeError::param(
@@ -492,7 +568,11 @@ pub fn save_color(img: &ColorImage, path: &Path, bits16: bool, exposure_stops: f
     }
 }
 
-fn save_color_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SaveColorParams) -> Result<Outputs, NodeError> {
+fn save_color_eval(
+    ctx: &EvalCtx,
+    inputs: &Inputs,
+    p: &SaveColorParams,
+) -> Result<Outputs, NodeError> {
     let img = inputs.color("color")?;
     let path = ctx.output_path(&p.path)?;
     let written = save_color(img, &path, p.bits == "16", p.exposure_stops)?;
@@ -522,7 +602,11 @@ node_params! {
 /// Writes a depth map (see [`SaveDepthParams`] for the forms). In png16, depths
 /// beyond 65535 units are stored as 65535 and holes as 0; the count of clipped
 /// pixels is returned.
-pub fn save_depth(depth: &DepthMap, path: &Path, p: &SaveDepthParams) -> Result<(PathBuf, usize), NodeError> {
+pub fn save_depth(
+    depth: &DepthMap,
+    path: &Path,
+    p: &SaveDepthParams,
+) -> Result<(PathBuf, usize), NodeError> {
     let (w, h) = (depth.width() as u32, depth.height() as u32);
     let format = match p.format.as_str() {
         "auto" if extension(path) == "exr" => "exr",
@@ -572,7 +656,9 @@ pub fn save_depth(depth: &DepthMap, path: &Path, p: &SaveDepthParams) -> Result<
                 .collect();
             let buf = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(w, h, data)
                 .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
-            let written = write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageLuma16(buf), ImageFormat::Png))?;
+            let written = write_atomic(path, |tmp| {
+                write_dynamic(tmp, DynamicImage::ImageLuma16(buf), ImageFormat::Png)
+            })?;
             Ok((written, clipped))
         }
         _ => {
@@ -589,17 +675,25 @@ pub fn save_depth(depth: &DepthMap, path: &Path, p: &SaveDepthParams) -> Result<
                 .collect();
             let buf = image::RgbImage::from_raw(w, h, data)
                 .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
-            let written = write_atomic(path, |tmp| write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png))?;
+            let written = write_atomic(path, |tmp| {
+                write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
+            })?;
             Ok((written, 0))
         }
     }
 }
 
-fn save_depth_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SaveDepthParams) -> Result<Outputs, NodeError> {
+fn save_depth_eval(
+    ctx: &EvalCtx,
+    inputs: &Inputs,
+    p: &SaveDepthParams,
+) -> Result<Outputs, NodeError> {
     let depth = inputs.depth("depth")?;
     let path = ctx.output_path(&p.path)?;
     let (written, clipped) = save_depth(depth, &path, p)?;
-    Ok(Outputs::new().with("file", written).with("clipped", clipped as f64))
+    Ok(Outputs::new()
+        .with("file", written)
+        .with("clipped", clipped as f64))
 }
 
 // ---------------------------------------------------------------- PLY
@@ -629,7 +723,10 @@ pub fn write_ply(
 ) -> Result<PathBuf, NodeError> {
     let has_c = !colors.is_empty() && colors.len() == positions.len();
     let has_n = !normals.is_empty() && normals.len() == positions.len();
-    if let Some(t) = triangles.iter().find(|t| t.iter().any(|i| *i as usize >= positions.len())) {
+    if let Some(t) = triangles
+        .iter()
+        .find(|t| t.iter().any(|i| *i as usize >= positions.len()))
+    {
         return Err(NodeError::Invalid(format!(
             "triangle {t:?} refers to a vertex beyond the {} given",
             positions.len()
@@ -640,7 +737,11 @@ pub fn write_ply(
         let mut w = BufWriter::new(f);
         let mut header = format!(
             "ply\nformat {} 1.0\ncomment written by depthgraph (camera frame: x right, y down, z forward; metres)\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
-            if ascii { "ascii" } else { "binary_little_endian" },
+            if ascii {
+                "ascii"
+            } else {
+                "binary_little_endian"
+            },
             positions.len()
         );
         if has_n {
@@ -650,7 +751,10 @@ pub fn write_ply(
             header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
         }
         if !triangles.is_empty() {
-            header.push_str(&format!("element face {}\nproperty list uchar uint vertex_indices\n", triangles.len()));
+            header.push_str(&format!(
+                "element face {}\nproperty list uchar uint vertex_indices\n",
+                triangles.len()
+            ));
         }
         header.push_str("end_header\n");
         let io = |e: std::io::Error| e.to_string();
@@ -686,7 +790,8 @@ pub fn write_ply(
         }
         for t in triangles {
             if ascii {
-                w.write_all(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes()).map_err(io)?;
+                w.write_all(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes())
+                    .map_err(io)?;
             } else {
                 w.write_all(&[3u8]).map_err(io)?;
                 for i in t {
@@ -698,17 +803,35 @@ pub fn write_ply(
     })
 }
 
-fn save_points_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SavePlyParams) -> Result<Outputs, NodeError> {
+fn save_points_eval(
+    ctx: &EvalCtx,
+    inputs: &Inputs,
+    p: &SavePlyParams,
+) -> Result<Outputs, NodeError> {
     let pc = inputs.point_cloud("points")?;
     let path = ctx.output_path(&p.path)?;
-    let written = write_ply(&path, &pc.positions, &pc.colors, &pc.normals, &[], p.format == "ascii")?;
+    let written = write_ply(
+        &path,
+        &pc.positions,
+        &pc.colors,
+        &pc.normals,
+        &[],
+        p.format == "ascii",
+    )?;
     Ok(Outputs::new().with("file", written))
 }
 
 fn save_mesh_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SavePlyParams) -> Result<Outputs, NodeError> {
     let m = inputs.mesh("mesh")?;
     let path = ctx.output_path(&p.path)?;
-    let written = write_ply(&path, &m.positions, &m.colors, &m.normals, &m.triangles, p.format == "ascii")?;
+    let written = write_ply(
+        &path,
+        &m.positions,
+        &m.colors,
+        &m.normals,
+        &m.triangles,
+        p.format == "ascii",
+    )?;
     Ok(Outputs::new().with("file", written))
 }
 
@@ -745,7 +868,11 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
             1,
             "Writes a color image: PNG (sRGB, 8 or 16 bit) or EXR (linear float), atomically.",
             vec![PortSpec::required("color", ValueType::Color, "linear RGB")],
-            vec![PortSpec::output("file", ValueType::File, "the file written")],
+            vec![PortSpec::output(
+                "file",
+                ValueType::File,
+                "the file written",
+            )],
             save_color_eval,
         )
         .sink(),
@@ -758,7 +885,11 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
             vec![PortSpec::required("depth", ValueType::Depth, "metres")],
             vec![
                 PortSpec::output("file", ValueType::File, "the file written"),
-                PortSpec::output("clipped", ValueType::Scalar, "png16: pixels beyond 65535 units, stored as 65535"),
+                PortSpec::output(
+                    "clipped",
+                    ValueType::Scalar,
+                    "png16: pixels beyond 65535 units, stored as 65535",
+                ),
             ],
             save_depth_eval,
         )
@@ -769,8 +900,16 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
             "SavePointCloud",
             1,
             "Writes a point cloud (positions, colors, normals) as PLY.",
-            vec![PortSpec::required("points", ValueType::PointCloud, "camera-space points")],
-            vec![PortSpec::output("file", ValueType::File, "the file written")],
+            vec![PortSpec::required(
+                "points",
+                ValueType::PointCloud,
+                "camera-space points",
+            )],
+            vec![PortSpec::output(
+                "file",
+                ValueType::File,
+                "the file written",
+            )],
             save_points_eval,
         )
         .sink(),
@@ -780,8 +919,16 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
             "SaveMesh",
             1,
             "Writes a triangle mesh as PLY.",
-            vec![PortSpec::required("mesh", ValueType::Mesh, "camera-space triangle mesh")],
-            vec![PortSpec::output("file", ValueType::File, "the file written")],
+            vec![PortSpec::required(
+                "mesh",
+                ValueType::Mesh,
+                "camera-space triangle mesh",
+            )],
+            vec![PortSpec::output(
+                "file",
+                ValueType::File,
+                "the file written",
+            )],
             save_mesh_eval,
         )
         .sink(),
@@ -830,7 +977,13 @@ mod tests {
     #[test]
     fn depth_png16_and_exr_round_trip() {
         let dir = tempfile::tempdir().unwrap();
-        let d = Image::from_fn(6, 4, |x, y| if x == 2 && y == 1 { 0.0 } else { 0.5 + x as f32 * 0.25 + y as f32 });
+        let d = Image::from_fn(6, 4, |x, y| {
+            if x == 2 && y == 1 {
+                0.0
+            } else {
+                0.5 + x as f32 * 0.25 + y as f32
+            }
+        });
         let png = dir.path().join("d.png");
         save_depth(&d, &png, &SaveDepthParams::default()).unwrap();
         let back = load_depth(&png, &depth_params()).unwrap();
@@ -847,7 +1000,8 @@ mod tests {
     fn png16_clips_far_depth_and_counts_it() {
         let dir = tempfile::tempdir().unwrap();
         let d = Image::from_vec(2, 1, vec![1.0, 100.0]).unwrap();
-        let (_, clipped) = save_depth(&d, &dir.path().join("c.png"), &SaveDepthParams::default()).unwrap();
+        let (_, clipped) =
+            save_depth(&d, &dir.path().join("c.png"), &SaveDepthParams::default()).unwrap();
         assert_eq!(clipped, 1);
     }
 
@@ -880,7 +1034,14 @@ mod tests {
         assert!((d.get(0, 1) - (0.160 * 1870.0 / 200.0) as f32).abs() < 1e-5);
         // disparity 0 with doffs 100 is a valid (far) depth for float files
         assert!((d.get(1, 1) - (0.160 * 1870.0 / 100.0) as f32).abs() < 1e-5);
-        let e = load_depth(&path, &LoadDepthParams { encoding: "disparity".into(), ..Default::default() }).unwrap_err();
+        let e = load_depth(
+            &path,
+            &LoadDepthParams {
+                encoding: "disparity".into(),
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("focal_px"), "{e}");
     }
 
@@ -903,7 +1064,10 @@ mod tests {
             fs::write(&path, bytes).unwrap();
             let e = load_depth(&path, &depth_params());
             assert!(e.is_err(), "{name} loaded as depth");
-            assert!(e.unwrap_err().to_string().contains(name), "error must name the file");
+            assert!(
+                e.unwrap_err().to_string().contains(name),
+                "error must name the file"
+            );
             assert!(load_color(&path, "srgb").is_err(), "{name} loaded as color");
         }
         // a color PNG is not a depth map

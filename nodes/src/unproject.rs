@@ -15,7 +15,10 @@ fn check_dims(what: &str, w: usize, h: usize, k: &Intrinsics) -> Result<(), Node
         ));
     }
     if !k.is_sane() {
-        return Err(NodeError::input("intrinsics", "focal lengths must be finite and positive"));
+        return Err(NodeError::input(
+            "intrinsics",
+            "focal lengths must be finite and positive",
+        ));
     }
     Ok(())
 }
@@ -31,13 +34,23 @@ fn check_dims(what: &str, w: usize, h: usize, k: &Intrinsics) -> Result<(), Node
 /// let pc = depthgraph_nodes::unproject::unproject(&d, &k, None).unwrap();
 /// assert_eq!(pc.positions, vec![[-1.0, 0.0, 2.0]]);
 /// ```
-pub fn unproject(depth: &DepthMap, k: &Intrinsics, color: Option<&ColorImage>) -> Result<PointCloud, NodeError> {
+pub fn unproject(
+    depth: &DepthMap,
+    k: &Intrinsics,
+    color: Option<&ColorImage>,
+) -> Result<PointCloud, NodeError> {
     check_dims("depth", depth.width(), depth.height(), k)?;
     if let Some(c) = color {
         if !c.same_dims(depth) {
             return Err(NodeError::input(
                 "color",
-                format!("is {}x{} but the depth is {}x{}", c.width(), c.height(), depth.width(), depth.height()),
+                format!(
+                    "is {}x{} but the depth is {}x{}",
+                    c.width(),
+                    c.height(),
+                    depth.width(),
+                    depth.height()
+                ),
             ));
         }
     }
@@ -62,7 +75,10 @@ pub fn unproject(depth: &DepthMap, k: &Intrinsics, color: Option<&ColorImage>) -
 /// pixel per point): depth (0 where nothing lands) and color (black there).
 pub fn project(points: &PointCloud, k: &Intrinsics) -> Result<(DepthMap, ColorImage), NodeError> {
     if !k.is_sane() {
-        return Err(NodeError::input("intrinsics", "focal lengths must be finite and positive"));
+        return Err(NodeError::input(
+            "intrinsics",
+            "focal lengths must be finite and positive",
+        ));
     }
     let mut depth = Image::filled(k.width, k.height, 0.0f32);
     let mut color = Image::filled(k.width, k.height, [0.0f32; 3]);
@@ -143,8 +159,21 @@ mod tests {
 
     #[test]
     fn project_inverts_unproject() {
-        let k = Intrinsics { fx: 50.0, fy: 55.0, cx: 16.0, cy: 12.0, width: 32, height: 24 };
-        let d = Image::from_fn(32, 24, |x, y| if (x + y) % 7 == 0 { 0.0 } else { 1.0 + 0.01 * x as f32 + 0.02 * y as f32 });
+        let k = Intrinsics {
+            fx: 50.0,
+            fy: 55.0,
+            cx: 16.0,
+            cy: 12.0,
+            width: 32,
+            height: 24,
+        };
+        let d = Image::from_fn(32, 24, |x, y| {
+            if (x + y) % 7 == 0 {
+                0.0
+            } else {
+                1.0 + 0.01 * x as f32 + 0.02 * y as f32
+            }
+        });
         let c = Image::from_fn(32, 24, |x, y| [x as f32, y as f32, 0.0]);
         let pc = unproject(&d, &k, Some(&c)).unwrap();
         assert_eq!(pc.positions.len(), d.len() - d.hole_count());
@@ -159,10 +188,25 @@ mod tests {
 
     #[test]
     fn mismatched_sizes_are_named() {
-        let k = Intrinsics { fx: 50.0, fy: 50.0, cx: 8.0, cy: 8.0, width: 16, height: 16 };
+        let k = Intrinsics {
+            fx: 50.0,
+            fy: 50.0,
+            cx: 8.0,
+            cy: 8.0,
+            width: 16,
+            height: 16,
+        };
         let e = unproject(&Image::filled(8, 8, 1.0f32), &k, None).unwrap_err();
-        assert!(e.to_string().contains("8x8") && e.to_string().contains("16x16"), "{e}");
-        let e = unproject(&Image::filled(16, 16, 1.0f32), &k, Some(&Image::filled(4, 4, [0.0; 3]))).unwrap_err();
+        assert!(
+            e.to_string().contains("8x8") && e.to_string().contains("16x16"),
+            "{e}"
+        );
+        let e = unproject(
+            &Image::filled(16, 16, 1.0f32),
+            &k,
+            Some(&Image::filled(4, 4, [0.0; 3])),
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("color"), "{e}");
     }
 }
