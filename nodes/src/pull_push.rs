@@ -1,0 +1,549 @@
+//! Hole filling by pull-push on image pyramids (3d-editing §III.A-B, eq. 2-4).
+//!
+//! **Pull**: depth and color pyramids are built by averaging 2x2 blocks; a
+//! depth sample only counts where it is valid, and each coarse pixel keeps a
+//! validity weight `min(1, sum of its children's weights)`.
+//!
+//! **Push**: from the coarsest level to the finest, every pixel that is a
+//! hole at its level takes a weighted mean of the four nearest coarse pixels
+//! (already filled). Valid pixels are never changed.
+//!
+//! - [`Weights::Bilinear`]: the usual bilinear weights (the baseline of the
+//!   paper's Fig. 4c).
+//! - [`Weights::Dual`]: the paper's dual weights, `W_d * W_c` with
+//!   `W_d = 1 / (eps + |X(p_i^r) - X(p_j^{r+1})|)` (eq. 2, distance between
+//!   the unprojected 3D points) and `W_c = 1 / (eps + |C(p_i^r) - C(p_j^{r+1})|)`
+//!   (eq. 3, linear-RGB distance), combined as in eq. 4. The hole pixel's own
+//!   3D point needs a depth: it is unprojected at the bilinear estimate from
+//!   the same four coarse pixels (the "interpolated depth pixel" of §III.B).
+//!
+//! Every filled value is a convex combination of coarse values, which are
+//! convex combinations of valid input depths, so it lies within their
+//! `[min, max]`. Sums are accumulated in f64.
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::registry::RegistryError;
+use rayon::prelude::*;
+
+/// Which push weights to use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Weights {
+    /// Bilinear weights only (plain pull-push).
+    Bilinear,
+    /// 3D-distance x color-similarity weights (eq. 2-4).
+    Dual,
+}
+
+node_params! {
+    /// Parameters of `PullPush` and `DualPullPush`.
+    pub struct PullPushParams {
+        /// The "tiny constant" epsilon of eq. 2 and 3 (metres and linear-RGB units).
+        /// It bounds each weight by 1/epsilon; any positive value is stable.
+        pub epsilon: f64 = 1e-3, ParamKind::Float { min: 1e-12, max: 10.0 };
+        /// Pyramid levels below the input; 0 = auto: as many as the largest hole needs
+        /// (until the coarsest level has no hole).
+        pub levels: u32 = 0u32, ParamKind::Int { min: 0, max: 24 };
+    }
+}
+
+/// Result of a fill.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Filled {
+    pub depth: DepthMap,
+    /// 1 where the value was filled, 0 where it was measured or stayed a hole.
+    pub filled: Mask,
+    /// Levels used below the input.
+    pub levels: u32,
+    /// Holes left (only when `levels` was too small or no pixel was valid).
+    pub holes_left: usize,
+}
+
+struct Level {
+    w: usize,
+    h: usize,
+    depth: Vec<f64>,
+    weight: Vec<f64>,
+    color: Vec<[f64; 3]>,
+}
+
+fn pull(fine: &Level) -> Level {
+    let (w, h) = (fine.w.div_ceil(2), fine.h.div_ceil(2));
+    let mut out = Level {
+        w,
+        h,
+        depth: vec![0.0; w * h],
+        weight: vec![0.0; w * h],
+        color: vec![[0.0; 3]; w * h],
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let (mut sw, mut sd, mut n) = (0.0, 0.0, 0.0);
+            let mut sc = [0.0; 3];
+            for dy in 0..2 {
+                for dx in 0..2 {
+                    let (fx, fy) = (2 * x + dx, 2 * y + dy);
+                    if fx >= fine.w || fy >= fine.h {
+                        continue;
+                    }
+                    let i = fy * fine.w + fx;
+                    let wt = fine.weight[i];
+                    sw += wt;
+                    sd += wt * fine.depth[i];
+                    for c in 0..3 {
+                        sc[c] += fine.color[i][c];
+                    }
+                    n += 1.0;
+                }
+            }
+            let j = y * w + x;
+            // guard: sw > 0 checked; n >= 1 (every coarse pixel has at least one child)
+            if sw > 0.0 {
+                out.depth[j] = sd / sw;
+                out.weight[j] = sw.min(1.0);
+            }
+            out.color[j] = sc.map(|v| v / n);
+        }
+    }
+    out
+}
+
+/// Fills the holes of `depth` (see the module docs). `k` and `color` are
+/// needed for [`Weights::Dual`] and ignored by [`Weights::Bilinear`] (pass the
+/// depth's own size for both).
+///
+/// ```
+/// use depthgraph_graph::value::{Image, Intrinsics};
+/// use depthgraph_nodes::pull_push::{pull_push, PullPushParams, Weights};
+/// let depth = Image::from_vec(3, 1, vec![1.0f32, 0.0, 3.0]).unwrap();
+/// let color = Image::filled(3, 1, [0.5f32; 3]);
+/// let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 1.5, cy: 0.5, width: 3, height: 1 };
+/// let out = pull_push(&depth, &color, &k, &PullPushParams::default(), Weights::Bilinear).unwrap();
+/// assert!(out.depth.get(1, 0) > &1.0 && out.depth.get(1, 0) < &3.0);
+/// assert_eq!(out.holes_left, 0);
+/// ```
+pub fn pull_push(
+    depth: &DepthMap,
+    color: &ColorImage,
+    k: &Intrinsics,
+    p: &PullPushParams,
+    weights: Weights,
+) -> Result<Filled, NodeError> {
+    let (w, h) = depth.dims();
+    if weights == Weights::Dual {
+        if !color.same_dims(depth) {
+            return Err(NodeError::input(
+                "color",
+                format!("is {}x{} but the depth is {w}x{h}", color.width(), color.height()),
+            ));
+        }
+        if (k.width, k.height) != (w, h) {
+            return Err(NodeError::input(
+                "intrinsics",
+                format!("are for {}x{} but the depth is {w}x{h}", k.width, k.height),
+            ));
+        }
+        if !k.is_sane() {
+            return Err(NodeError::input("intrinsics", "focal lengths must be finite and positive"));
+        }
+    }
+    let eps = p.epsilon;
+    let mut levels = vec![Level {
+        w,
+        h,
+        depth: depth
+            .as_slice()
+            .iter()
+            .map(|z| if DepthMap::is_valid(*z) { *z as f64 } else { 0.0 })
+            .collect(),
+        weight: depth
+            .as_slice()
+            .iter()
+            .map(|z| if DepthMap::is_valid(*z) { 1.0 } else { 0.0 })
+            .collect(),
+        color: if weights == Weights::Dual {
+            color.as_slice().iter().map(|c| c.map(|v| if v.is_finite() { v as f64 } else { 0.0 })).collect()
+        } else {
+            vec![[0.0; 3]; w * h]
+        },
+    }];
+    // Pull until the coarsest level has no hole (auto) or the requested count.
+    loop {
+        let last = &levels[levels.len() - 1];
+        let has_hole = last.weight.iter().any(|w| *w == 0.0);
+        let used = (levels.len() - 1) as u32;
+        let done = if p.levels == 0 {
+            !has_hole || (last.w == 1 && last.h == 1)
+        } else {
+            used >= p.levels || (last.w == 1 && last.h == 1)
+        };
+        if done {
+            break;
+        }
+        let next = pull(last);
+        levels.push(next);
+    }
+    // Push: coarse to fine, filling only holes.
+    for r in (0..levels.len() - 1).rev() {
+        let (fine_part, coarse_part) = levels.split_at_mut(r + 1);
+        let fine = &mut fine_part[r];
+        let coarse = &coarse_part[0];
+        // intrinsics at both levels: exactly 2^-r of the input's
+        let scale_f = 0.5f64.powi(r as i32);
+        let scale_c = scale_f * 0.5;
+        let (fw, cw, ch) = (fine.w, coarse.w, coarse.h);
+        let fine_color = &fine.color;
+        let fine_weight = &fine.weight;
+        let rows: Vec<(usize, Vec<(usize, f64)>)> = (0..fine.h)
+            .into_par_iter()
+            .map(|y| {
+                let mut out = Vec::new();
+                for x in 0..fw {
+                    let i = y * fw + x;
+                    if fine_weight[i] > 0.0 {
+                        continue;
+                    }
+                    // coarse coordinates of the fine pixel centre
+                    let cxf = (x as f64 + 0.5) * 0.5 - 0.5;
+                    let cyf = (y as f64 + 0.5) * 0.5 - 0.5;
+                    let x0 = (cxf.floor().max(0.0) as usize).min(cw - 1);
+                    let y0 = (cyf.floor().max(0.0) as usize).min(ch - 1);
+                    let x1 = (x0 + 1).min(cw - 1);
+                    let y1 = (y0 + 1).min(ch - 1);
+                    let fx = (cxf - x0 as f64).clamp(0.0, 1.0);
+                    let fy = (cyf - y0 as f64).clamp(0.0, 1.0);
+                    let nbrs = [
+                        (x0, y0, (1.0 - fx) * (1.0 - fy)),
+                        (x1, y0, fx * (1.0 - fy)),
+                        (x0, y1, (1.0 - fx) * fy),
+                        (x1, y1, fx * fy),
+                    ];
+                    // bilinear estimate over valid coarse neighbours
+                    let (mut bw, mut bd) = (0.0, 0.0);
+                    for &(cx, cy, wb) in &nbrs {
+                        let j = cy * cw + cx;
+                        if coarse.weight[j] > 0.0 {
+                            bw += wb;
+                            bd += wb * coarse.depth[j];
+                        }
+                    }
+                    if bw <= 0.0 {
+                        // bilinear weights can all vanish on a border; fall back to plain mean
+                        let (mut n, mut s) = (0.0, 0.0);
+                        for &(cx, cy, _) in &nbrs {
+                            let j = cy * cw + cx;
+                            if coarse.weight[j] > 0.0 {
+                                n += 1.0;
+                                s += coarse.depth[j];
+                            }
+                        }
+                        if n == 0.0 {
+                            continue; // no data here: stays a hole
+                        }
+                        bw = n;
+                        bd = s;
+                    }
+                    let z_est = bd / bw; // guard: bw > 0 ensured above
+                    let value = match weights {
+                        Weights::Bilinear => z_est,
+                        Weights::Dual => {
+                            let u = (x as f64 + 0.5, y as f64 + 0.5);
+                            let xi = unproject_at(k, scale_f, u, z_est);
+                            let ci = fine_color[i];
+                            let (mut sw, mut sd) = (0.0f64, 0.0f64);
+                            for &(cx, cy, _) in &nbrs {
+                                let j = cy * cw + cx;
+                                if coarse.weight[j] <= 0.0 {
+                                    continue;
+                                }
+                                let xj = unproject_at(k, scale_c, (cx as f64 + 0.5, cy as f64 + 0.5), coarse.depth[j]);
+                                let wd = 1.0 / (eps + dist(xi, xj)); // eq. 2; eps > 0
+                                let cj = coarse.color[j];
+                                let dc = ((ci[0] - cj[0]).powi(2) + (ci[1] - cj[1]).powi(2) + (ci[2] - cj[2]).powi(2)).sqrt();
+                                let wc = 1.0 / (eps + dc); // eq. 3; eps > 0
+                                sw += wd * wc;
+                                sd += wd * wc * coarse.depth[j];
+                            }
+                            // guard: at least one valid neighbour (bw > 0) and every weight > 0;
+                            // weights are at most 1/eps^2 <= 1e24, far from f64 overflow
+                            if sw > 0.0 && sw.is_finite() { sd / sw } else { z_est }
+                        }
+                    };
+                    out.push((x, value));
+                }
+                (y, out)
+            })
+            .collect();
+        for (y, vals) in rows {
+            for (x, v) in vals {
+                let i = y * fw + x;
+                fine.depth[i] = v;
+                fine.weight[i] = f64::MIN_POSITIVE; // filled: valid for the next finer level
+            }
+        }
+    }
+    let l0 = &levels[0];
+    let mut holes_left = 0;
+    let mut filled = Image::filled(w, h, 0.0f32);
+    let out: Vec<f32> = (0..w * h)
+        .map(|i| {
+            let z0 = depth.as_slice()[i];
+            if DepthMap::is_valid(z0) {
+                z0
+            } else if l0.weight[i] > 0.0 {
+                filled.as_mut_slice()[i] = 1.0;
+                l0.depth[i] as f32
+            } else {
+                holes_left += 1;
+                0.0
+            }
+        })
+        .collect();
+    Ok(Filled {
+        depth: Image::from_vec(w, h, out).map_err(|e| NodeError::Invalid(e.to_string()))?,
+        filled,
+        levels: (levels.len() - 1) as u32,
+        holes_left,
+    })
+}
+
+#[inline]
+fn unproject_at(k: &Intrinsics, scale: f64, (u, v): (f64, f64), z: f64) -> [f64; 3] {
+    // intrinsics of a level: fx * scale, cx * scale (pixel centres scale exactly by halving)
+    [(u - k.cx * scale) * z / (k.fx * scale), (v - k.cy * scale) * z / (k.fy * scale), z]
+}
+
+#[inline]
+fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+fn eval_with(inputs: &Inputs, p: &PullPushParams, weights: Weights) -> Result<Outputs, NodeError> {
+    let depth = inputs.depth("depth")?;
+    let holes = depth.hole_count();
+    if holes == 0 {
+        return Ok(Outputs::new()
+            .with("depth", Value::Depth(depth.clone()))
+            .with("filled", Value::Mask(std::sync::Arc::new(Image::filled(depth.width(), depth.height(), 0.0))))
+            .passthrough("no holes to fill"));
+    }
+    if holes == depth.len() {
+        return Ok(Outputs::new()
+            .with("depth", Value::Depth(depth.clone()))
+            .with("filled", Value::Mask(std::sync::Arc::new(Image::filled(depth.width(), depth.height(), 0.0))))
+            .passthrough("no valid depth to fill from"));
+    }
+    let (color, k) = match weights {
+        Weights::Dual => (inputs.color("color")?.clone(), inputs.intrinsics("intrinsics")?),
+        Weights::Bilinear => (
+            std::sync::Arc::new(Image::filled(1, 1, [0.0f32; 3])),
+            Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0, width: depth.width(), height: depth.height() },
+        ),
+    };
+    let r = pull_push(depth, &color, &k, p, weights)?;
+    Ok(Outputs::new()
+        .with("depth", r.depth)
+        .with("filled", Value::Mask(std::sync::Arc::new(r.filled))))
+}
+
+fn eval_plain(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs, NodeError> {
+    eval_with(inputs, p, Weights::Bilinear)
+}
+
+fn eval_dual(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs, NodeError> {
+    eval_with(inputs, p, Weights::Dual)
+}
+
+/// Registers `PullPush` and `DualPullPush`.
+pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    let outputs = || {
+        vec![
+            PortSpec::output("depth", ValueType::Depth, "holes filled; measured pixels unchanged"),
+            PortSpec::output("filled", ValueType::Mask, "1 where a value was filled"),
+        ]
+    };
+    reg.register(TypedNode::new(
+        "PullPush",
+        1,
+        "Fills depth holes by pull-push with bilinear weights (the baseline of 3d-editing Fig. 4c).",
+        vec![PortSpec::required("depth", ValueType::Depth, "metres, 0 = hole")],
+        outputs(),
+        eval_plain,
+    ))?;
+    reg.register(TypedNode::new(
+        "DualPullPush",
+        1,
+        "Fills depth holes by pull-push with 3D-distance x color-similarity weights (3d-editing eq. 2-4).",
+        vec![
+            PortSpec::required("depth", ValueType::Depth, "metres, 0 = hole"),
+            PortSpec::required("color", ValueType::Color, "guide, same size as the depth"),
+            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the depth image"),
+        ],
+        outputs(),
+        eval_dual,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn k(w: usize, h: usize) -> Intrinsics {
+        Intrinsics { fx: w as f64, fy: w as f64, cx: w as f64 / 2.0, cy: h as f64 / 2.0, width: w, height: h }
+    }
+
+    fn both(depth: &DepthMap, color: &ColorImage, p: &PullPushParams) -> [Filled; 2] {
+        let kk = k(depth.width(), depth.height());
+        [
+            pull_push(depth, color, &kk, p, Weights::Bilinear).unwrap(),
+            pull_push(depth, color, &kk, p, Weights::Dual).unwrap(),
+        ]
+    }
+
+    #[test]
+    fn valid_pixels_unchanged_and_every_hole_filled() {
+        let d = Image::from_fn(37, 23, |x, y| {
+            if (8..20).contains(&x) && (5..15).contains(&y) { 0.0 } else { 1.0 + 0.01 * x as f32 + 0.02 * y as f32 }
+        });
+        let c = Image::from_fn(37, 23, |x, _| [x as f32 / 37.0, 0.5, 0.2]);
+        for r in both(&d, &c, &PullPushParams::default()) {
+            assert_eq!(r.holes_left, 0);
+            for (a, b) in d.as_slice().iter().zip(r.depth.as_slice()) {
+                if *a > 0.0 {
+                    assert_eq!(a, b);
+                }
+            }
+            assert_eq!(r.filled.as_slice().iter().filter(|v| **v == 1.0).count(), 12 * 10);
+            // a hole in a plane is filled close to the plane
+            let want = 1.0 + 0.01 * 14.0 + 0.02 * 10.0;
+            assert!((r.depth.get(14, 10) - want).abs() < 0.05, "{}", r.depth.get(14, 10));
+        }
+    }
+
+    #[test]
+    fn dual_weights_keep_a_depth_edge_that_bilinear_blurs() {
+        // Left half near (1 m, dark), right half far (3 m, bright); a hole band across the edge.
+        let (w, h) = (64, 32);
+        let near = |x: usize| x < 32;
+        let gt = Image::from_fn(w, h, |x, _| if near(x) { 1.0f32 } else { 3.0 });
+        let c = Image::from_fn(w, h, |x, _| if near(x) { [0.1f32, 0.1, 0.1] } else { [0.9, 0.8, 0.7] });
+        let d = Image::from_fn(w, h, |x, y| if (24..40).contains(&x) && (8..24).contains(&y) { 0.0 } else { *gt.get(x, y) });
+        let [plain, dual] = both(&d, &c, &PullPushParams::default());
+        let err = |r: &Filled| {
+            let mut s = 0.0f64;
+            let mut n = 0;
+            for i in 0..w * h {
+                if d.as_slice()[i] == 0.0 {
+                    s += ((r.depth.as_slice()[i] - gt.as_slice()[i]) as f64).powi(2);
+                    n += 1;
+                }
+            }
+            (s / n as f64).sqrt()
+        };
+        let (ep, ed) = (err(&plain), err(&dual));
+        assert!(ed < 0.5 * ep, "dual {ed} vs plain {ep}");
+        assert!(ed < 0.25, "dual rmse {ed}");
+    }
+
+    #[test]
+    fn bounded_by_valid_range_for_a_1000x_jump_and_tiny_epsilon() {
+        let d = Image::from_fn(16, 16, |x, y| if (x + y) % 3 == 0 { 0.0 } else if x < 8 { 0.001 } else { 1000.0 });
+        let c = Image::filled(16, 16, [0.3f32; 3]); // constant color: every W_c = 1/eps
+        for eps in [1e-12, 1e-3, 10.0] {
+            for r in both(&d, &c, &PullPushParams { epsilon: eps, levels: 0 }) {
+                for v in r.depth.as_slice() {
+                    assert!(v.is_finite() && *v >= 0.001 && *v <= 1000.0, "{v} (eps {eps})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn hard_inputs() {
+        let c1 = Image::filled(1, 1, [0.0f32; 3]);
+        // 1x1 valid, 1x1 hole
+        for z in [2.0f32, 0.0] {
+            let d = Image::filled(1, 1, z);
+            for r in both(&d, &c1, &PullPushParams::default()) {
+                assert_eq!(*r.depth.get(0, 0), z);
+            }
+        }
+        // 1xN with one valid pixel: everything becomes that value
+        let d = Image::from_fn(9, 1, |x, _| if x == 6 { 4.5 } else { 0.0 });
+        let c = Image::filled(9, 1, [0.2f32; 3]);
+        for r in both(&d, &c, &PullPushParams::default()) {
+            assert!(r.depth.as_slice().iter().all(|v| *v == 4.5), "{:?}", r.depth.as_slice());
+        }
+        // NaN, inf, negative depths are holes; NaN colors are tolerated
+        let d = Image::from_vec(4, 1, vec![f32::NAN, 1.0, f32::INFINITY, -2.0]).unwrap();
+        let c = Image::from_vec(4, 1, vec![[f32::NAN; 3], [0.1; 3], [0.2; 3], [0.3; 3]]).unwrap();
+        for r in both(&d, &c, &PullPushParams::default()) {
+            assert!(r.depth.as_slice().iter().all(|v| *v == 1.0));
+        }
+        // all holes: nothing to fill from
+        let d = Image::filled(5, 4, 0.0f32);
+        let c = Image::filled(5, 4, [0.0f32; 3]);
+        for r in both(&d, &c, &PullPushParams::default()) {
+            assert_eq!(r.holes_left, 20);
+        }
+    }
+
+    #[test]
+    fn too_few_levels_leave_large_holes_and_say_so() {
+        let d = Image::from_fn(32, 32, |x, _| if x < 2 { 1.0 } else { 0.0 });
+        let c = Image::filled(32, 32, [0.0f32; 3]);
+        let r = pull_push(&d, &c, &k(32, 32), &PullPushParams { levels: 1, ..Default::default() }, Weights::Bilinear).unwrap();
+        assert!(r.holes_left > 0);
+        assert_eq!(r.levels, 1);
+        let auto = pull_push(&d, &c, &k(32, 32), &PullPushParams::default(), Weights::Bilinear).unwrap();
+        assert_eq!(auto.holes_left, 0);
+    }
+
+    #[test]
+    fn mismatched_inputs_are_named() {
+        let d = Image::filled(4, 4, 1.0f32);
+        let e = pull_push(&d, &Image::filled(2, 2, [0.0; 3]), &k(4, 4), &PullPushParams::default(), Weights::Dual).unwrap_err();
+        assert!(e.to_string().contains("color"), "{e}");
+        let e = pull_push(&d, &Image::filled(4, 4, [0.0; 3]), &k(8, 8), &PullPushParams::default(), Weights::Dual).unwrap_err();
+        assert!(e.to_string().contains("intrinsics"), "{e}");
+    }
+
+    #[test]
+    fn thread_count_does_not_change_bits() {
+        let d = Image::from_fn(50, 40, |x, y| if (x * 7 + y * 3) % 5 == 0 { 0.0 } else { 1.0 + ((x * y) % 13) as f32 * 0.1 });
+        let c = Image::from_fn(50, 40, |x, y| [(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]);
+        let run = |n| {
+            rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap().install(|| {
+                pull_push(&d, &c, &k(50, 40), &PullPushParams::default(), Weights::Dual).unwrap().depth
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        #[test]
+        fn fills_are_finite_bounded_and_keep_measurements(
+            w in 1usize..24, h in 1usize..24,
+            seed in any::<u64>(),
+            hole_rate in 0.0f64..1.0,
+            eps in prop_oneof![Just(1e-12), Just(1e-3), Just(1.0)],
+        ) {
+            let mut s = seed;
+            let mut next = || { s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407); (s >> 11) as f64 / (1u64 << 53) as f64 };
+            let d = Image::from_fn(w, h, |_, _| if next() < hole_rate { 0.0 } else { (0.01 + 100.0 * next()) as f32 });
+            let c = Image::from_fn(w, h, |_, _| [next() as f32, next() as f32, next() as f32]);
+            let valid: Vec<f32> = d.as_slice().iter().copied().filter(|z| *z > 0.0).collect();
+            let (lo, hi) = valid.iter().fold((f32::INFINITY, 0.0f32), |(a, b), v| (a.min(*v), b.max(*v)));
+            for r in both(&d, &c, &PullPushParams { epsilon: eps, levels: 0 }) {
+                for (a, b) in d.as_slice().iter().zip(r.depth.as_slice()) {
+                    prop_assert!(b.is_finite());
+                    if *a > 0.0 { prop_assert_eq!(a, b); }
+                    else if !valid.is_empty() { prop_assert!(*b >= lo && *b <= hi, "{} outside [{}, {}]", b, lo, hi); }
+                }
+                if !valid.is_empty() { prop_assert_eq!(r.holes_left, 0); }
+            }
+        }
+    }
+}
