@@ -13,6 +13,7 @@
 pub mod camera;
 pub mod imageops;
 pub mod io;
+pub mod pull_push;
 pub mod sensor;
 pub mod synthetic;
 pub mod unproject;
@@ -27,6 +28,7 @@ pub fn registry() -> Result<Registry, RegistryError> {
     synthetic::register(&mut reg)?;
     sensor::register(&mut reg)?;
     unproject::register(&mut reg)?;
+    pull_push::register(&mut reg)?;
     imageops::register(&mut reg)?;
     Ok(reg)
 }
