@@ -296,3 +296,36 @@ fn memory_budget_is_respected_across_runs() {
     // the most recent result (sum) is still there
     assert_eq!(status(&again.trace, "sum"), Status::Cached);
 }
+
+#[test]
+fn a_second_backend_is_chosen_at_run_time_with_the_same_cache_key() {
+    fn scale_gpu(_: &EvalCtx, i: &Inputs, p: &ScaleParams) -> Result<Outputs, NodeError> {
+        // stands in for a GPU implementation: same result, different backend
+        Ok(Outputs::new().with("depth", i.depth("depth")?.map(|v| v * p.factor as f32)))
+    }
+    let d = |n| PortSpec::required(n, ValueType::Depth, "depth");
+    let o = || vec![PortSpec::output("depth", ValueType::Depth, "depth")];
+    let mut reg = registry();
+    reg.register_backend(
+        TypedNode::new("Scale", 1, "scale", vec![d("depth")], o(), scale_gpu).backend_name("wgpu"),
+    )
+    .unwrap();
+    // a backend whose schema differs is refused: keys would not agree
+    let other =
+        TypedNode::new("Scale", 2, "scale", vec![d("depth")], o(), scale_gpu).backend_name("wgpu");
+    assert!(reg.register_backend(other).is_err());
+    let check =
+        |reg: &Registry| Pipeline::check(&Document::parse(DOC, "doc.ron").unwrap(), reg).unwrap();
+    let cpu = check(&reg);
+    reg.prefer_backends(&["wgpu"]);
+    let gpu = check(&reg);
+    assert_eq!(cpu.nodes[1].node.backend(), "cpu");
+    assert_eq!(gpu.nodes[1].node.backend(), "wgpu");
+    assert_eq!(Engine::keys(&cpu), Engine::keys(&gpu));
+    let engine = Engine::new(EngineOptions::default()).unwrap();
+    let a = engine.run(&cpu, &RunOptions::default()).unwrap();
+    engine.clear_memory();
+    let b = engine.run(&gpu, &RunOptions::default()).unwrap();
+    assert_eq!(b.trace.get("left").unwrap().backend, "wgpu");
+    assert_eq!(a.outputs, b.outputs);
+}

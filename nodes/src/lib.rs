@@ -10,9 +10,12 @@
 //! `node_params!` struct and a `register` function, then add one line to
 //! [`registry`].
 
+pub mod bilateral;
 pub mod camera;
 pub mod imageops;
 pub mod io;
+pub mod mesh;
+pub mod nlmeans;
 pub mod pull_push;
 pub mod sensor;
 pub mod synthetic;
@@ -28,7 +31,10 @@ pub fn registry() -> Result<Registry, RegistryError> {
     synthetic::register(&mut reg)?;
     sensor::register(&mut reg)?;
     unproject::register(&mut reg)?;
+    bilateral::register(&mut reg)?;
+    mesh::register(&mut reg)?;
     pull_push::register(&mut reg)?;
+    nlmeans::register(&mut reg)?;
     imageops::register(&mut reg)?;
     Ok(reg)
 }

@@ -90,8 +90,8 @@ fn pull(fine: &Level) -> Level {
                     let wt = fine.weight[i];
                     sw += wt;
                     sd += wt * fine.depth[i];
-                    for c in 0..3 {
-                        sc[c] += fine.color[i][c];
+                    for (acc, v) in sc.iter_mut().zip(fine.color[i]) {
+                        *acc += v;
                     }
                     n += 1.0;
                 }
@@ -134,7 +134,11 @@ pub fn pull_push(
         if !color.same_dims(depth) {
             return Err(NodeError::input(
                 "color",
-                format!("is {}x{} but the depth is {w}x{h}", color.width(), color.height()),
+                format!(
+                    "is {}x{} but the depth is {w}x{h}",
+                    color.width(),
+                    color.height()
+                ),
             ));
         }
         if (k.width, k.height) != (w, h) {
@@ -144,7 +148,10 @@ pub fn pull_push(
             ));
         }
         if !k.is_sane() {
-            return Err(NodeError::input("intrinsics", "focal lengths must be finite and positive"));
+            return Err(NodeError::input(
+                "intrinsics",
+                "focal lengths must be finite and positive",
+            ));
         }
     }
     let eps = p.epsilon;
@@ -154,7 +161,13 @@ pub fn pull_push(
         depth: depth
             .as_slice()
             .iter()
-            .map(|z| if DepthMap::is_valid(*z) { *z as f64 } else { 0.0 })
+            .map(|z| {
+                if DepthMap::is_valid(*z) {
+                    *z as f64
+                } else {
+                    0.0
+                }
+            })
             .collect(),
         weight: depth
             .as_slice()
@@ -162,7 +175,11 @@ pub fn pull_push(
             .map(|z| if DepthMap::is_valid(*z) { 1.0 } else { 0.0 })
             .collect(),
         color: if weights == Weights::Dual {
-            color.as_slice().iter().map(|c| c.map(|v| if v.is_finite() { v as f64 } else { 0.0 })).collect()
+            color
+                .as_slice()
+                .iter()
+                .map(|c| c.map(|v| if v.is_finite() { v as f64 } else { 0.0 }))
+                .collect()
         } else {
             vec![[0.0; 3]; w * h]
         },
@@ -170,7 +187,7 @@ pub fn pull_push(
     // Pull until the coarsest level has no hole (auto) or the requested count.
     loop {
         let last = &levels[levels.len() - 1];
-        let has_hole = last.weight.iter().any(|w| *w == 0.0);
+        let has_hole = last.weight.contains(&0.0);
         let used = (levels.len() - 1) as u32;
         let done = if p.levels == 0 {
             !has_hole || (last.w == 1 && last.h == 1)
@@ -256,17 +273,29 @@ pub fn pull_push(
                                 if coarse.weight[j] <= 0.0 {
                                     continue;
                                 }
-                                let xj = unproject_at(k, scale_c, (cx as f64 + 0.5, cy as f64 + 0.5), coarse.depth[j]);
+                                let xj = unproject_at(
+                                    k,
+                                    scale_c,
+                                    (cx as f64 + 0.5, cy as f64 + 0.5),
+                                    coarse.depth[j],
+                                );
                                 let wd = 1.0 / (eps + dist(xi, xj)); // eq. 2; eps > 0
                                 let cj = coarse.color[j];
-                                let dc = ((ci[0] - cj[0]).powi(2) + (ci[1] - cj[1]).powi(2) + (ci[2] - cj[2]).powi(2)).sqrt();
+                                let dc = ((ci[0] - cj[0]).powi(2)
+                                    + (ci[1] - cj[1]).powi(2)
+                                    + (ci[2] - cj[2]).powi(2))
+                                .sqrt();
                                 let wc = 1.0 / (eps + dc); // eq. 3; eps > 0
                                 sw += wd * wc;
                                 sd += wd * wc * coarse.depth[j];
                             }
                             // guard: at least one valid neighbour (bw > 0) and every weight > 0;
                             // weights are at most 1/eps^2 <= 1e24, far from f64 overflow
-                            if sw > 0.0 && sw.is_finite() { sd / sw } else { z_est }
+                            if sw > 0.0 && sw.is_finite() {
+                                sd / sw
+                            } else {
+                                z_est
+                            }
                         }
                     };
                     out.push((x, value));
@@ -310,7 +339,11 @@ pub fn pull_push(
 #[inline]
 fn unproject_at(k: &Intrinsics, scale: f64, (u, v): (f64, f64), z: f64) -> [f64; 3] {
     // intrinsics of a level: fx * scale, cx * scale (pixel centres scale exactly by halving)
-    [(u - k.cx * scale) * z / (k.fx * scale), (v - k.cy * scale) * z / (k.fy * scale), z]
+    [
+        (u - k.cx * scale) * z / (k.fx * scale),
+        (v - k.cy * scale) * z / (k.fy * scale),
+        z,
+    ]
 }
 
 #[inline]
@@ -324,20 +357,44 @@ fn eval_with(inputs: &Inputs, p: &PullPushParams, weights: Weights) -> Result<Ou
     if holes == 0 {
         return Ok(Outputs::new()
             .with("depth", Value::Depth(depth.clone()))
-            .with("filled", Value::Mask(std::sync::Arc::new(Image::filled(depth.width(), depth.height(), 0.0))))
+            .with(
+                "filled",
+                Value::Mask(std::sync::Arc::new(Image::filled(
+                    depth.width(),
+                    depth.height(),
+                    0.0,
+                ))),
+            )
             .passthrough("no holes to fill"));
     }
     if holes == depth.len() {
         return Ok(Outputs::new()
             .with("depth", Value::Depth(depth.clone()))
-            .with("filled", Value::Mask(std::sync::Arc::new(Image::filled(depth.width(), depth.height(), 0.0))))
+            .with(
+                "filled",
+                Value::Mask(std::sync::Arc::new(Image::filled(
+                    depth.width(),
+                    depth.height(),
+                    0.0,
+                ))),
+            )
             .passthrough("no valid depth to fill from"));
     }
     let (color, k) = match weights {
-        Weights::Dual => (inputs.color("color")?.clone(), inputs.intrinsics("intrinsics")?),
+        Weights::Dual => (
+            inputs.color("color")?.clone(),
+            inputs.intrinsics("intrinsics")?,
+        ),
         Weights::Bilinear => (
             std::sync::Arc::new(Image::filled(1, 1, [0.0f32; 3])),
-            Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0, width: depth.width(), height: depth.height() },
+            Intrinsics {
+                fx: 1.0,
+                fy: 1.0,
+                cx: 0.0,
+                cy: 0.0,
+                width: depth.width(),
+                height: depth.height(),
+            },
         ),
     };
     let r = pull_push(depth, &color, &k, p, weights)?;
@@ -358,7 +415,11 @@ fn eval_dual(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     let outputs = || {
         vec![
-            PortSpec::output("depth", ValueType::Depth, "holes filled; measured pixels unchanged"),
+            PortSpec::output(
+                "depth",
+                ValueType::Depth,
+                "holes filled; measured pixels unchanged",
+            ),
             PortSpec::output("filled", ValueType::Mask, "1 where a value was filled"),
         ]
     };
@@ -390,7 +451,14 @@ mod tests {
     use proptest::prelude::*;
 
     fn k(w: usize, h: usize) -> Intrinsics {
-        Intrinsics { fx: w as f64, fy: w as f64, cx: w as f64 / 2.0, cy: h as f64 / 2.0, width: w, height: h }
+        Intrinsics {
+            fx: w as f64,
+            fy: w as f64,
+            cx: w as f64 / 2.0,
+            cy: h as f64 / 2.0,
+            width: w,
+            height: h,
+        }
     }
 
     fn both(depth: &DepthMap, color: &ColorImage, p: &PullPushParams) -> [Filled; 2] {
@@ -404,7 +472,11 @@ mod tests {
     #[test]
     fn valid_pixels_unchanged_and_every_hole_filled() {
         let d = Image::from_fn(37, 23, |x, y| {
-            if (8..20).contains(&x) && (5..15).contains(&y) { 0.0 } else { 1.0 + 0.01 * x as f32 + 0.02 * y as f32 }
+            if (8..20).contains(&x) && (5..15).contains(&y) {
+                0.0
+            } else {
+                1.0 + 0.01 * x as f32 + 0.02 * y as f32
+            }
         });
         let c = Image::from_fn(37, 23, |x, _| [x as f32 / 37.0, 0.5, 0.2]);
         for r in both(&d, &c, &PullPushParams::default()) {
@@ -414,10 +486,17 @@ mod tests {
                     assert_eq!(a, b);
                 }
             }
-            assert_eq!(r.filled.as_slice().iter().filter(|v| **v == 1.0).count(), 12 * 10);
+            assert_eq!(
+                r.filled.as_slice().iter().filter(|v| **v == 1.0).count(),
+                12 * 10
+            );
             // a hole in a plane is filled close to the plane
             let want = 1.0 + 0.01 * 14.0 + 0.02 * 10.0;
-            assert!((r.depth.get(14, 10) - want).abs() < 0.05, "{}", r.depth.get(14, 10));
+            assert!(
+                (r.depth.get(14, 10) - want).abs() < 0.05,
+                "{}",
+                r.depth.get(14, 10)
+            );
         }
     }
 
@@ -427,8 +506,20 @@ mod tests {
         let (w, h) = (64, 32);
         let near = |x: usize| x < 32;
         let gt = Image::from_fn(w, h, |x, _| if near(x) { 1.0f32 } else { 3.0 });
-        let c = Image::from_fn(w, h, |x, _| if near(x) { [0.1f32, 0.1, 0.1] } else { [0.9, 0.8, 0.7] });
-        let d = Image::from_fn(w, h, |x, y| if (24..40).contains(&x) && (8..24).contains(&y) { 0.0 } else { *gt.get(x, y) });
+        let c = Image::from_fn(w, h, |x, _| {
+            if near(x) {
+                [0.1f32, 0.1, 0.1]
+            } else {
+                [0.9, 0.8, 0.7]
+            }
+        });
+        let d = Image::from_fn(w, h, |x, y| {
+            if (24..40).contains(&x) && (8..24).contains(&y) {
+                0.0
+            } else {
+                *gt.get(x, y)
+            }
+        });
         let [plain, dual] = both(&d, &c, &PullPushParams::default());
         let err = |r: &Filled| {
             let mut s = 0.0f64;
@@ -448,12 +539,30 @@ mod tests {
 
     #[test]
     fn bounded_by_valid_range_for_a_1000x_jump_and_tiny_epsilon() {
-        let d = Image::from_fn(16, 16, |x, y| if (x + y) % 3 == 0 { 0.0 } else if x < 8 { 0.001 } else { 1000.0 });
+        let d = Image::from_fn(16, 16, |x, y| {
+            if (x + y) % 3 == 0 {
+                0.0
+            } else if x < 8 {
+                0.001
+            } else {
+                1000.0
+            }
+        });
         let c = Image::filled(16, 16, [0.3f32; 3]); // constant color: every W_c = 1/eps
         for eps in [1e-12, 1e-3, 10.0] {
-            for r in both(&d, &c, &PullPushParams { epsilon: eps, levels: 0 }) {
+            for r in both(
+                &d,
+                &c,
+                &PullPushParams {
+                    epsilon: eps,
+                    levels: 0,
+                },
+            ) {
                 for v in r.depth.as_slice() {
-                    assert!(v.is_finite() && *v >= 0.001 && *v <= 1000.0, "{v} (eps {eps})");
+                    assert!(
+                        v.is_finite() && *v >= 0.001 && *v <= 1000.0,
+                        "{v} (eps {eps})"
+                    );
                 }
             }
         }
@@ -473,7 +582,11 @@ mod tests {
         let d = Image::from_fn(9, 1, |x, _| if x == 6 { 4.5 } else { 0.0 });
         let c = Image::filled(9, 1, [0.2f32; 3]);
         for r in both(&d, &c, &PullPushParams::default()) {
-            assert!(r.depth.as_slice().iter().all(|v| *v == 4.5), "{:?}", r.depth.as_slice());
+            assert!(
+                r.depth.as_slice().iter().all(|v| *v == 4.5),
+                "{:?}",
+                r.depth.as_slice()
+            );
         }
         // NaN, inf, negative depths are holes; NaN colors are tolerated
         let d = Image::from_vec(4, 1, vec![f32::NAN, 1.0, f32::INFINITY, -2.0]).unwrap();
@@ -493,30 +606,81 @@ mod tests {
     fn too_few_levels_leave_large_holes_and_say_so() {
         let d = Image::from_fn(32, 32, |x, _| if x < 2 { 1.0 } else { 0.0 });
         let c = Image::filled(32, 32, [0.0f32; 3]);
-        let r = pull_push(&d, &c, &k(32, 32), &PullPushParams { levels: 1, ..Default::default() }, Weights::Bilinear).unwrap();
+        let r = pull_push(
+            &d,
+            &c,
+            &k(32, 32),
+            &PullPushParams {
+                levels: 1,
+                ..Default::default()
+            },
+            Weights::Bilinear,
+        )
+        .unwrap();
         assert!(r.holes_left > 0);
         assert_eq!(r.levels, 1);
-        let auto = pull_push(&d, &c, &k(32, 32), &PullPushParams::default(), Weights::Bilinear).unwrap();
+        let auto = pull_push(
+            &d,
+            &c,
+            &k(32, 32),
+            &PullPushParams::default(),
+            Weights::Bilinear,
+        )
+        .unwrap();
         assert_eq!(auto.holes_left, 0);
     }
 
     #[test]
     fn mismatched_inputs_are_named() {
         let d = Image::filled(4, 4, 1.0f32);
-        let e = pull_push(&d, &Image::filled(2, 2, [0.0; 3]), &k(4, 4), &PullPushParams::default(), Weights::Dual).unwrap_err();
+        let e = pull_push(
+            &d,
+            &Image::filled(2, 2, [0.0; 3]),
+            &k(4, 4),
+            &PullPushParams::default(),
+            Weights::Dual,
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("color"), "{e}");
-        let e = pull_push(&d, &Image::filled(4, 4, [0.0; 3]), &k(8, 8), &PullPushParams::default(), Weights::Dual).unwrap_err();
+        let e = pull_push(
+            &d,
+            &Image::filled(4, 4, [0.0; 3]),
+            &k(8, 8),
+            &PullPushParams::default(),
+            Weights::Dual,
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("intrinsics"), "{e}");
     }
 
     #[test]
     fn thread_count_does_not_change_bits() {
-        let d = Image::from_fn(50, 40, |x, y| if (x * 7 + y * 3) % 5 == 0 { 0.0 } else { 1.0 + ((x * y) % 13) as f32 * 0.1 });
-        let c = Image::from_fn(50, 40, |x, y| [(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]);
+        let d = Image::from_fn(50, 40, |x, y| {
+            if (x * 7 + y * 3) % 5 == 0 {
+                0.0
+            } else {
+                1.0 + ((x * y) % 13) as f32 * 0.1
+            }
+        });
+        let c = Image::from_fn(50, 40, |x, y| {
+            [(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]
+        });
         let run = |n| {
-            rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap().install(|| {
-                pull_push(&d, &c, &k(50, 40), &PullPushParams::default(), Weights::Dual).unwrap().depth
-            })
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+                .install(|| {
+                    pull_push(
+                        &d,
+                        &c,
+                        &k(50, 40),
+                        &PullPushParams::default(),
+                        Weights::Dual,
+                    )
+                    .unwrap()
+                    .depth
+                })
         };
         assert_eq!(run(1), run(3));
     }
