@@ -14,9 +14,11 @@ pub mod bilateral;
 pub mod camera;
 pub mod imageops;
 pub mod io;
+pub mod lens;
 pub mod mesh;
 pub mod nlmeans;
 pub mod pull_push;
+pub mod refocus;
 pub mod sensor;
 pub mod synthetic;
 pub mod unproject;
@@ -35,6 +37,7 @@ pub fn registry() -> Result<Registry, RegistryError> {
     mesh::register(&mut reg)?;
     pull_push::register(&mut reg)?;
     nlmeans::register(&mut reg)?;
+    refocus::register(&mut reg)?;
     imageops::register(&mut reg)?;
     Ok(reg)
 }

@@ -25,6 +25,8 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::lens::{Aperture, ThinLens};
+
 /// Names of the scene presets, for the `preset` parameter.
 pub const PRESETS: &[&str] = &["tabletop", "corridor", "thin"];
 
@@ -361,6 +363,9 @@ pub struct Object {
     /// ceilings of the corridor, which would otherwise shade everything since
     /// planes are infinite) sets this to `false`, like a skylight.
     pub casts_shadow: bool,
+    /// Where the texture's origin is in the camera frame (0 for the presets;
+    /// [`Scene::move_camera`] moves it with the object).
+    pub texture_origin: DVec3,
 }
 
 /// Lighting: a directional sun with hard shadows and a constant ambient sky.
@@ -445,6 +450,7 @@ fn solid(id: u32, primitive: Primitive, albedo: Texture) -> Object {
         albedo,
         emission: [0.0; 3],
         casts_shadow: true,
+        texture_origin: DVec3::ZERO,
     }
 }
 
@@ -495,6 +501,7 @@ fn emitter(id: u32, center: [f64; 3], radius: f64, tint: Rgb) -> Object {
         albedo: Texture::Solid([0.9, 0.9, 0.9]),
         emission: [tint[0] * r, tint[1] * r, tint[2] * r],
         casts_shadow: false,
+        texture_origin: DVec3::ZERO,
     }
 }
 
@@ -529,6 +536,22 @@ impl Scene {
     /// The object with id `id`, if any (the first one when ids repeat).
     pub fn object(&self, id: u32) -> Option<&Object> {
         self.objects.iter().find(|o| o.id == id)
+    }
+
+    /// Moves the camera to `position` (metres, in the preset's camera frame;
+    /// the camera keeps looking along `+z`) by moving every object by
+    /// `-position`: a second camera of a rig, e.g. a ToF camera beside the
+    /// color camera. Texture patterns move with their objects.
+    pub fn move_camera(&mut self, position: DVec3) {
+        for o in &mut self.objects {
+            match &mut o.primitive {
+                Primitive::Plane { point, .. } => *point -= position,
+                Primitive::Box { center, .. } => *center -= position,
+                Primitive::Sphere { center, .. } => *center -= position,
+                Primitive::Cylinder { center_base, .. } => *center_base -= position,
+            }
+            o.texture_origin -= position;
+        }
     }
 
     /// Multiplies every object's emission by `factor` (the node uses
@@ -573,7 +596,7 @@ impl Scene {
             point,
             normal,
             object_id: obj.id,
-            albedo: obj.albedo.eval(point),
+            albedo: obj.albedo.eval(point - obj.texture_origin),
             emission: obj.emission,
         })
     }
@@ -609,7 +632,13 @@ impl Scene {
 
     /// Color of the ray, the background when it hits nothing.
     fn radiance(&self, dir: DVec3) -> Rgb {
-        match self.intersect(DVec3::ZERO, dir) {
+        self.radiance_from(DVec3::ZERO, dir)
+    }
+
+    /// Color of the ray from `origin` along `dir`, the background when it
+    /// hits nothing.
+    fn radiance_from(&self, origin: DVec3, dir: DVec3) -> Rgb {
+        match self.intersect(origin, dir) {
             Some(hit) => self.shade(&hit),
             None => self.light.background,
         }
@@ -989,6 +1018,165 @@ pub fn render_with<E>(
     })
 }
 
+/// A thin lens for [`render_thin_lens`]: the ground truth of the depth-blur
+/// paper's refocusing (its Sec. 1: "the exact way for computing DoF is to
+/// model the light transport ... by casting rays from across the lens").
+#[derive(Debug, Clone, PartialEq)]
+pub struct ThinLensRender {
+    pub lens: ThinLens,
+    pub aperture: Aperture,
+    /// Rays per pixel, spread over the aperture.
+    pub samples: usize,
+    /// Seed of the per-pixel aperture samples.
+    pub seed: u64,
+}
+
+/// Renders `scene` through a thin lens by distributed ray tracing: for each
+/// pixel, `samples` rays start at stratified points `L` of the aperture and
+/// pass through the point where the pixel's pinhole ray meets the focus plane
+/// `z = u` (parallel to the pinhole ray when focused at infinity); the pixel
+/// is their mean radiance (f64 sums). The aperture point `s` (in aperture
+/// diameters, see [`crate::lens`]) sits at `L = (s_x C / fx, s_y C / fy, 0)`
+/// metres, `C` = [`ThinLens::coc_scale`], so a point at depth `z` is spread
+/// over exactly the circle of confusion `C |1/z - 1/u|` pixels that
+/// [`crate::refocus::refocus`] uses: the two differ only by what a single
+/// RGB-D image cannot know (what hides behind edges). Rays go through pixel
+/// centres, like the pinhole render the refocusing starts from. Each pixel
+/// draws its own aperture samples (seeded by the pixel), so the noise is
+/// not correlated across the image.
+pub fn render_thin_lens(
+    scene: &Scene,
+    lens: &ThinLensRender,
+    mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+) -> Result<ColorImage, NodeError> {
+    lens.lens.validate()?;
+    if lens.samples == 0 {
+        return Err(NodeError::param("lens_samples", "must be at least 1"));
+    }
+    let k = scene.camera;
+    let (w, h) = (k.width, k.height);
+    if !k.is_sane() {
+        return Ok(ColorImage::filled(w, h, scene.light.background));
+    }
+    let c = lens.lens.coc_scale(w);
+    let inv_u = lens.lens.inv_focus();
+    // Guard: is_sane() ensures fx, fy > 0.
+    let (sx, sy) = (c / k.fx, c / k.fy);
+    // Guard: samples >= 1 (checked above).
+    let inv_n = 1.0 / lens.samples as f64;
+    let mut color = ColorImage::filled(w, h, [0.0; 3]);
+    let mut y0 = 0;
+    while y0 < h {
+        let y1 = (y0 + BAND_ROWS).min(h);
+        let rows: Vec<Result<Vec<Rgb>, NodeError>> = (y0..y1)
+            .into_par_iter()
+            .map(|y| {
+                (0..w)
+                    .map(|x| {
+                        let pixel_seed = crate::sensor::splitmix64(
+                            lens.seed ^ ((y * w + x) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+                        );
+                        let points = lens.aperture.samples(lens.samples, pixel_seed)?;
+                        let d0 = scene.ray(x as f64 + 0.5, y as f64 + 0.5);
+                        let mut acc = [0.0f64; 3];
+                        for s in &points {
+                            let origin = DVec3::new(s[0] * sx, s[1] * sy, 0.0);
+                            let dir = if inv_u > 0.0 {
+                                // Guard: inv_u > 0, so 1 / inv_u is the finite focus distance.
+                                d0 * (1.0 / inv_u) - origin
+                            } else {
+                                d0
+                            };
+                            let r = scene.radiance_from(origin, dir);
+                            for (a, v) in acc.iter_mut().zip(r) {
+                                *a += v as f64;
+                            }
+                        }
+                        Ok(acc.map(|a| (a * inv_n) as f32))
+                    })
+                    .collect()
+            })
+            .collect();
+        for (y, row) in (y0..y1).zip(rows) {
+            color.as_mut_slice()[y * w..(y + 1) * w].copy_from_slice(&row?);
+        }
+        // Guard: h > 0 inside the loop.
+        on_progress(y1 as f32 / h as f32)?;
+        y0 = y1;
+    }
+    Ok(color)
+}
+
+node_params! {
+    /// Parameters of the `SyntheticThinLens` node: a scene preset (as
+    /// `SyntheticScene`) seen through a thin lens (as `Refocus`).
+    pub struct SyntheticThinLensParams {
+        /// Which analytic scene (see `SyntheticScene`).
+        pub preset: String = "tabletop", ParamKind::Choice(PRESETS);
+        /// Image width in pixels.
+        pub width: usize = 640usize, ParamKind::Int { min: 1, max: 8192 };
+        /// Image height in pixels.
+        pub height: usize = 480usize, ParamKind::Int { min: 1, max: 8192 };
+        /// Sun elevation above the horizon in degrees.
+        pub sun_elevation_deg: f64 = 50.0, ParamKind::Float { min: -90.0, max: 90.0 };
+        /// Sun azimuth in degrees.
+        pub sun_azimuth_deg: f64 = -35.0, ParamKind::Float { min: -360.0, max: 360.0 };
+        /// Radiance of the brightest channel of the small emitters.
+        pub emitter_radiance: f32 = DEFAULT_EMITTER_RADIANCE, ParamKind::Float { min: 0.0, max: 1e6 };
+        /// Focal length of the lens in millimetres.
+        pub focal_length_mm: f64 = 50.0, ParamKind::Float { min: 1.0, max: 2000.0 };
+        /// f-number.
+        pub f_number: f64 = 2.8, ParamKind::Float { min: 0.5, max: 1000.0 };
+        /// Focus distance in metres (`inf` for infinity).
+        pub focus_m: f64 = 2.0, ParamKind::Float { min: 1e-3, max: f64::INFINITY };
+        /// Sensor width in millimetres, spanning the image width.
+        pub sensor_width_mm: f64 = 36.0, ParamKind::Float { min: 0.1, max: 1000.0 };
+        /// Aperture shape (disc, polygon, triangle; a mask needs the Refocus node).
+        pub aperture: String = "disc", ParamKind::Choice(&["disc", "polygon", "triangle"]);
+        /// Blades of the polygonal aperture.
+        pub blades: u32 = 6u32, ParamKind::Int { min: 3, max: 64 };
+        /// Rotation of the polygon in degrees.
+        pub rotation_deg: f64 = 0.0, ParamKind::Float { min: -360.0, max: 360.0 };
+        /// Rays per pixel across the aperture.
+        pub lens_samples: usize = 256usize, ParamKind::Int { min: 1, max: 65536 };
+        /// Seed of the aperture samples.
+        pub seed: u64 = 0u64, ParamKind::Int { min: 0, max: i64::MAX };
+    }
+}
+
+fn eval_thin_lens(
+    ctx: &EvalCtx,
+    _: &Inputs,
+    p: &SyntheticThinLensParams,
+) -> Result<Outputs, NodeError> {
+    let scene = scene_from_params(&SyntheticSceneParams {
+        preset: p.preset.clone(),
+        width: p.width,
+        height: p.height,
+        supersample: 1,
+        sun_elevation_deg: p.sun_elevation_deg,
+        sun_azimuth_deg: p.sun_azimuth_deg,
+        emitter_radiance: p.emitter_radiance,
+        camera_position_m: [0.0; 3],
+    })?;
+    let lens = ThinLensRender {
+        lens: ThinLens {
+            focal_length_mm: p.focal_length_mm,
+            f_number: p.f_number,
+            focus_m: p.focus_m,
+            sensor_width_mm: p.sensor_width_mm,
+        },
+        aperture: Aperture::from_params(&p.aperture, p.blades, p.rotation_deg, None)?,
+        samples: p.lens_samples,
+        seed: p.seed,
+    };
+    let color = render_thin_lens(&scene, &lens, |f| {
+        ctx.progress(f);
+        ctx.check_cancelled()
+    })?;
+    Ok(Outputs::new().with("color", color))
+}
+
 node_params! {
     /// Parameters of the `SyntheticScene` node.
     pub struct SyntheticSceneParams {
@@ -1010,6 +1198,10 @@ node_params! {
         /// Radiance of the brightest channel of the small emitters (the bokeh
         /// highlights).
         pub emitter_radiance: f32 = DEFAULT_EMITTER_RADIANCE, ParamKind::Float { min: 0.0, max: 1e6 };
+        /// Where this camera stands relative to the preset's camera, metres
+        /// (x right, y down, z forward): a second camera of a rig, e.g. a
+        /// depth camera beside the color camera.
+        pub camera_position_m: [f64; 3] = [0.0, 0.0, 0.0], ParamKind::Vec3 { min: -100.0, max: 100.0 };
     }
 }
 
@@ -1027,6 +1219,7 @@ pub fn scene_from_params(p: &SyntheticSceneParams) -> Result<Scene, NodeError> {
     scene.light.sun_direction = sun_direction(p.sun_elevation_deg, p.sun_azimuth_deg);
     // Guard: DEFAULT_EMITTER_RADIANCE is a non-zero constant.
     scene.scale_emission(p.emitter_radiance / DEFAULT_EMITTER_RADIANCE);
+    scene.move_camera(DVec3::from_array(p.camera_position_m));
     Ok(scene)
 }
 
@@ -1050,7 +1243,7 @@ fn eval(ctx: &EvalCtx, _: &Inputs, p: &SyntheticSceneParams) -> Result<Outputs, 
         .with("intrinsics", out.intrinsics))
 }
 
-/// Registers `SyntheticScene`.
+/// Registers `SyntheticScene` and `SyntheticThinLens`.
 pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::RegistryError> {
     reg.register(TypedNode::new(
         "SyntheticScene",
@@ -1068,6 +1261,20 @@ pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::Re
             PortSpec::output("intrinsics", ValueType::Intrinsics, "Kinect-like intrinsics of the render"),
         ],
         eval,
+    ))?;
+    reg.register(TypedNode::new(
+        "SyntheticThinLens",
+        1,
+        "The SyntheticScene presets seen through a thin lens by distributed ray tracing (many rays per pixel \
+         across the aperture): the ground truth that Refocus and ReverseMappedDof are measured against.\n\
+         Same lens parameters and circle of confusion as Refocus.",
+        vec![],
+        vec![PortSpec::output(
+            "color",
+            ValueType::Color,
+            "linear HDR radiance through the lens",
+        )],
+        eval_thin_lens,
     ))
 }
 
@@ -1460,5 +1667,49 @@ mod tests {
             scene_from_params(&bad),
             Err(NodeError::Param { .. })
         ));
+    }
+
+    #[test]
+    fn thin_lens_render_tends_to_the_pinhole_and_rejects_bad_lenses() {
+        let scene = Scene::preset("tabletop", 48, 36).unwrap();
+        let pin = render(&scene, &RenderOptions::default());
+        let lens = |f_number: f64, focus_m: f64| ThinLensRender {
+            lens: ThinLens {
+                focal_length_mm: 50.0,
+                f_number,
+                focus_m,
+                sensor_width_mm: 36.0 * 48.0 / 640.0,
+            },
+            aperture: Aperture::Disc,
+            samples: 16,
+            seed: 3,
+        };
+        // f/1000: the aperture is 0.05 mm, every CoC far below a pixel.
+        let tiny = render_thin_lens(&scene, &lens(1000.0, 2.0), |_| Ok(())).unwrap();
+        let differing = tiny
+            .as_slice()
+            .iter()
+            .zip(pin.color.as_slice())
+            .filter(|(a, b)| {
+                a.iter()
+                    .zip(b.iter())
+                    .any(|(x, y)| (x - y).abs() > 1e-3 * (1.0 + y.abs()))
+            })
+            .count();
+        // Only pixels straddling an edge may see the other side.
+        assert!(differing < pin.color.len() / 50, "{differing}");
+        // Wide open, the picture changes and stays finite.
+        let wide = render_thin_lens(&scene, &lens(1.4, 0.95), |_| Ok(())).unwrap();
+        assert!(
+            wide.as_slice()
+                .iter()
+                .flatten()
+                .all(|v| v.is_finite() && *v >= 0.0)
+        );
+        assert_ne!(wide, pin.color);
+        let e = render_thin_lens(&scene, &lens(2.0, 0.01), |_| Ok(()))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("focus_m"), "{e}");
     }
 }

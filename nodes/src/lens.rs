@@ -1,0 +1,512 @@
+//! The virtual thin-lens camera of the depth-blur paper ("realistic depth
+//! blur", Sec. 2.3): the circle of confusion of a depth, and aperture shapes
+//! with stratified samples over them.
+//!
+//! # Units and the circle of confusion
+//!
+//! The lens has focal length `f` (mm), f-number `N` and is focused at
+//! distance `u` (metres, `inf` allowed); its aperture diameter is
+//! `A = f / N`. The sensor is `sensor_width_mm` wide and maps onto the image
+//! width of `W` pixels, so a pixel is `p = sensor_width_mm / W` mm and the
+//! focal length in pixels is `f_px = f / p`. A point at depth `z` is imaged
+//! as a blur of diameter (the thin-lens circle of confusion)
+//!
+//! `coc_px(z) = C * |1/z - 1/u|`,  with  `C = f_px * A * u / (u - f)` (pixel metres),
+//!
+//! where `u / (u - f)` is the magnification of a lens focused at `u`
+//! (1 at infinity). Rendering the image from a point `s` of the aperture
+//! (`s` in units of the aperture diameter, `|s| <= 1/2` for a disc) through a
+//! pinhole sheared so that the plane at `u` stays fixed moves a pixel of
+//! depth `z` by
+//!
+//! `d(s, z) = C * s * (1/u - 1/z)`  pixels,
+//!
+//! which is what the paper's per-sample reprojection does (Sec. 2.3: "
+//! translating the viewpoint according to the 2D displacement on the lens
+//! ... and perturbing the view frustum such that the image coordinates of
+//! points at a chosen distance u remain unchanged"). The set of `d(s, z)` over
+//! the aperture is the aperture's shape scaled to `coc_px(z)`: this is where
+//! bokeh comes from. [`crate::synthetic::render_thin_lens`] traces rays with
+//! exactly this lens so the two can be compared.
+//!
+//! Pixels without a depth measurement (0, negative, NaN) are treated as
+//! infinitely far (`1/z = 0`): in the synthetic scenes and in most photos
+//! they are the sky.
+
+use depthgraph_graph::prelude::*;
+
+use crate::sensor::splitmix64;
+
+/// Names of the aperture shapes, for the `aperture` parameter.
+pub const APERTURES: &[&str] = &["disc", "polygon", "triangle", "mask"];
+
+/// A thin lens and the sensor it images onto.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ThinLens {
+    /// Focal length in millimetres.
+    pub focal_length_mm: f64,
+    /// f-number `N`: the aperture diameter is `focal_length_mm / N`.
+    pub f_number: f64,
+    /// Focus distance in metres; `f64::INFINITY` focuses at infinity.
+    pub focus_m: f64,
+    /// Width of the sensor in millimetres; it spans the image width.
+    pub sensor_width_mm: f64,
+}
+
+impl ThinLens {
+    /// Checks the lens: positive finite focal length, f-number and sensor
+    /// width, and a focus distance beyond the focal length (a thin lens
+    /// cannot form a real image of a nearer plane). Errors name the
+    /// parameter.
+    pub fn validate(&self) -> Result<(), NodeError> {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.focal_length_mm) {
+            return Err(NodeError::param(
+                "focal_length_mm",
+                format!(
+                    "must be a positive number of millimetres, got {}",
+                    self.focal_length_mm
+                ),
+            ));
+        }
+        if !positive(self.f_number) {
+            return Err(NodeError::param(
+                "f_number",
+                format!("must be positive, got {}", self.f_number),
+            ));
+        }
+        if !positive(self.sensor_width_mm) {
+            return Err(NodeError::param(
+                "sensor_width_mm",
+                format!(
+                    "must be a positive number of millimetres, got {}",
+                    self.sensor_width_mm
+                ),
+            ));
+        }
+        let f_m = self.focal_length_mm * 1e-3;
+        if self.focus_m.is_nan() || self.focus_m <= f_m {
+            return Err(NodeError::param(
+                "focus_m",
+                format!(
+                    "the focus distance ({} m) must be farther than the focal length ({} mm): \
+                     a thin lens cannot focus on a plane nearer than its focal length",
+                    self.focus_m, self.focal_length_mm
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// `1 / u`, 0 when focused at infinity.
+    pub fn inv_focus(&self) -> f64 {
+        if self.focus_m.is_finite() {
+            // Guard: validate() ensures focus_m > focal length > 0.
+            1.0 / self.focus_m
+        } else {
+            0.0
+        }
+    }
+
+    /// The constant `C` (pixel metres) of `coc_px(z) = C |1/z - 1/u|` for
+    /// an image `width_px` wide (see the module docs). Call
+    /// [`validate`](Self::validate) first.
+    pub fn coc_scale(&self, width_px: usize) -> f64 {
+        let f_m = self.focal_length_mm * 1e-3;
+        // Guards: sensor_width_mm > 0 and f_number > 0 (validate); width 0
+        // gives C = 0 (an empty image has no blur).
+        let f_px = self.focal_length_mm * width_px as f64 / self.sensor_width_mm;
+        let aperture_m = f_m / self.f_number;
+        // u / (u - f) = 1 / (1 - f/u); f/u < 1 by validate, so the
+        // denominator is positive.
+        let magnification = 1.0 / (1.0 - f_m * self.inv_focus());
+        f_px * aperture_m * magnification
+    }
+}
+
+/// `1 / z` of a depth sample, 0 for no measurement (treated as infinitely
+/// far, see the module docs).
+#[inline]
+pub fn inv_depth(z: f32) -> f64 {
+    if DepthMap::is_valid(z) {
+        1.0 / z as f64
+    } else {
+        0.0
+    }
+}
+
+/// Circle-of-confusion diameter in pixels of every pixel of `depth`:
+/// `C |1/z - 1/u|` with `C` = [`ThinLens::coc_scale`].
+pub fn coc_map(depth: &DepthMap, lens: &ThinLens) -> Result<Image<f32>, NodeError> {
+    lens.validate()?;
+    let c = lens.coc_scale(depth.width());
+    let inv_u = lens.inv_focus();
+    Ok(depth.map(|&z| (c * (inv_depth(z) - inv_u).abs()) as f32))
+}
+
+/// The shape of the aperture, in a frame where the aperture has diameter 1
+/// (the disc and polygons are inscribed in the circle of radius 1/2; a
+/// mask image spans the square `[-1/2, 1/2]^2` along its longer side).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Aperture {
+    /// A round diaphragm.
+    Disc,
+    /// A regular polygon of `blades` sides (3 = triangle), rotated by
+    /// `rotation_deg` (0: one vertex straight up).
+    Polygon { blades: u32, rotation_deg: f64 },
+    /// A custom diaphragm: each pixel's value is its transmittance in
+    /// `[0, 1]` (values outside are clamped, NaN is 0).
+    Mask(Mask),
+}
+
+impl Aperture {
+    /// The aperture the parameters name: `"disc"`, `"polygon"` (with
+    /// `blades`), `"triangle"`, or `"mask"` (which needs `mask`).
+    pub fn from_params(
+        name: &str,
+        blades: u32,
+        rotation_deg: f64,
+        mask: Option<&Mask>,
+    ) -> Result<Aperture, NodeError> {
+        match name {
+            "disc" => Ok(Aperture::Disc),
+            "polygon" => {
+                if !(3..=64).contains(&blades) {
+                    return Err(NodeError::param(
+                        "blades",
+                        format!("a polygonal aperture needs 3 to 64 blades, got {blades}"),
+                    ));
+                }
+                Ok(Aperture::Polygon {
+                    blades,
+                    rotation_deg,
+                })
+            }
+            "triangle" => Ok(Aperture::Polygon {
+                blades: 3,
+                rotation_deg,
+            }),
+            "mask" => match mask {
+                Some(m) => Ok(Aperture::Mask(m.clone())),
+                None => Err(NodeError::input(
+                    "aperture",
+                    "aperture = \"mask\" needs a Mask connected to the `aperture` input",
+                )),
+            },
+            other => Err(NodeError::param(
+                "aperture",
+                format!("unknown aperture `{other}`; expected one of {APERTURES:?}"),
+            )),
+        }
+    }
+
+    /// Largest distance of an aperture point from the centre, in aperture
+    /// diameters (1/2 for the disc and polygons, up to `sqrt(2)/2` for a
+    /// mask).
+    pub fn extent(&self) -> f64 {
+        match self {
+            Aperture::Mask(_) => std::f64::consts::FRAC_1_SQRT_2,
+            _ => 0.5,
+        }
+    }
+
+    /// True when `(x, y)` (aperture diameters, `y` down) is open. Only used
+    /// for the analytic shapes; masks are sampled from their pixels.
+    pub fn contains(&self, x: f64, y: f64) -> bool {
+        match self {
+            Aperture::Disc => x * x + y * y <= 0.25,
+            Aperture::Polygon {
+                blades,
+                rotation_deg,
+            } => {
+                let n = (*blades).max(3) as f64;
+                let half = std::f64::consts::PI / n;
+                // Apothem of the polygon inscribed in the circle of radius 1/2.
+                let apothem = 0.5 * half.cos();
+                // A vertex straight up (y down, so at angle -pi/2), rotated.
+                let first_vertex = -std::f64::consts::FRAC_PI_2 + rotation_deg.to_radians();
+                (0..*blades).all(|k| {
+                    let normal = first_vertex + half + 2.0 * half * k as f64;
+                    x * normal.cos() + y * normal.sin() <= apothem
+                })
+            }
+            Aperture::Mask(m) => {
+                let (w, h) = m.dims();
+                let side = w.max(h) as f64;
+                let px = ((x + 0.5) * side - (side - w as f64) / 2.0).floor();
+                let py = ((y + 0.5) * side - (side - h as f64) / 2.0).floor();
+                m.try_get(px as isize, py as isize)
+                    .is_some_and(|v| v.is_finite() && *v > 0.5)
+            }
+        }
+    }
+
+    /// `n` stratified sample points over the open part of the aperture
+    /// (aperture diameters, centre 0), deterministic in `seed` (Sec. 2.3:
+    /// "we sample 2D positions s on the lens ... using stratified
+    /// sampling").
+    ///
+    /// Analytic shapes take the points of a Halton (2, 3) sequence, shifted by
+    /// a seeded Cranley-Patterson rotation, that fall inside the shape: every
+    /// dyadic and triadic box of the square receives its share, which is the
+    /// stratification a jittered grid gives without requiring `n` to be a
+    /// square. Masks are sampled in proportion to their transmittance: the
+    /// open pixels, in scan order, form a cumulative distribution that is cut
+    /// into `n` equal strata with one jittered point each (so even a mask
+    /// with one open pixel works). The mean of the points is subtracted for
+    /// masks, so that a lopsided mask does not shift the in-focus image.
+    ///
+    /// ```
+    /// use depthgraph_nodes::lens::Aperture;
+    /// let s = Aperture::Disc.samples(256, 0).unwrap();
+    /// assert_eq!(s.len(), 256);
+    /// assert!(s.iter().all(|p| p[0] * p[0] + p[1] * p[1] <= 0.25));
+    /// ```
+    pub fn samples(&self, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeError> {
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        match self {
+            Aperture::Mask(m) => mask_samples(m, n, seed),
+            _ => {
+                let r = splitmix64(seed ^ 0x5eed_a9e7);
+                let shift = [unit(r), unit(splitmix64(r))];
+                let mut out = Vec::with_capacity(n);
+                // The analytic shapes cover at least 41% of the square (the
+                // triangle), so 16 n + 64 draws are far more than enough; the
+                // bound only guards against a logic error looping forever.
+                for i in 1..=(16 * n as u64 + 64) {
+                    let x = (radical_inverse(i, 2) + shift[0]).fract() - 0.5;
+                    let y = (radical_inverse(i, 3) + shift[1]).fract() - 0.5;
+                    if self.contains(x, y) {
+                        out.push([x, y]);
+                        if out.len() == n {
+                            return Ok(out);
+                        }
+                    }
+                }
+                Err(NodeError::Invalid(format!(
+                    "could not place {n} samples in the aperture (only {})",
+                    out.len()
+                )))
+            }
+        }
+    }
+}
+
+/// A `u64` mapped to `[0, 1)`.
+fn unit(r: u64) -> f64 {
+    (r >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+}
+
+/// Van der Corput radical inverse of `i` in `base` (>= 2).
+fn radical_inverse(mut i: u64, base: u64) -> f64 {
+    let inv = 1.0 / base as f64;
+    let mut f = inv;
+    let mut r = 0.0;
+    while i > 0 {
+        r += (i % base) as f64 * f;
+        i /= base;
+        f *= inv;
+    }
+    r
+}
+
+fn mask_samples(m: &Mask, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeError> {
+    let (w, h) = m.dims();
+    let open: Vec<(usize, f64)> = m
+        .as_slice()
+        .iter()
+        .enumerate()
+        .filter_map(|(i, v)| {
+            let t = if v.is_finite() {
+                v.clamp(0.0, 1.0) as f64
+            } else {
+                0.0
+            };
+            (t > 0.0).then_some((i, t))
+        })
+        .collect();
+    let total: f64 = open.iter().map(|(_, t)| t).sum();
+    if open.is_empty() || total <= 0.0 {
+        return Err(NodeError::input(
+            "aperture",
+            "the aperture mask has no open pixel (every value is 0): no light passes",
+        ));
+    }
+    let side = w.max(h) as f64;
+    let (ox, oy) = ((side - w as f64) / 2.0, (side - h as f64) / 2.0);
+    let mut out = Vec::with_capacity(n);
+    let mut rng = splitmix64(seed ^ 0x6d61_736b);
+    let mut k = 0usize;
+    let mut cum = open[0].1;
+    for s in 0..n {
+        rng = splitmix64(rng);
+        // Guard: n > 0 here.
+        let target = (s as f64 + unit(rng)) / n as f64 * total;
+        while cum < target && k + 1 < open.len() {
+            k += 1;
+            cum += open[k].1;
+        }
+        let (i, _) = open[k];
+        let (px, py) = ((i % w) as f64, (i / w) as f64);
+        rng = splitmix64(rng);
+        let jx = unit(rng);
+        rng = splitmix64(rng);
+        let jy = unit(rng);
+        // Guard: side >= 1 (a mask has at least one pixel here).
+        out.push([(px + ox + jx) / side - 0.5, (py + oy + jy) / side - 0.5]);
+    }
+    // Centre the samples (guard: n > 0).
+    let mean = out.iter().fold([0.0; 2], |a, p| [a[0] + p[0], a[1] + p[1]]);
+    let mean = [mean[0] / n as f64, mean[1] / n as f64];
+    for p in &mut out {
+        p[0] -= mean[0];
+        p[1] -= mean[1];
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lens(f_number: f64, focus_m: f64) -> ThinLens {
+        ThinLens {
+            focal_length_mm: 50.0,
+            f_number,
+            focus_m,
+            sensor_width_mm: 36.0,
+        }
+    }
+
+    #[test]
+    fn coc_matches_the_thin_lens_formula() {
+        // 50 mm f/2 at 2 m on a 36 mm sensor, 640 px: a point at 4 m.
+        let l = lens(2.0, 2.0);
+        l.validate().unwrap();
+        let c = l.coc_scale(640);
+        let coc = c * (1.0 / 4.0 - 1.0 / 2.0f64).abs();
+        // Thin lens: image distances v = f u / (u - f); blur on the sensor
+        // = A |v_u - v_z| / v_z, in mm, then in pixels.
+        let f = 50.0;
+        let a = f / 2.0;
+        let v = |u: f64| f * u / (u - f);
+        let blur_mm = a * (v(2000.0) - v(4000.0)).abs() / v(4000.0);
+        let expected = blur_mm / (36.0 / 640.0);
+        assert!(
+            (coc - expected).abs() < 1e-9 * expected,
+            "{coc} vs {expected}"
+        );
+        // In focus: zero.
+        let map = coc_map(&DepthMap::filled(2, 1, 2.0), &l).unwrap();
+        assert_eq!(map.as_slice(), &[0.0, 0.0]);
+    }
+
+    #[test]
+    fn infinity_focus_and_invalid_depth_are_finite() {
+        let l = lens(1.4, f64::INFINITY);
+        l.validate().unwrap();
+        let d = DepthMap::from_vec(4, 1, vec![0.0, f32::NAN, -1.0, 1.0]).unwrap();
+        let m = coc_map(&d, &l).unwrap();
+        // No measurement = infinitely far = in focus at infinity.
+        assert_eq!(&m.as_slice()[..3], &[0.0, 0.0, 0.0]);
+        let expected = l.coc_scale(4) * 1.0; // 1/z - 1/u = 1 at z = 1 m
+        assert!(expected > 0.0 && (m.as_slice()[3] as f64 - expected).abs() < 1e-6 * expected);
+    }
+
+    #[test]
+    fn impossible_lenses_are_errors_that_name_the_parameter() {
+        let near = lens(2.0, 0.01).validate().unwrap_err().to_string();
+        assert!(
+            near.contains("focus_m") && near.contains("focal length"),
+            "{near}"
+        );
+        let zero = lens(0.0, 2.0).validate().unwrap_err().to_string();
+        assert!(zero.contains("f_number"), "{zero}");
+        // f/1000 and f/0.7 are fine.
+        lens(1000.0, 2.0).validate().unwrap();
+        lens(0.7, 2.0).validate().unwrap();
+    }
+
+    #[test]
+    fn samples_are_inside_uniform_and_deterministic() {
+        for ap in [
+            Aperture::Disc,
+            Aperture::Polygon {
+                blades: 6,
+                rotation_deg: 15.0,
+            },
+            Aperture::Polygon {
+                blades: 3,
+                rotation_deg: 0.0,
+            },
+        ] {
+            let s = ap.samples(1024, 7).unwrap();
+            assert_eq!(s.len(), 1024);
+            assert!(s.iter().all(|p| ap.contains(p[0], p[1])));
+            assert_eq!(s, ap.samples(1024, 7).unwrap());
+            assert_ne!(s, ap.samples(1024, 8).unwrap());
+            // Uniform over a centred symmetric-enough shape: the mean is near 0
+            // for the disc and hexagon (the triangle's centroid is 0 too).
+            let m = s.iter().fold([0.0; 2], |a, p| [a[0] + p[0], a[1] + p[1]]);
+            assert!(
+                m[0].abs() / 1024.0 < 0.01 && m[1].abs() / 1024.0 < 0.01,
+                "{ap:?} {m:?}"
+            );
+            // Stratified: each quadrant of the shape's bounding square gets
+            // close to its share (exact shares for the disc: 1/4).
+            if ap == Aperture::Disc {
+                let q = s.iter().filter(|p| p[0] < 0.0 && p[1] < 0.0).count();
+                assert!((246..=266).contains(&q), "{q}");
+            }
+        }
+    }
+
+    #[test]
+    fn polygon_has_the_right_area() {
+        // Hexagon inscribed in r = 1/2: area 3 sqrt(3)/2 r^2.
+        let hex = Aperture::Polygon {
+            blades: 6,
+            rotation_deg: 0.0,
+        };
+        let n = 400;
+        let inside = (0..n * n)
+            .filter(|i| {
+                let x = ((i % n) as f64 + 0.5) / n as f64 - 0.5;
+                let y = ((i / n) as f64 + 0.5) / n as f64 - 0.5;
+                hex.contains(x, y)
+            })
+            .count() as f64
+            / (n * n) as f64;
+        let exact = 1.5 * 3f64.sqrt() * 0.25;
+        assert!((inside - exact).abs() < 2e-3, "{inside} vs {exact}");
+        // The triangle points up: the top vertex is open, the bottom centre edge
+        // is at y = +1/4.
+        let tri = Aperture::Polygon {
+            blades: 3,
+            rotation_deg: 0.0,
+        };
+        assert!(tri.contains(0.0, -0.49));
+        assert!(tri.contains(0.0, 0.24) && !tri.contains(0.0, 0.26));
+    }
+
+    #[test]
+    fn one_pixel_mask_and_empty_mask() {
+        let mut m = Mask::filled(5, 5, 0.0);
+        *m.get_mut(2, 2) = 1.0;
+        let s = Aperture::Mask(m).samples(16, 0).unwrap();
+        assert_eq!(s.len(), 16);
+        // Centred, within one mask pixel (1/5 of the diameter).
+        assert!(s.iter().all(|p| p[0].abs() <= 0.2 && p[1].abs() <= 0.2));
+        let e = Aperture::Mask(Mask::filled(3, 3, 0.0))
+            .samples(4, 0)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("aperture") && e.contains("no open pixel"), "{e}");
+        let missing = Aperture::from_params("mask", 6, 0.0, None)
+            .unwrap_err()
+            .to_string();
+        assert!(missing.contains("aperture"), "{missing}");
+    }
+}
