@@ -13,6 +13,11 @@ pub enum Metric {
     Mae,
     /// Peak signal-to-noise ratio in dB (peak = largest reference value, at least 1e-12).
     Psnr,
+    /// Color only: PSNR in dB of the display-referred images (clamped to
+    /// [0, 1], sRGB encoded, peak 1), see [`display_psnr`].
+    DisplayPsnr,
+    /// Color only: mean SSIM of the display luma, see [`display_ssim`].
+    Ssim,
 }
 
 /// An error measurement and the share of reference samples it covers.
@@ -47,6 +52,23 @@ pub fn compare(
     reference: &Value,
     metric: Metric,
 ) -> Result<Measurement, MetricError> {
+    if matches!(metric, Metric::DisplayPsnr | Metric::Ssim) {
+        return match (result, reference) {
+            (Value::Color(a), Value::Color(b)) => {
+                let value = if metric == Metric::Ssim {
+                    display_ssim(a, b)?
+                } else {
+                    display_psnr(a, b)?
+                };
+                Ok(Measurement {
+                    value,
+                    count: a.len(),
+                    missing: 0,
+                })
+            }
+            (a, _) => Err(MetricError::Unsupported(a.value_type())),
+        };
+    }
     let mut acc = Acc::default();
     match (result, reference) {
         (Value::Depth(a), Value::Depth(b)) => {
@@ -133,6 +155,8 @@ impl Acc {
                     10.0 * (peak * peak / mse).log10()
                 }
             }
+            // Handled by `compare` before accumulating; unreachable here.
+            Metric::DisplayPsnr | Metric::Ssim => f64::NAN,
         };
         Ok(Measurement {
             value,
@@ -181,5 +205,147 @@ mod tests {
             compare(&depth(vec![1.0]), &depth(vec![0.0]), Metric::Rmse),
             Err(MetricError::Empty)
         );
+    }
+}
+
+/// Display-referred luma of a linear image: each channel clamped to
+/// `[0, 1]` and sRGB-encoded (what a viewer sees), then Rec. 709 weights.
+pub fn display_luma(img: &ColorImage) -> Vec<f64> {
+    use depthgraph_nodes::io::linear_to_srgb;
+    img.as_slice()
+        .iter()
+        .map(|c| {
+            let e = c.map(|v| {
+                if v.is_finite() {
+                    linear_to_srgb(v) as f64
+                } else {
+                    0.0
+                }
+            });
+            0.2126 * e[0] + 0.7152 * e[1] + 0.0722 * e[2]
+        })
+        .collect()
+}
+
+/// PSNR in dB between the display-referred (clamped, sRGB-encoded) versions
+/// of two linear color images, all channels, peak 1. Identical images give
+/// `f64::INFINITY`.
+pub fn display_psnr(a: &ColorImage, b: &ColorImage) -> Result<f64, MetricError> {
+    use depthgraph_nodes::io::linear_to_srgb;
+    dims(a.dims(), b.dims())?;
+    if a.is_empty() {
+        return Err(MetricError::Empty);
+    }
+    let enc = |v: f32| {
+        if v.is_finite() {
+            linear_to_srgb(v) as f64
+        } else {
+            0.0
+        }
+    };
+    let se: f64 = a
+        .as_slice()
+        .iter()
+        .flatten()
+        .zip(b.as_slice().iter().flatten())
+        .map(|(x, y)| (enc(*x) - enc(*y)).powi(2))
+        .sum();
+    // Guard: a is not empty.
+    let mse = se / (a.len() * 3) as f64;
+    Ok(if mse > 0.0 {
+        -10.0 * mse.log10()
+    } else {
+        f64::INFINITY
+    })
+}
+
+/// Mean SSIM (Wang et al. 2004: 11x11 Gaussian window, sigma 1.5,
+/// `K1 = 0.01`, `K2 = 0.03`, dynamic range 1) of the display luma of two
+/// linear color images; windows are clipped at the borders.
+pub fn display_ssim(a: &ColorImage, b: &ColorImage) -> Result<f64, MetricError> {
+    dims(a.dims(), b.dims())?;
+    if a.is_empty() {
+        return Err(MetricError::Empty);
+    }
+    let (w, h) = a.dims();
+    let (la, lb) = (display_luma(a), display_luma(b));
+    let g: Vec<f64> = (-5..=5)
+        .map(|i: i32| (-(i * i) as f64 / (2.0 * 1.5 * 1.5)).exp())
+        .collect();
+    // Separable Gaussian blur with renormalisation at clipped borders.
+    let blur = |img: &[f64]| -> Vec<f64> {
+        let pass = |src: &[f64], horizontal: bool| -> Vec<f64> {
+            (0..w * h)
+                .map(|i| {
+                    let (x, y) = ((i % w) as i64, (i / w) as i64);
+                    let (mut s, mut n) = (0.0, 0.0);
+                    for (k, gk) in g.iter().enumerate() {
+                        let o = k as i64 - 5;
+                        let (qx, qy) = if horizontal { (x + o, y) } else { (x, y + o) };
+                        if qx >= 0 && qy >= 0 && qx < w as i64 && qy < h as i64 {
+                            s += gk * src[qy as usize * w + qx as usize];
+                            n += gk;
+                        }
+                    }
+                    // Guard: the centre tap (weight 1) is always inside.
+                    s / n
+                })
+                .collect()
+        };
+        pass(&pass(img, true), false)
+    };
+    let prod = |p: &[f64], q: &[f64]| -> Vec<f64> { p.iter().zip(q).map(|(x, y)| x * y).collect() };
+    let (ma, mb) = (blur(&la), blur(&lb));
+    let (saa, sbb, sab) = (
+        blur(&prod(&la, &la)),
+        blur(&prod(&lb, &lb)),
+        blur(&prod(&la, &lb)),
+    );
+    let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
+    let total: f64 = (0..w * h)
+        .map(|i| {
+            let (mu_a, mu_b) = (ma[i], mb[i]);
+            let va = saa[i] - mu_a * mu_a;
+            let vb = sbb[i] - mu_b * mu_b;
+            let cov = sab[i] - mu_a * mu_b;
+            // Guard: c1, c2 > 0 keep the denominator positive.
+            ((2.0 * mu_a * mu_b + c1) * (2.0 * cov + c2))
+                / ((mu_a * mu_a + mu_b * mu_b + c1) * (va + vb + c2))
+        })
+        .sum();
+    Ok(total / (w * h) as f64)
+}
+
+#[cfg(test)]
+mod display_tests {
+    use super::*;
+
+    #[test]
+    fn psnr_and_ssim_rank_a_blur_below_the_original() {
+        let a = ColorImage::from_fn(40, 30, |x, y| {
+            let v = if (x / 4 + y / 4) % 2 == 0 { 0.8 } else { 0.1 };
+            [v, v, v]
+        });
+        assert_eq!(display_psnr(&a, &a).unwrap(), f64::INFINITY);
+        assert!((display_ssim(&a, &a).unwrap() - 1.0).abs() < 1e-12);
+        let blurred = ColorImage::from_fn(40, 30, |x, y| {
+            let mut s = [0.0f32; 3];
+            for dx in -1i64..=1 {
+                let xx = (x as i64 + dx).clamp(0, 39) as usize;
+                for c in 0..3 {
+                    s[c] += a.get(xx, y)[c] / 3.0;
+                }
+            }
+            s
+        });
+        let p = display_psnr(&blurred, &a).unwrap();
+        let s = display_ssim(&blurred, &a).unwrap();
+        assert!(p.is_finite() && p > 5.0 && p < 40.0, "{p}");
+        assert!(s > 0.3 && s < 0.99, "{s}");
+        // Values above 1 are clipped like a display: 5 and 9 look the same.
+        let hot = ColorImage::filled(8, 8, [5.0; 3]);
+        let hotter = ColorImage::filled(8, 8, [9.0; 3]);
+        assert_eq!(display_psnr(&hot, &hotter).unwrap(), f64::INFINITY);
+        assert!(display_psnr(&hot, &ColorImage::filled(9, 8, [0.0; 3])).is_err());
     }
 }

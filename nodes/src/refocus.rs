@@ -919,6 +919,33 @@ mod tests {
     }
 
     #[test]
+    fn sharp_tiles_out_of_reach_are_skipped_and_untouched() {
+        // A 128x64 image in focus except a small far patch at the right: only
+        // the tiles the patch's blur can reach are warped.
+        let (w, h) = (128, 64);
+        let c = ColorImage::from_fn(w, h, |x, y| [(x % 11) as f32, (y % 3) as f32, 2.0]);
+        let d = DepthMap::from_fn(w, h, |x, y| {
+            if (112..120).contains(&x) && (28..36).contains(&y) {
+                3.0
+            } else {
+                1.0
+            }
+        });
+        let p = params(1.0, 8.0, 32);
+        let coc = crate::lens::coc_map(&d, &p.lens()).unwrap();
+        let max = coc.as_slice().iter().fold(0.0f32, |m, &v| m.max(v));
+        assert!(max > 2.0 && max < 16.0, "{max}");
+        let (out, rep) = refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap();
+        assert!(rep.samples == 32 && rep.active_fraction < 0.5, "{rep:?}");
+        for y in 0..h {
+            for x in 0..64 {
+                assert_eq!(out.get(x, y), c.get(x, y), "({x}, {y})");
+            }
+        }
+        assert_ne!(out, c);
+    }
+
+    #[test]
     fn auto_samples_grow_with_the_blur() {
         assert_eq!(auto_samples(0.0, 1.0), AUTO_SAMPLES.0);
         assert_eq!(auto_samples(20.0, 1.0), 79);
