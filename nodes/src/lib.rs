@@ -12,6 +12,7 @@
 
 pub mod bilateral;
 pub mod camera;
+pub mod hdr;
 pub mod imageops;
 pub mod io;
 pub mod mesh;
@@ -36,5 +37,6 @@ pub fn registry() -> Result<Registry, RegistryError> {
     pull_push::register(&mut reg)?;
     nlmeans::register(&mut reg)?;
     imageops::register(&mut reg)?;
+    hdr::register(&mut reg)?;
     Ok(reg)
 }
