@@ -12,6 +12,7 @@
 
 pub mod bilateral;
 pub mod camera;
+pub mod hdr;
 pub mod imageops;
 pub mod io;
 pub mod lens;
@@ -39,5 +40,6 @@ pub fn registry() -> Result<Registry, RegistryError> {
     nlmeans::register(&mut reg)?;
     refocus::register(&mut reg)?;
     imageops::register(&mut reg)?;
+    hdr::register(&mut reg)?;
     Ok(reg)
 }
