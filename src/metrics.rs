@@ -332,8 +332,8 @@ mod display_tests {
             let mut s = [0.0f32; 3];
             for dx in -1i64..=1 {
                 let xx = (x as i64 + dx).clamp(0, 39) as usize;
-                for c in 0..3 {
-                    s[c] += a.get(xx, y)[c] / 3.0;
+                for (acc, v) in s.iter_mut().zip(a.get(xx, y)) {
+                    *acc += v / 3.0;
                 }
             }
             s
