@@ -597,42 +597,52 @@ pub struct Merged {
 /// `ln E` of one pixel and channel by eq. 6, and whether the fallback of
 /// [`merge_hdr`] was used.
 #[inline]
-fn merge_one(
+/// Eq. 6 for the three channels of pixel `i`: `(ln E, used the fallback)`
+/// per channel (see [`merge_hdr`] for the fallback). One pass over the
+/// exposures reads each pixel once for all channels.
+fn merge_pixel(
     stack: &ExposureStack,
     curve: &ResponseCurve,
     ln_t: &[f64],
     i: usize,
-    c: usize,
-) -> (f64, bool) {
-    let (mut num, mut den) = (0.0f64, 0.0f64);
-    let mut sat_lt = f64::INFINITY; // shortest saturated exposure
-    let mut black_lt = f64::NEG_INFINITY; // longest black exposure
+) -> [(f64, bool); 3] {
+    let mut num = [0.0f64; 3];
+    let mut den = [0.0f64; 3];
+    let mut sat_lt = [f64::INFINITY; 3]; // shortest saturated exposure
+    let mut black_lt = [f64::NEG_INFINITY; 3]; // longest black exposure
     for (img, &lt) in stack.images.iter().zip(ln_t) {
-        let Some(z) = level(img.as_slice()[i][c]) else {
-            continue;
-        };
-        let w = hat_weight(z);
-        if w > 0.0 {
-            num += w * (curve.eval(c, z) - lt);
-            den += w;
-        } else if z >= Z_MAX {
-            sat_lt = sat_lt.min(lt);
-        } else {
-            black_lt = black_lt.max(lt);
+        let px = img.as_slice()[i];
+        for c in 0..3 {
+            let Some(z) = level(px[c]) else {
+                continue;
+            };
+            let w = hat_weight(z);
+            if w > 0.0 {
+                num[c] += w * (curve.eval(c, z) - lt);
+                den[c] += w;
+            } else if z >= Z_MAX {
+                sat_lt[c] = sat_lt[c].min(lt);
+            } else {
+                black_lt[c] = black_lt[c].max(lt);
+            }
         }
     }
-    if den > 0.0 {
-        return (num / den, false); // eq. 6; guard: den > 0
-    }
-    let sat = sat_lt.is_finite().then(|| curve.g[c][LEVELS - 1] - sat_lt);
-    let black = black_lt.is_finite().then(|| curve.g[c][0] - black_lt);
-    let ln_e = match (sat, black) {
-        (Some(a), Some(b)) => 0.5 * (a + b),
-        (Some(a), None) => a,
-        (None, Some(b)) => b,
-        (None, None) => f64::NEG_INFINITY, // exp gives E = 0
-    };
-    (ln_e, true)
+    std::array::from_fn(|c| {
+        if den[c] > 0.0 {
+            return (num[c] / den[c], false); // eq. 6; guard: den > 0
+        }
+        let sat = sat_lt[c]
+            .is_finite()
+            .then(|| curve.g[c][LEVELS - 1] - sat_lt[c]);
+        let black = black_lt[c].is_finite().then(|| curve.g[c][0] - black_lt[c]);
+        let ln_e = match (sat, black) {
+            (Some(a), Some(b)) => 0.5 * (a + b),
+            (Some(a), None) => a,
+            (None, Some(b)) => b,
+            (None, None) => f64::NEG_INFINITY, // exp gives E = 0
+        };
+        (ln_e, true)
+    })
 }
 
 /// Merges a stack into linear radiance with the response `curve` (eq. 6 of
@@ -674,9 +684,8 @@ pub fn merge_hdr(stack: &ExposureStack, curve: &ResponseCurve) -> Result<Merged,
             .enumerate()
             .for_each(|(y, (crow, frow))| {
                 for (x, (px, fb)) in crow.iter_mut().zip(frow.iter_mut()).enumerate() {
-                    let i = y * w + x;
-                    for (c, out) in px.iter_mut().enumerate() {
-                        let (ln_e, used_fallback) = merge_one(stack, curve, &ln_t, i, c);
+                    let merged = merge_pixel(stack, curve, &ln_t, y * w + x);
+                    for (out, (ln_e, used_fallback)) in px.iter_mut().zip(merged) {
                         *out = (ln_e.exp().min(f32::MAX as f64)) as f32;
                         if used_fallback {
                             *fb = 1.0;
