@@ -594,15 +594,30 @@ pub struct Merged {
     pub fallback: Mask,
 }
 
-/// `ln E` of one pixel and channel by eq. 6, and whether the fallback of
-/// [`merge_hdr`] was used.
-#[inline]
-/// Eq. 6 for the three channels of pixel `i`: `(ln E, used the fallback)`
+/// `w(z)` and `w(z) g(z)` at the 256 levels.
+struct MergeLut {
+    w: [f64; LEVELS],
+    wg: [[f64; LEVELS]; 3],
+}
+
+impl MergeLut {
+    fn new(curve: &ResponseCurve) -> Self {
+        let w: [f64; LEVELS] = std::array::from_fn(|k| hat_weight(k as f64));
+        Self {
+            w,
+            wg: std::array::from_fn(|c| std::array::from_fn(|k| w[k] * curve.g[c][k])),
+        }
+    }
+}
+
+/// `ln E` by eq. 6 for the three channels of pixel `i`, and whether the
+/// fallback of [`merge_hdr`] was used: `(ln E, used the fallback)`
 /// per channel (see [`merge_hdr`] for the fallback). One pass over the
 /// exposures reads each pixel once for all channels.
 fn merge_pixel(
     stack: &ExposureStack,
     curve: &ResponseCurve,
+    lut: &MergeLut,
     ln_t: &[f64],
     i: usize,
 ) -> [(f64, bool); 3] {
@@ -616,6 +631,22 @@ fn merge_pixel(
             let Some(z) = level(px[c]) else {
                 continue;
             };
+            // Fast path for values on the 8-bit grid (z within 1e-4 of a
+            // level): w and w g from the tables, no interpolation.
+            let k = z.round();
+            if (z - k).abs() < 1e-4 {
+                let k = k as usize;
+                let w = lut.w[k];
+                if w > 0.0 {
+                    num[c] += lut.wg[c][k] - w * lt;
+                    den[c] += w;
+                } else if k == LEVELS - 1 {
+                    sat_lt[c] = sat_lt[c].min(lt);
+                } else {
+                    black_lt[c] = black_lt[c].max(lt);
+                }
+                continue;
+            }
             let w = hat_weight(z);
             if w > 0.0 {
                 num[c] += w * (curve.eval(c, z) - lt);
@@ -675,6 +706,7 @@ fn merge_pixel(
 pub fn merge_hdr(stack: &ExposureStack, curve: &ResponseCurve) -> Result<Merged, NodeError> {
     let (w, h) = check_stack(stack)?;
     let ln_t: Vec<f64> = stack.times_s.iter().map(|t| t.ln()).collect();
+    let lut = MergeLut::new(curve);
     let mut color = vec![[0.0f32; 3]; w * h];
     let mut fallback = vec![0.0f32; w * h];
     if w > 0 {
@@ -684,7 +716,7 @@ pub fn merge_hdr(stack: &ExposureStack, curve: &ResponseCurve) -> Result<Merged,
             .enumerate()
             .for_each(|(y, (crow, frow))| {
                 for (x, (px, fb)) in crow.iter_mut().zip(frow.iter_mut()).enumerate() {
-                    let merged = merge_pixel(stack, curve, &ln_t, y * w + x);
+                    let merged = merge_pixel(stack, curve, &lut, &ln_t, y * w + x);
                     for (out, (ln_e, used_fallback)) in px.iter_mut().zip(merged) {
                         *out = (ln_e.exp().min(f32::MAX as f64)) as f32;
                         if used_fallback {
