@@ -12,8 +12,10 @@
 
 pub mod bilateral;
 pub mod camera;
+pub mod edges;
 pub mod imageops;
 pub mod io;
+pub mod lasso;
 pub mod mesh;
 pub mod nlmeans;
 pub mod pull_push;
@@ -36,5 +38,7 @@ pub fn registry() -> Result<Registry, RegistryError> {
     pull_push::register(&mut reg)?;
     nlmeans::register(&mut reg)?;
     imageops::register(&mut reg)?;
+    edges::register(&mut reg)?;
+    lasso::register(&mut reg)?;
     Ok(reg)
 }
