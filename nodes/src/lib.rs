@@ -12,12 +12,15 @@
 
 pub mod bilateral;
 pub mod camera;
+pub mod composite;
 pub mod edges;
+pub mod feather;
 pub mod imageops;
 pub mod io;
 pub mod lasso;
 pub mod mesh;
 pub mod nlmeans;
+pub mod paste;
 pub mod pull_push;
 pub mod sensor;
 pub mod synthetic;
@@ -40,5 +43,8 @@ pub fn registry() -> Result<Registry, RegistryError> {
     imageops::register(&mut reg)?;
     edges::register(&mut reg)?;
     lasso::register(&mut reg)?;
+    paste::register(&mut reg)?;
+    feather::register(&mut reg)?;
+    composite::register(&mut reg)?;
     Ok(reg)
 }
