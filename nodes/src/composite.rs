@@ -243,6 +243,62 @@ mod tests {
         assert_eq!(seen, shown);
     }
 
+    /// The same through the real chain: a flat 0.3 m square pasted (Paste) to
+    /// 2 m behind the box of a 200x150 tabletop from a 160x120 source, feathered
+    /// inwards, composited: exactly the pasted pixels that show the box (ids)
+    /// are hidden, all others keep the pasted alpha.
+    #[test]
+    fn paste_feather_composite_hides_the_object_behind_the_box() {
+        use crate::feather::{FeatherParams, feather};
+        use crate::paste::{PasteParams, paste};
+        let tgt = render(
+            &Scene::preset("tabletop", 200, 150).unwrap(),
+            &RenderOptions::default(),
+        );
+        let ks = crate::synthetic::kinect_like_intrinsics(160, 120);
+        let depth = Image::filled(160, 120, 1.0f32);
+        let color = Image::filled(160, 120, [0.1f32, 0.9, 0.2]);
+        let mask = Image::from_fn(160, 120, |x, y| {
+            if (60..100).contains(&x) && (40..80).contains(&y) {
+                1.0f32
+            } else {
+                0.0
+            }
+        });
+        let p = PasteParams {
+            translation_m: [-0.4, 0.2, 1.0],
+            auto_scale: false,
+            ..Default::default()
+        };
+        let pasted = paste(&color, &depth, &mask, &ks, &tgt.depth, &tgt.intrinsics, &p).unwrap();
+        let (alpha, _) = feather(&pasted.alpha, &FeatherParams::default()).unwrap();
+        let r = occlusion_composite(
+            &tgt.color,
+            &tgt.depth,
+            &pasted.color,
+            &pasted.depth,
+            &alpha,
+            &CompositeParams::default(),
+        )
+        .unwrap();
+        let mut hidden = 0;
+        for i in 0..r.alpha.len() {
+            let a = alpha.as_slice()[i];
+            if a > 0.0 && tgt.ids.as_slice()[i] == 3 {
+                hidden += 1;
+                assert_eq!(r.alpha.as_slice()[i], 0.0, "pixel {i}");
+                assert_eq!(r.color.as_slice()[i], tgt.color.as_slice()[i]);
+            } else {
+                assert_eq!(r.alpha.as_slice()[i], a, "pixel {i}");
+            }
+        }
+        let pasted_px = alpha.as_slice().iter().filter(|a| **a > 0.0).count();
+        assert!(
+            hidden > 100 && pasted_px > hidden + 100,
+            "{hidden} of {pasted_px}"
+        );
+    }
+
     #[test]
     fn blending_alpha_range_holes_and_nan() {
         let tc = Image::filled(6, 1, [0.2f32, 0.4, 0.8]);

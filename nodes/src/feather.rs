@@ -50,7 +50,7 @@ fn clean(v: f32) -> f32 {
 
 /// Whether each pixel has a boundary pixel within `r` (Chebyshev distance):
 /// sliding-window counts of the boundary indicator along rows, then columns
-/// (exact integer sums).
+/// (exact integer sums, O(1) per pixel whatever `r`). Requires `w, h >= 1`.
 fn near_boundary(m: &[f32], w: usize, h: usize, r: usize) -> (Vec<bool>, bool) {
     let boundary: Vec<u32> = (0..w * h)
         .into_par_iter()
@@ -65,26 +65,44 @@ fn near_boundary(m: &[f32], w: usize, h: usize, r: usize) -> (Vec<bool>, bool) {
         })
         .collect();
     let any = boundary.par_iter().any(|b| *b > 0);
+    // Row pass: sliding sum over [x - r, x + r].
     let mut rows = vec![0u32; w * h];
     rows.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
         let b = &boundary[y * w..(y + 1) * w];
-        let mut prefix = vec![0u32; w + 1];
+        let mut acc: u32 = b[..=r.min(w - 1)].iter().sum();
         for x in 0..w {
-            prefix[x + 1] = prefix[x] + b[x];
-        }
-        for (x, o) in out.iter_mut().enumerate() {
-            let (a, z) = (x.saturating_sub(r), (x + r + 1).min(w));
-            *o = prefix[z] - prefix[a];
+            out[x] = acc;
+            if x + r + 1 < w {
+                acc += b[x + r + 1];
+            }
+            if x >= r {
+                acc -= b[x - r];
+            }
         }
     });
-    let near: Vec<bool> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let (a, z) = (y.saturating_sub(r), (y + r + 1).min(h));
-            (a..z).any(|yy| rows[yy * w + x] > 0)
-        })
-        .collect();
+    // Column pass: sliding sums of whole rows over [y - r, y + r].
+    let mut near = vec![false; w * h];
+    let mut acc = vec![0u32; w];
+    for row in rows.chunks(w).take(r.min(h - 1) + 1) {
+        for (a, v) in acc.iter_mut().zip(row) {
+            *a += v;
+        }
+    }
+    for y in 0..h {
+        for (n, a) in near[y * w..(y + 1) * w].iter_mut().zip(&acc) {
+            *n = *a > 0;
+        }
+        if y + r + 1 < h {
+            for (a, v) in acc.iter_mut().zip(&rows[(y + r + 1) * w..(y + r + 2) * w]) {
+                *a += v;
+            }
+        }
+        if y >= r {
+            for (a, v) in acc.iter_mut().zip(&rows[(y - r) * w..(y - r + 1) * w]) {
+                *a -= v;
+            }
+        }
+    }
     (near, any)
 }
 

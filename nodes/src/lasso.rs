@@ -109,10 +109,10 @@ fn check(strength: &Confidence, p: &LassoParams) -> Result<(), NodeError> {
     if w == 0 || h == 0 {
         return Err(NodeError::input("strength", "is empty (0 pixels)"));
     }
-    if w > MAX_SIDE || h > MAX_SIDE {
+    if w > MAX_SIDE || h > MAX_SIDE || w * h > u32::MAX as usize {
         return Err(NodeError::input(
             "strength",
-            format!("is {w}x{h}; the lasso accepts sides up to {MAX_SIDE}"),
+            format!("is {w}x{h}; the lasso accepts sides up to {MAX_SIDE} and up to 2^32 pixels"),
         ));
     }
     if let Some(c) = p

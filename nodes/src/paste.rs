@@ -82,7 +82,7 @@ node_params! {
         /// surface at that pixel, metres (negative = in front of it).
         pub depth_offset_m: f64 = -0.2, ParamKind::Float { min: -1e4, max: 1e4 };
         /// Scale the object to the largest size (at most its physical size)
-        /// whose bounding box stays in front of the target surface (3d-editing §III.C).
+        /// whose bounding box the target surface does not pass through (3d-editing §III.C).
         pub auto_scale: bool = true, ParamKind::Bool;
         /// Source pixels with mask >= this belong to the object.
         pub mask_threshold: f64 = 0.5, ParamKind::Float { min: 1e-6, max: 1.0 };
@@ -725,7 +725,8 @@ pub fn paste(
             // clamp the tolerance-admitted pixels just outside the edges back in
             let wts = wts.map(|v| v.clamp(0.0, 1.0));
             let ws = wts[0] + wts[1] + wts[2];
-            // guard: the weights sum to 1 before clamping, so ws >= 1 - 3 * EDGE_EPS-level > 0
+            // guard: the weights summed to 1 before clamping, so one was >= 1/3
+            // and still is (clamped to at most 1): ws >= 1/3
             let wts = wts.map(|v| v / ws);
             let mut col = [0.0f64; 3];
             let mut a = 0.0f64;
@@ -824,7 +825,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
         "Places a selected object into a target RGB-D image (3d-editing §III.C): unproject, scale about the \
          centroid, translate (or put on a target pixel's ray), reproject through the target camera as a \
          crack-free z-buffered mesh.\nWith auto_scale, the scale is the largest (at most the physical size) whose \
-         bounding box stays in front of the target surface along every pixel ray, times the user scale.",
+         bounding box no target surface point lies inside, times the user scale.",
         vec![
             PortSpec::required("source_color", ValueType::Color, "linear RGB of the source"),
             PortSpec::required("source_depth", ValueType::Depth, "metres, hole-filled source depth"),
@@ -1014,7 +1015,7 @@ mod tests {
             r.suggested_scale
         );
         assert_eq!(r.scale, r.suggested_scale);
-        // every pasted pixel is in front of the target surface
+        // nothing stands in front of the wall there: every pasted pixel is in front of the target surface
         let mut pasted = 0;
         for i in 0..r.depth.len() {
             if r.alpha.as_slice()[i] > 0.0 {
