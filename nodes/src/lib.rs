@@ -12,12 +12,17 @@
 
 pub mod bilateral;
 pub mod camera;
+pub mod composite;
+pub mod edges;
+pub mod feather;
 pub mod hdr;
 pub mod imageops;
 pub mod io;
+pub mod lasso;
 pub mod lens;
 pub mod mesh;
 pub mod nlmeans;
+pub mod paste;
 pub mod pull_push;
 pub mod refocus;
 pub mod sensor;
@@ -41,5 +46,10 @@ pub fn registry() -> Result<Registry, RegistryError> {
     refocus::register(&mut reg)?;
     imageops::register(&mut reg)?;
     hdr::register(&mut reg)?;
+    edges::register(&mut reg)?;
+    lasso::register(&mut reg)?;
+    paste::register(&mut reg)?;
+    feather::register(&mut reg)?;
+    composite::register(&mut reg)?;
     Ok(reg)
 }
