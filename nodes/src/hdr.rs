@@ -610,62 +610,64 @@ impl MergeLut {
     }
 }
 
-/// `ln E` by eq. 6 for the three channels of pixel `i`, and whether the
-/// fallback of [`merge_hdr`] was used: `(ln E, used the fallback)`
-/// per channel (see [`merge_hdr`] for the fallback). One pass over the
-/// exposures reads each pixel once for all channels.
-fn merge_pixel(
-    stack: &ExposureStack,
-    curve: &ResponseCurve,
-    lut: &MergeLut,
-    ln_t: &[f64],
-    i: usize,
-) -> [(f64, bool); 3] {
-    let mut num = [0.0f64; 3];
-    let mut den = [0.0f64; 3];
-    let mut sat_lt = [f64::INFINITY; 3]; // shortest saturated exposure
-    let mut black_lt = [f64::NEG_INFINITY; 3]; // longest black exposure
-    for (img, &lt) in stack.images.iter().zip(ln_t) {
-        let px = img.as_slice()[i];
-        for c in 0..3 {
-            let Some(z) = level(px[c]) else {
-                continue;
-            };
-            // Fast path for values on the 8-bit grid (z within 1e-4 of a
-            // level): w and w g from the tables, no interpolation.
-            let k = z.round();
-            if (z - k).abs() < 1e-4 {
-                let k = k as usize;
-                let w = lut.w[k];
-                if w > 0.0 {
-                    num[c] += lut.wg[c][k] - w * lt;
-                    den[c] += w;
-                } else if k == LEVELS - 1 {
-                    sat_lt[c] = sat_lt[c].min(lt);
-                } else {
-                    black_lt[c] = black_lt[c].max(lt);
-                }
-                continue;
-            }
+/// Running sums of eq. 6 for one channel of one pixel.
+#[derive(Clone, Copy)]
+struct Eq6 {
+    num: f64,
+    den: f64,
+    /// `ln Δt` of the shortest exposure in which the value was saturated.
+    sat_lt: f64,
+    /// `ln Δt` of the longest exposure in which the value was black.
+    black_lt: f64,
+}
+
+impl Eq6 {
+    const EMPTY: Eq6 = Eq6 {
+        num: 0.0,
+        den: 0.0,
+        sat_lt: f64::INFINITY,
+        black_lt: f64::NEG_INFINITY,
+    };
+
+    /// Adds the stored value `v` of an exposure with `ln Δt = lt`.
+    #[inline]
+    fn add(&mut self, v: f32, lt: f64, c: usize, curve: &ResponseCurve, lut: &MergeLut) {
+        let Some(z) = level(v) else {
+            return;
+        };
+        // Fast path for values on the 8-bit grid (z within 1e-4 of a level):
+        // w and w g from the tables, no interpolation.
+        let k = z.round();
+        let (w, wg, saturated) = if (z - k).abs() < 1e-4 {
+            let k = k as usize;
+            (lut.w[k], lut.wg[c][k], k == LEVELS - 1)
+        } else {
             let w = hat_weight(z);
-            if w > 0.0 {
-                num[c] += w * (curve.eval(c, z) - lt);
-                den[c] += w;
-            } else if z >= Z_MAX {
-                sat_lt[c] = sat_lt[c].min(lt);
-            } else {
-                black_lt[c] = black_lt[c].max(lt);
-            }
+            (w, w * curve.eval(c, z), z >= Z_MAX)
+        };
+        if w > 0.0 {
+            self.num += wg - w * lt;
+            self.den += w;
+        } else if saturated {
+            self.sat_lt = self.sat_lt.min(lt);
+        } else {
+            self.black_lt = self.black_lt.max(lt);
         }
     }
-    std::array::from_fn(|c| {
-        if den[c] > 0.0 {
-            return (num[c] / den[c], false); // eq. 6; guard: den > 0
+
+    /// `ln E` and whether the fallback of [`merge_hdr`] was used.
+    fn finish(&self, c: usize, curve: &ResponseCurve) -> (f64, bool) {
+        if self.den > 0.0 {
+            return (self.num / self.den, false); // eq. 6; guard: den > 0
         }
-        let sat = sat_lt[c]
+        let sat = self
+            .sat_lt
             .is_finite()
-            .then(|| curve.g[c][LEVELS - 1] - sat_lt[c]);
-        let black = black_lt[c].is_finite().then(|| curve.g[c][0] - black_lt[c]);
+            .then(|| curve.g[c][LEVELS - 1] - self.sat_lt);
+        let black = self
+            .black_lt
+            .is_finite()
+            .then(|| curve.g[c][0] - self.black_lt);
         let ln_e = match (sat, black) {
             (Some(a), Some(b)) => 0.5 * (a + b),
             (Some(a), None) => a,
@@ -673,7 +675,7 @@ fn merge_pixel(
             (None, None) => f64::NEG_INFINITY, // exp gives E = 0
         };
         (ln_e, true)
-    })
+    }
 }
 
 /// Merges a stack into linear radiance with the response `curve` (eq. 6 of
@@ -715,9 +717,18 @@ pub fn merge_hdr(stack: &ExposureStack, curve: &ResponseCurve) -> Result<Merged,
             .zip(fallback.par_chunks_mut(w))
             .enumerate()
             .for_each(|(y, (crow, frow))| {
-                for (x, (px, fb)) in crow.iter_mut().zip(frow.iter_mut()).enumerate() {
-                    let merged = merge_pixel(stack, curve, &lut, &ln_t, y * w + x);
-                    for (out, (ln_e, used_fallback)) in px.iter_mut().zip(merged) {
+                // One row of sums; each exposure's row is read once, in order.
+                let mut sums = vec![[Eq6::EMPTY; 3]; w];
+                for (img, &lt) in stack.images.iter().zip(&ln_t) {
+                    for (acc, px) in sums.iter_mut().zip(img.row(y)) {
+                        for (c, a) in acc.iter_mut().enumerate() {
+                            a.add(px[c], lt, c, curve, &lut);
+                        }
+                    }
+                }
+                for ((px, fb), acc) in crow.iter_mut().zip(frow.iter_mut()).zip(&sums) {
+                    for (c, (out, a)) in px.iter_mut().zip(acc).enumerate() {
+                        let (ln_e, used_fallback) = a.finish(c, curve);
                         *out = (ln_e.exp().min(f32::MAX as f64)) as f32;
                         if used_fallback {
                             *fb = 1.0;
