@@ -363,3 +363,74 @@ fn sweep_writes_csv_and_plot() {
         "not a plot"
     );
 }
+
+/// Pipeline B (`graphs/refocus.ron`) end to end at a small size: a bracket
+/// and a ToF beside the color camera to a refocused image, and the
+/// pass-through when the lens blurs nothing.
+#[test]
+fn refocus_pipeline_runs_and_passes_through_without_blur() {
+    let out = tempfile::tempdir().unwrap();
+    let cache = tempfile::tempdir().unwrap();
+    let file = graph("refocus.ron");
+    let run = |extra: &[&str]| -> Vec<serde_json::Value> {
+        let mut args = vec!["explain", file.to_str().unwrap(), "--json", "--quiet"];
+        args.extend(["--out", out.path().to_str().unwrap()]);
+        args.extend(["--cache-dir", cache.path().to_str().unwrap()]);
+        let sets = [
+            "scene.width=160",
+            "scene.height=120",
+            "tof_view.width=160",
+            "tof_view.height=120",
+            "tof.width=40",
+            "tof.height=30",
+            "to_color.width=40",
+            "to_color.height=30",
+            "refocus.samples=16",
+        ];
+        for s in sets.iter().chain(extra) {
+            args.extend(["--set", s]);
+        }
+        let r = cli(&args);
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        serde_json::from_slice(&r.stdout).unwrap()
+    };
+    let rows = run(&[]);
+    for n in ["hdr", "to_color", "upsample", "refocus"] {
+        assert_eq!(status_of(&rows, n), "ran", "{n}");
+    }
+    let img =
+        depthgraph::nodes::io::load_color(&out.path().join("refocus/refocused.exr"), "linear")
+            .unwrap();
+    assert_eq!(img.dims(), (160, 120));
+    assert!(
+        img.as_slice()
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0)
+    );
+    // A pinhole-like lens: every circle of confusion is under half a pixel.
+    let rows = run(&["refocus.f_number=1000"]);
+    assert_eq!(status_of(&rows, "refocus"), "passthrough");
+    assert_eq!(status_of(&rows, "hdr"), "cached");
+    let reason = rows
+        .iter()
+        .find(|r| r["node"] == "refocus")
+        .and_then(|r| r["reason"].as_str())
+        .unwrap();
+    assert!(reason.contains("circle of confusion"), "{reason}");
+    // Focusing nearer than the focal length is refused with the parameter named.
+    let mut args = vec!["run", file.to_str().unwrap(), "--quiet", "--no-cache"];
+    args.extend(["--out", out.path().to_str().unwrap()]);
+    args.extend([
+        "--set",
+        "refocus.focus_m=0.01",
+        "--set",
+        "scene.width=32",
+        "--set",
+        "scene.height=24",
+    ]);
+    let r = cli(&args);
+    assert!(!r.status.success());
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(err.contains("refocus") && err.contains("focus_m"), "{err}");
+}
