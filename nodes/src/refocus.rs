@@ -945,6 +945,40 @@ mod tests {
         assert_ne!(out, c);
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+        /// Stability: any depth (including 0, NaN, negative, 1 mm and 1000 m)
+        /// and any lens in range give finite, non-negative images whose values
+        /// stay within the range of the input radiance (a mean of views of the
+        /// input, never an extrapolation), for Refocus and the gather blur.
+        #[test]
+        fn outputs_are_finite_and_within_the_input_range(
+            w in 1usize..20, h in 1usize..20,
+            seed in proptest::prelude::any::<u64>(),
+            f_number in proptest::prop_oneof![proptest::prelude::Just(0.7), proptest::prelude::Just(2.0), proptest::prelude::Just(1000.0)],
+            focus in proptest::prop_oneof![proptest::prelude::Just(0.06), proptest::prelude::Just(1.0), proptest::prelude::Just(f64::INFINITY)],
+        ) {
+            let mut s = seed;
+            let mut next = || { s = crate::sensor::splitmix64(s); (s >> 11) as f64 / (1u64 << 53) as f64 };
+            let d = DepthMap::from_fn(w, h, |_, _| match (next() * 6.0) as u32 {
+                0 => 0.0,
+                1 => f32::NAN,
+                2 => -1.0,
+                3 => 1.0e-3,
+                4 => 1000.0,
+                _ => (0.2 + 5.0 * next()) as f32,
+            });
+            let c = ColorImage::from_fn(w, h, |_, _| [(next() * 50.0) as f32, next() as f32, 0.0]);
+            let hi = c.as_slice().iter().flatten().fold(0.0f32, |m, v| m.max(*v));
+            let p = RefocusParams { focus_m: focus, f_number, samples: 8, sensor_width_mm: 3.0, ..Default::default() };
+            let (out, _) = refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap();
+            let rev = reverse_mapped_dof(&c, &d, &Aperture::Disc, &p).unwrap();
+            for v in out.as_slice().iter().chain(rev.as_slice()).flatten() {
+                proptest::prop_assert!(v.is_finite() && *v >= 0.0 && *v <= hi * (1.0 + 1e-5), "{} vs {}", v, hi);
+            }
+        }
+    }
+
     #[test]
     fn auto_samples_grow_with_the_blur() {
         assert_eq!(auto_samples(0.0, 1.0), AUTO_SAMPLES.0);
