@@ -270,9 +270,8 @@ pub fn refocus(
     for (k, s) in points.iter().enumerate() {
         let dx = c_scale * s[0];
         let dy = c_scale * s[1];
-        view.zbuf
-            .par_iter()
-            .for_each(|a| a.store(EMPTY, Ordering::Relaxed));
+        // (The z-buffer is EMPTY here: it starts so and the gather below
+        // resets every entry it reads.)
         // Forward warp with a z-buffer: key = depth bits (positive floats
         // order like their bits; +inf for the sky) then the source index.
         sources.par_chunks(4096).for_each(|chunk| {
@@ -308,7 +307,7 @@ pub fn refocus(
                 .zip(conf.par_iter_mut())
                 .enumerate()
                 .for_each(|(t, ((c, iz), cf))| {
-                    let key = zbuf[t].load(Ordering::Relaxed);
+                    let key = zbuf[t].swap(EMPTY, Ordering::Relaxed);
                     if key == EMPTY {
                         *c = [0.0; 3];
                         *iz = 0.0;
