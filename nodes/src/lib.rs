@@ -14,6 +14,7 @@ pub mod bilateral;
 pub mod camera;
 pub mod composite;
 pub mod edges;
+pub mod envmap;
 pub mod feather;
 pub mod hdr;
 pub mod imageops;
@@ -51,5 +52,6 @@ pub fn registry() -> Result<Registry, RegistryError> {
     paste::register(&mut reg)?;
     feather::register(&mut reg)?;
     composite::register(&mut reg)?;
+    envmap::register(&mut reg)?;
     Ok(reg)
 }
