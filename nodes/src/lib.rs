@@ -29,6 +29,7 @@ pub mod refocus;
 pub mod sensor;
 pub mod synthetic;
 pub mod unproject;
+pub mod vpl;
 
 use depthgraph_graph::registry::{Registry, RegistryError};
 
@@ -53,5 +54,6 @@ pub fn registry() -> Result<Registry, RegistryError> {
     feather::register(&mut reg)?;
     composite::register(&mut reg)?;
     envmap::register(&mut reg)?;
+    vpl::register(&mut reg)?;
     Ok(reg)
 }
