@@ -140,7 +140,7 @@ pub fn sample_vpls(map: &ColorImage, p: &VplParams) -> Vec<Vpl> {
     if !(total.is_finite() && total > 0.0) {
         return Vec::new();
     }
-    let mut rng = SplitMix64(p.seed ^ 0x5EED_0F_u64.wrapping_mul(0x2545_F491_4F6C_DD1D));
+    let mut rng = SplitMix64(p.seed ^ 0x005E_ED0F_u64.wrapping_mul(0x2545_F491_4F6C_DD1D));
     // random permutation of the column strata (Fisher-Yates)
     let mut perm: Vec<usize> = (0..n).collect();
     for i in (1..n).rev() {
