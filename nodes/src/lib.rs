@@ -19,6 +19,7 @@ pub mod feather;
 pub mod hdr;
 pub mod imageops;
 pub mod io;
+pub mod ism;
 pub mod lasso;
 pub mod lens;
 pub mod mesh;
