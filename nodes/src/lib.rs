@@ -27,6 +27,7 @@ pub mod nlmeans;
 pub mod paste;
 pub mod pull_push;
 pub mod refocus;
+pub mod relight;
 pub mod sensor;
 pub mod synthetic;
 pub mod unproject;
@@ -56,5 +57,6 @@ pub fn registry() -> Result<Registry, RegistryError> {
     composite::register(&mut reg)?;
     envmap::register(&mut reg)?;
     vpl::register(&mut reg)?;
+    relight::register(&mut reg)?;
     Ok(reg)
 }
