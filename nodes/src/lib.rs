@@ -14,10 +14,12 @@ pub mod bilateral;
 pub mod camera;
 pub mod composite;
 pub mod edges;
+pub mod envmap;
 pub mod feather;
 pub mod hdr;
 pub mod imageops;
 pub mod io;
+pub mod ism;
 pub mod lasso;
 pub mod lens;
 pub mod mesh;
@@ -25,9 +27,11 @@ pub mod nlmeans;
 pub mod paste;
 pub mod pull_push;
 pub mod refocus;
+pub mod relight;
 pub mod sensor;
 pub mod synthetic;
 pub mod unproject;
+pub mod vpl;
 
 use depthgraph_graph::registry::{Registry, RegistryError};
 
@@ -51,5 +55,8 @@ pub fn registry() -> Result<Registry, RegistryError> {
     paste::register(&mut reg)?;
     feather::register(&mut reg)?;
     composite::register(&mut reg)?;
+    envmap::register(&mut reg)?;
+    vpl::register(&mut reg)?;
+    relight::register(&mut reg)?;
     Ok(reg)
 }

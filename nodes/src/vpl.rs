@@ -1,0 +1,403 @@
+//! `VplSample`: virtual point lights from an environment map by importance
+//! sampling (3d-editing §IV.A: "We approximate the environment map with VPLs
+//! using importance sampling"; instant radiosity, the paper's ref. [8]).
+//!
+//! An environment is infinitely far, so its VPLs are **directional** lights:
+//! a unit direction `ω_k` towards the light and a power `Φ_k` (linear RGB)
+//! such that the irradiance of a surface with normal `n`,
+//! `E(n) = ∫ L(ω) max(0, n·ω) dω`, is estimated without bias by
+//! `Σ_k Φ_k max(0, n·ω_k)` (times the visibility along `ω_k`).
+//!
+//! # Sampling
+//!
+//! Pixel `i` of the equirectangular map (direction convention in
+//! [`crate::envmap`]) is chosen with probability
+//! `p_i = w_i / W`, `w_i = lum(L_i) ΔΩ_i` (luminance times the pixel's solid
+//! angle, the `sin θ` per row), `W = Σ w_i` (f64), by the marginal row CDF
+//! and the conditional column CDF. The `N` uniform pairs are stratified
+//! (a Latin hypercube: `u1 = (k + ξ)/N` in order, `u2 = (π(k) + ξ')/N` with
+//! a random permutation `π`), so each of the `N` strata of either CDF gets
+//! exactly one VPL; all randomness comes from `seed`. The direction is
+//! jittered inside the pixel by the leftover of the CDF inversion. The pdf
+//! over solid angle is `p_i / ΔΩ_i`, so
+//!
+//! `Φ_k = L_i / (N p_i / ΔΩ_i) = L_i W / (N lum(L_i))`,
+//!
+//! and `lum(Φ_k) = W / N` for every VPL: they all carry the same luminous
+//! power, and `Σ_k lum(Φ_k) = W` exactly. (The solid angle of the pixel is
+//! taken at its centre row; the jitter inside it is uniform in `(u, v)`.)
+//!
+//! Luminance is `0.2126 R + 0.7152 G + 0.0722 B` of the channels clamped to
+//! `>= 0` (NaN counts as 0). A map with `W = 0` (all black, or no finite
+//! positive radiance) gives **no VPLs** (an empty cloud) and the node says so
+//! as a pass-through.
+//!
+//! # Encoding (there is no VPL value type)
+//!
+//! The VPLs are a [`PointCloud`]: `positions[k]` = the unit direction `ω_k`
+//! towards the light (camera frame, **not** a position), `colors[k]` =
+//! `Φ_k` (irradiance at normal incidence, linear RGB), `normals` empty.
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::registry::RegistryError;
+use depthgraph_graph::value::{PointCloud, Rgb};
+
+use crate::envmap::{pixel_direction, pixel_solid_angle};
+
+node_params! {
+    /// Parameters of `VplSample`.
+    pub struct VplParams {
+        /// Number of directional VPLs N.
+        pub count: usize = 64usize, ParamKind::Int { min: 1, max: 65536 };
+        /// Seed of the jitter and the stratum permutation.
+        pub seed: u64 = 1u64, ParamKind::Int { min: 0, max: 1 << 53 };
+    }
+}
+
+/// SplitMix64: a small deterministic generator (no global state).
+#[derive(Debug, Clone)]
+pub struct SplitMix64(pub u64);
+
+impl SplitMix64 {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in `[0, 1)`.
+    pub fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+    /// Uniform integer in `0..n` (`n >= 1`).
+    pub fn below(&mut self, n: usize) -> usize {
+        ((self.next_f64() * n as f64) as usize).min(n.saturating_sub(1))
+    }
+}
+
+/// Luminance of the channels clamped to `>= 0` (NaN = 0).
+#[inline]
+pub fn luminance(c: Rgb) -> f64 {
+    let f = |v: f32| {
+        if v > 0.0 && v.is_finite() {
+            v as f64
+        } else {
+            0.0
+        }
+    };
+    0.2126 * f(c[0]) + 0.7152 * f(c[1]) + 0.0722 * f(c[2])
+}
+
+/// One directional VPL.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Vpl {
+    /// Unit direction towards the light, camera frame.
+    pub direction: [f32; 3],
+    /// Irradiance at normal incidence, linear RGB.
+    pub power: Rgb,
+}
+
+/// First index whose cumulative value exceeds `t` (the CDF is non-decreasing
+/// and its last value is > t); returns `(index, fraction inside the bin)`.
+fn invert(cdf: &[f64], t: f64) -> (usize, f64) {
+    let i = cdf.partition_point(|&c| c <= t).min(cdf.len() - 1);
+    let lo = if i == 0 { 0.0 } else { cdf[i - 1] };
+    let width = cdf[i] - lo;
+    // guard: a chosen bin has width > 0 unless rounding; fall back to its centre
+    let f = if width > 0.0 {
+        ((t - lo) / width).clamp(0.0, 1.0)
+    } else {
+        0.5
+    };
+    (i, f)
+}
+
+/// Samples `count` directional VPLs from `map` (module docs). Empty when
+/// the map carries no energy.
+pub fn sample_vpls(map: &ColorImage, p: &VplParams) -> Vec<Vpl> {
+    let (w, h) = map.dims();
+    let n = p.count;
+    if w == 0 || h == 0 || n == 0 {
+        return Vec::new();
+    }
+    // conditional column CDFs per row (f64) and the marginal row CDF
+    let mut col_cdf = vec![0.0f64; w * h];
+    let mut row_cdf = vec![0.0f64; h];
+    let mut acc_rows = 0.0f64;
+    for y in 0..h {
+        let d_omega = pixel_solid_angle(y, w, h);
+        let mut acc = 0.0f64;
+        for x in 0..w {
+            acc += luminance(*map.get(x, y)) * d_omega;
+            col_cdf[y * w + x] = acc;
+        }
+        acc_rows += acc;
+        row_cdf[y] = acc_rows;
+    }
+    let total = acc_rows;
+    if !(total.is_finite() && total > 0.0) {
+        return Vec::new();
+    }
+    let mut rng = SplitMix64(p.seed ^ 0x005E_ED0F_u64.wrapping_mul(0x2545_F491_4F6C_DD1D));
+    // random permutation of the column strata (Fisher-Yates)
+    let mut perm: Vec<usize> = (0..n).collect();
+    for i in (1..n).rev() {
+        perm.swap(i, rng.below(i + 1));
+    }
+    let mut out = Vec::with_capacity(n);
+    for (k, &pk) in perm.iter().enumerate() {
+        let u1 = (k as f64 + rng.next_f64()) / n as f64;
+        let u2 = (pk as f64 + rng.next_f64()) / n as f64;
+        let (y, fy) = invert(&row_cdf, u1 * total);
+        let row = &col_cdf[y * w..(y + 1) * w];
+        let row_total = row[w - 1];
+        // guard: a row chosen by the marginal CDF has row_total > 0
+        let (x, fx) = if row_total > 0.0 {
+            invert(row, u2 * row_total)
+        } else {
+            (w / 2, 0.5)
+        };
+        let l = *map.get(x, y);
+        let lum = luminance(l);
+        // guard: the chosen pixel has w_i > 0 so lum > 0; a rounding pick of
+        // a zero pixel carries no energy and is skipped
+        if lum <= 0.0 {
+            continue;
+        }
+        let d = pixel_direction(x as f64 + fx, y as f64 + fy, w, h);
+        let scale = total / (n as f64 * lum);
+        let clean = |v: f32| {
+            if v > 0.0 && v.is_finite() {
+                v as f64
+            } else {
+                0.0
+            }
+        };
+        out.push(Vpl {
+            direction: d.as_vec3().to_array(),
+            power: l.map(|c| (clean(c) * scale) as f32),
+        });
+    }
+    out
+}
+
+/// VPLs as the [`PointCloud`] encoding of the module docs.
+pub fn to_cloud(vpls: &[Vpl]) -> PointCloud {
+    PointCloud {
+        positions: vpls.iter().map(|v| v.direction).collect(),
+        colors: vpls.iter().map(|v| v.power).collect(),
+        normals: Vec::new(),
+    }
+}
+
+/// Reads the [`PointCloud`] encoding back; `port` names the input in errors.
+/// Non-finite or negative powers are refused, zero directions dropped.
+pub fn from_cloud(cloud: &PointCloud, port: &str) -> Result<Vec<Vpl>, NodeError> {
+    if cloud.colors.len() != cloud.positions.len() {
+        return Err(NodeError::input(
+            port,
+            format!(
+                "VPL cloud has {} directions but {} powers (colors); expected one each (VplSample output)",
+                cloud.positions.len(),
+                cloud.colors.len()
+            ),
+        ));
+    }
+    let mut out = Vec::with_capacity(cloud.positions.len());
+    for (i, (d, c)) in cloud.positions.iter().zip(&cloud.colors).enumerate() {
+        if c.iter().any(|v| !v.is_finite() || *v < 0.0) || d.iter().any(|v| !v.is_finite()) {
+            return Err(NodeError::input(
+                port,
+                format!("VPL {i}: direction {d:?} / power {c:?} must be finite, power >= 0"),
+            ));
+        }
+        let v = glam::Vec3::from_array(*d);
+        let len = v.length();
+        if len > 0.0 {
+            // guard: len > 0; unit directions (to f32 rounding) are kept bit for bit
+            let d = if (len - 1.0).abs() <= 1e-5 {
+                v
+            } else {
+                v / len
+            };
+            out.push(Vpl {
+                direction: d.to_array(),
+                power: *c,
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn eval(_: &EvalCtx, inputs: &Inputs, p: &VplParams) -> Result<Outputs, NodeError> {
+    let map = inputs.color("map")?;
+    let vpls = sample_vpls(map, p);
+    let out = Outputs::new().with("vpls", to_cloud(&vpls));
+    if vpls.is_empty() {
+        return Ok(out.passthrough("the environment map carries no energy: no VPLs"));
+    }
+    Ok(out)
+}
+
+/// Registers `VplSample`.
+pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    reg.register(TypedNode::new(
+        "VplSample",
+        1,
+        "Importance-samples N directional virtual point lights from an equirectangular environment map by \
+         luminance x solid angle, stratified, seeded (3d-editing §IV.A, instant radiosity).\nOutput encoding: a \
+         PointCloud whose positions are unit directions towards the lights and colors their powers.",
+        vec![PortSpec::required(
+            "map",
+            ValueType::Color,
+            "EnvironmentMap.map (equirectangular linear radiance)",
+        )],
+        vec![PortSpec::output(
+            "vpls",
+            ValueType::PointCloud,
+            "positions = unit direction towards each light, colors = power (irradiance at normal incidence)",
+        )],
+        eval,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::envmap::{EnvMapParams, sample_sky};
+    use glam::DVec3;
+
+    fn irradiance_ref(map: &ColorImage, n: DVec3) -> [f64; 3] {
+        let (w, h) = map.dims();
+        let mut e = [0.0; 3];
+        for y in 0..h {
+            for x in 0..w {
+                let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, w, h);
+                let c = n.dot(d).max(0.0) * pixel_solid_angle(y, w, h);
+                for (a, l) in e.iter_mut().zip(map.get(x, y)) {
+                    *a += *l as f64 * c;
+                }
+            }
+        }
+        e
+    }
+
+    fn irradiance_vpl(vpls: &[Vpl], n: DVec3) -> [f64; 3] {
+        let mut e = [0.0; 3];
+        for v in vpls {
+            let c = n
+                .dot(DVec3::from_array(v.direction.map(|x| x as f64)))
+                .max(0.0);
+            for (a, p) in e.iter_mut().zip(v.power) {
+                *a += p as f64 * c;
+            }
+        }
+        e
+    }
+
+    #[test]
+    fn vpls_estimate_the_irradiance_and_carry_equal_luminous_power() {
+        let map = sample_sky(&EnvMapParams {
+            sun_size_deg: 4.0,
+            ..Default::default()
+        })
+        .unwrap();
+        let vpls = sample_vpls(
+            &map,
+            &VplParams {
+                count: 256,
+                seed: 7,
+            },
+        );
+        assert_eq!(vpls.len(), 256);
+        let lums: Vec<f64> = vpls.iter().map(|v| luminance(v.power)).collect();
+        let total: f64 = lums.iter().sum();
+        for l in &lums {
+            assert!((l - lums[0]).abs() < 1e-3 * lums[0]);
+        }
+        let (w, h) = map.dims();
+        let w_ref: f64 = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| luminance(*map.get(x, y)) * pixel_solid_angle(y, w, h))
+            .sum();
+        assert!((total - w_ref).abs() < 1e-4 * w_ref);
+        // normals that see the sun: its energy dominates and is sampled densely
+        let sun = crate::envmap::sun_direction(50.0, -35.0);
+        for n in [DVec3::NEG_Y, sun, (sun + DVec3::X).normalize()] {
+            let (a, b) = (irradiance_ref(&map, n), irradiance_vpl(&vpls, n));
+            for c in 0..3 {
+                assert!((a[c] - b[c]).abs() < 0.05 * a[c], "{n}: {a:?} vs {b:?}");
+            }
+        }
+        // a sky without sun: every normal within 5 %
+        let sky = sample_sky(&EnvMapParams {
+            sun_radiance: 0.0,
+            ..Default::default()
+        })
+        .unwrap();
+        let vpls = sample_vpls(
+            &sky,
+            &VplParams {
+                count: 256,
+                seed: 7,
+            },
+        );
+        for n in [
+            DVec3::NEG_Y,
+            DVec3::Y,
+            DVec3::NEG_Z,
+            DVec3::X,
+            DVec3::new(0.3, -0.8, -0.5).normalize(),
+        ] {
+            let (a, b) = (irradiance_ref(&sky, n), irradiance_vpl(&vpls, n));
+            for c in 0..3 {
+                assert!((a[c] - b[c]).abs() < 0.05 * a[c], "{n}: {a:?} vs {b:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn deterministic_seeded_and_black_maps_give_none() {
+        let map = sample_sky(&EnvMapParams::default()).unwrap();
+        let p = VplParams { count: 32, seed: 3 };
+        assert_eq!(sample_vpls(&map, &p), sample_vpls(&map, &p));
+        assert_ne!(
+            sample_vpls(&map, &p),
+            sample_vpls(&map, &VplParams { seed: 4, ..p })
+        );
+        let black = Image::filled(16, 8, [0.0f32; 3]);
+        assert!(sample_vpls(&black, &p).is_empty());
+        let nan = Image::filled(16, 8, [f32::NAN, -1.0, f32::INFINITY]);
+        assert!(sample_vpls(&nan, &p).is_empty());
+        // one lit pixel: every VPL comes from it, with its full energy shared
+        let mut one = Image::filled(16, 8, [0.0f32; 3]);
+        *one.get_mut(3, 2) = [1.0, 2.0, 3.0];
+        let v = sample_vpls(&one, &p);
+        assert_eq!(v.len(), 32);
+        let d0 = pixel_direction(3.5, 2.5, 16, 8);
+        for x in &v {
+            assert!(DVec3::from_array(x.direction.map(|c| c as f64)).dot(d0) > 0.9);
+            assert!(x.power.iter().all(|c| c.is_finite() && *c > 0.0));
+        }
+    }
+
+    #[test]
+    fn cloud_round_trip_and_bad_clouds_name_the_port() {
+        let map = sample_sky(&EnvMapParams::default()).unwrap();
+        let v = sample_vpls(&map, &VplParams { count: 8, seed: 1 });
+        assert_eq!(from_cloud(&to_cloud(&v), "vpls").unwrap(), v);
+        let mut c = to_cloud(&v);
+        c.colors.pop();
+        assert!(
+            from_cloud(&c, "vpls")
+                .unwrap_err()
+                .to_string()
+                .contains("vpls")
+        );
+        let mut c = to_cloud(&v);
+        c.colors[0][1] = f32::NAN;
+        assert!(from_cloud(&c, "vpls").is_err());
+    }
+}
