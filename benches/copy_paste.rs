@@ -79,7 +79,10 @@ fn opencv_peer(color: &ColorImage) -> (String, Option<[f64; 3]>) {
         )
     });
     if written.is_err() {
-        return ("OpenCV peer did not run (could not write its input)".into(), None);
+        return (
+            "OpenCV peer did not run (could not write its input)".into(),
+            None,
+        );
     }
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/peers/opencv_select.py");
     let out = std::process::Command::new("python3")
