@@ -118,6 +118,155 @@ fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
     reader.decode().map_err(|e| decode_err(path, e.to_string()))
 }
 
+// ---------------------------------------------------------------- PNM
+
+/// A binary PNM file (`P5` grey or `P6` RGB, 8 or 16 bit).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Pnm {
+    pub width: usize,
+    pub height: usize,
+    /// 1 (P5) or 3 (P6).
+    pub channels: usize,
+    /// The header's maxval (255 or less: 8-bit samples; above: 16-bit).
+    pub maxval: u32,
+    /// Samples row-major, channels interleaved.
+    pub samples: Vec<u16>,
+}
+
+/// Reads a binary PGM/PPM (`P5`/`P6`). 16-bit samples are big-endian as the
+/// format says, unless `little_endian_16` (the NYU Depth v2 raw dumps store
+/// little-endian samples under a PGM header, see `nyu_raw` in [`LoadDepthParams`]).
+pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
+    let bytes = fs::read(path).map_err(|source| NodeError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    // header: magic, width, height, maxval, separated by whitespace and comments
+    let mut pos = 0usize;
+    let mut tokens: Vec<String> = Vec::new();
+    while tokens.len() < 4 {
+        while pos < bytes.len() && (bytes[pos].is_ascii_whitespace() || bytes[pos] == b'#') {
+            if bytes[pos] == b'#' {
+                while pos < bytes.len() && bytes[pos] != b'\n' {
+                    pos += 1;
+                }
+            } else {
+                pos += 1;
+            }
+        }
+        let start = pos;
+        while pos < bytes.len() && !bytes[pos].is_ascii_whitespace() && bytes[pos] != b'#' {
+            pos += 1;
+        }
+        if start == pos {
+            return Err(decode_err(path, "truncated PNM header"));
+        }
+        tokens.push(String::from_utf8_lossy(&bytes[start..pos]).into_owned());
+    }
+    // exactly one whitespace byte ends the header
+    pos += 1;
+    let channels = match tokens[0].as_str() {
+        "P5" => 1,
+        "P6" => 3,
+        other => {
+            return Err(decode_err(
+                path,
+                format!("PNM type {other} is not supported (binary P5 or P6 only)"),
+            ));
+        }
+    };
+    let num = |i: usize, what: &str| -> Result<usize, NodeError> {
+        tokens[i]
+            .parse::<usize>()
+            .map_err(|_| decode_err(path, format!("bad PNM {what} \"{}\"", tokens[i])))
+    };
+    let (w, h, maxval) = (num(1, "width")?, num(2, "height")?, num(3, "maxval")?);
+    check_dims(path, w, h)?;
+    if maxval == 0 || maxval > 65535 {
+        return Err(decode_err(
+            path,
+            format!("PNM maxval {maxval} is not in 1..=65535"),
+        ));
+    }
+    let bps = if maxval > 255 { 2 } else { 1 };
+    let n = w * h * channels;
+    let data = bytes.get(pos.min(bytes.len())..).unwrap_or(&[]);
+    if data.len() < n * bps {
+        return Err(decode_err(
+            path,
+            format!(
+                "PNM data has {} bytes, {}x{} needs {}",
+                data.len(),
+                w,
+                h,
+                n * bps
+            ),
+        ));
+    }
+    let samples: Vec<u16> = if bps == 1 {
+        data[..n].iter().map(|v| *v as u16).collect()
+    } else {
+        data[..2 * n]
+            .chunks_exact(2)
+            .map(|c| {
+                if little_endian_16 {
+                    u16::from_le_bytes([c[0], c[1]])
+                } else {
+                    u16::from_be_bytes([c[0], c[1]])
+                }
+            })
+            .collect()
+    };
+    Ok(Pnm {
+        width: w,
+        height: h,
+        channels,
+        maxval: maxval as u32,
+        samples,
+    })
+}
+
+fn is_pnm(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .is_some_and(|e| matches!(e.as_str(), "pgm" | "ppm" | "pnm"))
+}
+
+/// A PNM color file as linear RGB (grey is replicated).
+fn load_pnm_color(path: &Path, srgb: bool) -> Result<ColorImage, NodeError> {
+    let pnm = read_pnm(path, false)?;
+    // guard: maxval >= 1 (checked in read_pnm)
+    let inv = 1.0 / pnm.maxval as f32;
+    let t8 = srgb8_table();
+    let t16 = srgb16_table();
+    let conv = |v: u16| -> f32 {
+        let v = v.min(pnm.maxval as u16);
+        if !srgb {
+            v as f32 * inv
+        } else if pnm.maxval == 255 {
+            t8[v as usize]
+        } else if pnm.maxval == 65535 {
+            t16[v as usize]
+        } else {
+            srgb_to_linear(v as f32 * inv)
+        }
+    };
+    let data: Vec<[f32; 3]> = pnm
+        .samples
+        .chunks_exact(pnm.channels)
+        .map(|c| {
+            if pnm.channels == 3 {
+                [conv(c[0]), conv(c[1]), conv(c[2])]
+            } else {
+                let g = conv(c[0]);
+                [g, g, g]
+            }
+        })
+        .collect();
+    Image::from_vec(pnm.width, pnm.height, data).map_err(|e| decode_err(path, e.to_string()))
+}
+
 /// Color space of integer-valued color files.
 pub const COLOR_SPACES: &[&str] = &["srgb", "linear"];
 
@@ -138,6 +287,9 @@ node_params! {
 /// println!("{}x{}", img.width(), img.height());
 /// ```
 pub fn load_color(path: &Path, color_space: &str) -> Result<ColorImage, NodeError> {
+    if is_pnm(path) {
+        return load_pnm_color(path, color_space == "srgb");
+    }
     let img = open_image(path)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let srgb = color_space == "srgb";
@@ -198,14 +350,16 @@ fn load_color_eval(_: &EvalCtx, _: &Inputs, p: &LoadColorParams) -> Result<Outpu
 // ---------------------------------------------------------------- depth
 
 /// What the stored numbers mean.
-pub const DEPTH_ENCODINGS: &[&str] = &["depth", "disparity"];
+pub const DEPTH_ENCODINGS: &[&str] = &["depth", "disparity", "nyu_raw"];
 
 node_params! {
     /// Parameters of `LoadDepth`.
     pub struct LoadDepthParams {
         /// 8/16-bit grey PNG or TIFF, PFM (float), or EXR (float; channel Z, Y or R).
         pub path: String = "", ParamKind::InputPath;
-        /// "depth": values are distances along z; "disparity": values are stereo disparities.
+        /// "depth": values are distances along z; "disparity": values are stereo disparities;
+        /// "nyu_raw": NYU Depth v2 raw Kinect dump (16-bit PGM whose samples are little-endian raw
+        /// disparity): z = 351.3 / (1092.5 - raw) metres, raw >= 1093 or 0 a hole; scale is unused.
         pub encoding: String = "depth", ParamKind::Choice(DEPTH_ENCODINGS);
         /// Stored units per metre (depth) or per pixel of disparity. 0 = auto: 1000 (millimetres) for
         /// integer files, 1 for float files. TUM uses 5000; Middlebury 2003 quarter-size disparity 4.
@@ -233,7 +387,24 @@ struct RawDepth {
     integer: bool,
 }
 
-fn read_raw_depth(path: &Path) -> Result<RawDepth, NodeError> {
+fn read_raw_depth(path: &Path, little_endian_16: bool) -> Result<RawDepth, NodeError> {
+    if is_pnm(path) {
+        let pnm = read_pnm(path, little_endian_16)?;
+        if pnm.channels != 1 {
+            return Err(decode_err(
+                path,
+                "expected a grey (P5) depth image, found RGB (P6)",
+            ));
+        }
+        return Ok(RawDepth {
+            samples: Samples {
+                width: pnm.width,
+                height: pnm.height,
+                values: pnm.samples.iter().map(|v| *v as f32).collect(),
+            },
+            integer: true,
+        });
+    }
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -381,13 +552,31 @@ fn read_exr_channel(path: &Path) -> Result<RawDepth, NodeError> {
     })
 }
 
+/// NYU Depth v2 raw disparity to metres: `z = NYU_RAW_FB / (NYU_RAW_DOFFS - raw)`
+/// (NYU toolbox `depth_rel2depth_abs`, Open3D `CreateFromNYUFormat`).
+const NYU_RAW_FB: f64 = 351.3;
+const NYU_RAW_DOFFS: f64 = 1092.5;
+/// Raw values at or above this are no measurement (2047 is the Kinect's "none").
+const NYU_RAW_INVALID: f64 = 1093.0;
+
 /// Reads a depth map in metres (0 = no measurement) from a file.
 ///
 /// Depth: `z = raw / scale`. Disparity: `z = baseline_m * focal_px / (raw / scale + doffs_px)`
-/// (Middlebury's `Z = baseline * f / (d + doffs)`). Raw zeros in integer files, non-finite
-/// values, and non-positive results are holes.
+/// (Middlebury's `Z = baseline * f / (d + doffs)`). NYU raw: `z = 351.3 / (1092.5 - raw)`
+/// with little-endian PGM samples. Raw zeros in integer files, non-finite
+/// values, and non-positive results are holes. Binary PGM (P5) is read as well.
 pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeError> {
-    let raw = read_raw_depth(path)?;
+    let nyu = p.encoding == "nyu_raw";
+    if nyu && !is_pnm(path) {
+        return Err(NodeError::param(
+            "encoding",
+            format!(
+                "\"nyu_raw\" reads the NYU raw PGM dump; {} is not a .pgm",
+                path.display()
+            ),
+        ));
+    }
+    let raw = read_raw_depth(path, nyu)?;
     let scale = if p.scale > 0.0 {
         p.scale
     } else if raw.integer {
@@ -415,13 +604,22 @@ pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeErro
             if !v.is_finite() || (raw.integer && v == 0.0) {
                 return 0.0;
             }
-            let v = v as f64 / scale;
-            let z = if disparity {
+            let z = if nyu {
+                // NYU toolbox: z = 351.3 / (1092.5 - raw); raw >= 1093 (2047 included) is no measurement
+                let d = NYU_RAW_DOFFS - v as f64;
+                // guard: d > 0.5 for every raw < 1093 that gets here
+                if v as f64 >= NYU_RAW_INVALID {
+                    0.0
+                } else {
+                    NYU_RAW_FB / d
+                }
+            } else if disparity {
+                let v = v as f64 / scale;
                 let d = v + p.doffs_px;
                 // guard: a non-positive disparity has no finite depth
                 if d <= 0.0 { 0.0 } else { fb / d }
             } else {
-                v
+                v as f64 / scale
             };
             if z.is_finite() && z > 0.0 {
                 z as f32
@@ -938,6 +1136,39 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn pnm_color_and_nyu_raw_depth() {
+        let dir = tempfile::tempdir().unwrap();
+        // 2x1 P6 8-bit: white, black
+        let ppm = dir.path().join("c.ppm");
+        let mut b = b"P6\n# comment\n2 1\n255\n".to_vec();
+        b.extend_from_slice(&[255, 255, 255, 0, 0, 0]);
+        std::fs::write(&ppm, b).unwrap();
+        let c = super::load_color(&ppm, "srgb").unwrap();
+        assert_eq!(c.dims(), (2, 1));
+        assert!((c.get(0, 0)[0] - 1.0).abs() < 1e-6 && c.get(1, 0)[2] == 0.0);
+        // 3x1 P5 16-bit with little-endian raw disparity (the NYU dump): 839, 2047 (none), 0 (none)
+        let pgm = dir.path().join("d.pgm");
+        let mut b = b"P5\n3 1\n65535\n".to_vec();
+        for v in [839u16, 2047, 0] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        std::fs::write(&pgm, b).unwrap();
+        let p = super::LoadDepthParams {
+            encoding: "nyu_raw".into(),
+            ..Default::default()
+        };
+        let d = super::load_depth(&pgm, &p).unwrap();
+        assert!((*d.get(0, 0) - (351.3 / (1092.5 - 839.0)) as f32).abs() < 1e-5);
+        assert_eq!((*d.get(1, 0), *d.get(2, 0)), (0.0, 0.0));
+        // nyu_raw names the parameter on a non-PGM file; truncated data names the file
+        let e = super::load_depth(&dir.path().join("x.png"), &p).unwrap_err();
+        assert!(e.to_string().contains("encoding"), "{e}");
+        std::fs::write(&pgm, b"P5\n3 1\n65535\n\x01").unwrap();
+        let e = super::load_depth(&pgm, &p).unwrap_err();
+        assert!(e.to_string().contains("d.pgm"), "{e}");
+    }
     use super::*;
 
     fn depth_params() -> LoadDepthParams {
