@@ -1,0 +1,200 @@
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use depthgraph_editor::{EditorModel, Evaluator};
+use depthgraph_graph::prelude::*;
+
+fn demo_path() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/demo.ron")
+}
+
+fn demo() -> EditorModel {
+    let reg = match depthgraph_nodes::registry() {
+        Ok(r) => Arc::new(r),
+        Err(e) => panic!("registry: {e}"),
+    };
+    match EditorModel::load(&demo_path(), reg) {
+        Ok(m) => m,
+        Err(e) => panic!("load demo: {e}"),
+    }
+}
+
+fn small(m: &mut EditorModel) {
+    assert_eq!(m.set_param("scene", "width", ParamValue::Int(48)), Ok(()));
+    assert_eq!(m.set_param("scene", "height", ParamValue::Int(32)), Ok(()));
+}
+
+#[test]
+fn downstream_change_reruns_only_descendants() {
+    let mut m = demo();
+    small(&mut m);
+    let out = std::env::temp_dir().join(format!("depthgraph-editor-test-{}", std::process::id()));
+    let mut ev = match Evaluator::new(EngineOptions::default(), out.clone()) {
+        Ok(e) => e,
+        Err(e) => panic!("{e}"),
+    };
+    // Request the non-sink leaf: `points` (sinks always run, they write files).
+    let targets = vec!["points".to_string()];
+    let p = m
+        .pipeline_for(Some(&targets))
+        .unwrap_or_else(|e| panic!("{e:?}"));
+    ev.start(p, vec![]);
+    let first = ev
+        .wait(Duration::from_secs(120))
+        .expect("first run finished");
+    let (trace, values) = first.result.expect("first run ok");
+    assert_eq!(trace.get("scene").map(|r| r.status), Some(Status::Ran));
+    assert!(
+        values.keys().any(|k| k.starts_with("points.")),
+        "{values:?}"
+    );
+
+    // Change a parameter of `kinect` (downstream of `scene`).
+    assert_eq!(m.set_param("kinect", "seed", ParamValue::Int(7)), Ok(()));
+    let p = m
+        .pipeline_for(Some(&targets))
+        .unwrap_or_else(|e| panic!("{e:?}"));
+    let kinect = p.index_of("kinect").expect("kinect");
+    let mut expected: Vec<String> = p
+        .downstream_of(kinect)
+        .into_iter()
+        .map(|i| p.nodes[i].name.clone())
+        .filter(|n| n == "kinect" || n == "points")
+        .collect();
+    expected.sort();
+    ev.start(p, vec![]);
+    let second = ev
+        .wait(Duration::from_secs(120))
+        .expect("second run finished");
+    let (trace, _) = second.result.expect("second run ok");
+    let mut ran: Vec<String> = trace
+        .nodes
+        .iter()
+        .filter(|r| matches!(r.status, Status::Ran | Status::Passthrough))
+        .map(|r| r.node.clone())
+        .collect();
+    ran.sort();
+    assert_eq!(ran, expected, "trace:\n{}", trace.table());
+    assert_eq!(ran, vec!["kinect".to_string(), "points".to_string()]);
+    assert_eq!(trace.get("scene").map(|r| r.status), Some(Status::Cached));
+    let _ = std::fs::remove_dir_all(out);
+}
+
+#[test]
+fn depth_into_color_is_refused_naming_both_types() {
+    let mut m = demo();
+    let before = m.to_ron();
+    // save_color.color is a Color input; scene.depth is a Depth output.
+    let err = m
+        .try_connect("scene", "depth", "save_color", "color")
+        .expect_err("Depth into Color must be refused");
+    assert!(err.contains("Depth"), "{err}");
+    assert!(err.contains("Color"), "{err}");
+    assert_eq!(m.to_ron(), before);
+    assert!(!m.can_undo());
+    // A compatible wire is accepted.
+    assert_eq!(
+        m.try_connect("kinect", "depth", "save_depth_gt", "depth"),
+        Ok(())
+    );
+    assert_eq!(
+        m.input_source("save_depth_gt", "depth"),
+        Some(("kinect".into(), "depth".into()))
+    );
+}
+
+#[test]
+fn bad_params_are_refused_with_names() {
+    let mut m = demo();
+    let err = m
+        .set_param("scene", "width", ParamValue::Int(0))
+        .expect_err("out of range");
+    assert!(err.contains("scene") && err.contains("width"), "{err}");
+    let err = m
+        .set_param("scene", "width", ParamValue::Text("big".into()))
+        .expect_err("wrong type");
+    assert!(err.contains("width"), "{err}");
+    let err = m
+        .set_param("scene", "nope", ParamValue::Int(1))
+        .expect_err("unknown param");
+    assert!(err.contains("nope"), "{err}");
+    assert!(!m.can_undo());
+}
+
+#[test]
+fn save_load_round_trip() {
+    let mut m = demo();
+    small(&mut m);
+    let added = m.add_node("Unproject").expect("add node");
+    m.set_position(&added, [12.5, -3.0]);
+    let text = m.to_ron();
+    let reg = Arc::clone(m.registry());
+    let again = EditorModel::from_text(&text, "saved.ron", reg).expect("reload");
+    // Same nodes, kinds, params, inputs, outputs and positions.
+    assert_eq!(again.to_ron(), text);
+    assert_eq!(again.positions(), m.positions());
+    let a = m.document();
+    let b = again.document();
+    assert_eq!(a.nodes.len(), b.nodes.len());
+    for (x, y) in a.nodes.iter().zip(&b.nodes) {
+        assert_eq!(x.name.value, y.name.value);
+        assert_eq!(x.kind.value, y.kind.value);
+        let px: Vec<_> = x.params.iter().map(|(k, v)| (&k.value, &v.value)).collect();
+        let py: Vec<_> = y.params.iter().map(|(k, v)| (&k.value, &v.value)).collect();
+        assert_eq!(px, py);
+        let ix: Vec<_> = x.inputs.iter().map(|(k, v)| (&k.value, &v.value)).collect();
+        let iy: Vec<_> = y.inputs.iter().map(|(k, v)| (&k.value, &v.value)).collect();
+        assert_eq!(ix, iy);
+    }
+    // Human readable: every node starts on its own line.
+    for n in m.node_names() {
+        assert!(
+            text.lines().any(|l| l.trim() == format!("\"{n}\": (")),
+            "node {n} not on its own line:\n{text}"
+        );
+    }
+    assert!(text.contains("layout: {"));
+    // The file path round trip too.
+    let path =
+        std::env::temp_dir().join(format!("depthgraph-editor-rt-{}.ron", std::process::id()));
+    m.save(&path).expect("save");
+    let loaded = EditorModel::load(&path, Arc::clone(m.registry())).expect("load");
+    assert_eq!(loaded.to_ron(), text);
+    let _ = std::fs::remove_file(path);
+}
+
+#[test]
+fn undo_redo_restores() {
+    let mut m = demo();
+    let original = m.to_ron();
+    m.set_param("kinect", "seed", ParamValue::Int(9))
+        .expect("set");
+    let after_set = m.to_ron();
+    m.disconnect("points", "color").expect("disconnect");
+    m.remove_node("save_points").expect("remove");
+    let after_all = m.to_ron();
+    assert!(m.undo());
+    assert!(m.undo());
+    assert_eq!(m.to_ron(), after_set);
+    assert!(m.undo());
+    assert_eq!(m.to_ron(), original);
+    assert!(!m.undo());
+    assert!(m.redo());
+    assert_eq!(m.to_ron(), after_set);
+    assert!(m.redo() && m.redo());
+    assert_eq!(m.to_ron(), after_all);
+    assert!(!m.redo());
+}
+
+#[test]
+fn auto_layout_columns_follow_longest_path() {
+    let m = demo();
+    let p = m.positions();
+    let col = |n: &str| p.get(n).map(|x| x[0]);
+    assert_eq!(col("scene"), Some(0.0));
+    assert!(col("kinect") > col("scene"));
+    assert!(col("points") > col("kinect"));
+    assert!(col("save_points") > col("points"));
+    assert!(m.check().is_ok());
+}
