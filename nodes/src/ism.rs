@@ -474,7 +474,7 @@ pub fn windows(dirs: &[DVec3], receivers: &[DVec3]) -> Vec<Option<Window>> {
     };
     receivers
         .par_chunks(4096)
-        .fold(|| empty.clone(), |acc, c| grow(acc, c))
+        .fold(|| empty.clone(), grow)
         .reduce(|| empty.clone(), merge)
 }
 
