@@ -152,6 +152,18 @@ pub struct PointSet {
     pub total: f64,
     pub centres: Vec<DVec3>,
     pub min_distance_m: f64,
+    /// Per element, packed for the splatting (one cache line per drawn sample).
+    elems: Vec<Elem>,
+}
+
+/// What splatting needs of one element.
+#[derive(Debug, Clone, Copy)]
+struct Elem {
+    pos: DVec3,
+    min_radius: f64,
+    /// `I(p)` (eq. 6), > 0.
+    importance: f64,
+    object: bool,
 }
 
 impl PointSet {
@@ -167,6 +179,7 @@ impl PointSet {
         let mut object = Vec::new();
         let mut cdf = Vec::new();
         let mut min_radius = Vec::new();
+        let mut elems = Vec::new();
         let mut acc = 0.0f64;
         for (depth, is_obj) in layers {
             let (w, h) = depth.dims();
@@ -179,7 +192,14 @@ impl PointSet {
                     let p = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64);
                     let (area, side) = pixel_area(depth, k, x, y);
                     min_radius.push(0.6 * side);
-                    acc += area * importance(p, centres, min_d);
+                    let imp = importance(p, centres, min_d);
+                    elems.push(Elem {
+                        pos: p,
+                        min_radius: 0.6 * side,
+                        importance: imp,
+                        object: *is_obj,
+                    });
+                    acc += area * imp;
                     positions.push(p);
                     object.push(*is_obj);
                     cdf.push(acc);
@@ -194,12 +214,18 @@ impl PointSet {
             total: acc,
             centres: centres.to_vec(),
             min_distance_m: min_d,
+            elems,
         }
     }
 
     /// Splat radius `r(p)` of a sample at `p` when `m` samples are drawn.
     pub fn splat_radius(&self, p: DVec3, m: usize) -> f64 {
-        let i = importance(p, &self.centres, self.min_distance_m);
+        self.radius_for(importance(p, &self.centres, self.min_distance_m), m)
+    }
+
+    /// `r` for a known importance `i` (> 0).
+    #[inline]
+    fn radius_for(&self, i: f64, m: usize) -> f64 {
         // guard: i > 0 (sum of positive terms or 1), m >= 1
         (self.total / (std::f64::consts::PI * m.max(1) as f64 * i)).sqrt()
     }
@@ -210,12 +236,27 @@ impl PointSet {
             return Vec::new();
         }
         let mut rng = SplitMix64(seed);
+        let cdf = &self.cdf;
+        let n = cdf.len();
+        // The stratified `t` never decrease (`(i + u) / m` with `u < 1`,
+        // monotone rounding), so each search gallops from the previous
+        // answer: the same index as `partition_point` over the whole CDF,
+        // without its cache misses.
+        let mut prev = 0usize;
         (0..m)
             .map(|i| {
+                // guard: m >= 1 inside the map
                 let t = (i as f64 + rng.next_f64()) / m as f64 * self.total;
-                self.cdf
-                    .partition_point(|&c| c <= t)
-                    .min(self.cdf.len() - 1)
+                // invariant: every index < lo has c <= t; cdf[hi] > t or hi = n
+                let (mut lo, mut hi, mut step) = (prev.min(n), prev.min(n), 1usize);
+                while hi < n && cdf[hi] <= t {
+                    lo = hi + 1;
+                    hi = lo.saturating_add(step).min(n);
+                    step = step.saturating_mul(2);
+                }
+                let j = lo + cdf[lo..hi].partition_point(|&c| c <= t);
+                prev = j;
+                j.min(n - 1)
             })
             .collect()
     }
@@ -277,10 +318,40 @@ impl ShadowMap {
 
     /// The scene-scale-aware bias at `p` with normal `n` (module docs).
     pub fn bias(&self, set: &PointSet, p: DVec3, n: DVec3, m: usize, bias_scale: f64) -> f64 {
+        self.bias_with_radius(set.splat_radius(p, m), n, bias_scale)
+    }
+
+    /// [`ShadowMap::bias`] with the splat radius `r(p)` already known
+    /// (it does not depend on the light: callers compute it once per point).
+    #[inline]
+    pub fn bias_with_radius(&self, splat_radius: f64, n: DVec3, bias_scale: f64) -> f64 {
         let c = n.dot(self.dir).abs().max(1e-6);
         // guard: c >= 1e-6; tan θ = sqrt(1 - c²) / c capped at 10
         let tan = ((1.0 - c * c).max(0.0).sqrt() / c).min(10.0);
-        bias_scale * self.texel_m.max(set.splat_radius(p, m)) * (1.0 + tan)
+        bias_scale * self.texel_m.max(splat_radius) * (1.0 + tan)
+    }
+
+    /// Visibility of `p` in this map and in `other`, which must come from
+    /// the same [`build_pair`] (same window): the texel is found once.
+    /// Equal to `(self.visible(p, b), other.visible(p, b))`.
+    #[inline]
+    pub fn visible_pair(&self, other: &ShadowMap, p: DVec3, bias_m: f64) -> (bool, bool) {
+        let (u, v) = self.texel(p);
+        if !(u >= 0.0 && v >= 0.0) {
+            return (true, true);
+        }
+        let (x, y) = (u as usize, v as usize);
+        if x >= self.res || y >= self.res {
+            return (true, true);
+        }
+        let j = y * self.res + x;
+        let lim = p.dot(self.dir) + bias_m;
+        let vis = |occ: f32| {
+            let occ = occ as f64;
+            occ.is_nan() || occ <= lim
+        };
+        let o = other.t.get(j).copied().unwrap_or(f32::NEG_INFINITY);
+        (vis(self.t[j]), vis(o))
     }
 }
 
@@ -337,23 +408,94 @@ pub fn build_pair(
     p: &IsmParams,
     map_seed: u64,
 ) -> Option<(ShadowMap, ShadowMap)> {
-    let dir = dir.normalize_or_zero();
-    if dir == DVec3::ZERO || receivers.is_empty() {
+    let win = windows(&[dir], receivers).pop().flatten()?;
+    build_pair_in(&win, set, p, map_seed)
+}
+
+/// The window of the receivers in the plane of a light direction: the unit
+/// direction, its basis and the bounding box `[umin, umax] x [vmin, vmax]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Window {
+    pub dir: DVec3,
+    eu: DVec3,
+    ev: DVec3,
+    umin: f64,
+    umax: f64,
+    vmin: f64,
+    vmax: f64,
+}
+
+/// The windows of `receivers` for every direction (`None` for a zero
+/// direction or without receivers), in one pass over the receivers
+/// (parallel over chunks; min and max are exact in any order).
+pub fn windows(dirs: &[DVec3], receivers: &[DVec3]) -> Vec<Option<Window>> {
+    use rayon::prelude::*;
+    let empty: Vec<Option<Window>> = dirs
+        .iter()
+        .map(|d| {
+            let dir = d.normalize_or_zero();
+            if dir == DVec3::ZERO || receivers.is_empty() {
+                return None;
+            }
+            let (eu, ev) = basis(dir);
+            Some(Window {
+                dir,
+                eu,
+                ev,
+                umin: f64::INFINITY,
+                umax: f64::NEG_INFINITY,
+                vmin: f64::INFINITY,
+                vmax: f64::NEG_INFINITY,
+            })
+        })
+        .collect();
+    let grow = |mut acc: Vec<Option<Window>>, chunk: &[DVec3]| {
+        for w in acc.iter_mut().flatten() {
+            for r in chunk {
+                let (u, v) = (r.dot(w.eu), r.dot(w.ev));
+                w.umin = w.umin.min(u);
+                w.umax = w.umax.max(u);
+                w.vmin = w.vmin.min(v);
+                w.vmax = w.vmax.max(v);
+            }
+        }
+        acc
+    };
+    let merge = |mut a: Vec<Option<Window>>, b: Vec<Option<Window>>| {
+        for (x, y) in a.iter_mut().zip(b) {
+            if let (Some(x), Some(y)) = (x.as_mut(), y) {
+                x.umin = x.umin.min(y.umin);
+                x.umax = x.umax.max(y.umax);
+                x.vmin = x.vmin.min(y.vmin);
+                x.vmax = x.vmax.max(y.vmax);
+            }
+        }
+        a
+    };
+    receivers
+        .par_chunks(4096)
+        .fold(|| empty.clone(), grow)
+        .reduce(|| empty.clone(), merge)
+}
+
+/// [`build_pair`] over a window from [`windows`].
+pub fn build_pair_in(
+    win: &Window,
+    set: &PointSet,
+    p: &IsmParams,
+    map_seed: u64,
+) -> Option<(ShadowMap, ShadowMap)> {
+    let Window {
+        dir,
+        eu,
+        ev,
+        umin,
+        umax,
+        vmin,
+        vmax,
+    } = *win;
+    if !(umin <= umax && vmin <= vmax) {
         return None;
-    }
-    let (eu, ev) = basis(dir);
-    let (mut umin, mut umax, mut vmin, mut vmax) = (
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-    );
-    for r in receivers {
-        let (u, v) = (r.dot(eu), r.dot(ev));
-        umin = umin.min(u);
-        umax = umax.max(u);
-        vmin = vmin.min(v);
-        vmax = vmax.max(v);
     }
     let res = p.resolution.max(1);
     let extent = (umax - umin).max(vmax - vmin).max(1e-6);
@@ -365,9 +507,12 @@ pub fn build_pair(
     let m = p.points_per_map;
     let rmax = p.max_splat_texels;
     for i in set.draw(m, map_seed) {
-        let q = set.positions[i];
+        let Some(e) = set.elems.get(i) else {
+            continue;
+        };
+        let q = e.pos;
         let (u, v) = ((q.dot(eu) - u0) / texel_m, (q.dot(ev) - v0) / texel_m);
-        let r = (set.splat_radius(q, m).max(set.min_radius[i]) / texel_m)
+        let r = (set.radius_for(e.importance, m).max(e.min_radius) / texel_m)
             .min(rmax)
             .max(0.5);
         if u + r < 0.0 || v + r < 0.0 || u - r > res as f64 || v - r > res as f64 {
@@ -382,15 +527,17 @@ pub fn build_pair(
             (v - r).floor().max(0.0) as usize,
             ((v + r).ceil() as usize).min(res),
         );
+        let is_obj = e.object;
         for y in y0..y1 {
+            let dy = y as f64 + 0.5 - v;
             for x in x0..x1 {
-                let (dx, dy) = (x as f64 + 0.5 - u, y as f64 + 0.5 - v);
+                let dx = x as f64 + 0.5 - u;
                 if dx * dx + dy * dy > r * r {
                     continue;
                 }
                 let j = y * res + x;
                 st[j] = st[j].max(tq);
-                if !set.object[i] {
+                if !is_obj {
                     t_only[j] = t_only[j].max(tq);
                 }
             }
