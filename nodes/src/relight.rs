@@ -202,7 +202,7 @@ struct IrrCtx<'a> {
 impl IrrCtx<'_> {
     /// Surfaces per parallel chunk: its accumulators stay in cache while
     /// the VPL loop walks the maps one at a time.
-    const CHUNK: usize = 2048;
+    const CHUNK: usize = 512;
 
     /// `Σ_k Φ_k max(0, n·ω_k) V_k` of every surface. Chunks of surfaces
     /// run in parallel, each VPL-major (one pair of maps at a time stays in
@@ -218,6 +218,7 @@ impl IrrCtx<'_> {
                     .collect();
                 let mut acc: Vec<Irr> = vec![([0.0; 3], [0.0; 3], [0.0; 3]); chunk.len()];
                 for ((v, d), m) in self.vpls.iter().zip(self.dirs).zip(self.maps) {
+                    let power = v.power.map(|c| c as f64);
                     for ((s, r), (et, est, efree)) in chunk.iter().zip(&radii).zip(acc.iter_mut()) {
                         let cos = s.n.dot(*d);
                         if cos <= 0.0 {
@@ -231,7 +232,7 @@ impl IrrCtx<'_> {
                             None => (true, true),
                         };
                         for ch in 0..3 {
-                            let e = v.power[ch] as f64 * cos;
+                            let e = power[ch] * cos;
                             efree[ch] += e;
                             if vt {
                                 et[ch] += e;
