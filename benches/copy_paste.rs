@@ -16,9 +16,11 @@
 //! `benches/peers/opencv_select.py` (3x3 Sobel on the color, Canny,
 //! seamlessClone) on the same 8-bit image; `DEPTHGRAPH_PEERS=0` skips it.
 
+mod common;
+use common::timed;
+
 use std::fmt::Write as _;
 use std::path::Path;
-use std::time::Instant;
 
 use depthgraph::graph::prelude::*;
 use depthgraph::nodes::composite::{CompositeParams, occlusion_composite};
@@ -30,22 +32,6 @@ use depthgraph::nodes::paste::{PasteParams, paste};
 use depthgraph::nodes::synthetic::{RenderOptions, Scene, render};
 
 const MARK: &str = "<!-- real-data -->";
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
-    let mut times = Vec::new();
-    let mut out = None;
-    for _ in 0..repeats.max(1) {
-        let t = Instant::now();
-        out = Some(f());
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    (out.expect("at least one repeat"), median(times))
-}
 
 fn iou(a: &Mask, b: &Mask) -> f64 {
     let (mut i, mut u) = (0usize, 0usize);

@@ -13,6 +13,9 @@
 //! Environment: `DEPTHGRAPH_REFOCUS_GT_RAYS` (default 512) rays per pixel of
 //! the ground truth; `DEPTHGRAPH_REPEATS` (default 3) timed repeats.
 
+mod common;
+use common::{env_usize, timed};
+
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -25,29 +28,6 @@ use depthgraph::nodes::refocus::{RefocusParams, refocus, reverse_mapped_dof};
 use depthgraph::nodes::synthetic::{
     RenderOptions, RenderOutput, Scene, ThinLensRender, render, render_thin_lens,
 };
-
-fn env_usize(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
-    let mut times = Vec::new();
-    let mut out = None;
-    for _ in 0..repeats.max(1) {
-        let t = Instant::now();
-        out = Some(f());
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    (out.expect("at least one repeat"), median(times))
-}
 
 fn lens_params(width: usize, focus_m: f64, samples: usize) -> RefocusParams {
     RefocusParams {

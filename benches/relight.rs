@@ -18,6 +18,9 @@
 //!   1e-4 in luminance). The reference itself is an ISM estimate, not ray-cast
 //!   visibility: the errors of its own maps are not measured.
 
+mod common;
+use common::{env_usize, median};
+
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -26,18 +29,6 @@ use depthgraph::graph::pipeline::OutputRef;
 use depthgraph::graph::prelude::*;
 use depthgraph::nodes::relight::{RelightInputs, RelightParams, Relit, relight};
 use depthgraph::nodes::vpl::{Vpl, VplParams, luminance, sample_vpls};
-
-fn env_usize(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// The graph's values at 640x480.
 struct Scene {

@@ -1,0 +1,36 @@
+//! Timing helpers shared by the benchmarks (each bench uses a subset).
+#![allow(dead_code)]
+
+use std::time::Instant;
+
+/// An environment variable parsed as a count, or `default`.
+pub fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+/// Median of `v` (the upper middle for an even count); NaN when empty.
+pub fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Runs `f` `repeats` times (at least once); its last result and the median
+/// wall time in milliseconds.
+pub fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
+    let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+    let t = Instant::now();
+    let mut out = f();
+    let mut times = vec![ms(t)];
+    for _ in 1..repeats.max(1) {
+        let t = Instant::now();
+        out = f();
+        times.push(ms(t));
+    }
+    (out, median(times))
+}
