@@ -254,10 +254,20 @@ pub fn refocus(
     let inv_u = lens.inv_focus();
     let src_inv_z: Vec<f64> = depth.as_slice().iter().map(|&z| inv_depth(z)).collect();
     let src_color: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
-    // Sources that can move: active pixels only (see active_pixels).
-    let sources: Vec<u32> = (0..w * h)
+    // Sources that can move: active pixels only (see active_pixels), with
+    // the high half of their z-buffer key computed once: depth bits (positive
+    // floats order like their bits; +inf for the sky) then the source index.
+    let sources: Vec<(u32, u64)> = (0..w * h)
         .filter(|&i| active[i])
-        .map(|i| i as u32)
+        .map(|i| {
+            let z = if src_inv_z[i] > 0.0 {
+                // Guard: src_inv_z[i] > 0.
+                (1.0 / src_inv_z[i]) as f32
+            } else {
+                f32::INFINITY
+            };
+            (i as u32, ((z.to_bits() as u64) << 32) | i as u64)
+        })
         .collect();
     let mut acc = vec![[0.0f64; 3]; w * h];
     let mut view = View {
@@ -272,10 +282,10 @@ pub fn refocus(
         let dy = c_scale * s[1];
         // (The z-buffer is EMPTY here: it starts so and the gather below
         // resets every entry it reads.)
-        // Forward warp with a z-buffer: key = depth bits (positive floats
-        // order like their bits; +inf for the sky) then the source index.
+        // Forward warp with a z-buffer (nearest depth wins, then the lower
+        // source index).
         sources.par_chunks(4096).for_each(|chunk| {
-            for &i in chunk {
+            for &(i, key) in chunk {
                 let i = i as usize;
                 let (x, y) = ((i % w) as f64, (i / w) as f64);
                 let m = inv_u - src_inv_z[i];
@@ -285,12 +295,6 @@ pub fn refocus(
                     continue;
                 }
                 let t = ty as usize * w + tx as usize;
-                let z = if src_inv_z[i] > 0.0 {
-                    (1.0 / src_inv_z[i]) as f32
-                } else {
-                    f32::INFINITY
-                };
-                let key = ((z.to_bits() as u64) << 32) | i as u64;
                 view.zbuf[t].fetch_min(key, Ordering::Relaxed);
             }
         });
@@ -321,6 +325,7 @@ pub fn refocus(
                 });
         }
         let holes: Vec<usize> = (0..w * h)
+            .into_par_iter()
             .filter(|&t| active[t] && view.conf[t] == 0.0)
             .collect();
         holes_total += holes.len();
