@@ -2,7 +2,9 @@
 //! preview pane, a check-error panel and Save / Undo / Redo.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use depthgraph_graph::params::{ParamKind, ParamValue};
 use depthgraph_graph::prelude::{Status, Trace, Value, ValueType};
@@ -12,6 +14,7 @@ use egui_snarl::{InPin, InPinId, NodeId, OutPin, OutPinId, Snarl};
 
 use crate::eval::Evaluator;
 use crate::model::EditorModel;
+use crate::preview::{self, DepthLegend, ImageFrame};
 
 /// Pin colour of a value type.
 pub fn type_color(ty: ValueType) -> Color32 {
@@ -64,7 +67,12 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
         let mut new_value: Option<ParamValue> = None;
         let mut new_text: Option<String> = None;
         ui.horizontal(|ui| {
-            let label = ui.label(name).on_hover_text(spec.doc);
+            // A checkbox carries its own name (clickable); others get a label.
+            let label_id = if matches!(spec.kind, ParamKind::Bool) {
+                egui::Id::NULL
+            } else {
+                ui.label(name).on_hover_text(spec.doc).id
+            };
             match (&spec.kind, &current) {
                 (ParamKind::Float { min, max }, ParamValue::Float(x)) => {
                     let mut v = *x;
@@ -76,7 +84,7 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                     } else {
                         ui.add(egui::DragValue::new(&mut v).speed(0.01))
                     };
-                    if r.labelled_by(label.id).changed() {
+                    if r.labelled_by(label_id).changed() {
                         new_value = Some(ParamValue::Float(v));
                     }
                 }
@@ -90,13 +98,13 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                     } else {
                         ui.add(egui::DragValue::new(&mut v).range(*min..=*max))
                     };
-                    if r.labelled_by(label.id).changed() {
+                    if r.labelled_by(label_id).changed() {
                         new_value = Some(ParamValue::Int(v));
                     }
                 }
                 (ParamKind::Bool, ParamValue::Bool(b)) => {
                     let mut v = *b;
-                    if ui.checkbox(&mut v, "").labelled_by(label.id).changed() {
+                    if ui.checkbox(&mut v, name).on_hover_text(spec.doc).changed() {
                         new_value = Some(ParamValue::Bool(v));
                     }
                 }
@@ -110,7 +118,7 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                             }
                         })
                         .response
-                        .labelled_by(label.id);
+                        .labelled_by(label_id);
                     if v != *s {
                         new_value = Some(ParamValue::Text(v));
                     }
@@ -122,7 +130,7 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                     let mut v = s.clone();
                     if ui
                         .text_edit_singleline(&mut v)
-                        .labelled_by(label.id)
+                        .labelled_by(label_id)
                         .changed()
                     {
                         new_value = Some(ParamValue::Text(v));
@@ -135,7 +143,7 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                         .edits
                         .entry(key.clone())
                         .or_insert_with(|| current.to_ron());
-                    let r = ui.text_edit_singleline(buf).labelled_by(label.id);
+                    let r = ui.text_edit_singleline(buf).labelled_by(label_id);
                     if r.lost_focus() {
                         new_text = Some(buf.clone());
                         state.edits.remove(&key);
@@ -159,83 +167,6 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
     }
 }
 
-/// Linear → sRGB byte, clamped.
-fn srgb_byte(x: f32) -> u8 {
-    let x = if x.is_finite() {
-        x.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let s = if x <= 0.003_130_8 {
-        12.92 * x
-    } else {
-        1.055 * x.powf(1.0 / 2.4) - 0.055
-    };
-    (s * 255.0 + 0.5) as u8
-}
-
-/// A blue → green → yellow colormap of `t` in [0, 1].
-fn colormap(t: f32) -> [u8; 3] {
-    let stops = [
-        [68.0, 1.0, 84.0],
-        [59.0, 82.0, 139.0],
-        [33.0, 145.0, 140.0],
-        [94.0, 201.0, 98.0],
-        [253.0, 231.0, 37.0],
-    ];
-    let t = t.clamp(0.0, 1.0) * 4.0;
-    let i = (t.floor() as usize).min(3);
-    let f = t - i as f32;
-    let mut out = [0u8; 3];
-    for (c, o) in out.iter_mut().enumerate() {
-        *o = (stops[i][c] * (1.0 - f) + stops[i + 1][c] * f) as u8;
-    }
-    out
-}
-
-/// An 8-bit preview of an image value: Color as sRGB, Depth colormapped
-/// (holes black), masks and confidences as grey. `None` for other values.
-pub fn preview_image(v: &Value) -> Option<ColorImage> {
-    match v {
-        Value::Color(img) => {
-            let (w, h) = img.dims();
-            let mut rgba = Vec::with_capacity(w * h * 4);
-            for p in img.as_slice() {
-                rgba.extend_from_slice(&[srgb_byte(p[0]), srgb_byte(p[1]), srgb_byte(p[2]), 255]);
-            }
-            Some(ColorImage::from_rgba_unmultiplied([w, h], &rgba))
-        }
-        Value::Depth(img) => {
-            let (w, h) = img.dims();
-            let valid = img.as_slice().iter().filter(|z| z.is_finite() && **z > 0.0);
-            let (lo, hi) = valid.fold((f32::INFINITY, 0.0f32), |(lo, hi), z| {
-                (lo.min(*z), hi.max(*z))
-            });
-            let span = if hi > lo { hi - lo } else { 1.0 };
-            let mut rgba = Vec::with_capacity(w * h * 4);
-            for z in img.as_slice() {
-                if z.is_finite() && *z > 0.0 {
-                    let [r, g, b] = colormap((z - lo) / span);
-                    rgba.extend_from_slice(&[r, g, b, 255]);
-                } else {
-                    rgba.extend_from_slice(&[0, 0, 0, 255]);
-                }
-            }
-            Some(ColorImage::from_rgba_unmultiplied([w, h], &rgba))
-        }
-        Value::Mask(img) | Value::Confidence(img) => {
-            let (w, h) = img.dims();
-            let mut rgba = Vec::with_capacity(w * h * 4);
-            for x in img.as_slice() {
-                let g = (x.clamp(0.0, 1.0) * 255.0) as u8;
-                rgba.extend_from_slice(&[g, g, g, 255]);
-            }
-            Some(ColorImage::from_rgba_unmultiplied([w, h], &rgba))
-        }
-        _ => None,
-    }
-}
-
 /// What the canvas asks the app to do after drawing.
 #[derive(Default)]
 struct CanvasActions {
@@ -247,6 +178,10 @@ struct GraphViewer<'a> {
     model: &'a mut EditorModel,
     trace: Option<&'a Trace>,
     selected: Option<&'a str>,
+    /// Check errors, by the node they concern (`None`: the whole file).
+    errors: &'a [(Option<String>, String)],
+    /// Filter text of the add-node menu.
+    search: &'a mut String,
     actions: CanvasActions,
 }
 
@@ -346,6 +281,14 @@ impl SnarlViewer<String> for GraphViewer<'_> {
                     ui.small(reason.as_str());
                 }
             }
+            for (_, e) in self
+                .errors
+                .iter()
+                .filter(|(n, _)| n.as_deref() == Some(name.as_str()))
+            {
+                ui.colored_label(Color32::RED, e.as_str())
+                    .on_hover_text(e.as_str());
+            }
             let selected = self.selected == Some(name.as_str());
             if ui.selectable_label(selected, "preview").clicked() {
                 self.actions.select = Some(name.clone());
@@ -402,7 +345,15 @@ impl SnarlViewer<String> for GraphViewer<'_> {
 
     fn show_graph_menu(&mut self, pos: egui::Pos2, ui: &mut egui::Ui, _snarl: &mut Snarl<String>) {
         ui.label("Add node");
-        let kinds: Vec<&'static str> = self.model.registry().kinds().collect();
+        ui.text_edit_singleline(self.search)
+            .on_hover_text("filter the node kinds by name");
+        let needle = self.search.to_lowercase();
+        let kinds: Vec<&'static str> = self
+            .model
+            .registry()
+            .kinds()
+            .filter(|k| k.to_lowercase().contains(&needle))
+            .collect();
         egui::ScrollArea::vertical()
             .max_height(300.0)
             .show(ui, |ui| {
@@ -410,6 +361,7 @@ impl SnarlViewer<String> for GraphViewer<'_> {
                     if ui.button(k).clicked() {
                         match self.model.add_node(k) {
                             Ok(name) => {
+                                self.search.clear();
                                 self.model
                                     .set_position(&name, [f64::from(pos.x), f64::from(pos.y)]);
                                 self.actions.select = Some(name);
@@ -443,6 +395,65 @@ impl SnarlViewer<String> for GraphViewer<'_> {
     }
 }
 
+/// Screenshot mode (`depthgraph-editor FILE --screenshot OUT.png`): select a
+/// node, wait until its preview is on screen, write the window to a PNG and
+/// close. Used by the Xvfb test and for the README's picture.
+pub struct AutoShot {
+    /// Where the PNG goes.
+    pub path: PathBuf,
+    /// The node whose preview to show (none: just the canvas).
+    pub select: Option<String>,
+    /// Give up (and report an error) after this long.
+    pub timeout: Duration,
+    /// The outcome, filled in before the window closes.
+    pub outcome: Arc<Mutex<Option<Result<(), String>>>>,
+}
+
+struct ShotState {
+    cfg: AutoShot,
+    started: Instant,
+    ready_frames: u32,
+    requested: bool,
+    done: bool,
+}
+
+/// Writes an egui screenshot as an RGBA PNG.
+pub fn save_png(image: &ColorImage, path: &Path) -> Result<(), String> {
+    let [w, h] = image.size;
+    let bytes: Vec<u8> = image.pixels.iter().flat_map(|c| c.to_array()).collect();
+    let (w32, h32) = (
+        u32::try_from(w).map_err(|_| format!("screenshot {w} px wide is too large"))?,
+        u32::try_from(h).map_err(|_| format!("screenshot {h} px high is too large"))?,
+    );
+    image::save_buffer(path, &bytes, w32, h32, image::ExtendedColorType::Rgba8)
+        .map_err(|e| format!("cannot write {}: {e}", path.display()))
+}
+
+/// The first Color output upstream of `node` (breadth first over its
+/// inputs), as a "node.port" key: the photograph a mask is drawn over.
+pub fn upstream_color(model: &EditorModel, node: &str) -> Option<String> {
+    let mut queue = std::collections::VecDeque::from([node.to_string()]);
+    let mut seen = std::collections::BTreeSet::new();
+    while let Some(n) = queue.pop_front() {
+        if !seen.insert(n.clone()) {
+            continue;
+        }
+        let Ok(imp) = model.node_impl(&n) else {
+            continue;
+        };
+        for input in &imp.schema().inputs {
+            let Some((src, port)) = model.input_source(&n, input.name) else {
+                continue;
+            };
+            if model.port_type(&src, &port, true) == Ok(ValueType::Color) {
+                return Some(format!("{src}.{port}"));
+            }
+            queue.push_back(src);
+        }
+    }
+    None
+}
+
 /// The editor window's state.
 pub struct EditorApp {
     pub model: EditorModel,
@@ -453,11 +464,29 @@ pub struct EditorApp {
     panel: PanelState,
     evaluator: Option<Evaluator>,
     requested: Option<(u64, Option<String>)>,
+    /// When the request in flight was started.
+    request_started: Option<Instant>,
+    /// Time from the last request to its preview on screen.
+    pub last_latency_ms: Option<f64>,
     trace: Option<Trace>,
     values: BTreeMap<String, Value>,
+    /// The selected node's output shown in the preview.
+    preview_port: Option<String>,
+    /// The Color output drawn under the selected node's masks.
+    background: Option<String>,
     texture: Option<TextureHandle>,
-    check_errors: Vec<String>,
+    legend: Option<DepthLegend>,
+    preview_hash: Option<u64>,
+    /// Where the preview picture was drawn last frame.
+    image_frame: Option<ImageFrame>,
+    /// Preview zoom (screen points per pixel); `None` fits the panel.
+    zoom: Option<f32>,
+    check_errors: Vec<(Option<String>, String)>,
+    eval_error: Option<String>,
     message: Option<String>,
+    search: String,
+    notify_set: bool,
+    shot: Option<ShotState>,
 }
 
 impl EditorApp {
@@ -480,12 +509,37 @@ impl EditorApp {
             panel: PanelState::default(),
             evaluator,
             requested: None,
+            request_started: None,
+            last_latency_ms: None,
             trace: None,
             values: BTreeMap::new(),
+            preview_port: None,
+            background: None,
             texture: None,
+            legend: None,
+            preview_hash: None,
+            image_frame: None,
+            zoom: None,
             check_errors: Vec::new(),
+            eval_error: None,
             message,
+            search: String::new(),
+            notify_set: false,
+            shot: None,
         }
+    }
+
+    /// Runs in screenshot mode (see [`AutoShot`]).
+    pub fn with_screenshot(mut self, cfg: AutoShot) -> Self {
+        self.selected = cfg.select.clone();
+        self.shot = Some(ShotState {
+            cfg,
+            started: Instant::now(),
+            ready_frames: 0,
+            requested: false,
+            done: false,
+        });
+        self
     }
 
     /// Rebuilds the canvas from the model (after any structural change).
@@ -547,9 +601,20 @@ impl EditorApp {
         self.snarl = snarl;
         self.check_errors = match self.model.check() {
             Ok(_) => Vec::new(),
-            Err(errs) => errs.iter().map(|e| e.to_string()).collect(),
+            Err(errs) => errs
+                .iter()
+                .map(|e| (e.node().map(str::to_string), e.to_string()))
+                .collect(),
         };
         self.synced_revision = Some(self.model.revision());
+    }
+
+    fn selected_kind(&self) -> Option<String> {
+        let sel = self.selected.as_deref()?;
+        self.model
+            .document()
+            .node(sel)
+            .map(|d| d.kind.value.clone())
     }
 
     /// Starts evaluating the selected node when the document or the selection changed.
@@ -562,15 +627,28 @@ impl EditorApp {
         let Some(sel) = self.selected.clone() else {
             return;
         };
+        self.background = upstream_color(&self.model, &sel);
+        let mut targets = vec![sel];
+        if let Some(bg) = &self.background {
+            if let Some((node, _)) = bg.split_once('.') {
+                targets.push(node.to_string());
+            }
+        }
         let Some(ev) = self.evaluator.as_mut() else {
             return;
         };
-        match self.model.pipeline_for(Some(std::slice::from_ref(&sel))) {
+        if !self.notify_set {
+            let c = ctx.clone();
+            ev.set_notify(move || c.request_repaint());
+            self.notify_set = true;
+        }
+        match self.model.pipeline_for(Some(&targets)) {
             Ok(p) => {
                 ev.start(p, vec![self.path.clone()]);
+                self.request_started = Some(Instant::now());
                 ctx.request_repaint();
             }
-            Err(errs) => self.message = Some(errs.join("\n")),
+            Err(errs) => self.eval_error = Some(errs.join("\n")),
         }
     }
 
@@ -578,28 +656,305 @@ impl EditorApp {
         let Some(ev) = self.evaluator.as_mut() else {
             return;
         };
-        match ev.poll() {
-            Some(outcome) => match outcome.result {
+        if let Some(outcome) = ev.poll() {
+            match outcome.result {
                 Ok((trace, values)) => {
                     self.trace = Some(trace);
                     self.values = values;
-                    self.texture = None;
-                    if let Some(sel) = &self.selected {
-                        let prefix = format!("{sel}.");
-                        let img = self
+                    self.eval_error = None;
+                    self.rebuild_preview(ctx);
+                    if let Some(t) = self.request_started.take() {
+                        self.last_latency_ms = Some(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                }
+                Err(e) => {
+                    self.request_started = None;
+                    self.eval_error = Some(e);
+                }
+            }
+        }
+    }
+
+    /// The selected node's image outputs (port names), in schema order.
+    fn image_ports(&self) -> Vec<&'static str> {
+        let Some(sel) = self.selected.as_deref() else {
+            return Vec::new();
+        };
+        let Ok(imp) = self.model.node_impl(sel) else {
+            return Vec::new();
+        };
+        imp.schema()
+            .outputs
+            .iter()
+            .filter(|p| {
+                self.values
+                    .get(&format!("{sel}.{}", p.name))
+                    .is_some_and(|v| v.image_dims().is_some())
+            })
+            .map(|p| p.name)
+            .collect()
+    }
+
+    /// Builds the preview texture from the latest values.
+    fn rebuild_preview(&mut self, ctx: &egui::Context) {
+        self.texture = None;
+        self.legend = None;
+        self.preview_hash = None;
+        self.image_frame = None;
+        let Some(sel) = self.selected.clone() else {
+            return;
+        };
+        let ports = self.image_ports();
+        let port = match &self.preview_port {
+            Some(p) if ports.contains(&p.as_str()) => p.clone(),
+            _ => match ports.first() {
+                Some(p) => p.to_string(),
+                None => return,
+            },
+        };
+        let Some(value) = self.values.get(&format!("{sel}.{port}")) else {
+            return;
+        };
+        let background = self
+            .background
+            .as_ref()
+            .and_then(|k| self.values.get(k))
+            .filter(|bg| bg.image_dims() == value.image_dims())
+            .and_then(preview::picture);
+        let lasso = self.selected_kind().as_deref() == Some("Lasso");
+        let picture = match (value, background) {
+            (Value::Mask(m) | Value::Confidence(m), Some(mut bg)) => {
+                let size = [m.width(), m.height()];
+                if lasso {
+                    preview::overlay_mask(
+                        &mut bg.image,
+                        self.values
+                            .get(&format!("{sel}.mask"))
+                            .and_then(|v| match v {
+                                Value::Mask(m) => Some(m.as_slice()),
+                                _ => None,
+                            })
+                            .unwrap_or(&[]),
+                        size,
+                        Color32::from_rgb(40, 120, 255),
+                        0.45,
+                    );
+                    if let Some(Value::Mask(p)) = self.values.get(&format!("{sel}.path")) {
+                        preview::overlay_mask(
+                            &mut bg.image,
+                            p.as_slice(),
+                            size,
+                            Color32::YELLOW,
+                            1.0,
+                        );
+                    }
+                } else {
+                    preview::overlay_mask(
+                        &mut bg.image,
+                        m.as_slice(),
+                        size,
+                        Color32::from_rgb(255, 120, 40),
+                        0.6,
+                    );
+                }
+                Some(bg)
+            }
+            (v, _) => preview::picture(v),
+        };
+        if let Some(p) = picture {
+            self.legend = p.legend;
+            let mut h = std::collections::hash_map::DefaultHasher::new();
+            std::hash::Hash::hash(&p.image.size, &mut h);
+            for c in &p.image.pixels {
+                std::hash::Hash::hash(&c.to_array(), &mut h);
+            }
+            self.preview_hash = Some(std::hash::Hasher::finish(&h));
+            self.texture = Some(ctx.load_texture("preview", p.image, TextureOptions::NEAREST));
+        }
+    }
+
+    /// The preview pane: output choice, zoom, the picture (with hover
+    /// values), a depth legend, and lasso clicks for a Lasso node.
+    fn preview_pane(&mut self, ui: &mut egui::Ui, sel: &str) {
+        ui.strong("preview");
+        let ports = self.image_ports();
+        let mut rebuild = false;
+        ui.horizontal(|ui| {
+            if ports.len() > 1 {
+                let mut current = self
+                    .preview_port
+                    .clone()
+                    .filter(|p| ports.contains(&p.as_str()))
+                    .unwrap_or_else(|| ports[0].to_string());
+                let before = current.clone();
+                egui::ComboBox::from_id_salt("preview-port")
+                    .selected_text(current.clone())
+                    .show_ui(ui, |ui| {
+                        for p in &ports {
+                            ui.selectable_value(&mut current, p.to_string(), *p);
+                        }
+                    });
+                if current != before {
+                    self.preview_port = Some(current);
+                    rebuild = true;
+                }
+            }
+            let mut fit = self.zoom.is_none();
+            if ui.checkbox(&mut fit, "fit").changed() {
+                self.zoom = if fit { None } else { Some(1.0) };
+            }
+            if let Some(z) = self.zoom.as_mut() {
+                ui.add(
+                    egui::Slider::new(z, 0.125..=16.0)
+                        .logarithmic(true)
+                        .text("zoom"),
+                );
+            }
+        });
+        if rebuild {
+            self.rebuild_preview(ui.ctx());
+        }
+        if let Some(ms) = self.last_latency_ms {
+            ui.small(format!("result shown {ms:.0} ms after the change"));
+        }
+        let lasso = self.selected_kind().as_deref() == Some("Lasso");
+        let mut clicks = match self.model.param_value(sel, "clicks") {
+            Ok(ParamValue::Points(p)) if lasso => Some(p),
+            _ => None,
+        };
+        let mut clicks_changed = false;
+        if let Some(c) = clicks.as_mut() {
+            ui.small("Click on the picture to add a lasso point; right click removes the last.");
+            ui.horizontal(|ui| {
+                if ui
+                    .add_enabled(!c.is_empty(), egui::Button::new("Remove last click"))
+                    .clicked()
+                {
+                    c.pop();
+                    clicks_changed = true;
+                }
+                if ui
+                    .add_enabled(!c.is_empty(), egui::Button::new("Clear clicks"))
+                    .clicked()
+                {
+                    c.clear();
+                    clicks_changed = true;
+                }
+                ui.label(format!("{} clicks", c.len()));
+            });
+        }
+        let Some(tex) = self.texture.clone() else {
+            ui.label(match &self.eval_error {
+                Some(_) => "(the node failed: see the message above)",
+                None => "(no image output yet)",
+            });
+            return;
+        };
+        let size = tex.size_vec2();
+        let pixels = [tex.size()[0], tex.size()[1]];
+        let value_key = format!(
+            "{sel}.{}",
+            self.preview_port
+                .clone()
+                .filter(|p| ports.contains(&p.as_str()))
+                .or_else(|| ports.first().map(|p| p.to_string()))
+                .unwrap_or_default()
+        );
+        egui::ScrollArea::both()
+            .max_height(560.0)
+            .auto_shrink([false, true])
+            .show(ui, |ui| {
+                let scale = match self.zoom {
+                    Some(z) => z,
+                    // Guard: an empty texture keeps scale 1.
+                    None if size.x > 0.0 => (ui.available_width() / size.x).max(0.01),
+                    None => 1.0,
+                };
+                let resp =
+                    ui.add(egui::Image::new((tex.id(), size * scale)).sense(egui::Sense::click()));
+                let frame = ImageFrame {
+                    rect: resp.rect,
+                    size: pixels,
+                };
+                self.image_frame = Some(frame);
+                if let Some(c) = clicks.as_mut() {
+                    if resp.clicked() {
+                        if let Some(px) =
+                            resp.interact_pointer_pos().and_then(|p| frame.to_pixel(p))
+                        {
+                            c.push([(px[0] * 10.0).round() / 10.0, (px[1] * 10.0).round() / 10.0]);
+                            clicks_changed = true;
+                        }
+                    }
+                    if resp.secondary_clicked() && c.pop().is_some() {
+                        clicks_changed = true;
+                    }
+                    let painter = ui.painter_at(resp.rect);
+                    let pts: Vec<egui::Pos2> = c.iter().map(|p| frame.to_screen(*p)).collect();
+                    if pts.len() >= 2 {
+                        let mut closed = pts.clone();
+                        closed.push(pts[0]);
+                        painter.add(egui::Shape::dashed_line(
+                            &closed,
+                            egui::Stroke::new(1.0, Color32::WHITE),
+                            4.0,
+                            4.0,
+                        ));
+                    }
+                    for p in &pts {
+                        painter.circle(
+                            *p,
+                            4.0,
+                            Color32::RED,
+                            egui::Stroke::new(1.0, Color32::WHITE),
+                        );
+                    }
+                }
+                if let Some(pos) = resp.hover_pos() {
+                    if let Some(px) = frame.to_pixel(pos) {
+                        let (x, y) = (px[0] as usize, px[1] as usize);
+                        if let Some(text) = self
                             .values
-                            .iter()
-                            .filter(|(k, _)| k.starts_with(&prefix))
-                            .find_map(|(_, v)| preview_image(v));
-                        if let Some(img) = img {
-                            self.texture =
-                                Some(ctx.load_texture("preview", img, TextureOptions::LINEAR));
+                            .get(&value_key)
+                            .and_then(|v| preview::describe_pixel(v, x, y))
+                        {
+                            resp.on_hover_text_at_pointer(text);
                         }
                     }
                 }
-                Err(e) => self.message = Some(e),
-            },
-            None => ctx.request_repaint_after(std::time::Duration::from_millis(50)),
+            });
+        if let Some(l) = self.legend {
+            ui.horizontal(|ui| {
+                ui.label(format!("{:.2} m", l.near_m));
+                let (rect, _) =
+                    ui.allocate_exact_size(egui::vec2(160.0, 12.0), egui::Sense::hover());
+                let painter = ui.painter_at(rect);
+                let n = 32;
+                for i in 0..n {
+                    let [r, g, b] = preview::colormap((i as f32 + 0.5) / n as f32);
+                    let x0 = rect.min.x + rect.width() * i as f32 / n as f32;
+                    let x1 = rect.min.x + rect.width() * (i + 1) as f32 / n as f32;
+                    painter.rect_filled(
+                        egui::Rect::from_min_max(
+                            egui::pos2(x0, rect.min.y),
+                            egui::pos2(x1, rect.max.y),
+                        ),
+                        0.0,
+                        Color32::from_rgb(r, g, b),
+                    );
+                }
+                ui.label(format!("{:.2} m", l.far_m));
+                if l.holes > 0 {
+                    ui.label(format!("({} holes, black)", l.holes));
+                }
+            });
+        }
+        if clicks_changed {
+            if let Some(c) = clicks {
+                if let Err(e) = self.model.set_param(sel, "clicks", ParamValue::Points(c)) {
+                    self.message = Some(e);
+                }
+            }
         }
     }
 
@@ -629,59 +984,155 @@ impl EditorApp {
             }
         });
     }
+
+    /// Screenshot mode: once the preview is on screen for a few frames, ask
+    /// for a screenshot; when it arrives, write it and close.
+    fn drive_shot(&mut self, ctx: &egui::Context) {
+        let ready = self.selected.is_none()
+            || self.texture.is_some()
+            || self.eval_error.is_some()
+            || self.evaluator.is_none();
+        let shots: Vec<Arc<ColorImage>> = ctx.input(|i| {
+            i.raw
+                .events
+                .iter()
+                .filter_map(|e| match e {
+                    egui::Event::Screenshot { image, .. } => Some(image.clone()),
+                    _ => None,
+                })
+                .collect()
+        });
+        let Some(shot) = self.shot.as_mut() else {
+            return;
+        };
+        if shot.done {
+            return;
+        }
+        let finish = |shot: &mut ShotState, r: Result<(), String>| {
+            if let Ok(mut o) = shot.cfg.outcome.lock() {
+                *o = Some(r);
+            }
+            shot.done = true;
+            ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+        };
+        if let Some(img) = shots.last() {
+            let r = save_png(img, &shot.cfg.path);
+            finish(shot, r);
+            return;
+        }
+        if shot.started.elapsed() > shot.cfg.timeout {
+            let r = Err(format!(
+                "no preview after {:.0} s{}",
+                shot.cfg.timeout.as_secs_f64(),
+                self.eval_error
+                    .as_ref()
+                    .map(|e| format!(": {e}"))
+                    .unwrap_or_default()
+            ));
+            finish(shot, r);
+            return;
+        }
+        if ready {
+            shot.ready_frames += 1;
+        }
+        if shot.ready_frames >= 5 && !shot.requested {
+            ctx.send_viewport_cmd(egui::ViewportCommand::Screenshot(egui::UserData::default()));
+            shot.requested = true;
+        }
+        ctx.request_repaint();
+    }
 }
 
 impl eframe::App for EditorApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        self.show(ui);
+    }
+}
+
+impl EditorApp {
+    /// Selects `node` for the parameter panel and the preview.
+    pub fn select(&mut self, node: &str) {
+        if self.selected.as_deref() != Some(node) {
+            self.preview_port = None;
+        }
+        self.selected = Some(node.to_string());
+    }
+
+    /// The latest run's trace (what ran, what was cached).
+    pub fn trace(&self) -> Option<&Trace> {
+        self.trace.as_ref()
+    }
+
+    /// A fingerprint of the preview picture now shown (`None`: none shown).
+    pub fn preview_fingerprint(&self) -> Option<u64> {
+        self.preview_hash
+    }
+
+    /// Where the preview picture is on screen (after a frame showed it).
+    pub fn preview_frame(&self) -> Option<ImageFrame> {
+        self.image_frame
+    }
+
+    /// A value of the latest run, by "node.port".
+    pub fn value(&self, key: &str) -> Option<&Value> {
+        self.values.get(key)
+    }
+
+    /// True while a requested evaluation has not come back.
+    pub fn busy(&self) -> bool {
+        self.request_started.is_some()
+    }
+
+    /// Draws the whole editor into `ui` (the window's contents).
+    pub fn show(&mut self, ui: &mut egui::Ui) {
         let ctx = ui.ctx().clone();
         if self.synced_revision != Some(self.model.revision()) {
             self.sync_snarl();
         }
         self.poll(&ctx);
         egui::Panel::top("toolbar").show(ui, |ui| self.toolbar(ui));
-        if !self.check_errors.is_empty() {
+        if !self.check_errors.is_empty() || self.eval_error.is_some() {
             egui::Panel::bottom("errors").show(ui, |ui| {
-                ui.strong("check errors");
-                for e in &self.check_errors {
+                if let Some(e) = &self.eval_error {
+                    ui.strong("run error");
                     ui.colored_label(Color32::RED, e.as_str());
+                }
+                if !self.check_errors.is_empty() {
+                    ui.strong("check errors");
+                    for (_, e) in &self.check_errors {
+                        ui.colored_label(Color32::RED, e.as_str());
+                    }
                 }
             });
         }
-        egui::Panel::right("side").min_size(300.0).show(ui, |ui| {
-            egui::ScrollArea::vertical().show(ui, |ui| match self.selected.clone() {
-                Some(sel) if self.model.document().node(&sel).is_some() => {
-                    param_panel(ui, &mut self.model, &sel, &mut self.panel);
-                    ui.separator();
-                    ui.strong("preview");
-                    match &self.texture {
-                        Some(t) => {
-                            let size = t.size_vec2();
-                            let w = ui.available_width().min(size.x.max(1.0));
-                            let scale = w / size.x.max(1.0);
-                            ui.image((t.id(), size * scale));
-                        }
-                        None => {
-                            ui.label("(no image output yet)");
-                        }
+        egui::Panel::right("side").min_size(340.0).show(ui, |ui| {
+            egui::ScrollArea::vertical()
+                .id_salt("side-scroll")
+                .show(ui, |ui| match self.selected.clone() {
+                    Some(sel) if self.model.document().node(&sel).is_some() => {
+                        param_panel(ui, &mut self.model, &sel, &mut self.panel);
+                        ui.separator();
+                        self.preview_pane(ui, &sel);
                     }
-                }
-                _ => {
-                    ui.label("Click `preview` on a node to edit its parameters.");
-                }
-            });
+                    _ => {
+                        ui.label("Click `preview` on a node to edit its parameters.");
+                    }
+                });
         });
         egui::CentralPanel::default().show(ui, |ui| {
             let mut viewer = GraphViewer {
                 model: &mut self.model,
                 trace: self.trace.as_ref(),
                 selected: self.selected.as_deref(),
+                errors: &self.check_errors,
+                search: &mut self.search,
                 actions: CanvasActions::default(),
             };
             self.snarl
                 .show(&mut viewer, &SnarlStyle::new(), "depthgraph-canvas", ui);
             let actions = viewer.actions;
             if let Some(s) = actions.select {
-                self.selected = Some(s);
+                self.select(&s);
             }
             if let Some(m) = actions.message {
                 self.message = Some(m);
@@ -698,5 +1149,8 @@ impl eframe::App for EditorApp {
                 .set_position(&name, [f64::from(pos.x), f64::from(pos.y)]);
         }
         self.maybe_evaluate(&ctx);
+        if self.shot.is_some() {
+            self.drive_shot(&ctx);
+        }
     }
 }

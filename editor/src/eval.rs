@@ -3,8 +3,8 @@
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -25,8 +25,12 @@ struct Job {
     options: RunOptions,
 }
 
+/// Called by the worker after each finished request (e.g. to wake the UI).
+type Notify = Arc<Mutex<Option<Box<dyn Fn() + Send>>>>;
+
 /// Runs pipelines on a background thread, newest request first.
 pub struct Evaluator {
+    notify: Notify,
     jobs: Option<Sender<Job>>,
     results: Receiver<EvalOutcome>,
     cancel: Option<CancelToken>,
@@ -41,6 +45,8 @@ impl Evaluator {
         let engine = Arc::new(Engine::new(options).map_err(|e| e.to_string())?);
         let (job_tx, job_rx) = channel::<Job>();
         let (res_tx, res_rx) = channel::<EvalOutcome>();
+        let notify: Notify = Arc::new(Mutex::new(None));
+        let worker_notify = notify.clone();
         let worker = std::thread::Builder::new()
             .name("depthgraph-editor-eval".into())
             .spawn(move || {
@@ -60,10 +66,16 @@ impl Evaluator {
                     if res_tx.send(outcome).is_err() {
                         break;
                     }
+                    if let Ok(n) = worker_notify.lock() {
+                        if let Some(f) = n.as_ref() {
+                            f();
+                        }
+                    }
                 }
             })
             .map_err(|e| format!("cannot start the evaluation thread: {e}"))?;
         Ok(Self {
+            notify,
             jobs: Some(job_tx),
             results: res_rx,
             cancel: None,
@@ -97,6 +109,14 @@ impl Evaluator {
             });
         }
         self.generation
+    }
+
+    /// Calls `f` on the worker thread after each finished request, so a
+    /// window can repaint at once instead of polling.
+    pub fn set_notify(&self, f: impl Fn() + Send + 'static) {
+        if let Ok(mut n) = self.notify.lock() {
+            *n = Some(Box::new(f));
+        }
     }
 
     /// The newest request number handed out.

@@ -1,42 +1,112 @@
-//! `depthgraph-editor FILE`: opens a pipeline in the graph editor.
+//! `depthgraph-editor [FILE]`: opens a pipeline in the graph editor.
+//!
+//! `--screenshot OUT.png` runs without a person: the window opens, the node
+//! given by `--select` is evaluated and previewed, the window is written to
+//! OUT.png and closed (the CI test under Xvfb and the README's picture).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
+use clap::Parser;
 use depthgraph_editor::EditorModel;
-use depthgraph_editor::app::EditorApp;
+use depthgraph_editor::app::{AutoShot, EditorApp};
+
+#[derive(Parser)]
+#[command(
+    name = "depthgraph-editor",
+    about = "Node-graph editor for depthgraph pipelines"
+)]
+struct Args {
+    /// The pipeline (RON) to open; none opens an empty graph.
+    file: Option<PathBuf>,
+    /// Write a screenshot of the window to this PNG once the preview is shown, then exit.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// The node to select (and preview) at start.
+    #[arg(long)]
+    select: Option<String>,
+    /// Window size in points, WIDTHxHEIGHT.
+    #[arg(long, default_value = "1280x800")]
+    size: String,
+    /// Screenshot mode gives up after this many seconds.
+    #[arg(long, default_value_t = 300.0)]
+    timeout_s: f64,
+}
+
+fn parse_size(s: &str) -> Result<[f32; 2], String> {
+    let bad = || format!("--size `{s}`: expected WIDTHxHEIGHT, e.g. 1280x800");
+    let (w, h) = s.split_once('x').ok_or_else(bad)?;
+    let w: f32 = w.trim().parse().map_err(|_| bad())?;
+    let h: f32 = h.trim().parse().map_err(|_| bad())?;
+    if !(w >= 100.0 && h >= 100.0 && w <= 16384.0 && h <= 16384.0) {
+        return Err(format!("--size `{s}`: each side must be 100 to 16384"));
+    }
+    Ok([w, h])
+}
 
 fn main() -> ExitCode {
-    let Some(path) = std::env::args_os().nth(1).map(PathBuf::from) else {
-        eprintln!("usage: depthgraph-editor FILE.ron");
-        return ExitCode::from(2);
-    };
-    let registry = match depthgraph_nodes::registry() {
-        Ok(r) => Arc::new(r),
-        Err(e) => {
-            eprintln!("error: node registry: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let model = match EditorModel::load(&path, registry) {
-        Ok(m) => m,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let app = EditorApp::new(model, path.clone());
-    let title = format!("depthgraph editor - {}", path.display());
-    match eframe::run_native(
-        &title,
-        eframe::NativeOptions::default(),
-        Box::new(|_cc| Ok(Box::new(app))),
-    ) {
+    let args = Args::parse();
+    match run(args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::FAILURE
         }
     }
+}
+
+fn run(args: Args) -> Result<(), String> {
+    let size = parse_size(&args.size)?;
+    if !(args.timeout_s.is_finite() && args.timeout_s > 0.0) {
+        return Err(format!("--timeout-s {}: must be > 0", args.timeout_s));
+    }
+    let registry =
+        Arc::new(depthgraph_nodes::registry().map_err(|e| format!("node registry: {e}"))?);
+    let (model, path) = match &args.file {
+        Some(path) => (EditorModel::load(path, registry)?, path.clone()),
+        None => (
+            EditorModel::from_text("(version: 1, nodes: {})", "untitled.ron", registry)?,
+            PathBuf::from("untitled.ron"),
+        ),
+    };
+    if let Some(sel) = &args.select {
+        if model.document().node(sel).is_none() {
+            return Err(format!(
+                "--select `{sel}`: no such node in {}",
+                path.display()
+            ));
+        }
+    }
+    let mut app = EditorApp::new(model, path.clone());
+    let outcome = Arc::new(Mutex::new(None));
+    if let Some(shot) = &args.screenshot {
+        app = app.with_screenshot(AutoShot {
+            path: shot.clone(),
+            select: args.select.clone(),
+            timeout: Duration::from_secs_f64(args.timeout_s),
+            outcome: outcome.clone(),
+        });
+    }
+    let title = format!("depthgraph editor - {}", path.display());
+    let options = eframe::NativeOptions {
+        viewport: eframe::egui::ViewportBuilder::default()
+            .with_inner_size(size)
+            .with_title(title.clone()),
+        ..eframe::NativeOptions::default()
+    };
+    eframe::run_native(&title, options, Box::new(|_cc| Ok(Box::new(app))))
+        .map_err(|e| format!("cannot open the window: {e}"))?;
+    if args.screenshot.is_some() {
+        let result = outcome
+            .lock()
+            .map_err(|_| "the screenshot state was poisoned".to_string())?
+            .take();
+        return match result {
+            Some(r) => r,
+            None => Err("the window closed before the screenshot was taken".into()),
+        };
+    }
+    Ok(())
 }

@@ -12,7 +12,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::ron_text::{self, Pos, RonValue, Spanned};
 
 /// Horizontal distance between layout columns.
-pub const COLUMN_WIDTH: f64 = 260.0;
+pub const COLUMN_WIDTH: f64 = 320.0;
 /// Vertical distance between nodes of one column.
 pub const ROW_HEIGHT: f64 = 170.0;
 

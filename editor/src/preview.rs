@@ -1,0 +1,280 @@
+//! The preview pane's pictures: image values turned into 8-bit textures
+//! (Color as sRGB, Depth colour-mapped with a legend, masks and confidences
+//! as grey or tinted over the photograph upstream), and the mapping between
+//! screen points and image pixels that zoom and lasso clicks need.
+
+use depthgraph_graph::prelude::Value;
+use eframe::egui::{self, Color32, ColorImage};
+
+/// Linear → sRGB byte, clamped; non-finite values show as black.
+pub fn srgb_byte(x: f32) -> u8 {
+    let x = if x.is_finite() {
+        x.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let s = if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    };
+    (s * 255.0 + 0.5) as u8
+}
+
+/// A blue → green → yellow colormap (viridis stops) of `t` in [0, 1].
+pub fn colormap(t: f32) -> [u8; 3] {
+    let stops = [
+        [68.0, 1.0, 84.0],
+        [59.0, 82.0, 139.0],
+        [33.0, 145.0, 140.0],
+        [94.0, 201.0, 98.0],
+        [253.0, 231.0, 37.0],
+    ];
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    } * 4.0;
+    let i = (t.floor() as usize).min(3);
+    let f = t - i as f32;
+    let mut out = [0u8; 3];
+    for (c, o) in out.iter_mut().enumerate() {
+        *o = (stops[i][c] * (1.0 - f) + stops[i + 1][c] * f) as u8;
+    }
+    out
+}
+
+/// The depth range a colour-mapped preview spans (metres), for its legend.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthLegend {
+    /// Depth shown at the low end of the colormap.
+    pub near_m: f32,
+    /// Depth shown at the high end.
+    pub far_m: f32,
+    /// Pixels without depth (shown black).
+    pub holes: usize,
+}
+
+/// A preview texture's pixels and, for depth, its legend.
+pub struct Picture {
+    pub image: ColorImage,
+    pub legend: Option<DepthLegend>,
+}
+
+/// Valid depth range of `z` (finite and > 0), or `None` when all are holes.
+pub fn depth_range(z: &[f32]) -> Option<(f32, f32)> {
+    let (lo, hi) = z
+        .iter()
+        .filter(|z| z.is_finite() && **z > 0.0)
+        .fold((f32::INFINITY, 0.0f32), |(lo, hi), z| {
+            (lo.min(*z), hi.max(*z))
+        });
+    (lo <= hi).then_some((lo, hi))
+}
+
+/// An 8-bit picture of an image value: Color as sRGB, Depth colour-mapped
+/// between its nearest and farthest valid depth (holes black), masks and
+/// confidences as grey. `None` for values that are not images.
+pub fn picture(v: &Value) -> Option<Picture> {
+    match v {
+        Value::Color(img) => {
+            let (w, h) = img.dims();
+            let mut rgba = Vec::with_capacity(w * h * 4);
+            for p in img.as_slice() {
+                rgba.extend_from_slice(&[srgb_byte(p[0]), srgb_byte(p[1]), srgb_byte(p[2]), 255]);
+            }
+            Some(Picture {
+                image: ColorImage::from_rgba_unmultiplied([w, h], &rgba),
+                legend: None,
+            })
+        }
+        Value::Depth(img) => {
+            let (w, h) = img.dims();
+            let (lo, hi) = depth_range(img.as_slice()).unwrap_or((0.0, 0.0));
+            // Guard: a flat (or empty) depth map maps to the low end.
+            let span = if hi > lo { hi - lo } else { 1.0 };
+            let mut rgba = Vec::with_capacity(w * h * 4);
+            let mut holes = 0;
+            for z in img.as_slice() {
+                if z.is_finite() && *z > 0.0 {
+                    let [r, g, b] = colormap((z - lo) / span);
+                    rgba.extend_from_slice(&[r, g, b, 255]);
+                } else {
+                    holes += 1;
+                    rgba.extend_from_slice(&[0, 0, 0, 255]);
+                }
+            }
+            Some(Picture {
+                image: ColorImage::from_rgba_unmultiplied([w, h], &rgba),
+                legend: Some(DepthLegend {
+                    near_m: lo,
+                    far_m: hi,
+                    holes,
+                }),
+            })
+        }
+        Value::Mask(img) | Value::Confidence(img) => {
+            let (w, h) = img.dims();
+            let mut rgba = Vec::with_capacity(w * h * 4);
+            for x in img.as_slice() {
+                let g = (if x.is_finite() {
+                    x.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                } * 255.0) as u8;
+                rgba.extend_from_slice(&[g, g, g, 255]);
+            }
+            Some(Picture {
+                image: ColorImage::from_rgba_unmultiplied([w, h], &rgba),
+                legend: None,
+            })
+        }
+        _ => None,
+    }
+}
+
+/// The 8-bit preview of an image value (see [`picture`]).
+pub fn preview_image(v: &Value) -> Option<ColorImage> {
+    picture(v).map(|p| p.image)
+}
+
+/// Tints `base` by `mask` (values in [0, 1], clamped): each pixel moves
+/// towards `tint` by `opacity × mask`. Returns false (and leaves `base`
+/// alone) when the sizes differ.
+pub fn overlay_mask(
+    base: &mut ColorImage,
+    mask: &[f32],
+    mask_size: [usize; 2],
+    tint: Color32,
+    opacity: f32,
+) -> bool {
+    if base.size != mask_size || base.pixels.len() != mask.len() {
+        return false;
+    }
+    let t = [tint.r(), tint.g(), tint.b()];
+    for (p, &m) in base.pixels.iter_mut().zip(mask) {
+        let a = if m.is_finite() {
+            m.clamp(0.0, 1.0)
+        } else {
+            0.0
+        } * opacity.clamp(0.0, 1.0);
+        if a <= 0.0 {
+            continue;
+        }
+        let mix = |c: u8, t: u8| (f32::from(c) * (1.0 - a) + f32::from(t) * a + 0.5) as u8;
+        *p = Color32::from_rgb(mix(p.r(), t[0]), mix(p.g(), t[1]), mix(p.b(), t[2]));
+    }
+    true
+}
+
+/// Where an image of `size` pixels is drawn on screen (`rect`): converts
+/// between screen points and pixel coordinates (pixel centres at
+/// integer + 0.5, as the Lasso's clicks are written).
+#[derive(Debug, Clone, Copy)]
+pub struct ImageFrame {
+    pub rect: egui::Rect,
+    pub size: [usize; 2],
+}
+
+impl ImageFrame {
+    /// Screen points per image pixel (guarded: an empty image or rect gives 1).
+    pub fn scale(&self) -> f32 {
+        let w = self.size[0] as f32;
+        if w > 0.0 && self.rect.width() > 0.0 {
+            self.rect.width() / w
+        } else {
+            1.0
+        }
+    }
+
+    /// The pixel coordinates under a screen point, or `None` outside the image.
+    pub fn to_pixel(&self, p: egui::Pos2) -> Option<[f64; 2]> {
+        if !self.rect.contains(p) {
+            return None;
+        }
+        let s = self.scale();
+        let x = f64::from((p.x - self.rect.min.x) / s);
+        let y = f64::from((p.y - self.rect.min.y) / s);
+        Some([
+            x.clamp(0.0, self.size[0] as f64),
+            y.clamp(0.0, self.size[1] as f64),
+        ])
+    }
+
+    /// The screen point of pixel coordinates.
+    pub fn to_screen(&self, px: [f64; 2]) -> egui::Pos2 {
+        let s = self.scale();
+        egui::pos2(
+            self.rect.min.x + px[0] as f32 * s,
+            self.rect.min.y + px[1] as f32 * s,
+        )
+    }
+}
+
+/// A short description of the value at pixel `(x, y)` (for hover text).
+pub fn describe_pixel(v: &Value, x: usize, y: usize) -> Option<String> {
+    let (w, h) = v.image_dims()?;
+    if x >= w || y >= h {
+        return None;
+    }
+    Some(match v {
+        Value::Color(img) => {
+            let p = img.get(x, y);
+            format!("({x}, {y}) rgb {:.3} {:.3} {:.3}", p[0], p[1], p[2])
+        }
+        Value::Depth(img) => {
+            let z = *img.get(x, y);
+            if z.is_finite() && z > 0.0 {
+                format!("({x}, {y}) depth {z:.3} m")
+            } else {
+                format!("({x}, {y}) no depth")
+            }
+        }
+        Value::Mask(img) | Value::Confidence(img) => format!("({x}, {y}) {:.3}", img.get(x, y)),
+        _ => return None,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overlay_tints_only_inside_the_mask_and_refuses_other_sizes() {
+        let mut img = ColorImage::new([2, 1], vec![Color32::from_rgb(0, 0, 0); 2]);
+        assert!(overlay_mask(
+            &mut img,
+            &[1.0, 0.0],
+            [2, 1],
+            Color32::from_rgb(200, 100, 0),
+            0.5
+        ));
+        assert_eq!(img.pixels[0], Color32::from_rgb(100, 50, 0));
+        assert_eq!(img.pixels[1], Color32::from_rgb(0, 0, 0));
+        assert!(!overlay_mask(&mut img, &[1.0], [1, 1], Color32::WHITE, 1.0));
+        assert_eq!(img.pixels[0], Color32::from_rgb(100, 50, 0));
+    }
+
+    #[test]
+    fn frame_maps_pixels_and_points_both_ways() {
+        let f = ImageFrame {
+            rect: egui::Rect::from_min_size(egui::pos2(10.0, 20.0), egui::vec2(200.0, 100.0)),
+            size: [100, 50],
+        };
+        assert_eq!(f.scale(), 2.0);
+        assert_eq!(f.to_pixel(egui::pos2(30.0, 40.0)), Some([10.0, 10.0]));
+        assert_eq!(f.to_screen([10.0, 10.0]), egui::pos2(30.0, 40.0));
+        assert_eq!(f.to_pixel(egui::pos2(5.0, 40.0)), None);
+    }
+
+    #[test]
+    fn depth_legend_spans_valid_depths_and_counts_holes() {
+        let z = depthgraph_graph::prelude::DepthMap::from_vec(3, 1, vec![1.0, f32::NAN, 3.0])
+            .expect("3 pixels");
+        let p = picture(&Value::Depth(std::sync::Arc::new(z))).expect("depth is an image");
+        let legend = p.legend.expect("depth has a legend");
+        assert_eq!((legend.near_m, legend.far_m, legend.holes), (1.0, 3.0, 1));
+        assert_eq!(p.image.pixels[1], Color32::from_rgb(0, 0, 0));
+        assert_ne!(p.image.pixels[0], p.image.pixels[2]);
+    }
+}
