@@ -44,13 +44,17 @@
 //!
 //! # Where it renders
 //!
-//! Only where the object can change the picture, conservatively: pixels
-//! where the object is seen (`α > 0`), target points whose ray towards some
-//! VPL passes within `2 R` of the object's centre `c` (`R` = the largest
-//! distance of an object point from `c`: the doubled radius covers the
-//! splats of the shadow maps), and target points within `bounce_radius_rel * R`
-//! of `c` (the bounce is cut off beyond). Every other pixel is the photo's,
-//! bit for bit, and `I_{s+t} - I_t` is exactly 0 there. With nothing pasted
+//! Only where the object changes the picture. Candidates are found
+//! conservatively: pixels where the object is seen (`α > 0`), target points
+//! whose ray towards some VPL passes within `2 R` of the object's centre `c`
+//! (`R` = the largest distance of an object point from `c`: the doubled
+//! radius covers the splats of the shadow maps), and target points within
+//! `bounce_radius_rel * R` of `c` (the bounce is cut off beyond). A
+//! candidate lit by the VPLs is then kept only if the object changes the
+//! visibility of at least one VPL there (`V^{s+t}_k != V^t_k`: only the
+//! VPLs of its cone are looked up) or the bounce reaches it; only kept
+//! pixels are shaded with all VPLs. Elsewhere `I_{s+t} - I_t` is exactly 0
+//! and the photo's pixels are kept bit for bit. With nothing pasted
 //! (`α = 0` everywhere) or no VPL carrying energy, the node passes the photo
 //! through and says why.
 
@@ -169,15 +173,38 @@ fn check(port: &str, dims: (usize, usize), k: &Intrinsics) -> Result<(), NodeErr
     Ok(())
 }
 
-/// Distance from `c` to the ray `x + t d`, `t >= 0`.
-#[inline]
-fn ray_distance(x: DVec3, d: DVec3, c: DVec3) -> f64 {
-    let v = c - x;
-    let t = v.dot(d);
-    if t <= 0.0 {
-        v.length()
-    } else {
-        (v - t * d).length()
+/// The directions `d` whose ray `x + t d` (`t >= 0`) passes within `reach`
+/// of `c`, as a cone `d·u >= cos_min` around the unit `u` towards `c`; every
+/// direction (`cos_min = -1`) when `x` is within `reach` of `c`.
+#[derive(Debug, Clone, Copy)]
+struct Cone {
+    u: DVec3,
+    cos_min: f64,
+}
+
+impl Cone {
+    fn new(x: DVec3, c: DVec3, reach: f64) -> Self {
+        let v = c - x;
+        let d = v.length();
+        if d <= reach {
+            return Self {
+                u: DVec3::ZERO,
+                cos_min: -1.0,
+            };
+        }
+        // guard: d > reach >= 0. The ray's closest approach to c is
+        // d sin θ (θ = angle between d and v, when cos θ > 0), so it passes
+        // within reach iff cos θ >= sqrt(1 - (reach / d)²).
+        let s = reach / d;
+        Self {
+            u: v / d,
+            cos_min: (1.0 - s * s).max(0.0).sqrt(),
+        }
+    }
+
+    #[inline]
+    fn contains(&self, d: DVec3) -> bool {
+        self.cos_min <= -1.0 || d.dot(self.u) >= self.cos_min
     }
 }
 
@@ -203,6 +230,35 @@ impl IrrCtx<'_> {
     /// Surfaces per parallel chunk: its accumulators stay in cache while
     /// the VPL loop walks the maps one at a time.
     const CHUNK: usize = 512;
+
+    /// Whether the object changes the visibility of any VPL at each
+    /// surface: `V^{s+t}_k != V^t_k` for some `k` with `n·ω_k > 0`. Only
+    /// VPLs whose ray from the surface passes within `reach` of the
+    /// object's centre `c` are looked up: the object's splats lie inside
+    /// that cylinder (module docs), so elsewhere the paired maps agree
+    /// texel for texel. A surface stops at its first differing VPL.
+    fn changed(&self, surfs: &[&Surf], c: DVec3, reach: f64) -> Vec<bool> {
+        surfs
+            .par_iter()
+            .map(|s| {
+                let cone = Cone::new(s.pos, c, reach);
+                let r = self.set.splat_radius(s.pos, self.m);
+                self.dirs.iter().zip(self.maps).any(|(dir, m)| {
+                    if s.n.dot(*dir) <= 0.0 || !cone.contains(*dir) {
+                        return false;
+                    }
+                    match m {
+                        Some((mt, mst)) => {
+                            let b = mst.bias_with_radius(r, s.n, self.bias_scale);
+                            let (vt, vst) = mt.visible_pair(mst, s.pos, b);
+                            vt != vst
+                        }
+                        None => false,
+                    }
+                })
+            })
+            .collect()
+    }
 
     /// `Σ_k Φ_k max(0, n·ω_k) V_k` of every surface. Chunks of surfaces
     /// run in parallel, each VPL-major (one pair of maps at a time stays in
@@ -365,8 +421,10 @@ pub fn relight(
             match &target[i] {
                 None => false,
                 Some(s) => {
-                    (p.bounce_vpls > 0 && (s.pos - c).length() <= bounce_reach)
-                        || dirs.iter().any(|d| ray_distance(s.pos, *d, c) <= reach)
+                    (p.bounce_vpls > 0 && (s.pos - c).length() <= bounce_reach) || {
+                        let cone = Cone::new(s.pos, c, reach);
+                        dirs.iter().any(|d| cone.contains(*d))
+                    }
                 }
             }
         })
@@ -463,6 +521,24 @@ pub fn relight(
         }
     }
     let r2_min = p.clamp_distance_m * p.clamp_distance_m;
+
+    // ---- which target surfaces the object changes: its shadow (some VPL's
+    // visibility differs) or the bounce's reach; only these are shaded.
+    let cand_idx: Vec<usize> = (0..w * h)
+        .filter(|&i| in_region[i] && target[i].is_some())
+        .collect();
+    let cand_surfs: Vec<&Surf> = cand_idx
+        .iter()
+        .filter_map(|&i| target[i].as_ref())
+        .collect();
+    let shadowed = irr_ctx.changed(&cand_surfs, c, reach);
+    let mut in_region = in_region;
+    for (&i, sh) in cand_idx.iter().zip(&shadowed) {
+        let near = target[i]
+            .as_ref()
+            .is_some_and(|s| !bounce.is_empty() && (s.pos - c).length() <= bounce_reach);
+        in_region[i] = alpha[i] > 0.0 || *sh || near;
+    }
 
     // ---- per pixel
     let photo = inp.photo.as_slice();
