@@ -29,6 +29,14 @@
 //! `Σ_k Φ_k max(0, n·ω_k)` (same guard): the object is assumed photographed
 //! under comparable light, and gains the shadows of its new place.
 //!
+//! **Bounce from the scene (one, scene to object).** Up to `scene_vpls`
+//! target pixels become secondary point VPLs (drawn with probability
+//! `∝ area / distance²` to the object centre, weighted by the inverse
+//! pdf). The scene is Lambertian and its radiance is read off the photo,
+//! `L = P / π`, so no albedo or irradiance of the scene is needed. They add
+//! `B_s` (same clamped formula as below) to the object's irradiance:
+//! `ρ_o (E^{s+t} + B_s)`. This bounce is not shadowed.
+//!
 //! **Bounce (one, object to scene).** Up to `bounce_vpls` object pixels
 //! (stratified) become secondary point VPLs: a surface element of area `a_j`
 //! with outgoing radiance `L_j = ρ_o E^{s+t}_j / π` gives a receiver
@@ -38,9 +46,8 @@
 //! from a VPL touching a surface) at the price of a **bias**: the bounce is
 //! too dark within about `clamp_distance_m` of the object. A VPL exactly at a
 //! receiver (`r < 1e-9` m) has no direction and contributes 0. The bounce is
-//! not shadowed, and the scene's own interreflections and the light the
-//! object receives from the scene are not rendered (they cancel in
-//! `I_{s+t} - I_t` only approximately; see the report of the node).
+//! not shadowed. The scene's own interreflections that the object blocks
+//! are not rendered (the object's shadow of the scene's bounce light).
 //!
 //! # Where it renders
 //!
@@ -83,6 +90,8 @@ node_params! {
         pub min_distance_m: f64 = 0.05, ParamKind::Float { min: 1e-6, max: 1e3 };
         /// Object pixels used as bounce VPLs (0 = no bounce).
         pub bounce_vpls: usize = 256usize, ParamKind::Int { min: 0, max: 65536 };
+        /// Scene pixels used as secondary VPLs that light the object (one bounce; 0 = none).
+        pub scene_vpls: usize = 256usize, ParamKind::Int { min: 0, max: 65536 };
         /// Clamp of the bounce's 1/r², metres (bias: too dark closer than this).
         pub clamp_distance_m: f64 = 0.05, ParamKind::Float { min: 1e-4, max: 10.0 };
         /// The bounce reaches this many object radii from its centre.
@@ -487,16 +496,23 @@ pub fn relight(
         .collect();
     let obj_surfs: Vec<&Surf> = obj_idx.iter().filter_map(|&i| object[i].as_ref()).collect();
     let obj_irr = irr_ctx.irradiance(&obj_surfs);
+    let r2_min = p.clamp_distance_m * p.clamp_distance_m;
+    // secondary VPLs on the scene: the light the scene bounces onto the object
+    let scene_vpls = scene_bounce_vpls(&target, inp, c, p.clamp_distance_m, p.scene_vpls, p.seed);
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
         .zip(obj_irr.par_iter())
         .map(|(&i, &(_, est, efree))| {
             let pc = inp.pasted_color.as_slice()[i];
+            let bs = match &object[i] {
+                Some(s) if !scene_vpls.is_empty() => bounce_at(s.pos, s.n, &scene_vpls, r2_min),
+                _ => [0.0; 3],
+            };
             std::array::from_fn(|ch| {
                 let free = efree[ch].max(e_floor);
                 // guard: free >= e_floor > 0
                 let rho = (pc[ch].max(0.0) as f64) / free;
-                (rho * est[ch]) as f32
+                (rho * (est[ch] + bs[ch])) as f32
             })
         })
         .collect();
@@ -520,7 +536,6 @@ pub fn relight(
             }
         }
     }
-    let r2_min = p.clamp_distance_m * p.clamp_distance_m;
 
     // ---- which target surfaces the object changes: its shadow (some VPL's
     // visibility differs) or the bounce's reach; only these are shaded.
@@ -607,6 +622,76 @@ pub fn relight(
         .map_err(shape)?,
         difference: Image::from_vec(w, h, difference).map_err(shape)?,
     }))
+}
+
+/// Secondary VPLs on the target surfaces (one bounce, scene to object;
+/// module docs): `m` pixels drawn, stratified, with probability
+/// `∝ a_i / max(d_i, d_min)²` (`a_i` the pixel's surface area, `d_i` its
+/// distance to the object centre `c`: the bounce falls off as 1/r², so the
+/// samples go where it is strong). A Lambertian surface seen in the photo
+/// has radiance `L_i = P_i / π` (`P = ρ E` is the pixel value), so a drawn
+/// pixel carries `L_i a_i / (m pdf_i)`. Empty for `m = 0` or no surface.
+fn scene_bounce_vpls(
+    target: &[Option<Surf>],
+    inp: &RelightInputs,
+    c: DVec3,
+    d_min: f64,
+    m: usize,
+    seed: u64,
+) -> Vec<(DVec3, DVec3, [f64; 3])> {
+    if m == 0 {
+        return Vec::new();
+    }
+    let (k, w) = (inp.k, inp.k.width);
+    let d_min = d_min.max(1e-6);
+    let mut idx = Vec::new();
+    let mut cdf = Vec::new();
+    let mut acc = 0.0f64;
+    for (i, s) in target.iter().enumerate() {
+        let Some(s) = s else {
+            continue;
+        };
+        let (area, _) = pixel_area(inp.depth, k, i % w, i / w);
+        let d = (s.pos - c).length().max(d_min);
+        // guard: d >= d_min > 0
+        let wgt = area / (d * d);
+        if !(wgt.is_finite() && wgt > 0.0) {
+            continue;
+        }
+        acc += wgt;
+        idx.push(i);
+        cdf.push(acc);
+    }
+    if idx.is_empty() || !(acc.is_finite() && acc > 0.0) {
+        return Vec::new();
+    }
+    let mut rng = crate::vpl::SplitMix64(seed ^ 0x5EC0_4DA2_B0C3_u64);
+    let photo = inp.photo.as_slice();
+    (0..m)
+        .filter_map(|j| {
+            // guard: m >= 1
+            let t = (j as f64 + rng.next_f64()) / m as f64 * acc;
+            let n = cdf.partition_point(|&q| q <= t).min(idx.len() - 1);
+            let i = idx[n];
+            let s = target[i].as_ref()?;
+            let prev = if n == 0 { 0.0 } else { cdf[n - 1] };
+            let wgt = cdf[n] - prev;
+            if wgt <= 0.0 {
+                return None;
+            }
+            let (area, _) = pixel_area(inp.depth, k, i % w, i / w);
+            // L a / (m pdf) with pdf = wgt / acc; guard: wgt > 0, m >= 1
+            let scale = area * acc / (m as f64 * wgt) / std::f64::consts::PI;
+            let flux = photo[i].map(|v| {
+                if v.is_finite() {
+                    f64::from(v.max(0.0)) * scale
+                } else {
+                    0.0
+                }
+            });
+            Some((s.pos, s.n, flux))
+        })
+        .collect()
 }
 
 /// Irradiance bounced onto `(x, n)` by point VPLs `(position, normal,
@@ -733,6 +818,66 @@ mod tests {
         });
         let alpha = slab.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
         (k, floor, slab, alpha)
+    }
+
+    /// The sampled scene bounce (secondary VPLs drawn ∝ area / d²) matches
+    /// the sum over every floor pixel at a point facing the floor, keeps
+    /// the floor's colour, and is empty for 0 VPLs.
+    #[test]
+    fn scene_bounce_is_an_unbiased_estimate_of_the_floor_light() {
+        let (w, h) = (160, 120);
+        let (k, floor, slab, alpha) = floor_and_slab(w, h);
+        let photo: ColorImage = Image::filled(w, h, [0.8, 0.2, 0.1]);
+        let inp = RelightInputs {
+            photo: &photo,
+            depth: &floor,
+            normals: None,
+            albedo: None,
+            pasted_color: &photo,
+            pasted_depth: &slab,
+            alpha: &alpha,
+            k: &k,
+        };
+        let up = DVec3::new(0.0, -1.0, 0.0);
+        let target: Vec<Option<Surf>> = (0..w * h)
+            .map(|i| {
+                let z = *floor.get(i % w, i / w);
+                DepthMap::is_valid(z).then(|| Surf {
+                    pos: k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, z as f64),
+                    n: up,
+                })
+            })
+            .collect();
+        // The slab's underside: 0.2 m above the floor, facing it.
+        let (x, n) = (DVec3::new(0.0, 0.2, 2.0), DVec3::new(0.0, 1.0, 0.0));
+        let clamp = 0.05;
+        let all: Vec<(DVec3, DVec3, [f64; 3])> = target
+            .iter()
+            .enumerate()
+            .filter_map(|(i, s)| {
+                let s = s.as_ref()?;
+                let (a, _) = pixel_area(&floor, &k, i % w, i / w);
+                let l = photo.as_slice()[i].map(|v| f64::from(v) * a / std::f64::consts::PI);
+                Some((s.pos, s.n, l))
+            })
+            .collect();
+        let exact = bounce_at(x, n, &all, clamp * clamp);
+        assert!(exact[0] > 0.1, "the floor lights the underside: {exact:?}");
+        let vpls = scene_bounce_vpls(&target, &inp, x, clamp, 4096, 7);
+        assert_eq!(vpls.len(), 4096);
+        let est = bounce_at(x, n, &vpls, clamp * clamp);
+        for ch in 0..3 {
+            let rel = (est[ch] - exact[ch]).abs() / exact[ch];
+            assert!(
+                rel < 0.05,
+                "channel {ch}: {} vs {} ({rel:.3})",
+                est[ch],
+                exact[ch]
+            );
+        }
+        // The colour of the floor: ratios kept.
+        assert!((est[1] / est[0] - 0.25).abs() < 1e-9);
+        assert!(scene_bounce_vpls(&target, &inp, x, clamp, 0, 7).is_empty());
     }
 
     fn overhead() -> Vec<Vpl> {
