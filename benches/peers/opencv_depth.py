@@ -6,23 +6,9 @@ Usage: opencv_depth.py DIR   (DIR holds <case>.json, <case>.depth.f32, <case>.co
 Writes <case>.<method>.f32 results and <case>.peers.json timings (ms, median of 3).
 Installs opencv-contrib-python-headless with pip when cv2 is missing.
 """
-import json, os, subprocess, sys, time
+import json, os, sys
 
-def ensure_cv2():
-    try:
-        import cv2  # noqa: F401
-    except ImportError:
-        subprocess.check_call([sys.executable, "-m", "pip", "install", "--quiet",
-                               "opencv-contrib-python-headless", "numpy"])
-
-def timed(fn, repeats=3):
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append((time.perf_counter() - t) * 1e3)
-    times.sort()
-    return out, times[len(times) // 2]
+from peer_common import ensure_cv2, timed
 
 def main(d):
     ensure_cv2()
@@ -43,15 +29,15 @@ def main(d):
         src = np.clip(np.where(holes > 0, 0, depth) * 1000.0, 0, 65535).round().astype(np.uint16)
         res, timing = {}, {}
         for label, flag in (("opencv_telea", cv2.INPAINT_TELEA), ("opencv_ns", cv2.INPAINT_NS)):
-            out, ms = timed(lambda: cv2.inpaint(src, holes, 5, flag))
+            out, ms = timed(lambda: cv2.inpaint(src, holes, 5, flag), 3)
             res[label], timing[label] = out.astype(np.float32) / 1000.0, ms
         guide = cv2.cvtColor(color, cv2.COLOR_RGB2BGR).astype(np.float32)
         filled = res["opencv_telea"]
         sc, ss = meta.get("sigma_color_u8", 25.0), meta.get("sigma_space_px", 3.0)
-        out, ms = timed(lambda: cv2.ximgproc.jointBilateralFilter(guide, filled, 11, sc, ss))
+        out, ms = timed(lambda: cv2.ximgproc.jointBilateralFilter(guide, filled, 11, sc, ss), 3)
         res["opencv_telea_jbf"], timing["opencv_telea_jbf"] = out, ms + timing["opencv_telea"]
         timing["opencv_jbf_only"] = ms
-        out, ms = timed(lambda: cv2.ximgproc.guidedFilter(guide, filled, 5, 1e-4 * 255 * 255))
+        out, ms = timed(lambda: cv2.ximgproc.guidedFilter(guide, filled, 5, 1e-4 * 255 * 255), 3)
         res["opencv_telea_guided"], timing["opencv_telea_guided"] = out, ms + timing["opencv_telea"]
         for k, v in res.items():
             np.asarray(v, dtype="<f4").tofile(os.path.join(d, f"{case}.{k}.f32"))

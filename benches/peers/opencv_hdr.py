@@ -11,24 +11,9 @@ Writes <case>.<method>.f32 (RGB float32 radiance, row-major) and <case>.peers.js
 (ms, median of 3 runs for the calibration and 5 for the merge, after one untimed run).
 Installs opencv-contrib-python-headless with pip when cv2 is missing.
 """
-import json, os, subprocess, sys, time
+import json, os, sys
 
-def ensure_cv2():
-    try:
-        import cv2  # noqa: F401
-    except ImportError:
-        subprocess.check_call([sys.executable, "-m", "pip", "install", "--quiet",
-                               "opencv-contrib-python-headless", "numpy"])
-
-def timed(fn, repeats):
-    out = fn()  # warm-up (allocations, thread pool), not timed
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append((time.perf_counter() - t) * 1e3)
-    times.sort()
-    return out, times[len(times) // 2]
+from peer_common import ensure_cv2, timed
 
 def run_case(d, case, images, times):
     import cv2
@@ -41,8 +26,8 @@ def run_case(d, case, images, times):
     merge = cv2.createMergeDebevec()
     ms = {}
     for key, cal in calibrations.items():
-        curve, ms[key + "_calibrate"] = timed(lambda: cal.process(images, times), 3)
-        hdr, ms[key + "_merge"] = timed(lambda: merge.process(images, times, curve), 5)
+        curve, ms[key + "_calibrate"] = timed(lambda: cal.process(images, times), 3, warmup=True)
+        hdr, ms[key + "_merge"] = timed(lambda: merge.process(images, times, curve), 5, warmup=True)
         rgb = np.ascontiguousarray(hdr[:, :, ::-1], dtype="<f4")
         rgb.tofile(os.path.join(d, f"{case}.{key}.f32"))
     json.dump({"ms": ms, "opencv": cv2.__version__},

@@ -12,23 +12,9 @@ Prints one JSON line: medians (ms, of 5) of
 Installs opencv-contrib-python-headless with pip when cv2 is missing (as
 opencv_depth.py does).
 """
-import json, os, subprocess, sys, time
+import json, os, sys
 
-def ensure_cv2():
-    try:
-        import cv2  # noqa: F401
-    except ImportError:
-        subprocess.check_call([sys.executable, "-m", "pip", "install", "--quiet",
-                               "opencv-contrib-python-headless", "numpy"])
-
-def timed(fn, repeats=5):
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append((time.perf_counter() - t) * 1e3)
-    times.sort()
-    return out, times[len(times) // 2]
+from peer_common import ensure_cv2, timed
 
 def main(d):
     ensure_cv2()
@@ -44,12 +30,12 @@ def main(d):
         gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)
         gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)
         return np.sqrt((gx * gx + gy * gy).sum(axis=2))
-    _, ms_sobel = timed(sobel)
+    _, ms_sobel = timed(sobel, 5)
     grey = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY)
-    _, ms_canny = timed(lambda: cv2.Canny(grey, 50, 150))
+    _, ms_canny = timed(lambda: cv2.Canny(grey, 50, 150), 5)
     mask = np.zeros((h, w), np.uint8)
     cv2.ellipse(mask, (w // 2, h // 2), (w // 8, h // 8), 0, 0, 360, 255, -1)
-    _, ms_clone = timed(lambda: cv2.seamlessClone(color, color, mask, (w // 3, h // 2), cv2.NORMAL_CLONE))
+    _, ms_clone = timed(lambda: cv2.seamlessClone(color, color, mask, (w // 3, h // 2), cv2.NORMAL_CLONE), 5)
     print(json.dumps({"opencv": cv2.__version__, "sobel": ms_sobel, "canny": ms_canny,
                       "seamless_clone": ms_clone}))
 
