@@ -545,6 +545,38 @@ fn read_rgb_f32(path: &Path, w: usize, h: usize) -> Option<ColorImage> {
 }
 
 /// Runs the peer script on `case` in `dir`; `Err` says why it did not run.
+/// One peer's name, calibration ms, merge ms and output.
+type PeerResult = (String, f64, f64, Option<ColorImage>);
+
+/// Runs the OpenCV peers on `case` (inputs already written under `pd`) and
+/// reads back their times and outputs; the note names OpenCV's version or
+/// why the peers did not run.
+fn run_and_read_peers(
+    pd: &Path,
+    case: &str,
+    w: usize,
+    h: usize,
+) -> (Option<String>, Vec<PeerResult>) {
+    let mut out = Vec::new();
+    let note = match run_peers(pd, case) {
+        Ok(()) => peer_json(pd, case).and_then(|j| {
+            for (key, label) in PEER_METHODS {
+                out.push((
+                    label.to_string(),
+                    j["ms"][format!("{key}_calibrate")]
+                        .as_f64()
+                        .unwrap_or(f64::NAN),
+                    j["ms"][format!("{key}_merge")].as_f64().unwrap_or(f64::NAN),
+                    read_rgb_f32(&pd.join(format!("{case}.{key}.f32")), w, h),
+                ));
+            }
+            j["opencv"].as_str().map(|v| format!("OpenCV {v}"))
+        }),
+        Err(e) => Some(format!("OpenCV peers did not run: {e}")),
+    };
+    (note, out)
+}
+
 fn run_peers(dir: &Path, case: &str) -> Result<(), String> {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/peers/opencv_hdr.py");
     match std::process::Command::new("python3")
@@ -729,7 +761,7 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
     }
     // peers on the same files (they have no notion of missing pixels)
     let mut note = None;
-    let mut peer_out: Vec<(String, f64, f64, Option<ColorImage>)> = Vec::new();
+    let mut peer_out: Vec<PeerResult> = Vec::new();
     if let Some(pd) = peers {
         let files: Vec<String> = load_list_files(&list)
             .iter()
@@ -737,24 +769,7 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
             .collect();
         let json = serde_json::json!({ "files": files, "times": stack.times_s }).to_string();
         if std::fs::write(pd.join("memorial.json"), json).is_ok() {
-            match run_peers(pd, "memorial") {
-                Ok(()) => {
-                    if let Some(j) = peer_json(pd, "memorial") {
-                        note = j["opencv"].as_str().map(|v| format!("OpenCV {v}"));
-                        for (key, label) in PEER_METHODS {
-                            peer_out.push((
-                                label.to_string(),
-                                j["ms"][format!("{key}_calibrate")]
-                                    .as_f64()
-                                    .unwrap_or(f64::NAN),
-                                j["ms"][format!("{key}_merge")].as_f64().unwrap_or(f64::NAN),
-                                read_rgb_f32(&pd.join(format!("memorial.{key}.f32")), w, h),
-                            ));
-                        }
-                    }
-                }
-                Err(e) => note = Some(format!("OpenCV peers did not run: {e}")),
-            }
+            (note, peer_out) = run_and_read_peers(pd, "memorial", w, h);
         }
     }
     // one pixel set for every method: valid in the reference and every output,
@@ -869,24 +884,7 @@ fn speed(peers: Option<&Path>, repeats: usize) -> (String, f64, Option<String>) 
             serde_json::json!({ "width": w, "height": h, "times": stack.times_s }).to_string();
         ok &= std::fs::write(pd.join("speed.json"), json).is_ok();
         if ok {
-            match run_peers(pd, "speed") {
-                Ok(()) => {
-                    if let Some(j) = peer_json(pd, "speed") {
-                        note = j["opencv"].as_str().map(|v| format!("OpenCV {v}"));
-                        for (key, label) in PEER_METHODS {
-                            peer_out.push((
-                                label.to_string(),
-                                j["ms"][format!("{key}_calibrate")]
-                                    .as_f64()
-                                    .unwrap_or(f64::NAN),
-                                j["ms"][format!("{key}_merge")].as_f64().unwrap_or(f64::NAN),
-                                read_rgb_f32(&pd.join(format!("speed.{key}.f32")), w, h),
-                            ));
-                        }
-                    }
-                }
-                Err(e) => note = Some(format!("OpenCV peers did not run: {e}")),
-            }
+            (note, peer_out) = run_and_read_peers(pd, "speed", w, h);
         }
     }
     // pixels: lit (truth > 0), valid in every output, and not saturated or

@@ -80,19 +80,24 @@ fn demo_writes_every_output_and_they_read_back() {
     assert!(d.join("depth_kinect_preview.png").exists());
 }
 
-fn explain(dir: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
+/// `depthgraph CMD graphs/demo.ron --quiet --out OUT`, at the small size, then `extra`.
+fn demo_cli(cmd: &str, out: &Path, extra: &[&str]) -> std::process::Output {
     let demo = graph("demo.ron");
-    let mut args = vec!["explain", demo.to_str().unwrap(), "--json", "--quiet"];
-    args.extend([
-        "--out",
-        dir.to_str().unwrap(),
-        "--cache-dir",
-        cache.to_str().unwrap(),
-    ]);
-    for s in SMALL.iter().chain(sets) {
+    let mut args = vec![cmd, demo.to_str().unwrap(), "--quiet"];
+    args.extend(["--out", out.to_str().unwrap()]);
+    for s in SMALL {
         args.extend(["--set", s]);
     }
-    let r = cli(&args);
+    args.extend(extra);
+    cli(&args)
+}
+
+fn explain(dir: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
+    let mut extra = vec!["--json", "--cache-dir", cache.to_str().unwrap()];
+    for s in sets {
+        extra.extend(["--set", s]);
+    }
+    let r = demo_cli("explain", dir, &extra);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     serde_json::from_slice(&r.stdout).unwrap()
 }
@@ -136,20 +141,7 @@ fn second_process_reruns_only_downstream_of_the_change() {
     assert_eq!(status_of(&third, "scene"), "cached");
     assert_eq!(status_of(&third, "points"), "cached");
     // --no-cache computes everything again.
-    let demo = graph("demo.ron");
-    let r = cli(&[
-        "explain",
-        demo.to_str().unwrap(),
-        "--json",
-        "--quiet",
-        "--no-cache",
-        "--out",
-        out.path().to_str().unwrap(),
-        "--set",
-        SMALL[0],
-        "--set",
-        SMALL[1],
-    ]);
+    let r = demo_cli("explain", out.path(), &["--json", "--no-cache"]);
     let rows: Vec<serde_json::Value> = serde_json::from_slice(&r.stdout).unwrap();
     assert_eq!(status_of(&rows, "scene"), "ran");
 }
@@ -323,29 +315,23 @@ fn every_registered_default_is_valid_and_round_trips() {
 #[test]
 fn sweep_writes_csv_and_plot() {
     let out = tempfile::tempdir().unwrap();
-    let demo = graph("demo.ron");
-    let r = cli(&[
+    let r = demo_cli(
         "sweep",
-        demo.to_str().unwrap(),
-        "--quiet",
-        "--no-cache",
-        "--out",
-        out.path().to_str().unwrap(),
-        "--set",
-        SMALL[0],
-        "--set",
-        SMALL[1],
-        "--param",
-        "kinect.noise_k=0,0.0015,0.006",
-        "--truth",
-        "scene.depth",
-        "--output",
-        "kinect.depth",
-        "--metric",
-        "rmse",
-        "--repeats",
-        "1",
-    ]);
+        out.path(),
+        &[
+            "--no-cache",
+            "--param",
+            "kinect.noise_k=0,0.0015,0.006",
+            "--truth",
+            "scene.depth",
+            "--output",
+            "kinect.depth",
+            "--metric",
+            "rmse",
+            "--repeats",
+            "1",
+        ],
+    );
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let csv = std::fs::read_to_string(out.path().join("sweep-kinect-noise_k.csv")).unwrap();
     let rows: Vec<Vec<&str>> = csv

@@ -197,6 +197,17 @@ impl GraphViewer<'_> {
         }
     }
 
+    /// Draws port `index` of `node` (its name, a pin coloured by its type).
+    fn pin(&self, ui: &mut egui::Ui, node: &str, output: bool, index: usize) -> PinInfo {
+        match self.ports(node, output).get(index) {
+            Some((port, ty)) => {
+                ui.label(*port);
+                PinInfo::circle().with_fill(type_color(*ty))
+            }
+            None => PinInfo::circle(),
+        }
+    }
+
     fn report(&mut self, r: Result<(), String>) {
         if let Err(e) = r {
             self.actions.message = Some(e);
@@ -230,13 +241,7 @@ impl SnarlViewer<String> for GraphViewer<'_> {
         snarl: &mut Snarl<String>,
     ) -> impl egui_snarl::ui::SnarlPin + 'static {
         let name = snarl.get_node(pin.id.node).cloned().unwrap_or_default();
-        match self.ports(&name, false).get(pin.id.input) {
-            Some((port, ty)) => {
-                ui.label(*port);
-                PinInfo::circle().with_fill(type_color(*ty))
-            }
-            None => PinInfo::circle(),
-        }
+        self.pin(ui, &name, false, pin.id.input)
     }
 
     fn show_output(
@@ -246,13 +251,7 @@ impl SnarlViewer<String> for GraphViewer<'_> {
         snarl: &mut Snarl<String>,
     ) -> impl egui_snarl::ui::SnarlPin + 'static {
         let name = snarl.get_node(pin.id.node).cloned().unwrap_or_default();
-        match self.ports(&name, true).get(pin.id.output) {
-            Some((port, ty)) => {
-                ui.label(*port);
-                PinInfo::circle().with_fill(type_color(*ty))
-            }
-            None => PinInfo::circle(),
-        }
+        self.pin(ui, &name, true, pin.id.output)
     }
 
     fn has_body(&mut self, _node: &String) -> bool {

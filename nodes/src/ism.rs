@@ -581,6 +581,40 @@ pub fn build_pair_in(
     Some((mk(t_only), mk(st)))
 }
 
+/// Scenes with an exact answer, shared by the tests of the shadow maps and
+/// of `Relight`.
+#[cfg(test)]
+pub(crate) mod fixtures {
+    use super::*;
+
+    /// Floor `y = 0.4` m (rows below the horizon, seen by a Kinect-like
+    /// camera) and a horizontal slab `x in [-0.2, 0.2]`, `z in [1.6, 2.4]`
+    /// at `y = 0.2` m, pasted with alpha 1: intrinsics, floor depth, slab
+    /// depth, slab alpha.
+    pub(crate) fn floor_and_slab(w: usize, h: usize) -> (Intrinsics, DepthMap, DepthMap, Mask) {
+        let k = crate::synthetic::kinect_like_intrinsics(w, h);
+        let floor = Image::from_fn(w, h, |_, y| {
+            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
+            if dy > 0.05 { (0.4 / dy) as f32 } else { 0.0 }
+        });
+        let slab = Image::from_fn(w, h, |x, y| {
+            let dx = (x as f64 + 0.5 - k.cx) / k.fx;
+            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
+            if dy <= 0.0 {
+                return 0.0;
+            }
+            let z = 0.2 / dy;
+            if (1.6..=2.4).contains(&z) && (dx * z).abs() <= 0.2 {
+                z as f32
+            } else {
+                0.0
+            }
+        });
+        let alpha = slab.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
+        (k, floor, slab, alpha)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -597,25 +631,7 @@ mod tests {
     fn a_slab_shadows_the_floor_below_it_only_with_the_object() {
         let (w, h) = (160, 120);
         let k = cam(w, h);
-        // floor: the plane y = 0.4 seen by the camera (rows below the horizon)
-        let floor = Image::from_fn(w, h, |_, y| {
-            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
-            if dy > 0.05 { (0.4 / dy) as f32 } else { 0.0 }
-        });
-        // slab: horizontal at y = 0.2, x in [-0.2, 0.2], z in [1.6, 2.4]
-        let slab = Image::from_fn(w, h, |x, y| {
-            let dx = (x as f64 + 0.5 - k.cx) / k.fx;
-            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
-            if dy <= 0.0 {
-                return 0.0;
-            }
-            let z = 0.2 / dy;
-            if (1.6..=2.4).contains(&z) && (dx * z).abs() <= 0.2 {
-                z as f32
-            } else {
-                0.0
-            }
-        });
+        let (_, floor, slab, _) = fixtures::floor_and_slab(w, h);
         assert!(slab.hole_count() < w * h);
         let centre = DVec3::new(0.0, 0.2, 2.0);
         let set = PointSet::new(&[(&floor, false), (&slab, true)], &k, &[centre], 0.05);

@@ -793,32 +793,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synthetic::kinect_like_intrinsics;
-
-    /// Floor `y = 0.4` m (rows below the horizon) and a horizontal slab
-    /// `x in [-0.2, 0.2]`, `z in [1.6, 2.4]` at `y = 0.2` m, pasted with alpha 1.
-    fn floor_and_slab(w: usize, h: usize) -> (Intrinsics, DepthMap, DepthMap, Mask) {
-        let k = kinect_like_intrinsics(w, h);
-        let floor = Image::from_fn(w, h, |_, y| {
-            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
-            if dy > 0.05 { (0.4 / dy) as f32 } else { 0.0 }
-        });
-        let slab = Image::from_fn(w, h, |x, y| {
-            let dx = (x as f64 + 0.5 - k.cx) / k.fx;
-            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
-            if dy <= 0.0 {
-                return 0.0;
-            }
-            let z = 0.2 / dy;
-            if (1.6..=2.4).contains(&z) && (dx * z).abs() <= 0.2 {
-                z as f32
-            } else {
-                0.0
-            }
-        });
-        let alpha = slab.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
-        (k, floor, slab, alpha)
-    }
+    use crate::ism::fixtures::floor_and_slab;
 
     /// The sampled scene bounce (secondary VPLs drawn ∝ area / d²) matches
     /// the sum over every floor pixel at a point facing the floor, keeps
