@@ -39,6 +39,70 @@ pub fn type_color(ty: ValueType) -> Color32 {
 pub struct PanelState {
     pub edits: BTreeMap<String, String>,
     pub error: Option<String>,
+    /// The file browser open for a path parameter: "node.param" and the folder shown.
+    pub browse: Option<(String, PathBuf)>,
+}
+
+/// The entries of `dir` for the file browser: folders first, then files,
+/// each sorted by name; hidden entries left out. Unreadable folders give
+/// the error text.
+pub fn list_dir(dir: &Path) -> Result<Vec<(String, bool)>, String> {
+    let rd = std::fs::read_dir(dir).map_err(|e| format!("cannot list {}: {e}", dir.display()))?;
+    let mut entries: Vec<(String, bool)> = rd
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_str()?.to_string();
+            (!name.starts_with('.')).then(|| (name, e.path().is_dir()))
+        })
+        .collect();
+    entries.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    Ok(entries)
+}
+
+/// The file browser of a path parameter (a window): navigate folders,
+/// click a file to pick it. Returns the picked path.
+fn file_browser(ui: &mut egui::Ui, state: &mut PanelState) -> Option<String> {
+    let (key, dir) = state.browse.clone()?;
+    let mut open = true;
+    let mut picked = None;
+    let mut go = None;
+    egui::Window::new(format!("choose {key}"))
+        .open(&mut open)
+        .default_size([360.0, 420.0])
+        .show(ui.ctx(), |ui| {
+            ui.label(dir.display().to_string());
+            if ui.button("..").clicked() {
+                go = Some(dir.join(".."));
+            }
+            egui::ScrollArea::vertical().show(ui, |ui| match list_dir(&dir) {
+                Ok(entries) => {
+                    for (name, is_dir) in entries {
+                        let text = if is_dir {
+                            format!("{name}/")
+                        } else {
+                            name.clone()
+                        };
+                        if ui.selectable_label(false, text).clicked() {
+                            if is_dir {
+                                go = Some(dir.join(&name));
+                            } else {
+                                picked = Some(dir.join(&name).display().to_string());
+                            }
+                        }
+                    }
+                }
+                Err(e) => {
+                    ui.colored_label(Color32::RED, e);
+                }
+            });
+        });
+    if let Some(d) = go {
+        state.browse = Some((key, d));
+    }
+    if picked.is_some() || !open {
+        state.browse = None;
+    }
+    picked
 }
 
 /// Parameter widgets of `node`, generated from its kind's schema. Changes go
@@ -135,6 +199,17 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                     {
                         new_value = Some(ParamValue::Text(v));
                     }
+                    if matches!(spec.kind, ParamKind::InputPath | ParamKind::OutputPath)
+                        && ui.button("…").on_hover_text("choose a file").clicked()
+                    {
+                        // Start in the folder of the current value (or the working directory).
+                        let start = Path::new(s.as_str())
+                            .parent()
+                            .filter(|p| p.is_dir())
+                            .map(Path::to_path_buf)
+                            .unwrap_or_else(|| PathBuf::from("."));
+                        state.browse = Some((format!("{node}.{name}"), start));
+                    }
                 }
                 _ => {
                     // Points, Floats, Vec3: edited as RON text, applied on Enter.
@@ -151,6 +226,15 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
                 }
             }
         });
+        if state
+            .browse
+            .as_ref()
+            .is_some_and(|(k, _)| *k == format!("{node}.{name}"))
+        {
+            if let Some(path) = file_browser(ui, state) {
+                new_value = Some(ParamValue::Text(path));
+            }
+        }
         let result = match (new_value, new_text) {
             (Some(v), _) => Some(model.set_param(node, name, v)),
             (None, Some(t)) => Some(model.set_param_text(node, name, &t)),

@@ -39,3 +39,34 @@ fn choice_widget_changes_the_document() {
     assert!(model.to_ron().contains("preset: \"corridor\""));
     assert!(model.can_undo());
 }
+
+#[test]
+fn path_parameter_is_picked_in_the_file_browser() {
+    let state = (demo(), PanelState::default());
+    let mut harness = Harness::new_ui_state(
+        |ui, (model, panel): &mut (EditorModel, PanelState)| {
+            param_panel(ui, model, "save_color", panel);
+        },
+        state,
+    );
+    harness.run();
+    harness.get_by_label("…").click();
+    harness.run();
+    // Tests run in the editor crate's folder: its `src/` folder and its
+    // Cargo.toml are listed; open the folder, then pick a file in it.
+    harness.get_by_label("src/").click();
+    harness.run();
+    harness.get_by_label("main.rs").click();
+    harness.run();
+    let (model, panel) = harness.state();
+    let want = std::path::Path::new(".")
+        .join("src")
+        .join("main.rs")
+        .display()
+        .to_string();
+    assert_eq!(
+        model.param_value("save_color", "path"),
+        Ok(ParamValue::Text(want))
+    );
+    assert!(panel.browse.is_none(), "the browser closes after a pick");
+}
