@@ -27,15 +27,19 @@
 //! and taken as 0: the pixel keeps the photo. The object's albedo is its
 //! pasted color divided by its **unshadowed** irradiance
 //! `Σ_k Φ_k max(0, n·ω_k)` (same guard): the object is assumed photographed
-//! under comparable light, and gains the shadows of its new place.
+//! under comparable light, and gains the shadows of its new place (the
+//! scene bounce, below, enters both).
 //!
 //! **Bounce from the scene (one, scene to object).** Up to `scene_vpls`
 //! target pixels become secondary point VPLs (drawn with probability
 //! `∝ area / distance²` to the object centre, weighted by the inverse
 //! pdf). The scene is Lambertian and its radiance is read off the photo,
 //! `L = P / π`, so no albedo or irradiance of the scene is needed. They add
-//! `B_s` (same clamped formula as below) to the object's irradiance:
-//! `ρ_o (E^{s+t} + B_s)`. This bounce is not shadowed.
+//! `B_s` (same clamped formula as below) to the object's irradiance, in the
+//! albedo estimate as in the shading: `ρ_o = P_o / (E_free + B_s)` and the
+//! object shows `ρ_o (E^{s+t} + B_s)`, never brighter than its pasted
+//! colour. The bounce fills the object's own shadows with the scene's
+//! colours. It is not shadowed.
 //!
 //! **Bounce (one, object to scene).** Up to `bounce_vpls` object pixels
 //! (stratified) become secondary point VPLs: a surface element of area `a_j`
@@ -509,7 +513,11 @@ pub fn relight(
                 _ => [0.0; 3],
             };
             std::array::from_fn(|ch| {
-                let free = efree[ch].max(e_floor);
+                // The pasted colour was lit directly and by bounced light
+                // alike: ρ_o = P / (E_free + B_s), so the shaded object is
+                // P (E^{s+t} + B_s) / (E_free + B_s) <= P (no firefly
+                // where the direct light is weak).
+                let free = (efree[ch] + bs[ch]).max(e_floor);
                 // guard: free >= e_floor > 0
                 let rho = (pc[ch].max(0.0) as f64) / free;
                 (rho * (est[ch] + bs[ch])) as f32
@@ -901,6 +909,14 @@ mod tests {
                     r.region.as_slice()[i],
                 );
                 assert!(c.iter().all(|v| v.is_finite() && *v >= 0.0));
+                if alpha.as_slice()[i] >= 1.0 {
+                    // the object is never brighter than its pasted colour
+                    let pc = pasted_color.as_slice()[i];
+                    assert!(
+                        (0..3).all(|ch| c[ch] <= pc[ch] * (1.0 + 1e-5)),
+                        "{c:?} > {pc:?}"
+                    );
+                }
                 if reg == 0.0 {
                     untouched += 1;
                     assert_eq!(c, photo.as_slice()[i]);
