@@ -273,6 +273,8 @@ pub struct ShadowMap {
     v0: f64,
     /// Side of a texel, metres.
     pub texel_m: f64,
+    /// `1 / texel_m` (texel lookups multiply instead of divide).
+    inv_texel: f64,
     pub res: usize,
     /// Largest `t = p·d` per texel; `-inf` = nothing there.
     pub t: Vec<f32>,
@@ -288,10 +290,9 @@ impl ShadowMap {
     /// Continuous texel coordinate of `p`.
     #[inline]
     fn texel(&self, p: DVec3) -> (f64, f64) {
-        // guard: texel_m > 0 (set by `build_pair`)
         (
-            (p.dot(self.eu) - self.u0) / self.texel_m,
-            (p.dot(self.ev) - self.v0) / self.texel_m,
+            (p.dot(self.eu) - self.u0) * self.inv_texel,
+            (p.dot(self.ev) - self.v0) * self.inv_texel,
         )
     }
 
@@ -516,6 +517,8 @@ pub fn build_pair_in(
     // one texel of margin on each side
     let texel_m = extent / (res as f64 - 2.0).max(1.0);
     let (u0, v0) = (umin - texel_m, vmin - texel_m);
+    // guard: texel_m = extent / (res - 2) with extent >= 1e-6 > 0
+    let inv_texel = 1.0 / texel_m;
     let mut t_only = vec![f32::NEG_INFINITY; res * res];
     let mut st = vec![f32::NEG_INFINITY; res * res];
     let m = p.points_per_map;
@@ -525,8 +528,8 @@ pub fn build_pair_in(
             continue;
         };
         let q = e.pos;
-        let (u, v) = ((q.dot(eu) - u0) / texel_m, (q.dot(ev) - v0) / texel_m);
-        let r = (set.radius_for(e.importance, m).max(e.min_radius) / texel_m)
+        let (u, v) = ((q.dot(eu) - u0) * inv_texel, (q.dot(ev) - v0) * inv_texel);
+        let r = (set.radius_for(e.importance, m).max(e.min_radius) * inv_texel)
             .min(rmax)
             .max(0.5);
         if u + r < 0.0 || v + r < 0.0 || u - r > res as f64 || v - r > res as f64 {
@@ -575,6 +578,7 @@ pub fn build_pair_in(
         u0,
         v0,
         texel_m,
+        inv_texel,
         res,
         t,
     };

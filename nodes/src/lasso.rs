@@ -899,7 +899,7 @@ fn eval(_: &EvalCtx, inputs: &Inputs, p: &LassoParams) -> Result<Outputs, NodeEr
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(TypedNode::new(
         "Lasso",
-        1,
+        2,
         "Edge-snapping lasso (3d-editing §III.C): the cheapest closed live-wire path over 1 / (eps + strength) \
          through one anchor near each click (anchors chosen jointly with the path, Mortensen & Barrett 1995 \
          intelligent scissors), filled into the source object mask alpha.\nFewer than 3 clicks give an empty mask (reported as a pass-through).",

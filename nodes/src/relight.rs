@@ -773,11 +773,11 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(TypedNode::new(
         "Relight",
-        1,
+        2,
         "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
          directional VPLs of an environment map, imperfect shadow maps with near-object importance, one \
-         object-to-scene bounce with clamped 1/r².\nOnly the region the object can reach is rendered; elsewhere \
-         the photo is kept bit for bit.",
+         bounce each way with clamped 1/r² (object to scene; scene to object through secondary VPLs read off \
+         the photo).\nOnly the pixels the object changes are rendered; elsewhere the photo is kept bit for bit.",
         vec![
             PortSpec::required("photo", ValueType::Color, "the target photo P, linear RGB"),
             PortSpec::required("depth", ValueType::Depth, "target depth, metres"),
