@@ -359,7 +359,13 @@ impl SnarlViewer<String> for GraphViewer<'_> {
                     Status::Passthrough => Color32::YELLOW,
                     Status::NotNeeded => Color32::GRAY,
                 };
-                ui.colored_label(color, format!("{} {:.1} ms", rec.status.as_str(), rec.ms));
+                ui.add(
+                    egui::Label::new(
+                        egui::RichText::new(format!("{} {:.1} ms", rec.status.as_str(), rec.ms))
+                            .color(color),
+                    )
+                    .extend(),
+                );
                 if let Some(reason) = &rec.reason {
                     ui.small(reason.as_str());
                 }
@@ -573,11 +579,14 @@ pub struct EditorApp {
 }
 
 impl EditorApp {
+    /// An editor for `model` (read from `path`); sinks write under `out`
+    /// in the working directory, as the CLI's default `--out`.
     pub fn new(model: EditorModel, path: PathBuf) -> Self {
-        let out_dir = path
-            .parent()
-            .map(|p| p.join("out"))
-            .unwrap_or_else(|| PathBuf::from("out"));
+        Self::with_out_dir(model, path, PathBuf::from("out"))
+    }
+
+    /// [`EditorApp::new`] with the folder that sinks write under.
+    pub fn with_out_dir(model: EditorModel, path: PathBuf, out_dir: PathBuf) -> Self {
         let (evaluator, message) =
             match Evaluator::new(depthgraph_graph::prelude::EngineOptions::default(), out_dir) {
                 Ok(e) => (Some(e), None),
@@ -928,8 +937,9 @@ impl EditorApp {
         }
         let Some(tex) = self.texture.clone() else {
             ui.label(match &self.eval_error {
-                Some(_) => "(the node failed: see the message above)",
-                None => "(no image output yet)",
+                Some(_) => "(the run failed: see the message below)",
+                None if self.busy() => "(running…)",
+                None => "(no image among this node's outputs)",
             });
             return;
         };
@@ -1071,10 +1081,11 @@ impl EditorApp {
     /// Screenshot mode: once the preview is on screen for a few frames, ask
     /// for a screenshot; when it arrives, write it and close.
     fn drive_shot(&mut self, ctx: &egui::Context) {
+        // Ready once the selected node's run is back (with or without an
+        // image to show: a sink has none) or cannot run.
         let ready = self.selected.is_none()
-            || self.texture.is_some()
-            || self.eval_error.is_some()
-            || self.evaluator.is_none();
+            || self.evaluator.is_none()
+            || (!self.busy() && (self.trace.is_some() || self.eval_error.is_some()));
         let shots: Vec<Arc<ColorImage>> = ctx.input(|i| {
             i.raw
                 .events

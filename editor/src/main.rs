@@ -27,6 +27,9 @@ struct Args {
     /// The node to select (and preview) at start.
     #[arg(long)]
     select: Option<String>,
+    /// Folder the pipeline's sinks write under when previewed (as the CLI's `--out`).
+    #[arg(long, default_value = "out")]
+    out: PathBuf,
     /// Window size in points, WIDTHxHEIGHT.
     #[arg(long, default_value = "1280x800")]
     size: String,
@@ -66,10 +69,21 @@ fn run(args: Args) -> Result<(), String> {
         Arc::new(depthgraph_nodes::registry().map_err(|e| format!("node registry: {e}"))?);
     let (model, path) = match &args.file {
         Some(path) => (EditorModel::load(path, registry)?, path.clone()),
-        None => (
-            EditorModel::from_text("(version: 1, nodes: {})", "untitled.ron", registry)?,
-            PathBuf::from("untitled.ron"),
-        ),
+        None => {
+            // A name no file has yet, so Save never overwrites one.
+            let path = (0..10_000)
+                .map(|n| match n {
+                    0 => PathBuf::from("untitled.ron"),
+                    n => PathBuf::from(format!("untitled-{n}.ron")),
+                })
+                .find(|p| !p.exists())
+                .ok_or("every name untitled[-N].ron up to N = 9999 is taken")?;
+            let name = path.display().to_string();
+            (
+                EditorModel::from_text("(version: 1, nodes: {})", &name, registry)?,
+                path,
+            )
+        }
     };
     if let Some(sel) = &args.select {
         if model.document().node(sel).is_none() {
@@ -79,7 +93,7 @@ fn run(args: Args) -> Result<(), String> {
             ));
         }
     }
-    let mut app = EditorApp::new(model, path.clone());
+    let mut app = EditorApp::with_out_dir(model, path.clone(), args.out.clone());
     let outcome = Arc::new(Mutex::new(None));
     if let Some(shot) = &args.screenshot {
         app = app.with_screenshot(AutoShot {
