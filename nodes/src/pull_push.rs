@@ -211,8 +211,13 @@ pub fn pull_push(
         let (fw, cw, ch) = (fine.w, coarse.w, coarse.h);
         let fine_color = &fine.color;
         let fine_weight = &fine.weight;
+        // Rows in parallel tasks of at least ~16k pixels: a small level (or
+        // a small image, e.g. a shadow map filled inside a parallel loop)
+        // stays one task instead of paying rayon's split per row.
+        let rows_per_task = (16_384 / fw.max(1)).max(1);
         let rows: Vec<(usize, Vec<(usize, f64)>)> = (0..fine.h)
             .into_par_iter()
+            .with_min_len(rows_per_task)
             .map(|y| {
                 let mut out = Vec::new();
                 for x in 0..fw {
