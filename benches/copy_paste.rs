@@ -27,22 +27,11 @@ use depthgraph::nodes::composite::{CompositeParams, occlusion_composite};
 use depthgraph::nodes::edges::{EdgeParams, detect_edges};
 use depthgraph::nodes::feather::{FeatherParams, feather};
 use depthgraph::nodes::io::linear_to_srgb;
-use depthgraph::nodes::lasso::{LassoParams, fill_polygon, lasso};
+use depthgraph::nodes::lasso::{LassoParams, fill_polygon, iou, lasso};
 use depthgraph::nodes::paste::{PasteParams, paste};
 use depthgraph::nodes::synthetic::{RenderOptions, Scene, render};
 
 const MARK: &str = "<!-- real-data -->";
-
-fn iou(a: &Mask, b: &Mask) -> f64 {
-    let (mut i, mut u) = (0usize, 0usize);
-    for (x, y) in a.as_slice().iter().zip(b.as_slice()) {
-        let (x, y) = (*x >= 0.5, *y >= 0.5);
-        i += usize::from(x && y);
-        u += usize::from(x || y);
-    }
-    // guard: an empty union is a perfect match
-    if u == 0 { 1.0 } else { i as f64 / u as f64 }
-}
 
 /// Runs the OpenCV peer on `color`; (note, sobel ms, canny ms, seamlessClone ms).
 fn opencv_peer(color: &ColorImage) -> (String, Option<[f64; 3]>) {

@@ -602,11 +602,7 @@ mod tests {
         let c = inside.map(|&b| if b { [0.7, 0.2, 0.2] } else { [0.2, 0.2, 0.7] });
         let p = BilateralParams::default();
         let run = |n: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(n)
-                .build()
-                .unwrap();
-            pool.install(|| joint_bilateral(&noisy, &c, &p).unwrap())
+            crate::test_util::with_threads(n, || joint_bilateral(&noisy, &c, &p).unwrap())
         };
         let one = run(1);
         let three = run(3);

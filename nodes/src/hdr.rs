@@ -1469,14 +1469,10 @@ mod tests {
     fn thread_count_does_not_change_bits() {
         let stack = simulate_bracket(&hdr_scene(), &bracket(2.2)).unwrap();
         let run = |n| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(n)
-                .build()
-                .unwrap()
-                .install(|| {
-                    let g = recover_response(&stack, &ResponseParams::default()).unwrap();
-                    merge_hdr(&stack, &g).unwrap()
-                })
+            crate::test_util::with_threads(n, || {
+                let g = recover_response(&stack, &ResponseParams::default()).unwrap();
+                merge_hdr(&stack, &g).unwrap()
+            })
         };
         assert_eq!(run(1), run(3));
     }

@@ -895,6 +895,20 @@ fn eval(_: &EvalCtx, inputs: &Inputs, p: &LassoParams) -> Result<Outputs, NodeEr
     Ok(out)
 }
 
+/// Intersection over union of two masks of the same size, each thresholded
+/// at 0.5 (how a selection is scored against a ground-truth object mask);
+/// two empty masks match perfectly (1).
+pub fn iou(a: &Mask, b: &Mask) -> f64 {
+    let (mut i, mut u) = (0usize, 0usize);
+    for (x, y) in a.as_slice().iter().zip(b.as_slice()) {
+        let (x, y) = (*x >= 0.5, *y >= 0.5);
+        i += usize::from(x && y);
+        u += usize::from(x || y);
+    }
+    // guard: an empty union is a perfect match
+    if u == 0 { 1.0 } else { i as f64 / u as f64 }
+}
+
 /// Registers `Lasso`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(TypedNode::new(
@@ -921,17 +935,6 @@ mod tests {
     use super::*;
     use crate::edges::{EdgeParams, detect_edges};
     use crate::synthetic::{RenderOptions, Scene, render};
-
-    fn iou(a: &Mask, b: &Mask) -> f64 {
-        let (mut i, mut u) = (0usize, 0usize);
-        for (x, y) in a.as_slice().iter().zip(b.as_slice()) {
-            let (x, y) = (*x >= 0.5, *y >= 0.5);
-            i += usize::from(x && y);
-            u += usize::from(x || y);
-        }
-        // guard: an empty union is a perfect match
-        if u == 0 { 1.0 } else { i as f64 / u as f64 }
-    }
 
     /// Deterministic uniform numbers in [0, 1).
     struct Lcg(u64);

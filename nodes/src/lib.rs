@@ -60,3 +60,17 @@ pub fn registry() -> Result<Registry, RegistryError> {
     relight::register(&mut reg)?;
     Ok(reg)
 }
+
+/// Helpers shared by the unit tests of the node modules.
+#[cfg(test)]
+pub(crate) mod test_util {
+    /// Runs `f` on a rayon pool of `threads` threads (the tests that a
+    /// result does not depend on the thread count).
+    pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("a test thread pool")
+            .install(f)
+    }
+}

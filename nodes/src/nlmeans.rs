@@ -2339,17 +2339,13 @@ mod tests {
         )
         .unwrap();
         let run = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    (
-                        nlmeans_denoise(&kin, None, &gt.color, &Default::default()).unwrap(),
-                        nlmeans_inpaint(&kin, None, &gt.color, &Default::default()).unwrap(),
-                        nlmeans_upsample(&low, &k_low, &gt.color, &Default::default()).unwrap(),
-                    )
-                })
+            crate::test_util::with_threads(threads, || {
+                (
+                    nlmeans_denoise(&kin, None, &gt.color, &Default::default()).unwrap(),
+                    nlmeans_inpaint(&kin, None, &gt.color, &Default::default()).unwrap(),
+                    nlmeans_upsample(&low, &k_low, &gt.color, &Default::default()).unwrap(),
+                )
+            })
         };
         let a = run(1);
         let b = run(3);

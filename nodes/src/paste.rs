@@ -1262,22 +1262,18 @@ mod tests {
             ..fixed(false)
         };
         let run = |n| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(n)
-                .build()
+            crate::test_util::with_threads(n, || {
+                paste(
+                    &src.color,
+                    &src.depth,
+                    &mask,
+                    &src.intrinsics,
+                    &target,
+                    &kt,
+                    &p,
+                )
                 .unwrap()
-                .install(|| {
-                    paste(
-                        &src.color,
-                        &src.depth,
-                        &mask,
-                        &src.intrinsics,
-                        &target,
-                        &kt,
-                        &p,
-                    )
-                    .unwrap()
-                })
+            })
         };
         let (a, b) = (run(1), run(3));
         assert_eq!(a, b);

@@ -671,21 +671,17 @@ mod tests {
             [(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]
         });
         let run = |n| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(n)
-                .build()
+            crate::test_util::with_threads(n, || {
+                pull_push(
+                    &d,
+                    &c,
+                    &k(50, 40),
+                    &PullPushParams::default(),
+                    Weights::Dual,
+                )
                 .unwrap()
-                .install(|| {
-                    pull_push(
-                        &d,
-                        &c,
-                        &k(50, 40),
-                        &PullPushParams::default(),
-                        Weights::Dual,
-                    )
-                    .unwrap()
-                    .depth
-                })
+                .depth
+            })
         };
         assert_eq!(run(1), run(3));
     }

@@ -821,11 +821,9 @@ mod tests {
         let d = DepthMap::from_fn(w, h, |x, y| 0.8 + ((x / 8 + y / 6) % 4) as f32);
         let p = params(1.5, 1.8, 48);
         let run = |threads| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap().0)
+            crate::test_util::with_threads(threads, || {
+                refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap().0
+            })
         };
         let (a, b) = (run(1), run(2));
         assert!(

@@ -682,14 +682,10 @@ fn scene_bounce_vpls(
             let n = cdf.partition_point(|&q| q <= t).min(idx.len() - 1);
             let i = idx[n];
             let s = target[i].as_ref()?;
-            let prev = if n == 0 { 0.0 } else { cdf[n - 1] };
-            let wgt = cdf[n] - prev;
-            if wgt <= 0.0 {
-                return None;
-            }
-            let (area, _) = pixel_area(inp.depth, k, i % w, i / w);
-            // L a / (m pdf) with pdf = wgt / acc; guard: wgt > 0, m >= 1
-            let scale = area * acc / (m as f64 * wgt) / std::f64::consts::PI;
+            // L a / (m pdf) with pdf = a / (d² acc): the area cancels.
+            // guard: m >= 1; d >= d_min > 0 as in the weights
+            let d = (s.pos - c).length().max(d_min);
+            let scale = d * d * acc / (m as f64 * std::f64::consts::PI);
             let flux = photo[i].map(|v| {
                 if v.is_finite() {
                     f64::from(v.max(0.0)) * scale
@@ -1052,11 +1048,7 @@ mod tests {
             ..Default::default()
         };
         let run = |threads: usize, p: &RelightParams| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| relight(&inp, &vpls, p).unwrap().unwrap())
+            crate::test_util::with_threads(threads, || relight(&inp, &vpls, p).unwrap().unwrap())
         };
         let one = run(1, &p);
         assert_eq!(one, run(2, &p));

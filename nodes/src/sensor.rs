@@ -1055,13 +1055,9 @@ mod tests {
         let p = KinectParams::default();
         let run = |seed: u64, threads: usize| {
             let p = KinectParams { seed, ..p.clone() };
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    simulate_kinect(&gt.depth, Some(&gt.color), &gt.intrinsics, &p).unwrap()
-                })
+            crate::test_util::with_threads(threads, || {
+                simulate_kinect(&gt.depth, Some(&gt.color), &gt.intrinsics, &p).unwrap()
+            })
         };
         let a = run(7, 1);
         assert_eq!(a, run(7, 3));

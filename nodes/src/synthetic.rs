@@ -1589,13 +1589,7 @@ mod tests {
     fn render_is_independent_of_thread_count() {
         let scene = Scene::preset("corridor", 48, 36).unwrap();
         let opts = RenderOptions { supersample: 2 };
-        let run = |threads| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| render(&scene, &opts))
-        };
+        let run = |threads| crate::test_util::with_threads(threads, || render(&scene, &opts));
         assert_eq!(run(1), run(3));
     }
 
