@@ -28,6 +28,7 @@ use std::time::Instant;
 use depthgraph::graph::pipeline::OutputRef;
 use depthgraph::graph::prelude::*;
 use depthgraph::nodes::relight::{RelightInputs, RelightParams, Relit, relight};
+use depthgraph::nodes::relight_scene::{RelightScene, relight_moved};
 use depthgraph::nodes::vpl::{Vpl, VplParams, luminance, sample_vpls};
 
 /// The graph's values at 640x480.
@@ -43,7 +44,7 @@ struct Scene {
     env: ColorImage,
 }
 
-fn load_scene(root: &Path) -> Scene {
+fn load_scene(root: &Path, extra: &[&str]) -> Scene {
     let reg = depthgraph::nodes::registry().expect("registry");
     let sets: Vec<String> = [
         "source.width=640",
@@ -52,6 +53,7 @@ fn load_scene(root: &Path) -> Scene {
         "target.height=480",
     ]
     .iter()
+    .chain(extra)
     .map(|s| s.to_string())
     .collect();
     let (_, mut p) =
@@ -94,8 +96,8 @@ fn load_scene(root: &Path) -> Scene {
     }
 }
 
-fn run(s: &Scene, vpls: &[Vpl], p: &RelightParams) -> (Relit, f64) {
-    let inp = RelightInputs {
+fn inputs(s: &Scene) -> RelightInputs<'_> {
+    RelightInputs {
         photo: &s.photo,
         depth: &s.depth,
         normals: Some(&s.normals),
@@ -104,18 +106,28 @@ fn run(s: &Scene, vpls: &[Vpl], p: &RelightParams) -> (Relit, f64) {
         pasted_depth: &s.pasted_depth,
         alpha: &s.alpha,
         k: &s.k,
-    };
+    }
+}
+
+/// One run, timed: the paired scheme, or the scene-cached one with its
+/// scene built in the run.
+fn run(s: &Scene, vpls: &[Vpl], p: &RelightParams) -> (Relit, f64) {
+    let inp = inputs(s);
     let t = Instant::now();
-    let r = relight(&inp, vpls, p)
-        .expect("relight")
-        .expect("something to relight");
+    let r = if p.visibility == "paired" {
+        relight(&inp, vpls, p)
+    } else {
+        RelightScene::new(&inp.scene(), vpls, p).and_then(|sc| relight_moved(&sc, &inp, p))
+    };
+    let r = r.expect("relight").expect("something to relight");
     (r, t.elapsed().as_secs_f64() * 1e3)
 }
 
-fn params(points: usize, importance: &str) -> RelightParams {
+fn params(points: usize, importance: &str, visibility: &str) -> RelightParams {
     RelightParams {
         ism_points: points,
         importance: importance.to_string(),
+        visibility: visibility.to_string(),
         ..Default::default()
     }
 }
@@ -140,7 +152,14 @@ fn main() {
     let ref_vpls = env_usize("DEPTHGRAPH_RELIGHT_REF_VPLS", 1024);
     let ref_points = env_usize("DEPTHGRAPH_RELIGHT_REF_POINTS", 32000);
     let threads = rayon::current_num_threads();
-    let scene = load_scene(&root);
+    let scene = load_scene(&root, &[]);
+    // the same scene with the object moved 15 cm to the right
+    let moved = load_scene(&root, &["paste.translation_m=(0.15, 0.0, 0.0)"]);
+    assert!(moved.photo == scene.photo && moved.depth == scene.depth);
+    assert!(
+        moved.pasted_depth != scene.pasted_depth,
+        "the object did not move"
+    );
     let vpls = |n: usize| {
         sample_vpls(
             &scene.env,
@@ -151,17 +170,64 @@ fn main() {
         )
     };
 
+    if let Ok(n) = std::env::var("PROFILE_MOVES") {
+        let n: usize = n.parse().unwrap();
+        let v256 = vpls(256);
+        let cached = params(8000, "near_object", "scene_cached");
+        let sc = RelightScene::new(&inputs(&scene).scene(), &v256, &cached).expect("scene");
+        let t = Instant::now();
+        for j in 0..n {
+            let inp = inputs(if j % 2 == 0 { &moved } else { &scene });
+            let _ = relight_moved(&sc, &inp, &cached);
+        }
+        eprintln!(
+            "{:.1} ms per move",
+            t.elapsed().as_secs_f64() * 1e3 / n as f64
+        );
+        return;
+    }
     // ---- time at the paper's setting
     let v256 = vpls(256);
     let mut times = Vec::new();
     for _ in 0..repeats.max(1) {
-        times.push(run(&scene, &v256, &params(8000, "near_object")).1);
+        times.push(run(&scene, &v256, &params(8000, "near_object", "paired")).1);
     }
     let t_paper = median(times.clone());
-    eprintln!("256 x 8000: {t_paper:.0} ms ({times:?})");
+    eprintln!("paired 256 x 8000: {t_paper:.0} ms ({times:?})");
+    let cached = params(8000, "near_object", "scene_cached");
+    let mut first = Vec::new();
+    for _ in 0..repeats.max(1) {
+        first.push(run(&scene, &v256, &cached).1);
+    }
+    let t_first = median(first.clone());
+    eprintln!("scene_cached 256 x 8000, scene built: {t_first:.0} ms ({first:?})");
+    // the scene once, then the object moved back and forth
+    let t = Instant::now();
+    let sc = RelightScene::new(&inputs(&scene).scene(), &v256, &cached).expect("scene");
+    let t_scene = t.elapsed().as_secs_f64() * 1e3;
+    let mut moves = Vec::new();
+    for j in 0..(2 * repeats.max(1) + 1) {
+        let inp = inputs(if j % 2 == 0 { &moved } else { &scene });
+        let t = Instant::now();
+        let r = relight_moved(&sc, &inp, &cached)
+            .expect("relight")
+            .expect("pasted");
+        moves.push(t.elapsed().as_secs_f64() * 1e3);
+        // the cached scene gives what a fresh one gives
+        if j < 2 {
+            let fresh = run(if j % 2 == 0 { &moved } else { &scene }, &v256, &cached).0;
+            assert!(fresh == r, "a cached scene changed the result");
+        }
+    }
+    let t_move = median(moves.clone());
+    eprintln!("scene alone {t_scene:.0} ms; object moved: {t_move:.1} ms ({moves:?})");
 
     // ---- reference
-    let (reference, t_ref) = run(&scene, &vpls(ref_vpls), &params(ref_points, "near_object"));
+    let (reference, t_ref) = run(
+        &scene,
+        &vpls(ref_vpls),
+        &params(ref_points, "near_object", "paired"),
+    );
     eprintln!("reference {ref_vpls} x {ref_points}: {t_ref:.0} ms");
     let photo = scene.photo.as_slice();
     let alpha = scene.alpha.as_slice();
@@ -178,8 +244,8 @@ fn main() {
         .collect();
 
     let mut rows: Vec<(String, f64, f64, f64)> = Vec::new();
-    let mut row = |label: String, n: usize, points: usize, imp: &str| {
-        let (r, t) = run(&scene, &vpls(n), &params(points, imp));
+    let mut row = |label: String, n: usize, points: usize, imp: &str, vis: &str| {
+        let (r, t) = run(&scene, &vpls(n), &params(points, imp, vis));
         let (ec, es) = (
             rmse(&r, &reference, &changed),
             rmse(&r, &reference, &shadow),
@@ -187,15 +253,33 @@ fn main() {
         eprintln!("{label}: {t:.0} ms, rmse {ec:.5} / {es:.5}");
         rows.push((label, t, ec, es));
     };
-    for n in [16, 64, 256, 1024] {
-        row(format!("{n} VPLs x 8000 points"), n, 8000, "near_object");
+    for vis in ["paired", "scene_cached"] {
+        for n in [16, 64, 256, 1024] {
+            row(
+                format!("{vis}: {n} VPLs x 8000 points"),
+                n,
+                8000,
+                "near_object",
+                vis,
+            );
+        }
+        for m in [1000, 4000, 32000] {
+            row(
+                format!("{vis}: 256 VPLs x {m} points"),
+                256,
+                m,
+                "near_object",
+                vis,
+            );
+        }
     }
-    for m in [1000, 4000, 8000, 32000] {
-        row(format!("256 VPLs x {m} points"), 256, m, "near_object");
-    }
-    for imp in ["near_object", "uniform"] {
-        row(format!("256 x 8000, importance {imp}"), 256, 8000, imp);
-    }
+    row(
+        "paired: 256 x 8000, importance uniform".into(),
+        256,
+        8000,
+        "uniform",
+        "paired",
+    );
 
     // ---- the doc
     let mut doc = String::new();

@@ -161,8 +161,9 @@ pub struct PointSet {
 struct Elem {
     pos: DVec3,
     min_radius: f64,
-    /// `I(p)` (eq. 6), > 0.
-    importance: f64,
+    /// `1 / sqrt(I(p))` (eq. 6, `I > 0`): the splat radius is
+    /// `sqrt(W / (π M)) / sqrt(I)`.
+    inv_sqrt_importance: f64,
     object: bool,
 }
 
@@ -196,7 +197,8 @@ impl PointSet {
                     elems.push(Elem {
                         pos: p,
                         min_radius: 0.6 * side,
-                        importance: imp,
+                        // guard: imp > 0 (sum of positive terms, or 1)
+                        inv_sqrt_importance: 1.0 / imp.sqrt(),
                         object: *is_obj,
                     });
                     acc += area * imp;
@@ -226,8 +228,15 @@ impl PointSet {
     /// `r` for a known importance `i` (> 0).
     #[inline]
     fn radius_for(&self, i: f64, m: usize) -> f64 {
-        // guard: i > 0 (sum of positive terms or 1), m >= 1
-        (self.total / (std::f64::consts::PI * m.max(1) as f64 * i)).sqrt()
+        // guard: i > 0 (sum of positive terms or 1)
+        self.base_radius(m) / i.sqrt()
+    }
+
+    /// `sqrt(W / (π M))`: the splat radius at importance 1.
+    #[inline]
+    fn base_radius(&self, m: usize) -> f64 {
+        // guard: m >= 1
+        (self.total / (std::f64::consts::PI * m.max(1) as f64)).sqrt()
     }
 
     /// `m` stratified sample indices drawn with probability `∝ a_i I_i`.
@@ -296,9 +305,35 @@ impl ShadowMap {
         )
     }
 
-    /// Largest occluder `t` at `p`'s texel (`-inf` outside or empty).
-    pub fn occluder_t(&self, p: DVec3) -> f32 {
-        let (u, v) = self.texel(p);
+    /// `p` in the map's frame: `(p·e_u, p·e_v, p·d)`. Maps of the same
+    /// direction share the frame ([`ShadowMap::same_frame`]), so one
+    /// transform serves both lookups of [`ShadowMap::visible_lc`].
+    #[inline]
+    pub fn light_coords(&self, p: DVec3) -> DVec3 {
+        DVec3::new(p.dot(self.eu), p.dot(self.ev), p.dot(self.dir))
+    }
+
+    /// Whether `other` has the same direction and frame.
+    pub fn same_frame(&self, other: &ShadowMap) -> bool {
+        self.dir == other.dir && self.eu == other.eu && self.ev == other.ev
+    }
+
+    /// [`ShadowMap::visible`] of a point given by [`ShadowMap::light_coords`].
+    #[inline]
+    pub fn visible_lc(&self, lc: DVec3, bias_m: f64) -> bool {
+        let occ = self.occluder_lc(lc) as f64;
+        occ.is_nan() || occ <= lc.z + bias_m
+    }
+
+    /// The occluder `t` at a point given by [`ShadowMap::light_coords`]
+    /// (`-inf` outside the map or on an empty texel: then the point is
+    /// visible whatever the bias).
+    #[inline]
+    pub fn occluder_lc(&self, lc: DVec3) -> f32 {
+        let (u, v) = (
+            (lc.x - self.u0) * self.inv_texel,
+            (lc.y - self.v0) * self.inv_texel,
+        );
         if !(u >= 0.0 && v >= 0.0) {
             return f32::NEG_INFINITY;
         }
@@ -307,6 +342,11 @@ impl ShadowMap {
             return f32::NEG_INFINITY;
         }
         self.t[y * self.res + x]
+    }
+
+    /// Largest occluder `t` at `p`'s texel (`-inf` outside or empty).
+    pub fn occluder_t(&self, p: DVec3) -> f32 {
+        self.occluder_lc(self.light_coords(p))
     }
 
     /// Whether `p` sees the light given `bias_m` (module docs).
@@ -426,6 +466,19 @@ pub struct Window {
     vmax: f64,
 }
 
+impl Window {
+    /// The window grown by `margin` metres on every side.
+    pub fn expanded(&self, margin: f64) -> Self {
+        Self {
+            umin: self.umin - margin,
+            umax: self.umax + margin,
+            vmin: self.vmin - margin,
+            vmax: self.vmax + margin,
+            ..*self
+        }
+    }
+}
+
 /// The windows of `receivers` for every direction (`None` for a zero
 /// direction or without receivers), in one pass over the receivers
 /// (parallel over chunks; min and max in f32, which is exact in any order).
@@ -500,89 +553,189 @@ pub fn build_pair_in(
     p: &IsmParams,
     map_seed: u64,
 ) -> Option<(ShadowMap, ShadowMap)> {
-    let Window {
-        dir,
-        eu,
-        ev,
-        umin,
-        umax,
-        vmin,
-        vmax,
-    } = *win;
-    if !(umin <= umax && vmin <= vmax) {
-        return None;
-    }
-    let res = p.resolution.max(1);
-    let extent = (umax - umin).max(vmax - vmin).max(1e-6);
-    // one texel of margin on each side
-    let texel_m = extent / (res as f64 - 2.0).max(1.0);
-    let (u0, v0) = (umin - texel_m, vmin - texel_m);
-    // guard: texel_m = extent / (res - 2) with extent >= 1e-6 > 0
-    let inv_texel = 1.0 / texel_m;
+    let g = Grid::new(win, p.resolution)?;
+    let res = g.res;
     let mut t_only = vec![f32::NEG_INFINITY; res * res];
     let mut st = vec![f32::NEG_INFINITY; res * res];
     let m = p.points_per_map;
-    let rmax = p.max_splat_texels;
-    for i in set.draw(m, map_seed) {
-        let Some(e) = set.elems.get(i) else {
-            continue;
-        };
-        let q = e.pos;
-        let (u, v) = ((q.dot(eu) - u0) * inv_texel, (q.dot(ev) - v0) * inv_texel);
-        let r = (set.radius_for(e.importance, m).max(e.min_radius) * inv_texel)
-            .min(rmax)
-            .max(0.5);
-        if u + r < 0.0 || v + r < 0.0 || u - r > res as f64 || v - r > res as f64 {
-            continue;
-        }
-        let tq = q.dot(dir) as f32;
-        let (x0, x1) = (
-            (u - r).floor().max(0.0) as usize,
-            ((u + r).ceil() as usize).min(res),
-        );
-        let (y0, y1) = (
-            (v - r).floor().max(0.0) as usize,
-            ((v + r).ceil() as usize).min(res),
-        );
-        let is_obj = e.object;
-        // The disc row by row: texel centres x + 0.5 with |x + 0.5 - u| <= half.
-        for y in y0..y1 {
-            let dy = y as f64 + 0.5 - v;
-            let rem = r * r - dy * dy;
-            if rem < 0.0 {
-                continue;
-            }
-            let half = rem.sqrt();
-            let xa = ((u - half - 0.5).ceil().max(x0 as f64)) as usize;
-            let xb = (((u + half - 0.5).floor() + 1.0).max(0.0) as usize).min(x1);
-            if xa >= xb {
-                continue;
-            }
-            let row = y * res;
-            for t in &mut st[row + xa..row + xb] {
+    g.splat(
+        set,
+        &set.draw(m, map_seed),
+        m,
+        1.0,
+        p.max_splat_texels,
+        |is_obj, span, tq| {
+            for t in &mut st[span.clone()] {
                 *t = t.max(tq);
             }
             if !is_obj {
-                for t in &mut t_only[row + xa..row + xb] {
+                for t in &mut t_only[span] {
                     *t = t.max(tq);
                 }
             }
-        }
-    }
+        },
+    );
     fill_holes(&mut t_only, res);
     fill_holes(&mut st, res);
-    let mk = |t| ShadowMap {
-        dir,
-        eu,
-        ev,
-        u0,
-        v0,
-        texel_m,
-        inv_texel,
-        res,
-        t,
-    };
-    Some((mk(t_only), mk(st)))
+    Some((g.map(t_only), g.map(st)))
+}
+
+/// One map of every element of `set` drawn (`m` samples, stratified by
+/// area x importance) over `win`, splats of `radius_scale x r(p)` (at least
+/// the pixel spacing, at most `max_splat_texels`). With `fill`, holes are
+/// filled by pull-push, as in [`build_pair_in`]; without, texels no splat
+/// covers stay empty (`-inf`): the map of a lone object, whose outside must
+/// stay unoccluded (`radius_scale` ~2 closes the gaps between splats
+/// instead). `None` for an empty window.
+pub fn build_single_in(
+    win: &Window,
+    set: &PointSet,
+    p: &IsmParams,
+    m: usize,
+    radius_scale: f64,
+    fill: bool,
+    map_seed: u64,
+) -> Option<ShadowMap> {
+    let g = Grid::new(win, p.resolution)?;
+    let res = g.res;
+    let mut t = vec![f32::NEG_INFINITY; res * res];
+    g.splat(
+        set,
+        &set.draw(m, map_seed),
+        m,
+        radius_scale,
+        p.max_splat_texels,
+        |_, span, tq| {
+            for t in &mut t[span] {
+                *t = t.max(tq);
+            }
+        },
+    );
+    if fill {
+        fill_holes(&mut t, res);
+    }
+    Some(g.map(t))
+}
+
+/// The texel grid of a map over a window: one texel of margin each side.
+struct Grid {
+    dir: DVec3,
+    eu: DVec3,
+    ev: DVec3,
+    u0: f64,
+    v0: f64,
+    texel_m: f64,
+    inv_texel: f64,
+    res: usize,
+}
+
+impl Grid {
+    fn new(win: &Window, resolution: usize) -> Option<Self> {
+        let Window {
+            dir,
+            eu,
+            ev,
+            umin,
+            umax,
+            vmin,
+            vmax,
+        } = *win;
+        if !(umin <= umax && vmin <= vmax) {
+            return None;
+        }
+        let res = resolution.max(1);
+        let extent = (umax - umin).max(vmax - vmin).max(1e-6);
+        let texel_m = extent / (res as f64 - 2.0).max(1.0);
+        Some(Self {
+            dir,
+            eu,
+            ev,
+            u0: umin - texel_m,
+            v0: vmin - texel_m,
+            texel_m,
+            // guard: texel_m = extent / (res - 2) with extent >= 1e-6 > 0
+            inv_texel: 1.0 / texel_m,
+            res,
+        })
+    }
+
+    fn map(&self, t: Vec<f32>) -> ShadowMap {
+        ShadowMap {
+            dir: self.dir,
+            eu: self.eu,
+            ev: self.ev,
+            u0: self.u0,
+            v0: self.v0,
+            texel_m: self.texel_m,
+            inv_texel: self.inv_texel,
+            res: self.res,
+            t,
+        }
+    }
+
+    /// Splats the elements `idx` of `set` (drawn `m` at a time) as discs of
+    /// radius `scale x r(p)` (floored at the pixel spacing, in texels
+    /// clamped to `[0.5, rmax]`): `put(is_object, texels, t)` gets each
+    /// disc row by row, as a span of texel indices.
+    fn splat(
+        &self,
+        set: &PointSet,
+        idx: &[usize],
+        m: usize,
+        scale: f64,
+        rmax: f64,
+        mut put: impl FnMut(bool, std::ops::Range<usize>, f32),
+    ) {
+        let (res, dir) = (self.res, self.dir);
+        let base = scale * set.base_radius(m);
+        // floor and ceiling clamped at 0 (casts: no libm call without SSE4.1)
+        let floor0 = |x: f64| if x > 0.0 { x as usize } else { 0 };
+        let ceil0 = |x: f64| {
+            if x > 0.0 {
+                let i = x as usize;
+                if (i as f64) < x { i + 1 } else { i }
+            } else {
+                0
+            }
+        };
+        for &i in idx {
+            let Some(e) = set.elems.get(i) else {
+                continue;
+            };
+            let q = e.pos;
+            let (u, v) = (
+                (q.dot(self.eu) - self.u0) * self.inv_texel,
+                (q.dot(self.ev) - self.v0) * self.inv_texel,
+            );
+            let r = ((base * e.inv_sqrt_importance).max(e.min_radius) * self.inv_texel)
+                .min(rmax)
+                .max(0.5);
+            if u + r < 0.0 || v + r < 0.0 || u - r > res as f64 || v - r > res as f64 {
+                continue;
+            }
+            let tq = q.dot(dir) as f32;
+            let (x0, x1) = (floor0(u - r), ceil0(u + r).min(res));
+            let (y0, y1) = (floor0(v - r), ceil0(v + r).min(res));
+            // The disc row by row: texel centres x + 0.5 with |x + 0.5 - u| <= half.
+            for y in y0..y1 {
+                let dy = y as f64 + 0.5 - v;
+                let rem = r * r - dy * dy;
+                if rem < 0.0 {
+                    continue;
+                }
+                let half = rem.sqrt();
+                let xa = ceil0(u - half - 0.5).max(x0);
+                // floor(b) + 1 clamped at 0: 0 for any b < 0
+                let b = u + half - 0.5;
+                let xb = (if b >= 0.0 { floor0(b) + 1 } else { 0 }).min(x1);
+                if xa >= xb {
+                    continue;
+                }
+                let row = y * res;
+                put(e.object, row + xa..row + xb, tq);
+            }
+        }
+    }
 }
 
 /// Scenes with an exact answer, shared by the tests of the shadow maps and
@@ -596,6 +749,15 @@ pub(crate) mod fixtures {
     /// at `y = 0.2` m, pasted with alpha 1: intrinsics, floor depth, slab
     /// depth, slab alpha.
     pub(crate) fn floor_and_slab(w: usize, h: usize) -> (Intrinsics, DepthMap, DepthMap, Mask) {
+        floor_and_slab_at(w, h, 0.0)
+    }
+
+    /// [`floor_and_slab`] with the slab moved by `dx` metres along x.
+    pub(crate) fn floor_and_slab_at(
+        w: usize,
+        h: usize,
+        dx_m: f64,
+    ) -> (Intrinsics, DepthMap, DepthMap, Mask) {
         let k = crate::synthetic::kinect_like_intrinsics(w, h);
         let floor = Image::from_fn(w, h, |_, y| {
             let dy = (y as f64 + 0.5 - k.cy) / k.fy;
@@ -608,7 +770,7 @@ pub(crate) mod fixtures {
                 return 0.0;
             }
             let z = 0.2 / dy;
-            if (1.6..=2.4).contains(&z) && (dx * z).abs() <= 0.2 {
+            if (1.6..=2.4).contains(&z) && (dx * z - dx_m).abs() <= 0.2 {
                 z as f32
             } else {
                 0.0

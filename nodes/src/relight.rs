@@ -104,13 +104,23 @@ node_params! {
         pub min_shading_rel: f64 = 1e-3, ParamKind::Float { min: 1e-9, max: 1.0 };
         /// Seed of the shadow maps' point subsets.
         pub seed: u64 = 1u64, ParamKind::Int { min: 0, max: 1 << 53 };
-        /// Point-sample density of the shadow maps: "near_object" (eq. 6) or "uniform" (by area).
+        /// Point-sample density of the paired shadow maps: "near_object" (eq. 6) or "uniform" (by area).
         pub importance: String = "near_object", ParamKind::Choice(IMPORTANCE);
+        /// "scene_cached": scene maps kept per scene, object maps per run (fast moves);
+        /// "paired": scene+object maps with eq. 6 rebuilt every run (the paper's scheme).
+        pub visibility: String = "scene_cached", ParamKind::Choice(VISIBILITY);
+        /// Texels per side of the object's own maps (scene_cached).
+        pub object_ism_resolution: usize = 64usize, ParamKind::Int { min: 4, max: 2048 };
+        /// Object samples splatted into each of its maps (scene_cached).
+        pub object_ism_points: usize = 2048usize, ParamKind::Int { min: 16, max: 1 << 22 };
     }
 }
 
 /// Names of the sampling densities (the `importance` parameter).
 pub const IMPORTANCE: &[&str] = &["near_object", "uniform"];
+
+/// Names of the visibility schemes (the `visibility` parameter).
+pub const VISIBILITY: &[&str] = &["scene_cached", "paired"];
 
 /// The inputs of [`relight`], all `k.width x k.height`.
 #[derive(Debug, Clone, Copy)]
@@ -127,6 +137,72 @@ pub struct RelightInputs<'a> {
     pub k: &'a Intrinsics,
 }
 
+/// The scene's part of [`RelightInputs`]: what the scene-cached path
+/// ([`crate::relight_scene`]) keeps while the object moves.
+#[derive(Debug, Clone, Copy)]
+pub struct SceneInputs<'a> {
+    pub photo: &'a ColorImage,
+    pub depth: &'a DepthMap,
+    pub normals: Option<&'a NormalMap>,
+    pub albedo: Option<&'a ColorImage>,
+    pub k: &'a Intrinsics,
+}
+
+impl SceneInputs<'_> {
+    /// Sane intrinsics, and every image at their size.
+    pub(crate) fn check(&self) -> Result<(), NodeError> {
+        let k = self.k;
+        if !k.is_sane() {
+            return Err(NodeError::input(
+                "intrinsics",
+                "focal lengths must be finite and positive",
+            ));
+        }
+        check("photo", self.photo.dims(), k)?;
+        check("depth", self.depth.dims(), k)?;
+        if let Some(n) = self.normals {
+            check("normals", n.dims(), k)?;
+        }
+        if let Some(a) = self.albedo {
+            check("albedo", a.dims(), k)?;
+        }
+        Ok(())
+    }
+}
+
+impl<'a> RelightInputs<'a> {
+    /// The scene's part.
+    pub fn scene(&self) -> SceneInputs<'a> {
+        SceneInputs {
+            photo: self.photo,
+            depth: self.depth,
+            normals: self.normals,
+            albedo: self.albedo,
+            k: self.k,
+        }
+    }
+
+    /// [`SceneInputs::check`], and the object's images at the same size.
+    pub(crate) fn check(&self) -> Result<(), NodeError> {
+        self.scene().check()?;
+        check("pasted_color", self.pasted_color.dims(), self.k)?;
+        check("pasted_depth", self.pasted_depth.dims(), self.k)?;
+        check("alpha", self.alpha.dims(), self.k)
+    }
+
+    /// The object's surface at pixel `i` (a valid pasted depth): its
+    /// unprojected centre, and its normal from the pasted depth, else
+    /// facing the camera.
+    pub(crate) fn object_surface(&self, i: usize) -> Surf {
+        let (k, w) = (self.k, self.k.width);
+        let (x, y) = (i % w, i / w);
+        let z = *self.pasted_depth.get(x, y) as f64;
+        let pos = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z);
+        let n = depth_normal(self.pasted_depth, k, x, y).unwrap_or(-pos.normalize());
+        Surf { pos, n }
+    }
+}
+
 /// Result of [`relight`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Relit {
@@ -140,7 +216,7 @@ pub struct Relit {
 
 /// Unit normal of a depth pixel from its neighbours on the same surface,
 /// facing the camera; `None` without two neighbours.
-fn depth_normal(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> Option<DVec3> {
+pub(crate) fn depth_normal(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> Option<DVec3> {
     let (w, h) = depth.dims();
     let z = *depth.get(x, y) as f64;
     let at = |xx: usize, yy: usize| {
@@ -173,7 +249,7 @@ fn depth_normal(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> Option<
     Some(if n.dot(p) > 0.0 { -n } else { n })
 }
 
-fn check(port: &str, dims: (usize, usize), k: &Intrinsics) -> Result<(), NodeError> {
+pub(crate) fn check(port: &str, dims: (usize, usize), k: &Intrinsics) -> Result<(), NodeError> {
     if dims != (k.width, k.height) {
         return Err(NodeError::input(
             port,
@@ -190,19 +266,22 @@ fn check(port: &str, dims: (usize, usize), k: &Intrinsics) -> Result<(), NodeErr
 /// of `c`, as a cone `d·u >= cos_min` around the unit `u` towards `c`; every
 /// direction (`cos_min = -1`) when `x` is within `reach` of `c`.
 #[derive(Debug, Clone, Copy)]
-struct Cone {
-    u: DVec3,
-    cos_min: f64,
+pub(crate) struct Cone {
+    pub(crate) u: DVec3,
+    pub(crate) cos_min: f64,
+    /// `sin` of the cone's half angle (`reach / d`); 1 for every direction.
+    pub(crate) sin: f64,
 }
 
 impl Cone {
-    fn new(x: DVec3, c: DVec3, reach: f64) -> Self {
+    pub(crate) fn new(x: DVec3, c: DVec3, reach: f64) -> Self {
         let v = c - x;
         let d = v.length();
         if d <= reach {
             return Self {
                 u: DVec3::ZERO,
                 cos_min: -1.0,
+                sin: 1.0,
             };
         }
         // guard: d > reach >= 0. The ray's closest approach to c is
@@ -212,18 +291,201 @@ impl Cone {
         Self {
             u: v / d,
             cos_min: (1.0 - s * s).max(0.0).sqrt(),
+            sin: s,
         }
     }
 
     #[inline]
-    fn contains(&self, d: DVec3) -> bool {
+    pub(crate) fn contains(&self, d: DVec3) -> bool {
         self.cos_min <= -1.0 || d.dot(self.u) >= self.cos_min
     }
 }
 
-struct Surf {
-    pos: DVec3,
-    n: DVec3,
+#[derive(Debug, Clone)]
+pub(crate) struct Surf {
+    pub(crate) pos: DVec3,
+    pub(crate) n: DVec3,
+}
+
+/// The target's surfaces, per pixel: unprojected centre and unit normal
+/// (the given one when finite and non-zero, else from the depth); `None`
+/// for a hole or a pixel without a normal.
+pub(crate) fn target_surfaces(
+    depth: &DepthMap,
+    normals: Option<&NormalMap>,
+    k: &Intrinsics,
+) -> Vec<Option<Surf>> {
+    let w = k.width;
+    (0..w * k.height)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let z = *depth.get(x, y);
+            if !DepthMap::is_valid(z) {
+                return None;
+            }
+            let pos = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64);
+            let given = normals
+                .map(|n| DVec3::from_array(n.get(x, y).map(|c| c as f64)))
+                .filter(|n| n.is_finite() && n.length_squared() > 0.5);
+            let n = given
+                .map(|n| n.normalize())
+                .or_else(|| depth_normal(depth, k, x, y))?;
+            Some(Surf { pos, n })
+        })
+        .collect()
+}
+
+/// Surface area (m²) of every valid pixel of `depth` ([`pixel_area`]), 0
+/// for holes.
+pub(crate) fn pixel_areas(depth: &DepthMap, k: &Intrinsics) -> Vec<f64> {
+    let w = k.width;
+    (0..w * k.height)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if DepthMap::is_valid(*depth.get(x, y)) {
+                pixel_area(depth, k, x, y).0
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The alpha of eq. 5: clamped to [0, 1], 0 where it is NaN or the pasted
+/// depth is a hole.
+pub(crate) fn clean_alpha(alpha: &Mask, pasted_depth: &DepthMap) -> Vec<f32> {
+    alpha
+        .as_slice()
+        .iter()
+        .zip(pasted_depth.as_slice())
+        .map(|(a, z)| {
+            if a.is_nan() || !DepthMap::is_valid(*z) {
+                0.0
+            } else {
+                a.clamp(0.0, 1.0)
+            }
+        })
+        .collect()
+}
+
+/// The VPLs with energy, their unit directions and `E_ref = Σ_k lum(Φ_k)`.
+pub(crate) fn lit_vpls(vpls: &[Vpl]) -> (Vec<Vpl>, Vec<DVec3>, f64) {
+    let vpls: Vec<Vpl> = vpls
+        .iter()
+        .copied()
+        .filter(|v| luminance(v.power) > 0.0)
+        .collect();
+    let e_ref: f64 = vpls.iter().map(|v| luminance(v.power)).sum();
+    let dirs = vpls
+        .iter()
+        .map(|v| DVec3::from_array(v.direction.map(|c| c as f64)).normalize_or_zero())
+        .collect();
+    (vpls, dirs, e_ref)
+}
+
+/// Centre (mean) of the object's points and their largest distance from
+/// it (at least 1 mm).
+pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {
+    // guard: max(1) for an empty set (then the centre is 0)
+    let c = pts.iter().copied().sum::<DVec3>() / pts.len().max(1) as f64;
+    let radius = pts
+        .iter()
+        .map(|q| (*q - c).length())
+        .fold(0.0f64, f64::max)
+        .max(1e-3);
+    (c, radius)
+}
+
+/// The object's shaded colour (module docs, "Bounce from the scene"):
+/// `ρ_o (E^{s+t} + B_s)` with `ρ_o = P_o / max(E_free + B_s, e_floor)`.
+pub(crate) fn object_radiance(
+    pc: Rgb,
+    est: [f64; 3],
+    efree: [f64; 3],
+    bs: [f64; 3],
+    e_floor: f64,
+) -> Rgb {
+    std::array::from_fn(|ch| {
+        // The pasted colour was lit directly and by bounced light alike:
+        // ρ_o = P / (E_free + B_s), so the shaded object is
+        // P (E^{s+t} + B_s) / (E_free + B_s) <= P (no firefly where the
+        // direct light is weak).
+        let free = (efree[ch] + bs[ch]).max(e_floor);
+        // guard: free >= e_floor > 0
+        let rho = (pc[ch].max(0.0) as f64) / free;
+        (rho * (est[ch] + bs[ch])) as f32
+    })
+}
+
+/// Up to `count` object pixels (a stratified subset of `obj_idx`, whose
+/// shaded colours are `obj_rad`) as bounce VPLs `(position, normal, L a)`:
+/// each stands for `step` pixels of outgoing radiance `ρ E / π`.
+pub(crate) fn object_bounce_vpls(
+    obj_idx: &[usize],
+    object: &dyn Fn(usize) -> Option<(DVec3, DVec3)>,
+    obj_rad: &[Rgb],
+    pasted_depth: &DepthMap,
+    k: &Intrinsics,
+    count: usize,
+) -> Vec<(DVec3, DVec3, [f64; 3])> {
+    let mut bounce = Vec::new();
+    let w = k.width;
+    let (picks, step) = bounce_picks(obj_idx.len(), count);
+    for idx in picks {
+        let i = obj_idx[idx];
+        if let (Some((pos, nrm)), Some(rad)) = (object(i), obj_rad.get(idx)) {
+            let (area, _) = pixel_area(pasted_depth, k, i % w, i / w);
+            let flux = rad.map(|v| v as f64 / std::f64::consts::PI * area * step);
+            bounce.push((pos, nrm, flux));
+        }
+    }
+    bounce
+}
+
+/// The positions (in a list of `n` object pixels) of the `min(count, n)`
+/// stratified bounce VPLs, and how many pixels each stands for.
+pub(crate) fn bounce_picks(n: usize, count: usize) -> (Vec<usize>, f64) {
+    let m = count.min(n);
+    if m == 0 {
+        return (Vec::new(), 0.0);
+    }
+    // guard: m >= 1
+    let step = n as f64 / m as f64;
+    let picks = (0..m)
+        .map(|j| (((j as f64 + 0.5) * step) as usize).min(n - 1))
+        .collect();
+    (picks, step)
+}
+
+/// One pixel of eq. 5: `α obj + (1 - α)(P + diff)`, clamped to >= 0; the
+/// photo where the result is not finite.
+#[inline]
+pub(crate) fn composite(pp: Rgb, a: f32, obj: Rgb, diff: [f64; 3]) -> Rgb {
+    std::array::from_fn(|ch| {
+        let bg = pp[ch] as f64 + diff[ch];
+        let v = a as f64 * obj[ch] as f64 + (1.0 - a as f64) * bg;
+        if v.is_finite() {
+            v.max(0.0) as f32
+        } else {
+            pp[ch]
+        }
+    })
+}
+
+/// The albedo of a target pixel (module docs): the given one, else
+/// `P / E^t` where `E^t >= e_floor`, else 0.
+#[inline]
+pub(crate) fn target_albedo(given: Option<Rgb>, pp: Rgb, et: [f64; 3], e_floor: f64) -> [f64; 3] {
+    std::array::from_fn(|ch| match given {
+        Some(a) => a[ch].max(0.0) as f64,
+        // guard: divide only when et >= e_floor > 0
+        None if et[ch] >= e_floor => pp[ch].max(0.0) as f64 / et[ch],
+        None => 0.0,
+    })
 }
 
 /// Irradiance `(E^t, E^{s+t}, unshadowed)` per surface.
@@ -326,23 +588,7 @@ pub fn relight(
     p: &RelightParams,
 ) -> Result<Option<Relit>, NodeError> {
     let k = inp.k;
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            "intrinsics",
-            "focal lengths must be finite and positive",
-        ));
-    }
-    check("photo", inp.photo.dims(), k)?;
-    check("depth", inp.depth.dims(), k)?;
-    if let Some(n) = inp.normals {
-        check("normals", n.dims(), k)?;
-    }
-    if let Some(a) = inp.albedo {
-        check("albedo", a.dims(), k)?;
-    }
-    check("pasted_color", inp.pasted_color.dims(), k)?;
-    check("pasted_depth", inp.pasted_depth.dims(), k)?;
-    check("alpha", inp.alpha.dims(), k)?;
+    inp.check()?;
     let near_object = match p.importance.as_str() {
         "near_object" => true,
         "uniform" => false,
@@ -354,73 +600,21 @@ pub fn relight(
         }
     };
     let (w, h) = (k.width, k.height);
-    let alpha: Vec<f32> = inp
-        .alpha
-        .as_slice()
-        .iter()
-        .zip(inp.pasted_depth.as_slice())
-        .map(|(a, z)| {
-            if a.is_nan() || !DepthMap::is_valid(*z) {
-                0.0
-            } else {
-                a.clamp(0.0, 1.0)
-            }
-        })
-        .collect();
-    let vpls: Vec<Vpl> = vpls
-        .iter()
-        .copied()
-        .filter(|v| luminance(v.power) > 0.0)
-        .collect();
-    let e_ref: f64 = vpls.iter().map(|v| luminance(v.power)).sum();
+    let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
+    let (vpls, dirs, e_ref) = lit_vpls(vpls);
     if vpls.is_empty() || !e_ref.is_finite() || alpha.iter().all(|a| *a <= 0.0) {
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * e_ref;
-    let dirs: Vec<DVec3> = vpls
-        .iter()
-        .map(|v| DVec3::from_array(v.direction.map(|c| c as f64)).normalize_or_zero())
-        .collect();
 
     // ---- surfaces: target and object, per pixel
-    let target: Vec<Option<Surf>> = (0..w * h)
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let z = *inp.depth.get(x, y);
-            if !DepthMap::is_valid(z) {
-                return None;
-            }
-            let pos = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64);
-            let given = inp
-                .normals
-                .map(|n| DVec3::from_array(n.get(x, y).map(|c| c as f64)))
-                .filter(|n| n.is_finite() && n.length_squared() > 0.5);
-            let n = given
-                .map(|n| n.normalize())
-                .or_else(|| depth_normal(inp.depth, k, x, y))?;
-            Some(Surf { pos, n })
-        })
-        .collect();
+    let target = target_surfaces(inp.depth, inp.normals, k);
     let object: Vec<Option<Surf>> = (0..w * h)
-        .map(|i| {
-            if alpha[i] <= 0.0 {
-                return None;
-            }
-            let (x, y) = (i % w, i / w);
-            let z = *inp.pasted_depth.get(x, y) as f64;
-            let pos = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z);
-            let n = depth_normal(inp.pasted_depth, k, x, y).unwrap_or(-pos.normalize());
-            Some(Surf { pos, n })
-        })
+        .map(|i| (alpha[i] > 0.0).then(|| inp.object_surface(i)))
         .collect();
     let obj_pts: Vec<DVec3> = object.iter().flatten().map(|s| s.pos).collect();
-    // guard: at least one alpha > 0 pixel, which has a valid pasted depth
-    let c = obj_pts.iter().copied().sum::<DVec3>() / obj_pts.len().max(1) as f64;
-    let radius = obj_pts
-        .iter()
-        .map(|q| (*q - c).length())
-        .fold(0.0f64, f64::max)
-        .max(1e-3);
+    // at least one alpha > 0 pixel, which has a valid pasted depth
+    let (c, radius) = centre_and_radius(&obj_pts);
 
     // ---- region
     let reach = 2.0 * radius;
@@ -502,7 +696,20 @@ pub fn relight(
     let obj_irr = irr_ctx.irradiance(&obj_surfs);
     let r2_min = p.clamp_distance_m * p.clamp_distance_m;
     // secondary VPLs on the scene: the light the scene bounces onto the object
-    let scene_vpls = scene_bounce_vpls(&target, inp, c, p.clamp_distance_m, p.scene_vpls, p.seed);
+    let scene_vpls = if p.scene_vpls > 0 {
+        let areas = pixel_areas(inp.depth, k);
+        scene_bounce_vpls(
+            &target,
+            &areas,
+            inp.photo,
+            c,
+            p.clamp_distance_m,
+            p.scene_vpls,
+            p.seed,
+        )
+    } else {
+        Vec::new()
+    };
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
         .zip(obj_irr.par_iter())
@@ -512,38 +719,16 @@ pub fn relight(
                 Some(s) if !scene_vpls.is_empty() => bounce_at(s.pos, s.n, &scene_vpls, r2_min),
                 _ => [0.0; 3],
             };
-            std::array::from_fn(|ch| {
-                // The pasted colour was lit directly and by bounced light
-                // alike: ρ_o = P / (E_free + B_s), so the shaded object is
-                // P (E^{s+t} + B_s) / (E_free + B_s) <= P (no firefly
-                // where the direct light is weak).
-                let free = (efree[ch] + bs[ch]).max(e_floor);
-                // guard: free >= e_floor > 0
-                let rho = (pc[ch].max(0.0) as f64) / free;
-                (rho * (est[ch] + bs[ch])) as f32
-            })
+            object_radiance(pc, est, efree, bs, e_floor)
         })
         .collect();
     // bounce VPLs: stratified subset of object pixels
-    let mut bounce: Vec<(DVec3, DVec3, [f64; 3])> = Vec::new();
-    if p.bounce_vpls > 0 && !obj_idx.is_empty() {
-        let n = obj_idx.len();
-        let m = p.bounce_vpls.min(n);
-        // guard: m >= 1
-        let step = n as f64 / m as f64;
-        for j in 0..m {
-            let t = ((j as f64 + 0.5) * step) as usize;
-            let idx = t.min(n - 1);
-            let i = obj_idx[idx];
-            if let Some(s) = &object[i] {
-                let (x, y) = (i % w, i / w);
-                let (area, _) = pixel_area(inp.pasted_depth, k, x, y);
-                // each chosen pixel stands for `step` pixels; L = ρ E / π
-                let flux = obj_rad[idx].map(|v| v as f64 / std::f64::consts::PI * area * step);
-                bounce.push((s.pos, s.n, flux));
-            }
-        }
-    }
+    let bounce = if p.bounce_vpls > 0 {
+        let at = |i: usize| object[i].as_ref().map(|s| (s.pos, s.n));
+        object_bounce_vpls(&obj_idx, &at, &obj_rad, inp.pasted_depth, k, p.bounce_vpls)
+    } else {
+        Vec::new()
+    };
 
     // ---- which target surfaces the object changes: its shadow (some VPL's
     // visibility differs) or the bounce's reach; only these are shaded.
@@ -588,14 +773,10 @@ pub fn relight(
                 if (s.pos - c).length() <= bounce_reach {
                     b = bounce_at(s.pos, s.n, &bounce, r2_min);
                 }
+                let given = inp.albedo.map(|a| a.as_slice()[i]);
+                let rho = target_albedo(given, pp, et, e_floor);
                 for ch in 0..3 {
-                    let rho = match inp.albedo {
-                        Some(a) => a.as_slice()[i][ch].max(0.0) as f64,
-                        // guard: divide only when et >= e_floor > 0
-                        None if et[ch] >= e_floor => pp[ch].max(0.0) as f64 / et[ch],
-                        None => 0.0,
-                    };
-                    diff[ch] = rho * (est[ch] + b[ch] - et[ch]);
+                    diff[ch] = rho[ch] * (est[ch] + b[ch] - et[ch]);
                 }
             }
             let a = alpha[i];
@@ -603,16 +784,7 @@ pub fn relight(
                 Ok(j) => obj_rad[j],
                 Err(_) => [0.0; 3],
             };
-            let out: Rgb = std::array::from_fn(|ch| {
-                let bg = pp[ch] as f64 + diff[ch];
-                let v = a as f64 * obj[ch] as f64 + (1.0 - a as f64) * bg;
-                if v.is_finite() {
-                    v.max(0.0) as f32
-                } else {
-                    pp[ch]
-                }
-            });
-            (out, diff.map(|d| d as f32))
+            (composite(pp, a, obj, diff), diff.map(|d| d as f32))
         })
         .collect();
     let (color, difference): (Vec<Rgb>, Vec<Rgb>) = px.into_iter().unzip();
@@ -639,9 +811,10 @@ pub fn relight(
 /// samples go where it is strong). A Lambertian surface seen in the photo
 /// has radiance `L_i = P_i / π` (`P = ρ E` is the pixel value), so a drawn
 /// pixel carries `L_i a_i / (m pdf_i)`. Empty for `m = 0` or no surface.
-fn scene_bounce_vpls(
+pub(crate) fn scene_bounce_vpls(
     target: &[Option<Surf>],
-    inp: &RelightInputs,
+    areas: &[f64],
+    photo: &ColorImage,
     c: DVec3,
     d_min: f64,
     m: usize,
@@ -650,16 +823,14 @@ fn scene_bounce_vpls(
     if m == 0 {
         return Vec::new();
     }
-    let (k, w) = (inp.k, inp.k.width);
     let d_min = d_min.max(1e-6);
     let mut idx = Vec::new();
     let mut cdf = Vec::new();
     let mut acc = 0.0f64;
-    for (i, s) in target.iter().enumerate() {
+    for ((i, s), &area) in target.iter().enumerate().zip(areas) {
         let Some(s) = s else {
             continue;
         };
-        let (area, _) = pixel_area(inp.depth, k, i % w, i / w);
         let d = (s.pos - c).length().max(d_min);
         // guard: d >= d_min > 0
         let wgt = area / (d * d);
@@ -674,7 +845,7 @@ fn scene_bounce_vpls(
         return Vec::new();
     }
     let mut rng = crate::vpl::SplitMix64(seed ^ 0x5EC0_4DA2_B0C3_u64);
-    let photo = inp.photo.as_slice();
+    let photo = photo.as_slice();
     (0..m)
         .filter_map(|j| {
             // guard: m >= 1
@@ -708,9 +879,14 @@ pub fn bounce_at(x: DVec3, n: DVec3, vpls: &[(DVec3, DVec3, [f64; 3])], r2_min: 
         if r2 < 1e-18 {
             continue;
         }
-        // guard: r2 >= 1e-18 > 0
-        let u = v / r2.sqrt();
-        let g = n.dot(u).max(0.0) * nq.dot(-u).max(0.0) / r2.max(r2_min);
+        // cos at the receiver and at the VPL times r² (no square root):
+        // (n·v)(-nq·v) = r² (n·u)(nq·(-u))
+        let (cr, cq) = (n.dot(v), -nq.dot(v));
+        if cr <= 0.0 || cq <= 0.0 {
+            continue;
+        }
+        // guard: r2 >= 1e-18 > 0 and r2_min >= 0
+        let g = cr * cq / (r2 * r2.max(r2_min));
         for ch in 0..3 {
             b[ch] += l[ch] * g;
         }
@@ -744,7 +920,32 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
         k: &k,
     };
     ctx.check_cancelled()?;
-    match relight(&inp, &vpls, p)? {
+    let result = match p.visibility.as_str() {
+        "paired" => relight(&inp, &vpls, p)?,
+        "scene_cached" => {
+            let key = crate::relight_scene::SceneKey {
+                photo: photo.clone(),
+                depth: inputs.depth("depth")?.clone(),
+                normals: normals.clone(),
+                albedo: inputs.color_opt("albedo")?.cloned(),
+                vpls: cloud.clone(),
+                k,
+                params: crate::relight_scene::SceneKey::params_of(p),
+            };
+            let (scene, _reused) = crate::relight_scene::memo_scene(key, || {
+                crate::relight_scene::RelightScene::new(&inp.scene(), &vpls, p)
+            })?;
+            ctx.check_cancelled()?;
+            crate::relight_scene::relight_moved(&scene, &inp, p)?
+        }
+        other => {
+            return Err(NodeError::param(
+                "visibility",
+                format!("\"{other}\" is not one of \"scene_cached\", \"paired\""),
+            ));
+        }
+    };
+    match result {
         Some(r) => Ok(Outputs::new()
             .with("color", r.color)
             .with("region", Value::Mask(Arc::new(r.region)))
@@ -795,7 +996,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::ism::fixtures::floor_and_slab;
 
@@ -842,7 +1043,8 @@ mod tests {
             .collect();
         let exact = bounce_at(x, n, &all, clamp * clamp);
         assert!(exact[0] > 0.1, "the floor lights the underside: {exact:?}");
-        let vpls = scene_bounce_vpls(&target, &inp, x, clamp, 4096, 7);
+        let areas = pixel_areas(&floor, &k);
+        let vpls = scene_bounce_vpls(&target, &areas, inp.photo, x, clamp, 4096, 7);
         assert_eq!(vpls.len(), 4096);
         let est = bounce_at(x, n, &vpls, clamp * clamp);
         for ch in 0..3 {
@@ -856,10 +1058,53 @@ mod tests {
         }
         // The colour of the floor: ratios kept.
         assert!((est[1] / est[0] - 0.25).abs() < 1e-9);
-        assert!(scene_bounce_vpls(&target, &inp, x, clamp, 0, 7).is_empty());
+        assert!(scene_bounce_vpls(&target, &areas, inp.photo, x, clamp, 0, 7).is_empty());
     }
 
-    fn overhead() -> Vec<Vpl> {
+    /// The floor and slab of [`floor_and_slab_at`](crate::ism::fixtures::floor_and_slab_at)
+    /// as `Relight` inputs: a grey floor photo (0.5, exactly albedo 0.5
+    /// under a unit overhead light), a green pasted slab.
+    pub(crate) struct SlabScene {
+        pub k: Intrinsics,
+        pub floor: DepthMap,
+        pub slab: DepthMap,
+        pub alpha: Mask,
+        pub photo: ColorImage,
+        pub albedo: ColorImage,
+        pub pasted_color: ColorImage,
+    }
+
+    impl SlabScene {
+        pub(crate) fn new(w: usize, h: usize, dx: f64) -> Self {
+            let (k, floor, slab, alpha) = crate::ism::fixtures::floor_and_slab_at(w, h, dx);
+            let photo = floor.map(|z| if *z > 0.0 { [0.5f32; 3] } else { [0.0; 3] });
+            Self {
+                k,
+                floor,
+                slab,
+                alpha,
+                photo,
+                albedo: Image::filled(w, h, [0.5f32; 3]),
+                pasted_color: Image::filled(w, h, [0.3f32, 0.6, 0.2]),
+            }
+        }
+
+        /// The inputs, with the albedo given or to be estimated.
+        pub(crate) fn inputs(&self, given_albedo: bool) -> RelightInputs<'_> {
+            RelightInputs {
+                photo: &self.photo,
+                depth: &self.floor,
+                normals: None,
+                albedo: given_albedo.then_some(&self.albedo),
+                pasted_color: &self.pasted_color,
+                pasted_depth: &self.slab,
+                alpha: &self.alpha,
+                k: &self.k,
+            }
+        }
+    }
+
+    pub(crate) fn overhead() -> Vec<Vpl> {
         vec![Vpl {
             direction: [0.0, -1.0, 0.0],
             power: [1.0; 3],
@@ -872,8 +1117,16 @@ mod tests {
     /// node did not render; outside the region the difference is exactly 0.
     #[test]
     fn a_slab_casts_its_analytic_shadow_and_nothing_else_changes() {
+        slab_shadow_is_analytic(&|inp, vpls, p| relight(inp, vpls, p).unwrap().unwrap(), 0.0);
+    }
+
+    /// The check of the test above, for either visibility scheme.
+    pub(crate) fn slab_shadow_is_analytic(
+        run: &dyn Fn(&RelightInputs, &[Vpl], &RelightParams) -> Relit,
+        dx: f64,
+    ) {
         let (w, h) = (160, 120);
-        let (k, floor, slab, alpha) = floor_and_slab(w, h);
+        let (k, floor, slab, alpha) = crate::ism::fixtures::floor_and_slab_at(w, h, dx);
         let albedo = Image::filled(w, h, [0.5f32; 3]);
         // the photo is exactly albedo x the VPL's irradiance (cos = 1)
         let photo = floor.map(|z| if *z > 0.0 { [0.5f32; 3] } else { [0.0; 3] });
@@ -894,7 +1147,7 @@ mod tests {
             bounce_vpls: 0,
             ..Default::default()
         };
-        let r = relight(&inp, &overhead(), &p).unwrap().unwrap();
+        let r = run(&inp, &overhead(), &p);
         let (mut shadowed, mut wrong, mut edge, mut untouched) = (0, 0, 0, 0);
         for y in 0..h {
             for x in 0..w {
@@ -924,8 +1177,8 @@ mod tests {
                 }
                 let q = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64);
                 // ray-cast reference: the vertical ray from q meets y = 0.2 at (q.x, q.z)
-                let under = q.x.abs() <= 0.2 && (1.6..=2.4).contains(&q.z);
-                let near = (q.x.abs() - 0.2).abs() < 0.15
+                let under = (q.x - dx).abs() <= 0.2 && (1.6..=2.4).contains(&q.z);
+                let near = ((q.x - dx).abs() - 0.2).abs() < 0.15
                     || (q.z - 1.6).abs() < 0.15
                     || (q.z - 2.4).abs() < 0.15;
                 let dark = c[0] < 0.25;

@@ -1,0 +1,957 @@
+//! The scene-cached path of `Relight` (`visibility: "scene_cached"`): what
+//! depends only on the target photo and the VPLs is computed once per scene
+//! ([`RelightScene`]); moving the pasted object re-does only the object's
+//! part ([`relight_moved`]).
+//!
+//! # Split visibility
+//!
+//! A shadow map stores, per texel, the occluder nearest to the light, so
+//! the map of the scene with the object is the texel-wise maximum of the
+//! scene's map and the object's, and (up to hole filling) its visibility
+//! is `V^{s+t}_k = V^t_k ∧ V^o_k`. The differential of eq. 5 on the target
+//! surface becomes
+//!
+//! `E^{s+t} - E^t = -Σ_k Φ_k max(0, n·ω_k) V^t_k (1 - V^o_k)`,
+//!
+//! a sum over the VPLs the object blocks, which are found by the cone test
+//! of [`crate::relight`] (a ray towards `ω_k` meets the object only when it
+//! passes within its reach). So:
+//!
+//! - **per scene** ([`RelightScene::new`]): the target's surfaces and pixel
+//!   areas, one orthographic ISM per VPL of the scene's own points (uniform
+//!   area density: the object's position is not known yet; window = every
+//!   scene point, so a receiver outside it is not occluded by the scene),
+//!   `E^t` per pixel when the albedo must be estimated, and the VPL
+//!   directions grouped into cones for the culling;
+//! - **per object position** ([`relight_moved`]): one small ISM per VPL of
+//!   the object's points alone, over the object's own window (its texels are
+//!   a fraction of the object's size, finer than the scene map's), splats
+//!   twice the ISM radius and no pull-push (the outside of the object must
+//!   stay unoccluded); then the object's shading, the bounces, and the
+//!   target pixels whose cone meets a VPL.
+//!
+//! The near-object importance of eq. 6 does not enter this path: the
+//! object's shadows come from maps of the object alone, which sample it
+//! densely by construction. The `"paired"` visibility of [`crate::relight`]
+//! keeps the paper's scheme (eq. 6 over scene and object, maps rebuilt on
+//! every run).
+
+use std::sync::{Arc, Mutex};
+
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::value::{PointCloud, Rgb};
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::ism::{IsmParams, PointSet, ShadowMap, build_single_in, windows};
+pub use crate::relight::SceneInputs;
+use crate::relight::{
+    Cone, RelightInputs, RelightParams, Relit, Surf, bounce_at, centre_and_radius, check,
+    clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas,
+    scene_bounce_vpls, target_albedo, target_surfaces,
+};
+use crate::vpl::Vpl;
+
+/// VPL directions grouped by the cells of an octahedral grid, each group a
+/// cone `(axis, half angle)` holding all its directions: a pixel whose cone
+/// towards the object misses a group's cone skips all its VPLs.
+#[derive(Debug, Clone)]
+struct DirGroups {
+    axis: Vec<DVec3>,
+    cos_h: Vec<f64>,
+    sin_h: Vec<f64>,
+    members: Vec<Vec<usize>>,
+}
+
+impl DirGroups {
+    /// Cells per side of the octahedral grid.
+    const CELLS: usize = 8;
+
+    fn new(dirs: &[DVec3]) -> Self {
+        let n = Self::CELLS;
+        let mut cells: Vec<Vec<usize>> = vec![Vec::new(); n * n];
+        for (j, d) in dirs.iter().enumerate() {
+            let l1 = d.x.abs() + d.y.abs() + d.z.abs();
+            if l1 <= 0.0 {
+                continue; // a zero direction lights nothing
+            }
+            // guard: l1 > 0
+            let (x, y) = (d.x / l1, d.y / l1);
+            let (x, y) = if d.z < 0.0 {
+                ((1.0 - y.abs()) * x.signum(), (1.0 - x.abs()) * y.signum())
+            } else {
+                (x, y)
+            };
+            let cell = |t: f64| (((t + 1.0) * 0.5 * n as f64) as usize).min(n - 1);
+            cells[cell(y) * n + cell(x)].push(j);
+        }
+        let mut g = Self {
+            axis: Vec::new(),
+            cos_h: Vec::new(),
+            sin_h: Vec::new(),
+            members: Vec::new(),
+        };
+        for m in cells.into_iter().filter(|m| !m.is_empty()) {
+            let axis = m
+                .iter()
+                .map(|&j| dirs[j])
+                .sum::<DVec3>()
+                .normalize_or_zero();
+            let cos_h = if axis == DVec3::ZERO {
+                -1.0
+            } else {
+                m.iter()
+                    .map(|&j| dirs[j].dot(axis).clamp(-1.0, 1.0))
+                    .fold(1.0f64, f64::min)
+            };
+            g.axis.push(axis);
+            g.cos_h.push(cos_h);
+            g.sin_h.push((1.0 - cos_h * cos_h).max(0.0).sqrt());
+            g.members.push(m);
+        }
+        g
+    }
+
+    /// Whether some direction of group `g` may lie in `cone`: the angle
+    /// between the axes is at most the sum of the half angles (both below
+    /// 90 degrees, else always).
+    #[inline]
+    fn meets(&self, g: usize, cone: &Cone) -> bool {
+        if cone.cos_min <= -1.0 || self.cos_h[g] <= 0.0 {
+            return true;
+        }
+        // cos(θ_c + θ_g) with θ_c, θ_g < 90°: monotone on [0, π]
+        let lim = cone.cos_min * self.cos_h[g] - cone.sin * self.sin_h[g];
+        cone.u.dot(self.axis[g]) >= lim
+    }
+}
+
+/// What [`relight_moved`] reuses while only the object changes (module
+/// docs). Built by [`RelightScene::new`].
+#[derive(Debug, Clone)]
+pub struct RelightScene {
+    k: Intrinsics,
+    vpls: Vec<Vpl>,
+    dirs: Vec<DVec3>,
+    e_ref: f64,
+    target: Vec<Option<Surf>>,
+    areas: Vec<f64>,
+    maps: Vec<Option<ShadowMap>>,
+    /// `E^t` per pixel (VPL-major sums in f64), only without a given albedo.
+    e_t: Option<Vec<[f64; 3]>>,
+    groups: DirGroups,
+    /// Per VPL: `bias_scale * max(texel, splat radius)` of its scene map
+    /// (the bias is this times the slope factor, [`slope`]).
+    bias_t: Vec<f64>,
+    tiles: Vec<Tile>,
+    bias_scale: f64,
+    with_albedo: bool,
+}
+
+/// A square of [`Tile::SIDE`]² pixels: its valid target pixels and a ball
+/// holding their surface points. A ray from any of them passes within
+/// `reach` of a point only if the parallel ray from the centre passes
+/// within `reach + radius`, so one cone test culls the whole tile.
+#[derive(Debug, Clone)]
+struct Tile {
+    centre: DVec3,
+    radius: f64,
+    pixels: Vec<usize>,
+}
+
+impl Tile {
+    const SIDE: usize = 8;
+
+    fn all(target: &[Option<Surf>], w: usize, h: usize) -> Vec<Tile> {
+        let (tw, th) = (w.div_ceil(Self::SIDE), h.div_ceil(Self::SIDE));
+        (0..tw * th)
+            .into_par_iter()
+            .filter_map(|t| {
+                let (x0, y0) = ((t % tw) * Self::SIDE, (t / tw) * Self::SIDE);
+                let pixels: Vec<usize> = (y0..(y0 + Self::SIDE).min(h))
+                    .flat_map(|y| (x0..(x0 + Self::SIDE).min(w)).map(move |x| y * w + x))
+                    .filter(|&i| target[i].is_some())
+                    .collect();
+                let pts: Vec<DVec3> = pixels
+                    .iter()
+                    .filter_map(|&i| Some(target[i].as_ref()?.pos))
+                    .collect();
+                if pts.is_empty() {
+                    return None;
+                }
+                // guard: pts is not empty
+                let centre = pts.iter().copied().sum::<DVec3>() / pts.len() as f64;
+                let radius = pts
+                    .iter()
+                    .map(|q| (*q - centre).length())
+                    .fold(0.0f64, f64::max);
+                Some(Tile {
+                    centre,
+                    radius,
+                    pixels,
+                })
+            })
+            .collect()
+    }
+}
+
+/// The slope factor of the ISM bias, `1 + min(tan θ, 10)` with
+/// `cos θ = n·ω > 0` (module docs of [`crate::ism`]).
+#[inline]
+fn slope(cos: f64) -> f64 {
+    let c = cos.max(1e-6);
+    // guard: c >= 1e-6
+    1.0 + ((1.0 - c * c).max(0.0).sqrt() / c).min(10.0)
+}
+
+impl RelightScene {
+    /// The scene's part of `Relight` (module docs) for the VPLs `vpls`,
+    /// with `p.ism_resolution`, `p.ism_points`, `p.seed` and `p.bias_scale`.
+    pub fn new(inp: &SceneInputs, vpls: &[Vpl], p: &RelightParams) -> Result<Self, NodeError> {
+        let k = inp.k;
+        inp.check()?;
+        let (vpls, dirs, e_ref) = lit_vpls(vpls);
+        let target = target_surfaces(inp.depth, inp.normals, k);
+        let areas = pixel_areas(inp.depth, k);
+        let set = PointSet::new(&[(inp.depth, false)], k, &[], p.min_distance_m);
+        let ism = IsmParams {
+            resolution: p.ism_resolution,
+            points_per_map: p.ism_points,
+            bias_scale: p.bias_scale,
+            min_distance_m: p.min_distance_m,
+            seed: p.seed,
+            ..Default::default()
+        };
+        let m = ism.points_per_map;
+        let scene_radius = set.splat_radius(DVec3::ZERO, m);
+        let wins = windows(&dirs, &set.positions);
+        let maps: Vec<Option<ShadowMap>> = wins
+            .par_iter()
+            .enumerate()
+            .map(|(j, win)| {
+                let seed = p.seed.wrapping_mul(0x9E37_79B9).wrapping_add(j as u64);
+                build_single_in(win.as_ref()?, &set, &ism, m, 1.0, true, seed)
+            })
+            .collect();
+        let groups = DirGroups::new(&dirs);
+        let bias_t = maps
+            .iter()
+            .map(|m| {
+                m.as_ref()
+                    .map_or(0.0, |m| p.bias_scale * m.texel_m.max(scene_radius))
+            })
+            .collect();
+        let tiles = Tile::all(&target, k.width, k.height);
+        let mut scene = Self {
+            k: *k,
+            vpls,
+            dirs,
+            e_ref,
+            target,
+            areas,
+            maps,
+            e_t: None,
+            groups,
+            bias_t,
+            tiles,
+            bias_scale: p.bias_scale,
+            with_albedo: inp.albedo.is_some(),
+        };
+        if inp.albedo.is_none() {
+            scene.e_t = Some(scene.target_irradiance());
+        }
+        Ok(scene)
+    }
+
+    /// The VPLs with energy the scene was built for.
+    pub fn vpl_count(&self) -> usize {
+        self.vpls.len()
+    }
+
+    /// `E^t = Σ_k Φ_k max(0, n·ω_k) V^t_k` of every target pixel, chunks of
+    /// pixels in parallel, VPL-major inside a chunk (one map at a time stays
+    /// in cache), each pixel summing its VPLs in order.
+    fn target_irradiance(&self) -> Vec<[f64; 3]> {
+        const CHUNK: usize = 512;
+        self.target
+            .par_chunks(CHUNK)
+            .flat_map_iter(|chunk| {
+                let mut acc = vec![[0.0f64; 3]; chunk.len()];
+                for (j, ((v, d), m)) in self.vpls.iter().zip(&self.dirs).zip(&self.maps).enumerate()
+                {
+                    let power = v.power.map(f64::from);
+                    for (s, e) in chunk.iter().zip(acc.iter_mut()) {
+                        let Some(s) = s else {
+                            continue;
+                        };
+                        let cos = s.n.dot(*d);
+                        if cos <= 0.0 {
+                            continue;
+                        }
+                        if !self.scene_visible(j, m, s, cos) {
+                            continue;
+                        }
+                        for ch in 0..3 {
+                            e[ch] += power[ch] * cos;
+                        }
+                    }
+                }
+                acc
+            })
+            .collect()
+    }
+
+    /// `V^t_k` at a surface with `cos = n·ω_k > 0`: its map's verdict
+    /// with the bias of the scene's splats; visible without a map.
+    #[inline]
+    fn scene_visible(&self, k: usize, map: &Option<ShadowMap>, s: &Surf, cos: f64) -> bool {
+        match map {
+            Some(m) => m.visible(s.pos, self.bias_t[k] * slope(cos)),
+            None => true,
+        }
+    }
+}
+
+/// The maps of the object alone (module docs), one per VPL direction.
+struct ObjectMaps {
+    maps: Vec<Option<ShadowMap>>,
+    /// Splat radius of the object's samples, metres.
+    radius: f64,
+    /// Largest texel side of the maps, metres.
+    max_texel: f64,
+}
+
+/// Splats of the object's maps are this many ISM radii: twice, so the
+/// stratified discs cover its surface without pull-push.
+const OBJECT_SPLAT_SCALE: f64 = 2.0;
+
+fn object_maps(set: &PointSet, dirs: &[DVec3], p: &RelightParams) -> ObjectMaps {
+    let m = p.object_ism_points.min(set.positions.len()).max(1);
+    let radius = OBJECT_SPLAT_SCALE * set.splat_radius(DVec3::ZERO, m);
+    let largest_min = set.min_radius.iter().copied().fold(0.0f64, f64::max);
+    let margin = radius.max(largest_min);
+    let ism = IsmParams {
+        resolution: p.object_ism_resolution,
+        points_per_map: m,
+        // the splats are sized to close the gaps: no cap below that
+        max_splat_texels: p.object_ism_resolution as f64 / 4.0,
+        bias_scale: p.bias_scale,
+        ..Default::default()
+    };
+    let wins = windows(dirs, &set.positions);
+    let maps: Vec<Option<ShadowMap>> = wins
+        .par_iter()
+        .enumerate()
+        .map(|(j, win)| {
+            let seed = p.seed.wrapping_mul(0x2545_F491).wrapping_add(j as u64);
+            let win = win.as_ref()?.expanded(margin);
+            build_single_in(&win, set, &ism, m, OBJECT_SPLAT_SCALE, false, seed)
+        })
+        .collect();
+    let max_texel = maps
+        .iter()
+        .flatten()
+        .map(|m| m.texel_m)
+        .fold(0.0f64, f64::max);
+    ObjectMaps {
+        maps,
+        radius: radius.max(largest_min),
+        max_texel,
+    }
+}
+
+/// `Relight` with the scene's part from `scene` (module docs): the same
+/// outputs as [`crate::relight::relight`], up to the visibility scheme.
+/// `inp`'s scene part must be the one `scene` was built from (the node
+/// guarantees it; a different size or intrinsics is an error).
+pub fn relight_moved(
+    scene: &RelightScene,
+    inp: &RelightInputs,
+    p: &RelightParams,
+) -> Result<Option<Relit>, NodeError> {
+    let k = inp.k;
+    if *k != scene.k {
+        return Err(NodeError::input(
+            "intrinsics",
+            "differ from those the cached scene was built with",
+        ));
+    }
+    check("photo", inp.photo.dims(), k)?;
+    check("pasted_color", inp.pasted_color.dims(), k)?;
+    check("pasted_depth", inp.pasted_depth.dims(), k)?;
+    check("alpha", inp.alpha.dims(), k)?;
+    if let Some(a) = inp.albedo {
+        check("albedo", a.dims(), k)?;
+    }
+    if inp.albedo.is_some() != scene.with_albedo {
+        return Err(NodeError::input(
+            "albedo",
+            "connected differently from when the cached scene was built",
+        ));
+    }
+    let (w, h) = (k.width, k.height);
+    let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
+    if scene.vpls.is_empty() || !scene.e_ref.is_finite() || alpha.iter().all(|a| *a <= 0.0) {
+        return Ok(None);
+    }
+    let e_floor = p.min_shading_rel * scene.e_ref;
+    let r2_min = p.clamp_distance_m * p.clamp_distance_m;
+
+    // ---- the object: its samples (every pasted pixel, hidden ones too:
+    // they still cast shadows), its maps, its visible surfaces
+    let oset = PointSet::new(&[(inp.pasted_depth, true)], k, &[], p.min_distance_m);
+    let (c, radius) = centre_and_radius(&oset.positions);
+    let om = object_maps(&oset, &scene.dirs, p);
+    // A ray meets the object's splats only within this distance of c; the
+    // texel adds the lookup's quantisation.
+    let reach = radius + om.radius + om.max_texel;
+    let bounce_reach = p.bounce_radius_rel * radius;
+    let obj_idx: Vec<usize> = (0..w * h).filter(|&i| alpha[i] > 0.0).collect();
+    let obj_surfs: Vec<Surf> = obj_idx.par_iter().map(|&i| inp.object_surface(i)).collect();
+
+    // ---- the object's shading: E^{s+t} = Σ Φ cos V^t V^o, and the scene's bounce
+    let scene_vpls = scene_bounce_vpls(
+        &scene.target,
+        &scene.areas,
+        inp.photo,
+        c,
+        p.clamp_distance_m,
+        p.scene_vpls,
+        p.seed,
+    );
+    let pasted = inp.pasted_color.as_slice();
+    // per VPL: the object maps' bias constants, for the object's own
+    // surfaces (its splats) and for the scene's (none of its splats)
+    let bias_oo: Vec<f64> = om
+        .maps
+        .iter()
+        .map(|m| {
+            m.as_ref()
+                .map_or(0.0, |m| scene.bias_scale * m.texel_m.max(om.radius))
+        })
+        .collect();
+    let bias_os: Vec<f64> = om
+        .maps
+        .iter()
+        .map(|m| m.as_ref().map_or(0.0, |m| scene.bias_scale * m.texel_m))
+        .collect();
+    // chunks of surfaces, VPL-major inside (one pair of maps in cache at a
+    // time); every surface sums its VPLs in order
+    const CHUNK: usize = 256;
+    let irr: Vec<([f64; 3], [f64; 3])> = obj_surfs
+        .par_chunks(CHUNK)
+        .flat_map_iter(|chunk| {
+            let mut acc = vec![([0.0f64; 3], [0.0f64; 3]); chunk.len()];
+            for (j, (v, d)) in scene.vpls.iter().zip(&scene.dirs).enumerate() {
+                let power = v.power.map(f64::from);
+                let (sm, omap) = (&scene.maps[j], &om.maps[j]);
+                let shared = match (sm, omap) {
+                    (Some(a), Some(b)) => a.same_frame(b),
+                    _ => false,
+                };
+                for (s, (est, efree)) in chunk.iter().zip(acc.iter_mut()) {
+                    let cos = s.n.dot(*d);
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    let vis = match (sm, omap) {
+                        (Some(a), Some(b)) if shared => {
+                            // the slope (a square root, a division) only
+                            // where a texel holds an occluder
+                            let lc = a.light_coords(s.pos);
+                            let (oo, os) =
+                                (f64::from(b.occluder_lc(lc)), f64::from(a.occluder_lc(lc)));
+                            if oo == f64::NEG_INFINITY && os == f64::NEG_INFINITY {
+                                true
+                            } else {
+                                let sl = slope(cos);
+                                let see = |occ: f64, bias: f64| occ.is_nan() || occ <= lc.z + bias;
+                                see(oo, bias_oo[j] * sl) && see(os, scene.bias_t[j] * sl)
+                            }
+                        }
+                        _ => {
+                            let sl = slope(cos);
+                            omap.as_ref()
+                                .is_none_or(|m| m.visible(s.pos, bias_oo[j] * sl))
+                                && sm
+                                    .as_ref()
+                                    .is_none_or(|m| m.visible(s.pos, scene.bias_t[j] * sl))
+                        }
+                    };
+                    for ch in 0..3 {
+                        let e = power[ch] * cos;
+                        efree[ch] += e;
+                        if vis {
+                            est[ch] += e;
+                        }
+                    }
+                }
+            }
+            acc
+        })
+        .collect();
+    let obj_rad: Vec<Rgb> = obj_idx
+        .par_iter()
+        .zip(obj_surfs.par_iter())
+        .zip(irr.par_iter())
+        .map(|((&i, s), &(est, efree))| {
+            let bs = if scene_vpls.is_empty() {
+                [0.0; 3]
+            } else {
+                bounce_at(s.pos, s.n, &scene_vpls, r2_min)
+            };
+            object_radiance(pasted[i], est, efree, bs, e_floor)
+        })
+        .collect();
+    let bounce = {
+        let at = |i: usize| {
+            obj_idx
+                .binary_search(&i)
+                .ok()
+                .map(|j| (obj_surfs[j].pos, obj_surfs[j].n))
+        };
+        object_bounce_vpls(&obj_idx, &at, &obj_rad, inp.pasted_depth, k, p.bounce_vpls)
+    };
+
+    // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
+    // pixel's cone, plus the bounce within its reach; tiles whose cone
+    // meets no VPL group, out of the bounce's reach and without object
+    // pixels are skipped whole
+    let photo = inp.photo.as_slice();
+    let albedo = inp.albedo.map(|a| a.as_slice());
+    let diffs: Vec<(usize, [f64; 3])> = scene
+        .tiles
+        .par_iter()
+        .flat_map_iter(|tile| {
+            let tcone = Cone::new(tile.centre, c, reach + tile.radius);
+            let vpls: Vec<usize> = (0..scene.groups.axis.len())
+                .filter(|&g| scene.groups.meets(g, &tcone))
+                .flat_map(|g| scene.groups.members[g].iter().copied())
+                .filter(|&j| om.maps[j].is_some() && tcone.contains(scene.dirs[j]))
+                .collect();
+            let tile_near =
+                !bounce.is_empty() && (tile.centre - c).length() - tile.radius <= bounce_reach;
+            // the bounce VPLs whose front half-space reaches into the tile
+            let tile_bounce: Vec<(DVec3, DVec3, [f64; 3])> = if tile_near {
+                bounce
+                    .iter()
+                    .filter(|(q, nq, _)| nq.dot(tile.centre - *q) + tile.radius > 0.0)
+                    .copied()
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            let any_alpha = tile.pixels.iter().any(|&i| alpha[i] > 0.0);
+            let mut out = Vec::new();
+            if vpls.is_empty() && !tile_near && !any_alpha {
+                return out;
+            }
+            // VPL-major over the tile's pixels: one object map in cache at
+            // a time; every pixel still sums its VPLs in the tile's order
+            let pix: Vec<(usize, &Surf, Cone)> = tile
+                .pixels
+                .iter()
+                .filter_map(|&i| {
+                    let s = scene.target[i].as_ref()?;
+                    Some((i, s, Cone::new(s.pos, c, reach)))
+                })
+                .collect();
+            let mut de = vec![[0.0f64; 3]; pix.len()];
+            let mut hit = vec![false; pix.len()];
+            for &j in &vpls {
+                let Some(om_j) = om.maps[j].as_ref() else {
+                    continue;
+                };
+                let d = scene.dirs[j];
+                let power = scene.vpls[j].power.map(f64::from);
+                let sm = scene.maps[j].as_ref().filter(|m| m.same_frame(om_j));
+                for ((_, s, cone), (de, hit)) in pix.iter().zip(de.iter_mut().zip(hit.iter_mut())) {
+                    let cos = s.n.dot(d);
+                    if cos <= 0.0 || !cone.contains(d) {
+                        continue;
+                    }
+                    let lc = om_j.light_coords(s.pos);
+                    let occ = f64::from(om_j.occluder_lc(lc));
+                    if occ == f64::NEG_INFINITY {
+                        continue; // nothing of the object there
+                    }
+                    let sl = slope(cos);
+                    if occ.is_nan() || occ <= lc.z + bias_os[j] * sl {
+                        continue;
+                    }
+                    let scene_vis = match (sm, &scene.maps[j]) {
+                        (Some(m), _) => m.visible_lc(lc, scene.bias_t[j] * sl),
+                        (None, Some(m)) => m.visible(s.pos, scene.bias_t[j] * sl),
+                        (None, None) => true,
+                    };
+                    if scene_vis {
+                        *hit = true;
+                        for ch in 0..3 {
+                            de[ch] += power[ch] * cos;
+                        }
+                    }
+                }
+            }
+            for ((&(i, s, _), de), hit) in pix.iter().zip(&de).zip(&hit) {
+                let near = tile_near && (s.pos - c).length() <= bounce_reach;
+                if !hit && !near && alpha[i] <= 0.0 {
+                    continue;
+                }
+                let b = if near {
+                    bounce_at(s.pos, s.n, &tile_bounce, r2_min)
+                } else {
+                    [0.0; 3]
+                };
+                let et = match &scene.e_t {
+                    Some(e) => e[i],
+                    None => [0.0; 3],
+                };
+                let rho = target_albedo(albedo.map(|a| a[i]), photo[i], et, e_floor);
+                out.push((i, std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch]))));
+            }
+            out
+        })
+        .collect();
+
+    // ---- composite: the photo, rewritten where the object changes it
+    let mut color = inp.photo.clone();
+    let mut difference: ColorImage = Image::filled(w, h, [0.0f32; 3]);
+    let mut region: Mask = Image::filled(w, h, 0.0f32);
+    {
+        let (cs, ds, rs) = (
+            color.as_mut_slice(),
+            difference.as_mut_slice(),
+            region.as_mut_slice(),
+        );
+        let mut diff_at = vec![[0.0f64; 3]; w * h];
+        for &(i, d) in &diffs {
+            ds[i] = d.map(|v| v as f32);
+            diff_at[i] = d;
+            rs[i] = 1.0;
+            cs[i] = composite(photo[i], alpha[i], [0.0; 3], d);
+        }
+        for (&i, obj) in obj_idx.iter().zip(&obj_rad) {
+            rs[i] = 1.0;
+            cs[i] = composite(photo[i], alpha[i], *obj, diff_at[i]);
+        }
+    }
+    Ok(Some(Relit {
+        color,
+        region,
+        difference,
+    }))
+}
+
+/// What identifies a scene in the node's memo: its inputs by identity (the
+/// memo holds them, so an address is never reused while it is there) and
+/// the parameters [`RelightScene::new`] reads.
+#[derive(Clone)]
+pub(crate) struct SceneKey {
+    pub photo: Arc<ColorImage>,
+    pub depth: Arc<DepthMap>,
+    pub normals: Option<Arc<NormalMap>>,
+    pub albedo: Option<Arc<ColorImage>>,
+    pub vpls: Arc<PointCloud>,
+    pub k: Intrinsics,
+    pub params: (usize, usize, u64, u64, u64),
+}
+
+impl SceneKey {
+    pub(crate) fn params_of(p: &RelightParams) -> (usize, usize, u64, u64, u64) {
+        (
+            p.ism_resolution,
+            p.ism_points,
+            p.seed,
+            p.bias_scale.to_bits(),
+            p.min_distance_m.to_bits(),
+        )
+    }
+
+    fn same(&self, o: &SceneKey) -> bool {
+        fn opt<T>(a: &Option<Arc<T>>, b: &Option<Arc<T>>) -> bool {
+            match (a, b) {
+                (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+                (None, None) => true,
+                _ => false,
+            }
+        }
+        Arc::ptr_eq(&self.photo, &o.photo)
+            && Arc::ptr_eq(&self.depth, &o.depth)
+            && opt(&self.normals, &o.normals)
+            && opt(&self.albedo, &o.albedo)
+            && Arc::ptr_eq(&self.vpls, &o.vpls)
+            && self.k == o.k
+            && self.params == o.params
+    }
+}
+
+/// Scenes by key, the most recently used last.
+pub(crate) type Memo = Mutex<Vec<(SceneKey, Arc<RelightScene>)>>;
+
+/// The scenes `Relight` nodes built last (at most [`MEMO_SCENES`]).
+static MEMO: Memo = Mutex::new(Vec::new());
+
+/// Scenes the memo keeps (the most recently used).
+pub const MEMO_SCENES: usize = 2;
+
+/// The node's memo's scene for `key`, or `build()`'s, then remembered. The
+/// second value says whether it was reused.
+pub(crate) fn memo_scene(
+    key: SceneKey,
+    build: impl FnOnce() -> Result<RelightScene, NodeError>,
+) -> Result<(Arc<RelightScene>, bool), NodeError> {
+    memo_scene_in(&MEMO, key, build)
+}
+
+/// [`memo_scene`] with a given memo. The lock is not held while building.
+pub(crate) fn memo_scene_in(
+    memo: &Memo,
+    key: SceneKey,
+    build: impl FnOnce() -> Result<RelightScene, NodeError>,
+) -> Result<(Arc<RelightScene>, bool), NodeError> {
+    let lock = || memo.lock().unwrap_or_else(|e| e.into_inner());
+    {
+        let mut memo = lock();
+        if let Some(pos) = memo.iter().position(|(k, _)| k.same(&key)) {
+            let entry = memo.remove(pos);
+            let scene = entry.1.clone();
+            memo.push(entry);
+            return Ok((scene, true));
+        }
+    }
+    let scene = Arc::new(build()?);
+    let mut memo = lock();
+    memo.push((key, scene.clone()));
+    let excess = memo.len().saturating_sub(MEMO_SCENES);
+    memo.drain(..excess);
+    Ok((scene, false))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ism::fixtures::floor_and_slab_at;
+    use crate::relight::relight;
+    use crate::relight::tests::{SlabScene, overhead, slab_shadow_is_analytic};
+
+    fn cached(inp: &RelightInputs, vpls: &[Vpl], p: &RelightParams) -> Relit {
+        let scene = RelightScene::new(&inp.scene(), vpls, p).unwrap();
+        relight_moved(&scene, inp, p).unwrap().unwrap()
+    }
+
+    /// The analytic shadow of the slab (the check of the paired scheme's
+    /// test), with the scene cached, at two places of the slab.
+    #[test]
+    fn a_slab_casts_its_analytic_shadow_with_the_scene_cached() {
+        slab_shadow_is_analytic(&cached, 0.0);
+        slab_shadow_is_analytic(&cached, 0.35);
+    }
+
+    fn sky(n: usize) -> Vec<Vpl> {
+        (0..n)
+            .map(|j| {
+                let a = j as f32 * 0.7;
+                Vpl {
+                    direction: [0.5 * a.cos(), -1.0, 0.5 * a.sin()],
+                    power: [0.1, 0.2, 0.05 * (j % 3) as f32],
+                }
+            })
+            .collect()
+    }
+
+    /// One scene serves the object at two places: each result is the one a
+    /// scene built for it alone gives, bit for bit, on any thread count;
+    /// and the shadow moves with the object.
+    #[test]
+    fn a_cached_scene_gives_what_a_fresh_one_gives_wherever_the_object_is() {
+        let (w, h) = (80, 60);
+        let (k, floor, slab_a, alpha_a) = floor_and_slab_at(w, h, 0.0);
+        let (_, _, slab_b, alpha_b) = floor_and_slab_at(w, h, 0.3);
+        let photo = floor.map(|z| if *z > 0.0 { [0.5f32; 3] } else { [0.0; 3] });
+        let pasted_color = Image::filled(w, h, [0.3f32, 0.6, 0.2]);
+        let inp = |slab: &'static DepthMap, alpha: &'static Mask| RelightInputs {
+            photo: Box::leak(Box::new(photo.clone())),
+            depth: Box::leak(Box::new(floor.clone())),
+            normals: None,
+            albedo: None,
+            pasted_color: Box::leak(Box::new(pasted_color.clone())),
+            pasted_depth: slab,
+            alpha,
+            k: Box::leak(Box::new(k)),
+        };
+        let leak_d = |d: DepthMap| -> &'static DepthMap { Box::leak(Box::new(d)) };
+        let (ia, ib) = (
+            inp(leak_d(slab_a), leak_d(alpha_a)),
+            inp(leak_d(slab_b), leak_d(alpha_b)),
+        );
+        let vpls = sky(24);
+        let p = RelightParams {
+            ism_points: 3000,
+            ism_resolution: 48,
+            bounce_vpls: 32,
+            ..Default::default()
+        };
+        let scene = RelightScene::new(&ia.scene(), &vpls, &p).unwrap();
+        let ra = relight_moved(&scene, &ia, &p).unwrap().unwrap();
+        let rb = relight_moved(&scene, &ib, &p).unwrap().unwrap();
+        assert_eq!(ra, cached(&ia, &vpls, &p));
+        assert_eq!(rb, cached(&ib, &vpls, &p));
+        assert_ne!(ra.color, rb.color);
+        for threads in [1, 3] {
+            let again = crate::test_util::with_threads(threads, || {
+                let s = RelightScene::new(&ia.scene(), &vpls, &p).unwrap();
+                relight_moved(&s, &ib, &p).unwrap().unwrap()
+            });
+            assert_eq!(again, rb, "{threads} threads");
+        }
+        // The shadow follows: the darkened floor's mean x moves by the
+        // object's 0.3 m (within a pixel's width at 2 m: ~3 cm here).
+        let mean_x = |r: &Relit, alpha: &Mask| {
+            let (mut sum, mut n) = (0.0, 0.0);
+            for i in 0..w * h {
+                let dl = r.difference.as_slice()[i];
+                let z = *floor.get(i % w, i / w);
+                if alpha.as_slice()[i] == 0.0 && z > 0.0 && dl[1] < -1e-3 {
+                    let q = k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, z as f64);
+                    // weighted by how much darker
+                    sum += q.x * f64::from(-dl[1]);
+                    n += f64::from(-dl[1]);
+                }
+            }
+            assert!(n > 0.0, "no shadow");
+            sum / n
+        };
+        let shift = mean_x(&rb, ib.alpha) - mean_x(&ra, ia.alpha);
+        assert!((shift - 0.3).abs() < 0.06, "shadow moved {shift} m");
+    }
+
+    /// The two schemes agree where they should: the same pixels change
+    /// (up to the shadow's outline), by about the same amount.
+    #[test]
+    fn cached_and_paired_schemes_agree_on_the_slab() {
+        let (w, h) = (160, 120);
+        let sc = SlabScene::new(w, h, 0.0);
+        let inp = sc.inputs(false);
+        let vpls = sky(64);
+        let p = RelightParams {
+            ism_points: 20000,
+            ism_resolution: 128,
+            ..Default::default()
+        };
+        let a = cached(&inp, &vpls, &p);
+        let b = relight(&inp, &vpls, &p).unwrap().unwrap();
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for i in 0..w * h {
+            let (x, y) = (a.color.as_slice()[i], b.color.as_slice()[i]);
+            if a.region.as_slice()[i] > 0.0 || b.region.as_slice()[i] > 0.0 {
+                sum += (0..3).map(|c| f64::from(x[c] - y[c]).powi(2)).sum::<f64>();
+                n += 3;
+            } else {
+                assert_eq!(x, y);
+            }
+        }
+        let rmse = (sum / n.max(1) as f64).sqrt();
+        assert!(n > 300 && rmse < 0.02, "rmse {rmse} over {n}");
+    }
+
+    #[test]
+    fn a_scene_used_with_other_inputs_is_an_error() {
+        let (w, h) = (40, 30);
+        let sc = SlabScene::new(w, h, 0.0);
+        let (k, photo) = (sc.k, &sc.photo);
+        let inp = sc.inputs(false);
+        let p = RelightParams::default();
+        let scene = RelightScene::new(&inp.scene(), &overhead(), &p).unwrap();
+        let k2 = Intrinsics {
+            fx: k.fx * 2.0,
+            ..k
+        };
+        let other = RelightInputs { k: &k2, ..inp };
+        assert!(relight_moved(&scene, &other, &p).is_err());
+        let with_albedo = RelightInputs {
+            albedo: Some(photo),
+            ..inp
+        };
+        assert!(relight_moved(&scene, &with_albedo, &p).is_err());
+        let small = Image::filled(20, 15, 0.0f32);
+        let bad = RelightInputs {
+            alpha: &small,
+            ..inp
+        };
+        assert!(relight_moved(&scene, &bad, &p).is_err());
+        // nothing pasted: nothing to do
+        let zero = Image::filled(w, h, 0.0f32);
+        let none = RelightInputs {
+            alpha: &zero,
+            ..inp
+        };
+        assert!(relight_moved(&scene, &none, &p).unwrap().is_none());
+    }
+
+    /// The memo hands back the scene it holds for the same inputs (by
+    /// identity) and parameters, builds anew for any other, and keeps the
+    /// last [`MEMO_SCENES`].
+    #[test]
+    fn the_memo_reuses_a_scene_only_for_the_same_inputs() {
+        let (w, h) = (40, 30);
+        let (k, floor, _, _) = floor_and_slab_at(w, h, 0.0);
+        let photo = Arc::new(Image::filled(w, h, [0.5f32; 3]));
+        let depth = Arc::new(floor);
+        let vpls = Arc::new(crate::vpl::to_cloud(&overhead()));
+        let key = |photo: &Arc<ColorImage>, p: &RelightParams| SceneKey {
+            photo: photo.clone(),
+            depth: depth.clone(),
+            normals: None,
+            albedo: None,
+            vpls: vpls.clone(),
+            k,
+            params: SceneKey::params_of(p),
+        };
+        let p = RelightParams::default();
+        let built = std::cell::Cell::new(0);
+        let build = |photo: &Arc<ColorImage>| {
+            built.set(built.get() + 1);
+            RelightScene::new(
+                &SceneInputs {
+                    photo,
+                    depth: &depth,
+                    normals: None,
+                    albedo: None,
+                    k: &k,
+                },
+                &overhead(),
+                &p,
+            )
+        };
+        let memo: Memo = Mutex::new(Vec::new());
+        let (a, reused) = memo_scene_in(&memo, key(&photo, &p), || build(&photo)).unwrap();
+        assert!(!reused);
+        let (b, reused) = memo_scene_in(&memo, key(&photo, &p), || build(&photo)).unwrap();
+        assert!(reused && Arc::ptr_eq(&a, &b));
+        // equal content, other value: built anew (identity, not content)
+        let copy = Arc::new((*photo).clone());
+        assert!(
+            !memo_scene_in(&memo, key(&copy, &p), || build(&copy))
+                .unwrap()
+                .1
+        );
+        // other parameters
+        let p2 = RelightParams {
+            ism_points: 1000,
+            ..p.clone()
+        };
+        assert!(
+            !memo_scene_in(&memo, key(&photo, &p2), || build(&photo))
+                .unwrap()
+                .1
+        );
+        assert_eq!(built.get(), 3);
+        // the first was the least recently used of three: evicted
+        assert_eq!(memo.lock().unwrap().len(), MEMO_SCENES);
+        assert!(
+            !memo_scene_in(&memo, key(&photo, &p), || build(&photo))
+                .unwrap()
+                .1
+        );
+    }
+}
