@@ -3,20 +3,25 @@
 //!
 //! The scene is `graphs/copy_paste_relit.ron` at 640x480 (the sphere pasted
 //! behind the red box of the tabletop, lit by the target's sun through the
-//! environment map). The graph runs once for the inputs of `Relight`; the
-//! bench then calls [`relight`] directly with the VPLs sampled from the
-//! graph's environment map.
+//! environment map). The graph runs once for the inputs of `Relight` (and
+//! once more with the object moved 15 cm); the bench then calls the
+//! relighting functions directly with VPLs sampled from the graph's
+//! environment map.
 //!
 //! - Time: 256 VPLs x 8000 ISM points (the paper's setting), median of
-//!   `DEPTHGRAPH_REPEATS` (default 3) runs, on the threads rayon has.
-//! - Error: against a reference run with 1024 VPLs x 32000 points
-//!   (`DEPTHGRAPH_RELIGHT_REF_VPLS`, `DEPTHGRAPH_RELIGHT_REF_POINTS`), RMSE of
-//!   the linear RGB composite over two pixel sets of the reference: the
-//!   **changed** region (the composite differs from the photo by more than
-//!   1e-4 in some channel: the object, its shadow and its bounce) and the
-//!   **shadow** (target pixels, alpha 0, that the object darkens by more than
-//!   1e-4 in luminance). The reference itself is an ISM estimate, not ray-cast
-//!   visibility: the errors of its own maps are not measured.
+//!   `DEPTHGRAPH_REPEATS` (default 3) runs, on the threads rayon has: the
+//!   paired scheme, the scene-cached one from scratch, and the
+//!   scene-cached one when only the object moves (scene kept).
+//! - Error: against the ray-cast reference ([`relight_reference`]: exact
+//!   visibility against the meshes) with `DEPTHGRAPH_RELIGHT_REF_VPLS`
+//!   (default 4096) VPLs, on every `DEPTHGRAPH_RELIGHT_REF_STRIDE`-th pixel
+//!   (default 3) in x and y. RMSE of the linear RGB composite over two sets
+//!   of those pixels: the **changed** ones (the reference differs from the
+//!   photo by more than 1e-4 in some channel: the object, its shadow and
+//!   its bounce) and the **shadow** (target pixels, alpha 0, that the
+//!   object darkens by more than 1e-4 in luminance).
+//! - `DEPTHGRAPH_RELIGHT_MOVES=N`: only time N object moves and exit (for
+//!   a profiler).
 
 mod common;
 use common::{env_usize, median};
@@ -28,6 +33,7 @@ use std::time::Instant;
 use depthgraph::graph::pipeline::OutputRef;
 use depthgraph::graph::prelude::*;
 use depthgraph::nodes::relight::{RelightInputs, RelightParams, Relit, relight};
+use depthgraph::nodes::relight_reference::relight_reference;
 use depthgraph::nodes::relight_scene::{RelightScene, relight_moved};
 use depthgraph::nodes::vpl::{Vpl, VplParams, luminance, sample_vpls};
 
@@ -46,11 +52,17 @@ struct Scene {
 
 fn load_scene(root: &Path, extra: &[&str]) -> Scene {
     let reg = depthgraph::nodes::registry().expect("registry");
+    // The graph is drawn at 320x240: its lasso clicks and paste pixel are
+    // doubled for 640x480 (else the lasso would cut a piece of the wall).
     let sets: Vec<String> = [
         "source.width=640",
         "source.height=480",
         "target.width=640",
         "target.height=480",
+        "lasso.clicks=[(509.0, 352.4), (474.6, 384.4), (434.2, 410.2), (394.2, 384.0), \
+         (359.8, 353.8), (370.6, 309.6), (385.6, 265.2), (432.0, 253.4), (473.0, 272.2), \
+         (510.2, 302.6)]",
+        "paste.target_pixel=[(121.0, 301.0)]",
     ]
     .iter()
     .chain(extra)
@@ -132,29 +144,15 @@ fn params(points: usize, importance: &str, visibility: &str) -> RelightParams {
     }
 }
 
-/// RMSE (linear RGB, f64 sums) over the pixels of `set`; 0 for an empty set.
-fn rmse(a: &Relit, b: &Relit, set: &[usize]) -> f64 {
-    let mut sum = 0.0f64;
-    for &i in set {
-        let (x, y) = (a.color.as_slice()[i], b.color.as_slice()[i]);
-        for c in 0..3 {
-            let d = x[c] as f64 - y[c] as f64;
-            sum += d * d;
-        }
-    }
-    // guard: empty set
-    (sum / (3 * set.len()).max(1) as f64).sqrt()
-}
-
 fn main() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let repeats = env_usize("DEPTHGRAPH_REPEATS", 3);
-    let ref_vpls = env_usize("DEPTHGRAPH_RELIGHT_REF_VPLS", 1024);
-    let ref_points = env_usize("DEPTHGRAPH_RELIGHT_REF_POINTS", 32000);
+    let repeats = env_usize("DEPTHGRAPH_REPEATS", 3).max(1);
+    let ref_vpls = env_usize("DEPTHGRAPH_RELIGHT_REF_VPLS", 4096);
+    let stride = env_usize("DEPTHGRAPH_RELIGHT_REF_STRIDE", 3).max(1);
     let threads = rayon::current_num_threads();
     let scene = load_scene(&root, &[]);
-    // the same scene with the object moved 15 cm to the right
-    let moved = load_scene(&root, &["paste.translation_m=(0.15, 0.0, 0.0)"]);
+    // the same scene with the object moved 15 cm to the left
+    let moved = load_scene(&root, &["paste.translation_m=(-0.15, 0.0, 0.0)"]);
     assert!(moved.photo == scene.photo && moved.depth == scene.depth);
     assert!(
         moved.pasted_depth != scene.pasted_depth,
@@ -169,154 +167,207 @@ fn main() {
             },
         )
     };
-
-    if let Ok(n) = std::env::var("PROFILE_MOVES") {
-        let n: usize = n.parse().unwrap();
-        let v256 = vpls(256);
-        let cached = params(8000, "near_object", "scene_cached");
+    let v256 = vpls(256);
+    let cached = params(8000, "near_object", "scene_cached");
+    let time_moves = |sc: &RelightScene, n: usize| -> Vec<f64> {
+        (0..n)
+            .map(|j| {
+                let inp = inputs(if j % 2 == 0 { &moved } else { &scene });
+                let t = Instant::now();
+                let r = relight_moved(sc, &inp, &cached).expect("relight");
+                assert!(r.is_some(), "nothing pasted");
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect()
+    };
+    if env_usize("DEPTHGRAPH_RELIGHT_MOVES", 0) > 0 {
+        let n = env_usize("DEPTHGRAPH_RELIGHT_MOVES", 0);
         let sc = RelightScene::new(&inputs(&scene).scene(), &v256, &cached).expect("scene");
-        let t = Instant::now();
-        for j in 0..n {
-            let inp = inputs(if j % 2 == 0 { &moved } else { &scene });
-            let _ = relight_moved(&sc, &inp, &cached);
-        }
-        eprintln!(
-            "{:.1} ms per move",
-            t.elapsed().as_secs_f64() * 1e3 / n as f64
-        );
+        let t = time_moves(&sc, n);
+        eprintln!("object moved: median {:.1} ms over {n}", median(t));
         return;
     }
+
     // ---- time at the paper's setting
-    let v256 = vpls(256);
-    let mut times = Vec::new();
-    for _ in 0..repeats.max(1) {
-        times.push(run(&scene, &v256, &params(8000, "near_object", "paired")).1);
-    }
-    let t_paper = median(times.clone());
-    eprintln!("paired 256 x 8000: {t_paper:.0} ms ({times:?})");
-    let cached = params(8000, "near_object", "scene_cached");
-    let mut first = Vec::new();
-    for _ in 0..repeats.max(1) {
-        first.push(run(&scene, &v256, &cached).1);
-    }
-    let t_first = median(first.clone());
-    eprintln!("scene_cached 256 x 8000, scene built: {t_first:.0} ms ({first:?})");
-    // the scene once, then the object moved back and forth
+    let time = |vis: &str| {
+        let t: Vec<f64> = (0..repeats)
+            .map(|_| run(&scene, &v256, &params(8000, "near_object", vis)).1)
+            .collect();
+        (median(t.clone()), t)
+    };
+    let (t_paired, paired_times) = time("paired");
+    eprintln!("paired 256 x 8000: {t_paired:.0} ms ({paired_times:?})");
+    let (t_first, first_times) = time("scene_cached");
+    eprintln!("scene_cached 256 x 8000 from scratch: {t_first:.0} ms ({first_times:?})");
     let t = Instant::now();
     let sc = RelightScene::new(&inputs(&scene).scene(), &v256, &cached).expect("scene");
     let t_scene = t.elapsed().as_secs_f64() * 1e3;
-    let mut moves = Vec::new();
-    for j in 0..(2 * repeats.max(1) + 1) {
-        let inp = inputs(if j % 2 == 0 { &moved } else { &scene });
-        let t = Instant::now();
-        let r = relight_moved(&sc, &inp, &cached)
-            .expect("relight")
-            .expect("pasted");
-        moves.push(t.elapsed().as_secs_f64() * 1e3);
-        // the cached scene gives what a fresh one gives
-        if j < 2 {
-            let fresh = run(if j % 2 == 0 { &moved } else { &scene }, &v256, &cached).0;
-            assert!(fresh == r, "a cached scene changed the result");
-        }
+    // the cached scene gives what a fresh one gives, at both places
+    for s in [&moved, &scene] {
+        let r = relight_moved(&sc, &inputs(s), &cached).expect("relight");
+        assert!(
+            r == Some(run(s, &v256, &cached).0),
+            "a cached scene changed the result"
+        );
     }
+    let moves = time_moves(&sc, 4 * repeats + 1);
     let t_move = median(moves.clone());
+    let (m_lo, m_hi) = moves
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &t| (a.min(t), b.max(t)));
     eprintln!("scene alone {t_scene:.0} ms; object moved: {t_move:.1} ms ({moves:?})");
 
-    // ---- reference
-    let (reference, t_ref) = run(
-        &scene,
-        &vpls(ref_vpls),
-        &params(ref_points, "near_object", "paired"),
+    // ---- the ray-cast reference on a grid of pixels
+    let (w, h) = scene.photo.dims();
+    let grid: Vec<usize> = (0..h)
+        .step_by(stride)
+        .flat_map(|y| (0..w).step_by(stride).map(move |x| y * w + x))
+        .collect();
+    let t = Instant::now();
+    let reference = relight_reference(&inputs(&scene), &vpls(ref_vpls), &cached, &grid)
+        .expect("reference")
+        .expect("something to relight")
+        .into_iter()
+        .map(|(c, _)| c)
+        .collect::<Vec<_>>();
+    let t_ref = t.elapsed().as_secs_f64() * 1e3;
+    eprintln!(
+        "ray-cast reference, {ref_vpls} VPLs, {} px: {t_ref:.0} ms",
+        grid.len()
     );
-    eprintln!("reference {ref_vpls} x {ref_points}: {t_ref:.0} ms");
     let photo = scene.photo.as_slice();
     let alpha = scene.alpha.as_slice();
-    let changed: Vec<usize> = (0..photo.len())
-        .filter(|&i| {
-            let (a, b) = (reference.color.as_slice()[i], photo[i]);
+    let changed: Vec<usize> = (0..grid.len())
+        .filter(|&g| {
+            let (a, b) = (reference[g], photo[grid[g]]);
             (0..3).any(|c| (a[c] - b[c]).abs() > 1e-4)
         })
         .collect();
-    let shadow: Vec<usize> = (0..photo.len())
-        .filter(|&i| {
-            alpha[i] <= 0.0 && luminance(reference.color.as_slice()[i]) < luminance(photo[i]) - 1e-4
+    let shadow: Vec<usize> = (0..grid.len())
+        .filter(|&g| {
+            let i = grid[g];
+            alpha[i] <= 0.0 && luminance(reference[g]) < luminance(photo[i]) - 1e-4
         })
         .collect();
+    let on_object: Vec<usize> = changed
+        .iter()
+        .copied()
+        .filter(|&g| alpha[grid[g]] > 0.0)
+        .collect();
+    let rmse = |r: &Relit, set: &[usize]| -> f64 {
+        let mut sum = 0.0f64;
+        for &g in set {
+            let (x, y) = (r.color.as_slice()[grid[g]], reference[g]);
+            for c in 0..3 {
+                let d = x[c] as f64 - y[c] as f64;
+                sum += d * d;
+            }
+        }
+        // guard: empty set
+        (sum / (3 * set.len()).max(1) as f64).sqrt()
+    };
 
-    let mut rows: Vec<(String, f64, f64, f64)> = Vec::new();
-    let mut row = |label: String, n: usize, points: usize, imp: &str, vis: &str| {
-        let (r, t) = run(&scene, &vpls(n), &params(points, imp, vis));
-        let (ec, es) = (
-            rmse(&r, &reference, &changed),
-            rmse(&r, &reference, &shadow),
-        );
-        eprintln!("{label}: {t:.0} ms, rmse {ec:.5} / {es:.5}");
-        rows.push((label, t, ec, es));
+    let mut rows: Vec<(String, f64, f64, f64, f64)> = Vec::new();
+    let mut row = |label: String, n: usize, p: RelightParams| {
+        let (r, t) = run(&scene, &vpls(n), &p);
+        let (ec, es, eo) = (rmse(&r, &changed), rmse(&r, &shadow), rmse(&r, &on_object));
+        eprintln!("{label}: {t:.0} ms, rmse {ec:.5} / {es:.5} / object {eo:.5}");
+        rows.push((label, t, ec, es, eo));
     };
     for vis in ["paired", "scene_cached"] {
         for n in [16, 64, 256, 1024] {
             row(
                 format!("{vis}: {n} VPLs x 8000 points"),
                 n,
-                8000,
-                "near_object",
-                vis,
+                params(8000, "near_object", vis),
             );
         }
         for m in [1000, 4000, 32000] {
             row(
                 format!("{vis}: 256 VPLs x {m} points"),
                 256,
-                m,
-                "near_object",
-                vis,
+                params(m, "near_object", vis),
+            );
+        }
+        for res in [48, 192] {
+            row(
+                format!("{vis}: 256 x 8000, ISM resolution {res}"),
+                256,
+                RelightParams {
+                    ism_resolution: res,
+                    ..params(8000, "near_object", vis)
+                },
             );
         }
     }
     row(
         "paired: 256 x 8000, importance uniform".into(),
         256,
-        8000,
-        "uniform",
-        "paired",
+        params(8000, "uniform", "paired"),
     );
+    for (res, pts) in [(32, 1024), (128, 8192)] {
+        row(
+            format!("scene_cached: 256 x 8000, object maps {res}² x {pts} points"),
+            256,
+            RelightParams {
+                object_ism_resolution: res,
+                object_ism_points: pts,
+                ..cached.clone()
+            },
+        );
+    }
 
     // ---- the doc
+    let list = |t: &[f64]| {
+        t.iter()
+            .map(|t| format!("{t:.0}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
     let mut doc = String::new();
     let _ = writeln!(
         doc,
         "# Relighting: time and accuracy\n\n\
          Generated by `cargo bench --bench relight` (`benches/relight.rs`); do not edit.\n\n\
          Scene: `graphs/copy_paste_relit.ron` at 640x480 (the pasted sphere behind the red box, \
-         the target's sun in the environment map), `Relight` called directly with its graph \
-         inputs (given normals and albedo), default parameters unless stated. {threads} rayon \
-         threads; times are wall-clock of `relight()` alone, on a shared machine.\n"
+         the target's sun in the environment map), the relighting functions called directly with \
+         the graph's inputs (given normals and albedo), default parameters unless stated. \
+         {threads} rayon threads; times are wall-clock of the relighting alone, on a shared machine.\n"
     );
     let _ = writeln!(
         doc,
-        "## Time at the paper's setting\n\n\
-         256 VPLs x 8000 ISM points, near-object importance: **{t_paper:.0} ms** \
-         (median of {} runs: {}).\n",
-        times.len(),
-        times
-            .iter()
-            .map(|t| format!("{t:.0}"))
-            .collect::<Vec<_>>()
-            .join(", ")
+        "## Time at the paper's setting (256 VPLs x 8000 ISM points)\n\n\
+         | visibility | what runs | median (ms) | runs (ms) |\n|---|---|---:|---|\n\
+         | paired (eq. 6, maps rebuilt) | everything | **{t_paired:.0}** | {} |\n\
+         | scene_cached | everything (scene built, then the object) | **{t_first:.0}** | {} |\n\
+         | scene_cached | the scene alone (once per photo and VPLs) | {t_scene:.0} | |\n\
+         | scene_cached | **the object moved**, scene kept | **{t_move:.1}** | {} runs, {m_lo:.1} to {m_hi:.1} |\n",
+        list(&paired_times),
+        list(&first_times),
+        moves.len(),
+    );
+    let _ = writeln!(
+        doc,
+        "The object alternates between two places 15 cm apart (`paste.translation_m`); each \
+         result equals, bit for bit, that of a scene built for it alone (asserted).\n"
     );
     let _ = writeln!(
         doc,
         "## Error against time\n\n\
-         Reference: {ref_vpls} VPLs x {ref_points} points ({t_ref:.0} ms), itself an ISM \
-         estimate. RMSE of the linear RGB composite over the reference's **changed** pixels \
-         ({} px: differs from the photo by > 1e-4, the object, its shadow and bounce) and its \
-         **shadow** ({} px: target pixels darkened by > 1e-4 in luminance).\n\n\
-         | setting | time (ms) | RMSE changed | RMSE shadow |\n|---|---:|---:|---:|",
+         Reference: exact ray-cast visibility against the meshes of the target and the object, \
+         {ref_vpls} VPLs, on every {stride}rd pixel in x and y ({} px, {t_ref:.0} ms). RMSE of the \
+         linear RGB composite over the reference's **changed** pixels ({} px: differs from the \
+         photo by > 1e-4, the object, its shadow and bounce) and its **shadow** ({} px: target \
+         pixels darkened by > 1e-4 in luminance), and over the changed pixels on the **object** \
+         ({} px).\n\n\
+         | setting | time (ms) | RMSE changed | RMSE shadow | RMSE object |\n|---|---:|---:|---:|---:|",
+        grid.len(),
         changed.len(),
-        shadow.len()
+        shadow.len(),
+        on_object.len()
     );
-    for (label, t, ec, es) in &rows {
-        let _ = writeln!(doc, "| {label} | {t:.0} | {ec:.5} | {es:.5} |");
+    for (label, t, ec, es, eo) in &rows {
+        let _ = writeln!(doc, "| {label} | {t:.0} | {ec:.5} | {es:.5} | {eo:.5} |");
     }
     let path = root.join("docs/relight.md");
     if let Err(e) = std::fs::write(&path, doc) {

@@ -11,6 +11,13 @@
 //! metre of distance from the camera: above the meshes' own faceting, below
 //! any contact the scenes have).
 //!
+//! The meshes drop cells across depth jumps of more than 10 % (as
+//! [`crate::mesh`] does at discontinuities): a surface seen at a grazing
+//! angle at a low resolution, whose neighbouring pixels differ by more,
+//! loses its cells here (and casts no shadow), where the shadow maps'
+//! splats keep it. Use the reference at resolutions where the surfaces of
+//! interest are sampled finer than that.
+//!
 //! The differential on the target surface is evaluated as
 //! `-Σ_k Φ_k max(0, n·ω_k) V^t_k (1 - V^o_k)` (a ray blocked by the object
 //! and not by the scene), which is `E^{s+t} - E^t` exactly when
@@ -24,25 +31,30 @@ use rayon::prelude::*;
 use crate::mesh::{MeshParams, depth_to_mesh};
 use crate::raycast::Bvh;
 use crate::relight::{
-    RelightInputs, RelightParams, bounce_at, bounce_picks, centre_and_radius, clean_alpha,
-    composite, lit_vpls, object_radiance, pixel_areas, scene_bounce_vpls, target_albedo,
-    target_surfaces,
+    Cone, RelightInputs, RelightParams, Relit, bounce_at, bounce_picks, centre_and_radius,
+    clean_alpha, composite, lit_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
+    target_albedo, target_surfaces,
 };
 use crate::vpl::Vpl;
 
 /// Offset of shadow rays, per metre of distance from the camera.
+/// (The reference renders the whole image as `Relight`'s
+/// `visibility: "raycast"`, [`relight_reference_image`].)
 pub const RAY_EPS_REL: f64 = 1e-3;
 
-/// The composite `I_m` (eq. 5) at the pixels `pixels` (indices `y w + x`),
-/// with ray-cast visibility (module docs). `Ok(None)` when there is nothing
-/// to relight, as for [`crate::relight::relight`]. Out-of-range pixels are
-/// an error.
+/// The composite `I_m` (eq. 5) and the difference `I_{s+t} - I_t` at the
+/// pixels `pixels` (indices `y w + x`), with ray-cast visibility (module
+/// docs). `Ok(None)` when there is nothing to relight, as for
+/// [`crate::relight::relight`]. Out-of-range pixels are an error. Only the
+/// VPLs whose ray can pass the object are traced (the cone test of
+/// [`crate::relight`], exact here), and pixels the object cannot change are
+/// the photo.
 pub fn relight_reference(
     inp: &RelightInputs,
     vpls: &[Vpl],
     p: &RelightParams,
     pixels: &[usize],
-) -> Result<Option<Vec<Rgb>>, NodeError> {
+) -> Result<Option<Vec<(Rgb, Rgb)>>, NodeError> {
     let k = inp.k;
     inp.check()?;
     let (w, h) = (k.width, k.height);
@@ -144,37 +156,82 @@ pub fn relight_reference(
             let obj = if a > 0.0 { shade_object(i) } else { [0.0; 3] };
             let mut diff = [0.0f64; 3];
             if let Some(s) = &target[i] {
-                let (mut de, mut et) = ([0.0f64; 3], [0.0f64; 3]);
+                // The object's triangles lie within `radius` of c (their
+                // vertices do): a ray passing farther, even from the
+                // offset origin, misses them.
+                let eps = RAY_EPS_REL * s.pos.length().max(1e-3);
+                let cone = Cone::new(s.pos, c, radius + 2.0 * eps);
+                let (mut de, mut hit) = ([0.0f64; 3], false);
                 for (v, d) in vpls.iter().zip(&dirs) {
                     let cos = s.n.dot(*d);
-                    if cos <= 0.0 {
+                    if cos <= 0.0 || !cone.contains(*d) {
                         continue;
                     }
-                    let lit_t = inp.albedo.is_some() || free(&scene_bvh, s.pos, s.n, *d);
-                    let blocked = !free(&obj_bvh, s.pos, s.n, *d);
-                    for ch in 0..3 {
-                        let e = f64::from(v.power[ch]) * cos;
-                        if lit_t {
-                            et[ch] += e;
-                        }
-                        if blocked && free(&scene_bvh, s.pos, s.n, *d) {
-                            de[ch] += e;
+                    if !free(&obj_bvh, s.pos, s.n, *d) && free(&scene_bvh, s.pos, s.n, *d) {
+                        hit = true;
+                        for (e, pw) in de.iter_mut().zip(v.power) {
+                            *e += f64::from(pw) * cos;
                         }
                     }
                 }
-                let b = if (s.pos - c).length() <= bounce_reach {
-                    bounce_at(s.pos, s.n, &bounce, r2_min)
-                } else {
-                    [0.0; 3]
-                };
-                let rho =
-                    target_albedo(inp.albedo.map(|al| al.as_slice()[i]), photo[i], et, e_floor);
-                diff = std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch]));
+                let near = !bounce.is_empty() && (s.pos - c).length() <= bounce_reach;
+                if hit || near {
+                    let b = if near {
+                        bounce_at(s.pos, s.n, &bounce, r2_min)
+                    } else {
+                        [0.0; 3]
+                    };
+                    let given = inp.albedo.map(|al| al.as_slice()[i]);
+                    let mut et = [0.0f64; 3];
+                    if given.is_none() {
+                        for (v, d) in vpls.iter().zip(&dirs) {
+                            let cos = s.n.dot(*d);
+                            if cos > 0.0 && free(&scene_bvh, s.pos, s.n, *d) {
+                                for (e, pw) in et.iter_mut().zip(v.power) {
+                                    *e += f64::from(pw) * cos;
+                                }
+                            }
+                        }
+                    }
+                    let rho = target_albedo(given, photo[i], et, e_floor);
+                    diff = std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch]));
+                }
             }
-            composite(photo[i], a, obj, diff)
+            (composite(photo[i], a, obj, diff), diff.map(|v| v as f32))
         })
         .collect();
     Ok(Some(out))
+}
+
+/// [`relight_reference`] over the whole image, as a [`Relit`]: the region
+/// is where the composite differs from the photo or the object is seen.
+pub fn relight_reference_image(
+    inp: &RelightInputs,
+    vpls: &[Vpl],
+    p: &RelightParams,
+) -> Result<Option<Relit>, NodeError> {
+    let (w, h) = (inp.k.width, inp.k.height);
+    let all: Vec<usize> = (0..w * h).collect();
+    let Some(px) = relight_reference(inp, vpls, p, &all)? else {
+        return Ok(None);
+    };
+    let photo = inp.photo.as_slice();
+    let alpha = inp.alpha.as_slice();
+    let region: Vec<f32> = px
+        .iter()
+        .enumerate()
+        .map(|(i, (c, _))| {
+            let changed = *c != photo[i] || alpha[i] > 0.0;
+            if changed { 1.0 } else { 0.0 }
+        })
+        .collect();
+    let (color, difference): (Vec<Rgb>, Vec<Rgb>) = px.into_iter().unzip();
+    let shape = |e: depthgraph_graph::value::ShapeError| NodeError::Invalid(e.to_string());
+    Ok(Some(Relit {
+        color: Image::from_vec(w, h, color).map_err(shape)?,
+        region: Image::from_vec(w, h, region).map_err(shape)?,
+        difference: Image::from_vec(w, h, difference).map_err(shape)?,
+    }))
 }
 
 #[cfg(test)]
@@ -203,7 +260,7 @@ mod tests {
         let r = relight_reference(&inp, &vpls, &p, &all).unwrap().unwrap();
         let ism = crate::relight::relight(&inp, &vpls, &p).unwrap().unwrap();
         let (mut shadowed, mut agree, mut edge) = (0, 0, 0);
-        for (i, &c) in r.iter().enumerate() {
+        for (i, &(c, _)) in r.iter().enumerate() {
             let z = *floor.get(i % w, i / w);
             if alpha.as_slice()[i] > 0.0 || z <= 0.0 {
                 continue;
@@ -238,5 +295,69 @@ mod tests {
         assert!(shadowed > 50 && agree > 4000, "{shadowed} {agree} {edge}");
         // out-of-range pixels are an error
         assert!(relight_reference(&inp, &vpls, &p, &[w * h]).is_err());
+        // the whole image: the same pixels, the photo kept outside the region
+        let img = relight_reference_image(&inp, &vpls, &p).unwrap().unwrap();
+        for (i, (c, d)) in r.iter().enumerate() {
+            assert_eq!(img.color.as_slice()[i], *c);
+            assert_eq!(img.difference.as_slice()[i], *d);
+            if img.region.as_slice()[i] == 0.0 {
+                assert_eq!(*c, photo.as_slice()[i]);
+            }
+        }
+        assert!(img.region.as_slice().iter().filter(|v| **v > 0.0).count() > shadowed);
+    }
+
+    /// The node renders the reference with `visibility: "raycast"` (the
+    /// shadow under the slab), and refuses an unknown scheme.
+    #[test]
+    fn the_node_offers_the_reference_as_a_visibility() {
+        use std::sync::Arc;
+        let (w, h) = (160, 120);
+        let sc = crate::relight::tests::SlabScene::new(w, h, 0.0);
+        let mut reg = Registry::new();
+        crate::relight::register(&mut reg).unwrap();
+        let node = reg.get("Relight").unwrap();
+        let cancel = CancelToken::new();
+        let ctx = EvalCtx {
+            node: "relight",
+            cancel: &cancel,
+            progress: None,
+            out_dir: std::path::Path::new("."),
+            input_files: &[],
+        };
+        let mut inputs = Inputs::new();
+        inputs.insert("photo", Value::from(sc.photo.clone()));
+        inputs.insert("depth", Value::from(sc.floor.clone()));
+        inputs.insert("albedo", Value::from(sc.albedo.clone()));
+        inputs.insert("pasted_color", Value::from(sc.pasted_color.clone()));
+        inputs.insert("pasted_depth", Value::from(sc.slab.clone()));
+        inputs.insert("alpha", Value::Mask(Arc::new(sc.alpha.clone())));
+        inputs.insert("intrinsics", Value::from(sc.k));
+        let vpls = crate::relight::tests::overhead();
+        inputs.insert("vpls", Value::from(crate::vpl::to_cloud(&vpls)));
+        let with = |vis: &str| RelightParams {
+            visibility: vis.into(),
+            bounce_vpls: 0,
+            scene_vpls: 0,
+            ..Default::default()
+        };
+        let out = node
+            .eval(&ctx, &inputs, &with("raycast").to_values())
+            .unwrap();
+        let expect = relight_reference_image(&sc.inputs(true), &vpls, &with("raycast"))
+            .unwrap()
+            .unwrap();
+        assert_eq!(out.values["color"], Value::from(expect.color.clone()));
+        // floor pixels (lit in the photo, not the slab) now in its shadow
+        let dark = (0..w * h)
+            .filter(|&i| {
+                sc.photo.as_slice()[i][0] > 0.0
+                    && sc.alpha.as_slice()[i] == 0.0
+                    && expect.color.as_slice()[i][0] < 1e-6
+            })
+            .count();
+        assert!(dark > 20, "{dark} shadowed pixels");
+        let err = node.eval(&ctx, &inputs, &with("exact").to_values());
+        assert!(err.is_err());
     }
 }
