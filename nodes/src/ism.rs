@@ -234,7 +234,7 @@ impl PointSet {
 
     /// `sqrt(W / (π M))`: the splat radius at importance 1.
     #[inline]
-    fn base_radius(&self, m: usize) -> f64 {
+    pub fn base_radius(&self, m: usize) -> f64 {
         // guard: m >= 1
         (self.total / (std::f64::consts::PI * m.max(1) as f64)).sqrt()
     }
@@ -617,6 +617,157 @@ pub fn build_single_in(
     Some(g.map(t))
 }
 
+/// A paraboloid depth map of the hemisphere around a point light (the ISM
+/// paper's maps for VPLs at finite positions: the bounce VPLs). A point
+/// `p` at distance `d` in direction `w` from the light's centre `q`, with
+/// `z = w·n > 0` (the light's normal `n`), lands at
+/// `(w·e_1, w·e_2) / (1 + z)` in the unit disc; the map keeps the nearest
+/// occluder distance per texel (stored as `-d`, so that the largest value
+/// wins as in [`ShadowMap`]). No pull-push: directions without samples
+/// (the sky) must stay open; splats twice the ISM radius close the gaps.
+#[derive(Debug, Clone)]
+pub struct ParaboloidMap {
+    pub centre: DVec3,
+    e1: DVec3,
+    e2: DVec3,
+    n: DVec3,
+    pub res: usize,
+    t: Vec<f32>,
+}
+
+/// A set of samples splatted into paraboloid maps: the elements drawn and
+/// their splat radius scale.
+#[derive(Debug, Clone, Copy)]
+pub struct ParaboloidSamples<'a> {
+    pub set: &'a PointSet,
+    /// Samples drawn per map.
+    pub m: usize,
+    /// Multiplies the ISM radius `r(p)`.
+    pub radius_scale: f64,
+}
+
+impl ParaboloidMap {
+    /// Texel coordinates, distance and `z` of `p`; `None` behind the light
+    /// (`z <= 0`) or at its centre.
+    #[inline]
+    fn project(&self, p: DVec3) -> Option<(f64, f64, f64, f64)> {
+        let v = p - self.centre;
+        let d = v.length();
+        if d.is_nan() || d <= 1e-9 {
+            return None;
+        }
+        // guard: d > 1e-9
+        let w = v / d;
+        let z = w.dot(self.n);
+        if z <= 0.0 {
+            return None;
+        }
+        // guard: 1 + z > 1
+        let s = 0.5 * self.res as f64 / (1.0 + z);
+        let h = 0.5 * self.res as f64;
+        Some((w.dot(self.e1) * s + h, w.dot(self.e2) * s + h, d, z))
+    }
+
+    /// Builds the map of the light at `centre` facing `normal` (unit) from
+    /// the given sample sets, each drawn with its own seed.
+    pub fn build(
+        centre: DVec3,
+        normal: DVec3,
+        samples: &[ParaboloidSamples],
+        res: usize,
+        seed: u64,
+    ) -> Self {
+        let n = normal.normalize_or_zero();
+        let (e1, e2) = if n == DVec3::ZERO {
+            (DVec3::X, DVec3::Y)
+        } else {
+            basis(n)
+        };
+        let res = res.max(2);
+        let mut map = Self {
+            centre,
+            e1,
+            e2,
+            n,
+            res,
+            t: vec![f32::NEG_INFINITY; res * res],
+        };
+        if n == DVec3::ZERO {
+            return map;
+        }
+        let half_res = 0.5 * res as f64;
+        for (si, s) in samples.iter().enumerate() {
+            let base = s.radius_scale * s.set.base_radius(s.m);
+            for i in s.set.draw(s.m, seed.wrapping_add(si as u64 * 0x9E37)) {
+                let Some(e) = s.set.elems.get(i) else {
+                    continue;
+                };
+                let Some((u, v, d, z)) = map.project(e.pos) else {
+                    continue;
+                };
+                let r_m = (base * e.inv_sqrt_importance).max(e.min_radius);
+                if d <= r_m {
+                    continue; // the light's own surface element
+                }
+                // angular radius r/d, and du/dθ = 1 / (1 + z) in texels
+                let r = (r_m / d / (1.0 + z) * half_res).clamp(0.5, 4.0);
+                let tq = -d as f32;
+                let y0 = (v - r).max(0.0) as usize;
+                let y1 = ((v + r).max(0.0) as usize + 1).min(res);
+                for y in y0..y1 {
+                    let dy = y as f64 + 0.5 - v;
+                    let rem = r * r - dy * dy;
+                    if rem < 0.0 {
+                        continue;
+                    }
+                    let half = rem.sqrt();
+                    let (a, b) = (u - half - 0.5, u + half - 0.5);
+                    if b < 0.0 {
+                        continue;
+                    }
+                    // texel centres x + 0.5 within [u - half, u + half]
+                    let xa = if a > 0.0 { a.ceil() as usize } else { 0 };
+                    let xb = (b as usize + 1).min(res);
+                    for t in map.t[y * res + xa.min(xb)..y * res + xb].iter_mut() {
+                        *t = t.max(tq);
+                    }
+                }
+            }
+        }
+        map
+    }
+
+    /// Whether `p` (normal `n_p`, own splat radius `r_p`) sees the light:
+    /// no occluder nearer than its distance minus a bias of
+    /// `bias_scale * max(texel, r_p) * (1 + min(tan θ, 10))` (the texel's
+    /// side at `p`'s distance, `θ` between `n_p` and the direction to the
+    /// light). Points behind the light see it (their cosine there is 0).
+    #[inline]
+    pub fn visible(&self, p: DVec3, n_p: DVec3, r_p: f64, bias_scale: f64) -> bool {
+        let Some((u, v, d, z)) = self.project(p) else {
+            return true;
+        };
+        if !(u >= 0.0 && v >= 0.0) {
+            return true;
+        }
+        let (x, y) = (u as usize, v as usize);
+        if x >= self.res || y >= self.res {
+            return true;
+        }
+        let occ = self.t[y * self.res + x];
+        if occ == f32::NEG_INFINITY {
+            return true;
+        }
+        // a texel spans (1 + z) 2 / res radians there
+        let texel_m = d * (1.0 + z) * 2.0 / self.res as f64;
+        // guard: d > 1e-9 (project)
+        let c = (n_p.dot(self.centre - p) / d).abs().max(1e-6);
+        let tan = ((1.0 - c * c).max(0.0).sqrt() / c).min(10.0);
+        let bias = bias_scale * texel_m.max(r_p) * (1.0 + tan);
+        -(occ as f64) + bias >= d
+    }
+}
+
 /// The texel grid of a map over a window: one texel of margin each side.
 struct Grid {
     dir: DVec3,
@@ -847,6 +998,49 @@ mod tests {
             mst.texel_m
         );
         assert_eq!(wrong, 0);
+    }
+
+    /// A wall 2 m from the camera, a point light 1 m from it facing it:
+    /// points behind the wall are in its shadow, points before it, on it,
+    /// beside it or behind the light are not.
+    #[test]
+    fn a_paraboloid_map_sees_the_wall_between_a_point_light_and_a_receiver() {
+        let (w, h) = (80, 60);
+        let k = cam(w, h);
+        let wall = Image::filled(w, h, 2.0f32);
+        let set = PointSet::new(&[(&wall, false)], &k, &[], 0.05);
+        let light = DVec3::new(0.0, 0.0, 1.0);
+        let samples = [ParaboloidSamples {
+            set: &set,
+            m: 4000,
+            radius_scale: 2.0,
+        }];
+        let map = ParaboloidMap::build(light, DVec3::Z, &samples, 32, 5);
+        let r = 2.0 * set.base_radius(4000);
+        let n = DVec3::NEG_Z;
+        // behind the wall, within its extent seen from the light
+        for q in [
+            DVec3::new(0.0, 0.0, 3.0),
+            DVec3::new(0.3, -0.2, 2.5),
+            DVec3::new(-0.5, 0.3, 2.6),
+        ] {
+            assert!(!map.visible(q, n, r, 1.5), "{q} is behind the wall");
+        }
+        // before it, on it, beside it (beyond its edge), behind the light
+        let half_w = 2.0 * (w as f64 / 2.0) / k.fx;
+        for q in [
+            DVec3::new(0.0, 0.0, 1.5),
+            DVec3::new(0.2, 0.1, 1.9),
+            k.unproject(40.5, 30.5, 2.0),
+            k.unproject(10.5, 50.5, 2.0),
+            DVec3::new(half_w * 3.0, 0.0, 2.2),
+            DVec3::new(0.0, 0.0, 0.5),
+        ] {
+            assert!(map.visible(q, n, r, 1.5), "{q} sees the light");
+        }
+        // a light without a direction sees everything
+        let none = ParaboloidMap::build(light, DVec3::ZERO, &samples, 32, 5);
+        assert!(none.visible(DVec3::new(0.0, 0.0, 3.0), n, r, 1.5));
     }
 
     #[test]

@@ -31,7 +31,7 @@ use rayon::prelude::*;
 use crate::mesh::{MeshParams, depth_to_mesh};
 use crate::raycast::Bvh;
 use crate::relight::{
-    Cone, RelightInputs, RelightParams, Relit, bounce_at, bounce_picks, centre_and_radius,
+    Cone, RelightInputs, RelightParams, Relit, bounce_picks, bounce_sum, centre_and_radius,
     clean_alpha, composite, lit_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
     target_albedo, target_surfaces,
 };
@@ -92,6 +92,22 @@ pub fn relight_reference(
         let (o, d, eps) = ray(x, n, d);
         !bvh.occluded(o, d, eps, f64::INFINITY)
     };
+    // the segment from (x, n) to a point VPL at q on a surface (bounce
+    // shadows): stops short of q by the same relative offset
+    let sees = |x: DVec3, n: DVec3, q: DVec3| {
+        if !p.bounce_shadows {
+            return true;
+        }
+        let v = q - x;
+        let len = v.length();
+        if len.is_nan() || len <= 0.0 {
+            return true;
+        }
+        // guard: len > 0
+        let (o, d, eps) = ray(x, n, v / len);
+        let end = len - RAY_EPS_REL * q.length().max(1e-3);
+        end <= eps || !(scene_bvh.occluded(o, d, eps, end) || obj_bvh.occluded(o, d, eps, end))
+    };
 
     // ---- the object: exact shading where it is needed (the bounce VPLs
     // and the asked pixels)
@@ -128,7 +144,9 @@ pub fn relight_reference(
                 }
             }
         }
-        let bs = bounce_at(pos, n, &scene_vpls, r2_min);
+        let bs = bounce_sum(pos, n, scene_vpls.iter().enumerate(), r2_min, |j| {
+            sees(pos, n, scene_vpls[j].0)
+        });
         object_radiance(pasted[i], est, efree, bs, e_floor)
     };
     let (picks, step) = bounce_picks(obj_idx.len(), p.bounce_vpls);
@@ -177,7 +195,9 @@ pub fn relight_reference(
                 let near = !bounce.is_empty() && (s.pos - c).length() <= bounce_reach;
                 if hit || near {
                     let b = if near {
-                        bounce_at(s.pos, s.n, &bounce, r2_min)
+                        bounce_sum(s.pos, s.n, bounce.iter().enumerate(), r2_min, |j| {
+                            sees(s.pos, s.n, bounce[j].0)
+                        })
                     } else {
                         [0.0; 3]
                     };

@@ -43,12 +43,13 @@ use depthgraph_graph::value::{PointCloud, Rgb};
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::ism::{IsmParams, PointSet, ShadowMap, build_single_in, windows};
+use crate::ism::{IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows};
 pub use crate::relight::SceneInputs;
 use crate::relight::{
-    Cone, RelightInputs, RelightParams, Relit, Surf, bounce_at, centre_and_radius, check,
-    clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas,
-    scene_bounce_vpls, target_albedo, target_surfaces,
+    BOUNCE_SPLAT_SCALE, Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum,
+    centre_and_radius, check, clean_alpha, composite, lit_vpls, object_bounce_vpls,
+    object_radiance, pixel_areas, point_vpl_maps, scene_bounce_vpls, target_albedo,
+    target_surfaces,
 };
 use crate::vpl::Vpl;
 
@@ -144,6 +145,9 @@ pub struct RelightScene {
     /// (the bias is this times the slope factor, [`slope`]).
     bias_t: Vec<f64>,
     tiles: Vec<Tile>,
+    /// The scene's samples, kept for the bounce VPLs' paraboloid maps
+    /// (only with `bounce_shadows`).
+    pool: Option<PointSet>,
     bias_scale: f64,
     with_albedo: bool,
 }
@@ -254,11 +258,15 @@ impl RelightScene {
             groups,
             bias_t,
             tiles,
+            pool: None,
             bias_scale: p.bias_scale,
             with_albedo: inp.albedo.is_some(),
         };
         if inp.albedo.is_none() {
             scene.e_t = Some(scene.target_irradiance());
+        }
+        if p.bounce_shadows {
+            scene.pool = Some(set);
         }
         Ok(scene)
     }
@@ -490,6 +498,39 @@ pub fn relight_moved(
             acc
         })
         .collect();
+    // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
+    // samples, each with its own radius
+    let m_obj = (p.bounce_ism_points / 4).max(16);
+    let (r_scene, r_obj) = match &scene.pool {
+        Some(pool) => (
+            BOUNCE_SPLAT_SCALE * pool.base_radius(p.bounce_ism_points),
+            BOUNCE_SPLAT_SCALE * oset.base_radius(m_obj),
+        ),
+        None => (0.0, 0.0),
+    };
+    let bounce_samples: Vec<ParaboloidSamples> = match &scene.pool {
+        Some(pool) => vec![
+            ParaboloidSamples {
+                set: pool,
+                m: p.bounce_ism_points,
+                radius_scale: BOUNCE_SPLAT_SCALE,
+            },
+            ParaboloidSamples {
+                set: &oset,
+                m: m_obj,
+                radius_scale: BOUNCE_SPLAT_SCALE,
+            },
+        ],
+        None => Vec::new(),
+    };
+    let shadows = p.bounce_shadows && scene.pool.is_some();
+    let scene_maps = point_vpl_maps(
+        shadows,
+        &scene_vpls,
+        &bounce_samples,
+        p.bounce_ism_resolution,
+        p.seed ^ 0x5EC0,
+    );
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
         .zip(obj_surfs.par_iter())
@@ -498,7 +539,11 @@ pub fn relight_moved(
             let bs = if scene_vpls.is_empty() {
                 [0.0; 3]
             } else {
-                bounce_at(s.pos, s.n, &scene_vpls, r2_min)
+                bounce_sum(s.pos, s.n, scene_vpls.iter().enumerate(), r2_min, |j| {
+                    scene_maps
+                        .get(j)
+                        .is_none_or(|m| m.visible(s.pos, s.n, r_obj, scene.bias_scale))
+                })
             };
             object_radiance(pasted[i], est, efree, bs, e_floor)
         })
@@ -512,6 +557,13 @@ pub fn relight_moved(
         };
         object_bounce_vpls(&obj_idx, &at, &obj_rad, inp.pasted_depth, k, p.bounce_vpls)
     };
+    let bounce_maps = point_vpl_maps(
+        shadows,
+        &bounce,
+        &bounce_samples,
+        p.bounce_ism_resolution,
+        p.seed ^ 0x0B1E,
+    );
 
     // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
     // pixel's cone, plus the bounce within its reach; tiles whose cone
@@ -532,11 +584,12 @@ pub fn relight_moved(
             let tile_near =
                 !bounce.is_empty() && (tile.centre - c).length() - tile.radius <= bounce_reach;
             // the bounce VPLs whose front half-space reaches into the tile
-            let tile_bounce: Vec<(DVec3, DVec3, [f64; 3])> = if tile_near {
-                bounce
-                    .iter()
-                    .filter(|(q, nq, _)| nq.dot(tile.centre - *q) + tile.radius > 0.0)
-                    .copied()
+            let tile_bounce: Vec<usize> = if tile_near {
+                (0..bounce.len())
+                    .filter(|&j| {
+                        let (q, nq, _) = &bounce[j];
+                        nq.dot(tile.centre - *q) + tile.radius > 0.0
+                    })
                     .collect()
             } else {
                 Vec::new()
@@ -598,7 +651,12 @@ pub fn relight_moved(
                     continue;
                 }
                 let b = if near {
-                    bounce_at(s.pos, s.n, &tile_bounce, r2_min)
+                    let items = tile_bounce.iter().map(|&j| (j, &bounce[j]));
+                    bounce_sum(s.pos, s.n, items, r2_min, |j| {
+                        bounce_maps
+                            .get(j)
+                            .is_none_or(|m| m.visible(s.pos, s.n, r_scene, scene.bias_scale))
+                    })
                 } else {
                     [0.0; 3]
                 };
@@ -653,17 +711,18 @@ pub(crate) struct SceneKey {
     pub albedo: Option<Arc<ColorImage>>,
     pub vpls: Arc<PointCloud>,
     pub k: Intrinsics,
-    pub params: (usize, usize, u64, u64, u64),
+    pub params: (usize, usize, u64, u64, u64, bool),
 }
 
 impl SceneKey {
-    pub(crate) fn params_of(p: &RelightParams) -> (usize, usize, u64, u64, u64) {
+    pub(crate) fn params_of(p: &RelightParams) -> (usize, usize, u64, u64, u64, bool) {
         (
             p.ism_resolution,
             p.ism_points,
             p.seed,
             p.bias_scale.to_bits(),
             p.min_distance_m.to_bits(),
+            p.bounce_shadows,
         )
     }
 
