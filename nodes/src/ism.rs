@@ -712,26 +712,11 @@ impl ParaboloidMap {
                 // angular radius r/d, and du/dθ = 1 / (1 + z) in texels
                 let r = (r_m / d / (1.0 + z) * half_res).clamp(0.5, 4.0);
                 let tq = -d as f32;
-                let y0 = (v - r).max(0.0) as usize;
-                let y1 = ((v + r).max(0.0) as usize + 1).min(res);
-                for y in y0..y1 {
-                    let dy = y as f64 + 0.5 - v;
-                    let rem = r * r - dy * dy;
-                    if rem < 0.0 {
-                        continue;
-                    }
-                    let half = rem.sqrt();
-                    let (a, b) = (u - half - 0.5, u + half - 0.5);
-                    if b < 0.0 {
-                        continue;
-                    }
-                    // texel centres x + 0.5 within [u - half, u + half]
-                    let xa = if a > 0.0 { a.ceil() as usize } else { 0 };
-                    let xb = (b as usize + 1).min(res);
-                    for t in map.t[y * res + xa.min(xb)..y * res + xb].iter_mut() {
+                disc_spans(u, v, r, res, |span| {
+                    for t in &mut map.t[span] {
                         *t = t.max(tq);
                     }
-                }
+                });
             }
         }
         map
@@ -765,6 +750,43 @@ impl ParaboloidMap {
         let tan = ((1.0 - c * c).max(0.0).sqrt() / c).min(10.0);
         let bias = bias_scale * texel_m.max(r_p) * (1.0 + tan);
         -(occ as f64) + bias >= d
+    }
+}
+
+/// The texels of a `res x res` map whose centres `(x + 0.5, y + 0.5)` lie
+/// in the disc of radius `r` (texels) around `(u, v)`, row by row, as spans
+/// of texel indices.
+#[inline]
+fn disc_spans(u: f64, v: f64, r: f64, res: usize, mut put: impl FnMut(std::ops::Range<usize>)) {
+    if u + r < 0.0 || v + r < 0.0 || u - r > res as f64 || v - r > res as f64 {
+        return;
+    }
+    // floor and ceiling clamped at 0 (casts: no libm call without SSE4.1)
+    let floor0 = |x: f64| if x > 0.0 { x as usize } else { 0 };
+    let ceil0 = |x: f64| {
+        if x > 0.0 {
+            let i = x as usize;
+            if (i as f64) < x { i + 1 } else { i }
+        } else {
+            0
+        }
+    };
+    let (x0, x1) = (floor0(u - r), ceil0(u + r).min(res));
+    let (y0, y1) = (floor0(v - r), ceil0(v + r).min(res));
+    for y in y0..y1 {
+        let dy = y as f64 + 0.5 - v;
+        let rem = r * r - dy * dy;
+        if rem < 0.0 {
+            continue;
+        }
+        let half = rem.sqrt();
+        let xa = ceil0(u - half - 0.5).max(x0);
+        // floor(b) + 1 clamped at 0: 0 for any b < 0
+        let b = u + half - 0.5;
+        let xb = (if b >= 0.0 { floor0(b) + 1 } else { 0 }).min(x1);
+        if xa < xb {
+            put(y * res + xa..y * res + xb);
+        }
     }
 }
 
@@ -839,16 +861,6 @@ impl Grid {
     ) {
         let (res, dir) = (self.res, self.dir);
         let base = scale * set.base_radius(m);
-        // floor and ceiling clamped at 0 (casts: no libm call without SSE4.1)
-        let floor0 = |x: f64| if x > 0.0 { x as usize } else { 0 };
-        let ceil0 = |x: f64| {
-            if x > 0.0 {
-                let i = x as usize;
-                if (i as f64) < x { i + 1 } else { i }
-            } else {
-                0
-            }
-        };
         for &i in idx {
             let Some(e) = set.elems.get(i) else {
                 continue;
@@ -861,30 +873,8 @@ impl Grid {
             let r = ((base * e.inv_sqrt_importance).max(e.min_radius) * self.inv_texel)
                 .min(rmax)
                 .max(0.5);
-            if u + r < 0.0 || v + r < 0.0 || u - r > res as f64 || v - r > res as f64 {
-                continue;
-            }
             let tq = q.dot(dir) as f32;
-            let (x0, x1) = (floor0(u - r), ceil0(u + r).min(res));
-            let (y0, y1) = (floor0(v - r), ceil0(v + r).min(res));
-            // The disc row by row: texel centres x + 0.5 with |x + 0.5 - u| <= half.
-            for y in y0..y1 {
-                let dy = y as f64 + 0.5 - v;
-                let rem = r * r - dy * dy;
-                if rem < 0.0 {
-                    continue;
-                }
-                let half = rem.sqrt();
-                let xa = ceil0(u - half - 0.5).max(x0);
-                // floor(b) + 1 clamped at 0: 0 for any b < 0
-                let b = u + half - 0.5;
-                let xb = (if b >= 0.0 { floor0(b) + 1 } else { 0 }).min(x1);
-                if xa >= xb {
-                    continue;
-                }
-                let row = y * res;
-                put(e.object, row + xa..row + xb, tq);
-            }
+            disc_spans(u, v, r, res, |span| put(e.object, span, tq));
         }
     }
 }
