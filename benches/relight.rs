@@ -144,6 +144,49 @@ fn params(points: usize, importance: &str, visibility: &str) -> RelightParams {
     }
 }
 
+/// The ray-cast reference's composite at the pixels `grid`, and its time (ms).
+fn reference_on(
+    s: &Scene,
+    vpls: &[Vpl],
+    p: &RelightParams,
+    grid: &[usize],
+) -> (Vec<[f32; 3]>, f64) {
+    let t = Instant::now();
+    let r = relight_reference(&inputs(s), vpls, p, grid)
+        .expect("reference")
+        .expect("something to relight")
+        .into_iter()
+        .map(|(c, _)| c)
+        .collect();
+    (r, t.elapsed().as_secs_f64() * 1e3)
+}
+
+/// Positions in `grid` where the reference differs from the photo by more
+/// than 1e-4 in some channel.
+fn changed_px(reference: &[[f32; 3]], photo: &[[f32; 3]], grid: &[usize]) -> Vec<usize> {
+    (0..grid.len())
+        .filter(|&g| {
+            let (a, b) = (reference[g], photo[grid[g]]);
+            (0..3).any(|c| (a[c] - b[c]).abs() > 1e-4)
+        })
+        .collect()
+}
+
+/// RMSE (linear RGB, f64 sums) of `x(g)` against `reference[g]` over the
+/// positions `set`; 0 for an empty set.
+fn rmse_on(set: &[usize], x: &dyn Fn(usize) -> [f32; 3], reference: &[[f32; 3]]) -> f64 {
+    let mut sum = 0.0f64;
+    for &g in set {
+        let (a, b) = (x(g), reference[g]);
+        for c in 0..3 {
+            let d = a[c] as f64 - b[c] as f64;
+            sum += d * d;
+        }
+    }
+    // guard: empty set
+    (sum / (3 * set.len()).max(1) as f64).sqrt()
+}
+
 fn main() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let repeats = env_usize("DEPTHGRAPH_REPEATS", 3).max(1);
@@ -223,26 +266,14 @@ fn main() {
         .step_by(stride)
         .flat_map(|y| (0..w).step_by(stride).map(move |x| y * w + x))
         .collect();
-    let t = Instant::now();
-    let reference = relight_reference(&inputs(&scene), &vpls(ref_vpls), &cached, &grid)
-        .expect("reference")
-        .expect("something to relight")
-        .into_iter()
-        .map(|(c, _)| c)
-        .collect::<Vec<_>>();
-    let t_ref = t.elapsed().as_secs_f64() * 1e3;
+    let (reference, t_ref) = reference_on(&scene, &vpls(ref_vpls), &cached, &grid);
     eprintln!(
         "ray-cast reference, {ref_vpls} VPLs, {} px: {t_ref:.0} ms",
         grid.len()
     );
     let photo = scene.photo.as_slice();
     let alpha = scene.alpha.as_slice();
-    let changed: Vec<usize> = (0..grid.len())
-        .filter(|&g| {
-            let (a, b) = (reference[g], photo[grid[g]]);
-            (0..3).any(|c| (a[c] - b[c]).abs() > 1e-4)
-        })
-        .collect();
+    let changed = changed_px(&reference, photo, &grid);
     let shadow: Vec<usize> = (0..grid.len())
         .filter(|&g| {
             let i = grid[g];
@@ -254,18 +285,8 @@ fn main() {
         .copied()
         .filter(|&g| alpha[grid[g]] > 0.0)
         .collect();
-    let rmse = |r: &Relit, set: &[usize]| -> f64 {
-        let mut sum = 0.0f64;
-        for &g in set {
-            let (x, y) = (r.color.as_slice()[grid[g]], reference[g]);
-            for c in 0..3 {
-                let d = x[c] as f64 - y[c] as f64;
-                sum += d * d;
-            }
-        }
-        // guard: empty set
-        (sum / (3 * set.len()).max(1) as f64).sqrt()
-    };
+    let rmse =
+        |r: &Relit, set: &[usize]| rmse_on(set, &|g| r.color.as_slice()[grid[g]], &reference);
 
     let mut rows: Vec<(String, f64, f64, f64, f64)> = Vec::new();
     let mut row = |label: String, n: usize, p: RelightParams| {
@@ -323,32 +344,9 @@ fn main() {
         bounce_shadows: true,
         ..cached.clone()
     };
-    let t = Instant::now();
-    let reference_bs = relight_reference(&inputs(&scene), &vpls(ref_vpls), &shadowed, &grid)
-        .expect("reference")
-        .expect("something to relight")
-        .into_iter()
-        .map(|(c, _)| c)
-        .collect::<Vec<_>>();
-    let t_ref_bs = t.elapsed().as_secs_f64() * 1e3;
-    let changed_bs: Vec<usize> = (0..grid.len())
-        .filter(|&g| {
-            let (a, b) = (reference_bs[g], photo[grid[g]]);
-            (0..3).any(|c| (a[c] - b[c]).abs() > 1e-4)
-        })
-        .collect();
-    let rmse_bs = |x: &dyn Fn(usize) -> [f32; 3]| -> f64 {
-        let mut sum = 0.0f64;
-        for &g in &changed_bs {
-            let (a, b) = (x(g), reference_bs[g]);
-            for c in 0..3 {
-                let d = a[c] as f64 - b[c] as f64;
-                sum += d * d;
-            }
-        }
-        // guard: empty set
-        (sum / (3 * changed_bs.len()).max(1) as f64).sqrt()
-    };
+    let (reference_bs, t_ref_bs) = reference_on(&scene, &vpls(ref_vpls), &shadowed, &grid);
+    let changed_bs = changed_px(&reference_bs, photo, &grid);
+    let rmse_bs = |x: &dyn Fn(usize) -> [f32; 3]| rmse_on(&changed_bs, x, &reference_bs);
     // how much the bounce's shadows change the reference itself
     let ref_gap = rmse_bs(&|g| reference[g]);
     let mut bs_rows: Vec<(String, f64, f64)> = Vec::new();

@@ -196,7 +196,7 @@ impl<'a> Parser<'a> {
             }
         }
     }
-    fn expect(&mut self, c: char) -> Result<(), SyntaxError> {
+    fn expect_char(&mut self, c: char) -> Result<(), SyntaxError> {
         self.skip_ws()?;
         if self.peek() == Some(c) {
             self.bump();
@@ -245,7 +245,7 @@ impl<'a> Parser<'a> {
                         break;
                     }
                     let k = self.value()?;
-                    self.expect(':')?;
+                    self.expect_char(':')?;
                     let v = self.value()?;
                     entries.push((k, v));
                     self.skip_ws()?;
@@ -311,7 +311,7 @@ impl<'a> Parser<'a> {
                     return Err(self.err("expected a field name"));
                 }
                 let key = self.ident();
-                self.expect(':')?;
+                self.expect_char(':')?;
                 let v = self.value()?;
                 fields.push((Spanned { pos, value: key }, v));
                 self.skip_ws()?;
@@ -381,7 +381,7 @@ impl<'a> Parser<'a> {
                     Some('"') => s.push('"'),
                     Some('\'') => s.push('\''),
                     Some('u') => {
-                        self.expect('{')?;
+                        self.expect_char('{')?;
                         let mut hex = String::new();
                         while let Some(c) = self.peek() {
                             if c == '}' {
@@ -390,7 +390,7 @@ impl<'a> Parser<'a> {
                             hex.push(c);
                             self.bump();
                         }
-                        self.expect('}')?;
+                        self.expect_char('}')?;
                         let c = u32::from_str_radix(&hex, 16)
                             .ok()
                             .and_then(char::from_u32)
@@ -412,7 +412,7 @@ impl<'a> Parser<'a> {
             self.bump();
             hashes += 1;
         }
-        self.expect('"')?;
+        self.expect_char('"')?;
         let mut s = String::new();
         loop {
             match self.bump() {

@@ -661,14 +661,8 @@ mod tests {
         inputs.insert("depth", Value::Depth(d.clone()));
         inputs.insert("color", ColorImage::filled(6, 4, [0.5; 3]).into());
         let p = BilateralParams::default();
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "jb",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("jb");
+        let ctx = test_ctx.ctx();
         let out = eval(&ctx, &inputs, &p).unwrap();
         assert!(out.passthrough.is_some());
         assert_eq!(out.values["depth"], Value::Depth(d));

@@ -369,14 +369,8 @@ mod tests {
             "pasted_alpha",
             Value::Mask(Arc::new(Image::filled(4, 3, 0.0f32))),
         );
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "composite",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("composite");
+        let ctx = test_ctx.ctx();
         let out = reg
             .get("OcclusionComposite")
             .unwrap()

@@ -1207,14 +1207,8 @@ mod tests {
         let node = reg.get("Lasso").unwrap();
         let mut inputs = Inputs::new();
         inputs.insert("strength", Value::Confidence(std::sync::Arc::new(s)));
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "lasso",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("lasso");
+        let ctx = test_ctx.ctx();
         let out = node
             .eval(&ctx, &inputs, &LassoParams::default().to_values())
             .unwrap();

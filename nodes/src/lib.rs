@@ -76,4 +76,30 @@ pub(crate) mod test_util {
             .expect("a test thread pool")
             .install(f)
     }
+
+    /// What a node's `eval` needs in a test: a fresh cancel token, no
+    /// progress, outputs under `.`, no input files.
+    pub(crate) struct TestCtx {
+        node: &'static str,
+        cancel: depthgraph_graph::prelude::CancelToken,
+    }
+
+    impl TestCtx {
+        pub(crate) fn new(node: &'static str) -> Self {
+            Self {
+                node,
+                cancel: depthgraph_graph::prelude::CancelToken::new(),
+            }
+        }
+
+        pub(crate) fn ctx(&self) -> depthgraph_graph::prelude::EvalCtx<'_> {
+            depthgraph_graph::prelude::EvalCtx {
+                node: self.node,
+                cancel: &self.cancel,
+                progress: None,
+                out_dir: std::path::Path::new("."),
+                input_files: &[],
+            }
+        }
+    }
 }

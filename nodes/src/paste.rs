@@ -1113,14 +1113,8 @@ mod tests {
         inputs.insert("source_intrinsics", Value::from(k));
         inputs.insert("target_depth", Value::from(target.clone()));
         inputs.insert("target_intrinsics", Value::from(k));
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "paste",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("paste");
+        let ctx = test_ctx.ctx();
         let out = reg
             .get("Paste")
             .unwrap()

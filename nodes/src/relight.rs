@@ -451,34 +451,36 @@ pub(crate) fn object_radiance(
     })
 }
 
-/// Up to `count` object pixels (a stratified subset of `obj_idx`, whose
-/// shaded colours are `obj_rad`) as bounce VPLs `(position, normal, L a)`:
-/// each stands for `step` pixels of outgoing radiance `ρ E / π`.
+/// Up to `count` object pixels (a stratified subset of `obj_idx`) as
+/// bounce VPLs `(position, normal, L a)`: each stands for `step` pixels of
+/// outgoing radiance `ρ E / π`. `surf(j)` and `radiance(j)` give the
+/// surface and the shaded colour of the `j`-th pixel of `obj_idx`; they are
+/// asked only of the picked pixels, in parallel.
 pub(crate) fn object_bounce_vpls(
     obj_idx: &[usize],
-    object: &dyn Fn(usize) -> Option<(DVec3, DVec3)>,
-    obj_rad: &[Rgb],
+    surf: &(dyn Fn(usize) -> Option<(DVec3, DVec3)> + Sync),
+    radiance: &(dyn Fn(usize) -> Rgb + Sync),
     pasted_depth: &DepthMap,
     k: &Intrinsics,
     count: usize,
 ) -> Vec<(DVec3, DVec3, [f64; 3])> {
-    let mut bounce = Vec::new();
     let w = k.width;
     let (picks, step) = bounce_picks(obj_idx.len(), count);
-    for idx in picks {
-        let i = obj_idx[idx];
-        if let (Some((pos, nrm)), Some(rad)) = (object(i), obj_rad.get(idx)) {
+    picks
+        .par_iter()
+        .filter_map(|&j| {
+            let i = obj_idx[j];
+            let (pos, nrm) = surf(j)?;
             let (area, _) = pixel_area(pasted_depth, k, i % w, i / w);
-            let flux = rad.map(|v| v as f64 / std::f64::consts::PI * area * step);
-            bounce.push((pos, nrm, flux));
-        }
-    }
-    bounce
+            let flux = radiance(j).map(|v| v as f64 / std::f64::consts::PI * area * step);
+            Some((pos, nrm, flux))
+        })
+        .collect()
 }
 
 /// The positions (in a list of `n` object pixels) of the `min(count, n)`
 /// stratified bounce VPLs, and how many pixels each stands for.
-pub(crate) fn bounce_picks(n: usize, count: usize) -> (Vec<usize>, f64) {
+fn bounce_picks(n: usize, count: usize) -> (Vec<usize>, f64) {
     let m = count.min(n);
     if m == 0 {
         return (Vec::new(), 0.0);
@@ -491,25 +493,54 @@ pub(crate) fn bounce_picks(n: usize, count: usize) -> (Vec<usize>, f64) {
     (picks, step)
 }
 
-/// The paraboloid maps of point VPLs `(position, normal, _)`, one each
-/// (in parallel), from the given sample sets; empty when `on` is false.
-pub(crate) fn point_vpl_maps(
-    on: bool,
-    vpls: &[(DVec3, DVec3, [f64; 3])],
-    samples: &[crate::ism::ParaboloidSamples],
-    res: usize,
-    seed: u64,
-) -> Vec<crate::ism::ParaboloidMap> {
-    if !on {
-        return Vec::new();
+/// The shadows of point VPLs `(position, normal, _)` (`bounce_shadows`):
+/// one paraboloid map each, built in parallel from the given sample sets;
+/// none when off, and then every VPL is seen.
+pub(crate) struct PointVplShadows {
+    maps: Vec<crate::ism::ParaboloidMap>,
+    bias_scale: f64,
+}
+
+impl PointVplShadows {
+    pub(crate) fn new(
+        vpls: &[(DVec3, DVec3, [f64; 3])],
+        samples: &[crate::ism::ParaboloidSamples],
+        p: &RelightParams,
+        seed: u64,
+    ) -> Self {
+        let maps = if p.bounce_shadows && !samples.is_empty() {
+            vpls.par_iter()
+                .enumerate()
+                .map(|(j, (q, nq, _))| {
+                    let s = seed.wrapping_mul(0x2545_F491).wrapping_add(j as u64);
+                    crate::ism::ParaboloidMap::build(*q, *nq, samples, p.bounce_ism_resolution, s)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        Self {
+            maps,
+            bias_scale: p.bias_scale,
+        }
     }
-    vpls.par_iter()
-        .enumerate()
-        .map(|(j, (q, nq, _))| {
-            let s = seed.wrapping_mul(0x2545_F491).wrapping_add(j as u64);
-            crate::ism::ParaboloidMap::build(*q, *nq, samples, res, s)
+
+    /// [`bounce_sum`] at `(x, n)` (its own splat radius `r`) over the
+    /// `(index, VPL)` items, each VPL counted where its map sees `x`.
+    pub(crate) fn bounce<'a>(
+        &self,
+        x: DVec3,
+        n: DVec3,
+        r: f64,
+        vpls: impl Iterator<Item = (usize, &'a (DVec3, DVec3, [f64; 3]))>,
+        r2_min: f64,
+    ) -> [f64; 3] {
+        bounce_sum(x, n, vpls, r2_min, |j| {
+            self.maps
+                .get(j)
+                .is_none_or(|m| m.visible(x, n, r, self.bias_scale))
         })
-        .collect()
+    }
 }
 
 /// Splats of the bounce maps are this many ISM radii (no pull-push).
@@ -752,15 +783,7 @@ pub fn relight(
     // secondary VPLs on the scene: the light the scene bounces onto the object
     let scene_vpls = if p.scene_vpls > 0 {
         let areas = pixel_areas(inp.depth, k);
-        scene_bounce_vpls(
-            &target,
-            &areas,
-            inp.photo,
-            c,
-            p.clamp_distance_m,
-            p.scene_vpls,
-            p.seed,
-        )
+        scene_bounce_vpls(&target, &areas, inp.photo, c, p)
     } else {
         Vec::new()
     };
@@ -769,13 +792,7 @@ pub fn relight(
         m: p.bounce_ism_points,
         radius_scale: BOUNCE_SPLAT_SCALE,
     }];
-    let scene_maps = point_vpl_maps(
-        p.bounce_shadows,
-        &scene_vpls,
-        &bounce_samples,
-        p.bounce_ism_resolution,
-        p.seed ^ 0x5EC0,
-    );
+    let scene_shadows = PointVplShadows::new(&scene_vpls, &bounce_samples, p, p.seed ^ 0x5EC0);
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
         .zip(obj_irr.par_iter())
@@ -784,11 +801,7 @@ pub fn relight(
             let bs = match &object[i] {
                 Some(s) if !scene_vpls.is_empty() => {
                     let r = BOUNCE_SPLAT_SCALE * set.splat_radius(s.pos, p.bounce_ism_points);
-                    bounce_sum(s.pos, s.n, scene_vpls.iter().enumerate(), r2_min, |j| {
-                        scene_maps
-                            .get(j)
-                            .is_none_or(|m| m.visible(s.pos, s.n, r, p.bias_scale))
-                    })
+                    scene_shadows.bounce(s.pos, s.n, r, scene_vpls.iter().enumerate(), r2_min)
                 }
                 _ => [0.0; 3],
             };
@@ -796,20 +809,15 @@ pub fn relight(
         })
         .collect();
     // bounce VPLs: stratified subset of object pixels
-    let bounce = if p.bounce_vpls > 0 {
-        let at = |i: usize| object[i].as_ref().map(|s| (s.pos, s.n));
-        object_bounce_vpls(&obj_idx, &at, &obj_rad, inp.pasted_depth, k, p.bounce_vpls)
-    } else {
-        Vec::new()
-    };
-
-    let bounce_maps = point_vpl_maps(
-        p.bounce_shadows,
-        &bounce,
-        &bounce_samples,
-        p.bounce_ism_resolution,
-        p.seed ^ 0x0B1E,
+    let bounce = object_bounce_vpls(
+        &obj_idx,
+        &|j| object[obj_idx[j]].as_ref().map(|s| (s.pos, s.n)),
+        &|j| obj_rad[j],
+        inp.pasted_depth,
+        k,
+        p.bounce_vpls,
     );
+    let bounce_shadows = PointVplShadows::new(&bounce, &bounce_samples, p, p.seed ^ 0x0B1E);
 
     // ---- which target surfaces the object changes: its shadow (some VPL's
     // visibility differs) or the bounce's reach; only these are shaded.
@@ -853,11 +861,7 @@ pub fn relight(
                 let mut b = [0.0f64; 3];
                 if (s.pos - c).length() <= bounce_reach {
                     let r = BOUNCE_SPLAT_SCALE * set.splat_radius(s.pos, p.bounce_ism_points);
-                    b = bounce_sum(s.pos, s.n, bounce.iter().enumerate(), r2_min, |j| {
-                        bounce_maps
-                            .get(j)
-                            .is_none_or(|m| m.visible(s.pos, s.n, r, p.bias_scale))
-                    });
+                    b = bounce_shadows.bounce(s.pos, s.n, r, bounce.iter().enumerate(), r2_min);
                 }
                 let given = inp.albedo.map(|a| a.as_slice()[i]);
                 let rho = target_albedo(given, pp, et, e_floor);
@@ -891,8 +895,8 @@ pub fn relight(
 }
 
 /// Secondary VPLs on the target surfaces (one bounce, scene to object;
-/// module docs): `m` pixels drawn, stratified, with probability
-/// `∝ a_i / max(d_i, d_min)²` (`a_i` the pixel's surface area, `d_i` its
+/// module docs): `m = p.scene_vpls` pixels drawn, stratified, with probability
+/// `∝ a_i / max(d_i, d_min)²` (`d_min = p.clamp_distance_m`, `a_i` the pixel's surface area, `d_i` its
 /// distance to the object centre `c`: the bounce falls off as 1/r², so the
 /// samples go where it is strong). A Lambertian surface seen in the photo
 /// has radiance `L_i = P_i / π` (`P = ρ E` is the pixel value), so a drawn
@@ -902,10 +906,9 @@ pub(crate) fn scene_bounce_vpls(
     areas: &[f64],
     photo: &ColorImage,
     c: DVec3,
-    d_min: f64,
-    m: usize,
-    seed: u64,
+    p: &RelightParams,
 ) -> Vec<(DVec3, DVec3, [f64; 3])> {
+    let (d_min, m, seed) = (p.clamp_distance_m, p.scene_vpls, p.seed);
     if m == 0 {
         return Vec::new();
     }
@@ -1149,7 +1152,13 @@ pub(crate) mod tests {
         let exact = bounce_at(x, n, &all, clamp * clamp);
         assert!(exact[0] > 0.1, "the floor lights the underside: {exact:?}");
         let areas = pixel_areas(&floor, &k);
-        let vpls = scene_bounce_vpls(&target, &areas, inp.photo, x, clamp, 4096, 7);
+        let draw = |m: usize| RelightParams {
+            clamp_distance_m: clamp,
+            scene_vpls: m,
+            seed: 7,
+            ..Default::default()
+        };
+        let vpls = scene_bounce_vpls(&target, &areas, inp.photo, x, &draw(4096));
         assert_eq!(vpls.len(), 4096);
         let est = bounce_at(x, n, &vpls, clamp * clamp);
         for ch in 0..3 {
@@ -1163,7 +1172,7 @@ pub(crate) mod tests {
         }
         // The colour of the floor: ratios kept.
         assert!((est[1] / est[0] - 0.25).abs() < 1e-9);
-        assert!(scene_bounce_vpls(&target, &areas, inp.photo, x, clamp, 0, 7).is_empty());
+        assert!(scene_bounce_vpls(&target, &areas, inp.photo, x, &draw(0)).is_empty());
     }
 
     /// The floor and slab of [`floor_and_slab_at`](crate::ism::fixtures::floor_and_slab_at)
@@ -1323,14 +1332,8 @@ pub(crate) mod tests {
         let mut reg = Registry::new();
         register(&mut reg).unwrap();
         let node = reg.get("Relight").unwrap();
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "relight",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("relight");
+        let ctx = test_ctx.ctx();
         let run = |a: &Mask, vpls: &[Vpl]| {
             let mut inputs = Inputs::new();
             inputs.insert("photo", Value::from(photo.clone()));

@@ -31,8 +31,8 @@ use rayon::prelude::*;
 use crate::mesh::{MeshParams, depth_to_mesh};
 use crate::raycast::Bvh;
 use crate::relight::{
-    Cone, RelightInputs, RelightParams, Relit, bounce_picks, bounce_sum, centre_and_radius,
-    clean_alpha, composite, lit_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
+    Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, centre_and_radius, clean_alpha,
+    composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
     target_albedo, target_surfaces,
 };
 use crate::vpl::Vpl;
@@ -112,23 +112,11 @@ pub fn relight_reference(
     // ---- the object: exact shading where it is needed (the bounce VPLs
     // and the asked pixels)
     let obj_idx: Vec<usize> = (0..w * h).filter(|&i| alpha[i] > 0.0).collect();
-    let object_surf = |i: usize| {
-        let s = inp.object_surface(i);
-        (s.pos, s.n)
-    };
     let areas = pixel_areas(inp.depth, k);
-    let scene_vpls = scene_bounce_vpls(
-        &target,
-        &areas,
-        inp.photo,
-        c,
-        p.clamp_distance_m,
-        p.scene_vpls,
-        p.seed,
-    );
+    let scene_vpls = scene_bounce_vpls(&target, &areas, inp.photo, c, p);
     let pasted = inp.pasted_color.as_slice();
     let shade_object = |i: usize| -> Rgb {
-        let (pos, n) = object_surf(i);
+        let Surf { pos, n } = inp.object_surface(i);
         let (mut est, mut efree) = ([0.0f64; 3], [0.0f64; 3]);
         for (v, d) in vpls.iter().zip(&dirs) {
             let cos = n.dot(*d);
@@ -149,21 +137,17 @@ pub fn relight_reference(
         });
         object_radiance(pasted[i], est, efree, bs, e_floor)
     };
-    let (picks, step) = bounce_picks(obj_idx.len(), p.bounce_vpls);
-    let bounce: Vec<(DVec3, DVec3, [f64; 3])> = picks
-        .par_iter()
-        .map(|&j| {
-            let i = obj_idx[j];
-            let (pos, n) = object_surf(i);
-            let (area, _) = crate::ism::pixel_area(inp.pasted_depth, k, i % w, i / w);
-            let rad = shade_object(i);
-            (
-                pos,
-                n,
-                rad.map(|v| v as f64 / std::f64::consts::PI * area * step),
-            )
-        })
-        .collect();
+    let bounce = object_bounce_vpls(
+        &obj_idx,
+        &|j| {
+            let s = inp.object_surface(obj_idx[j]);
+            Some((s.pos, s.n))
+        },
+        &|j| shade_object(obj_idx[j]),
+        inp.pasted_depth,
+        k,
+        p.bounce_vpls,
+    );
 
     // ---- the asked pixels
     let photo = inp.photo.as_slice();
@@ -337,14 +321,8 @@ mod tests {
         let mut reg = Registry::new();
         crate::relight::register(&mut reg).unwrap();
         let node = reg.get("Relight").unwrap();
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "relight",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("relight");
+        let ctx = test_ctx.ctx();
         let mut inputs = Inputs::new();
         inputs.insert("photo", Value::from(sc.photo.clone()));
         inputs.insert("depth", Value::from(sc.floor.clone()));

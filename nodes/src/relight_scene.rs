@@ -46,10 +46,9 @@ use rayon::prelude::*;
 use crate::ism::{IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows};
 pub use crate::relight::SceneInputs;
 use crate::relight::{
-    BOUNCE_SPLAT_SCALE, Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum,
+    BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
     centre_and_radius, check, clean_alpha, composite, lit_vpls, object_bounce_vpls,
-    object_radiance, pixel_areas, point_vpl_maps, scene_bounce_vpls, target_albedo,
-    target_surfaces,
+    object_radiance, pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
 };
 use crate::vpl::Vpl;
 
@@ -418,15 +417,7 @@ pub fn relight_moved(
     let obj_surfs: Vec<Surf> = obj_idx.par_iter().map(|&i| inp.object_surface(i)).collect();
 
     // ---- the object's shading: E^{s+t} = Σ Φ cos V^t V^o, and the scene's bounce
-    let scene_vpls = scene_bounce_vpls(
-        &scene.target,
-        &scene.areas,
-        inp.photo,
-        c,
-        p.clamp_distance_m,
-        p.scene_vpls,
-        p.seed,
-    );
+    let scene_vpls = scene_bounce_vpls(&scene.target, &scene.areas, inp.photo, c, p);
     let pasted = inp.pasted_color.as_slice();
     // per VPL: the object maps' bias constants, for the object's own
     // surfaces (its splats) and for the scene's (none of its splats)
@@ -523,14 +514,7 @@ pub fn relight_moved(
         ],
         None => Vec::new(),
     };
-    let shadows = p.bounce_shadows && scene.pool.is_some();
-    let scene_maps = point_vpl_maps(
-        shadows,
-        &scene_vpls,
-        &bounce_samples,
-        p.bounce_ism_resolution,
-        p.seed ^ 0x5EC0,
-    );
+    let scene_shadows = PointVplShadows::new(&scene_vpls, &bounce_samples, p, p.seed ^ 0x5EC0);
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
         .zip(obj_surfs.par_iter())
@@ -539,31 +523,20 @@ pub fn relight_moved(
             let bs = if scene_vpls.is_empty() {
                 [0.0; 3]
             } else {
-                bounce_sum(s.pos, s.n, scene_vpls.iter().enumerate(), r2_min, |j| {
-                    scene_maps
-                        .get(j)
-                        .is_none_or(|m| m.visible(s.pos, s.n, r_obj, scene.bias_scale))
-                })
+                scene_shadows.bounce(s.pos, s.n, r_obj, scene_vpls.iter().enumerate(), r2_min)
             };
             object_radiance(pasted[i], est, efree, bs, e_floor)
         })
         .collect();
-    let bounce = {
-        let at = |i: usize| {
-            obj_idx
-                .binary_search(&i)
-                .ok()
-                .map(|j| (obj_surfs[j].pos, obj_surfs[j].n))
-        };
-        object_bounce_vpls(&obj_idx, &at, &obj_rad, inp.pasted_depth, k, p.bounce_vpls)
-    };
-    let bounce_maps = point_vpl_maps(
-        shadows,
-        &bounce,
-        &bounce_samples,
-        p.bounce_ism_resolution,
-        p.seed ^ 0x0B1E,
+    let bounce = object_bounce_vpls(
+        &obj_idx,
+        &|j| Some((obj_surfs[j].pos, obj_surfs[j].n)),
+        &|j| obj_rad[j],
+        inp.pasted_depth,
+        k,
+        p.bounce_vpls,
     );
+    let bounce_shadows = PointVplShadows::new(&bounce, &bounce_samples, p, p.seed ^ 0x0B1E);
 
     // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
     // pixel's cone, plus the bounce within its reach; tiles whose cone
@@ -652,11 +625,7 @@ pub fn relight_moved(
                 }
                 let b = if near {
                     let items = tile_bounce.iter().map(|&j| (j, &bounce[j]));
-                    bounce_sum(s.pos, s.n, items, r2_min, |j| {
-                        bounce_maps
-                            .get(j)
-                            .is_none_or(|m| m.visible(s.pos, s.n, r_scene, scene.bias_scale))
-                    })
+                    bounce_shadows.bounce(s.pos, s.n, r_scene, items, r2_min)
                 } else {
                     [0.0; 3]
                 };

@@ -1345,14 +1345,8 @@ mod tests {
         inputs.insert("color", gt.color.clone().into());
         inputs.insert("intrinsics", gt.intrinsics.into());
         inputs.insert("radiance", gt.color.clone().into());
-        let cancel = CancelToken::new();
-        let ctx = EvalCtx {
-            node: "n",
-            cancel: &cancel,
-            progress: None,
-            out_dir: std::path::Path::new("."),
-            input_files: &[],
-        };
+        let test_ctx = crate::test_util::TestCtx::new("n");
+        let ctx = test_ctx.ctx();
         for kind in ["SimulateKinect", "SimulateToF", "SimulateBracket"] {
             let node = reg.get(kind).unwrap();
             let params: ParamMap = node
