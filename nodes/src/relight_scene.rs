@@ -650,16 +650,23 @@ pub fn relight_moved(
             difference.as_mut_slice(),
             region.as_mut_slice(),
         );
-        let mut diff_at = vec![[0.0f64; 3]; w * h];
+        // Every object pixel with a target surface behind it is in `diffs`
+        // (its tile has alpha > 0 and the pixel is kept); the others have
+        // no difference.
         for &(i, d) in &diffs {
             ds[i] = d.map(|v| v as f32);
-            diff_at[i] = d;
             rs[i] = 1.0;
-            cs[i] = composite(photo[i], alpha[i], [0.0; 3], d);
+            let obj = match obj_idx.binary_search(&i) {
+                Ok(j) => obj_rad[j],
+                Err(_) => [0.0; 3],
+            };
+            cs[i] = composite(photo[i], alpha[i], obj, d);
         }
         for (&i, obj) in obj_idx.iter().zip(&obj_rad) {
-            rs[i] = 1.0;
-            cs[i] = composite(photo[i], alpha[i], *obj, diff_at[i]);
+            if scene.target[i].is_none() {
+                rs[i] = 1.0;
+                cs[i] = composite(photo[i], alpha[i], *obj, [0.0; 3]);
+            }
         }
     }
     Ok(Some(Relit {
