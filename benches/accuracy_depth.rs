@@ -19,12 +19,12 @@ use depthgraph::evaluation::{
     DepthErrors, TruthScene, depth_errors, middlebury_scenes, shared_data_dir, synthetic_scene,
 };
 use depthgraph::graph::prelude::*;
-use depthgraph::nodes::bilateral::{BilateralParams, joint_bilateral};
-use depthgraph::nodes::nlmeans::{
+use depthgraph::nodes::depth::bilateral::{BilateralParams, joint_bilateral};
+use depthgraph::nodes::depth::nlmeans::{
     NLMeansInpaintParams, NLMeansUpsampleParams, nlmeans_inpaint, nlmeans_upsample,
 };
-use depthgraph::nodes::pull_push::{PullPushParams, Weights, pull_push};
-use depthgraph::nodes::sensor::{KinectParams, simulate_kinect};
+use depthgraph::nodes::depth::pull_push::{PullPushParams, Weights, pull_push};
+use depthgraph::nodes::sim::sensor::{KinectParams, simulate_kinect};
 
 type MethodFn = fn(&DepthMap, &TruthScene) -> DepthMap;
 

@@ -23,13 +23,13 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use depthgraph::graph::prelude::*;
-use depthgraph::nodes::composite::{CompositeParams, occlusion_composite};
-use depthgraph::nodes::edges::{EdgeParams, detect_edges};
-use depthgraph::nodes::feather::{FeatherParams, feather};
 use depthgraph::nodes::io::linear_to_srgb;
-use depthgraph::nodes::lasso::{LassoParams, fill_polygon, iou, lasso};
-use depthgraph::nodes::paste::{PasteParams, paste};
-use depthgraph::nodes::synthetic::{RenderOptions, Scene, render};
+use depthgraph::nodes::select::composite::{CompositeParams, occlusion_composite};
+use depthgraph::nodes::select::edges::{EdgeParams, detect_edges};
+use depthgraph::nodes::select::feather::{FeatherParams, feather};
+use depthgraph::nodes::select::lasso::{LassoParams, fill_polygon, iou, lasso};
+use depthgraph::nodes::select::paste::{PasteParams, paste};
+use depthgraph::nodes::sim::synthetic::{RenderOptions, Scene, render};
 
 const MARK: &str = "<!-- real-data -->";
 

@@ -26,12 +26,12 @@ use std::time::Instant;
 
 use depthgraph::evaluation::shared_data_dir;
 use depthgraph::graph::prelude::*;
-use depthgraph::nodes::hdr::{
+use depthgraph::nodes::camera::hdr::{
     LoadBracketParams, Merged, ResponseCurve, ResponseParams, load_bracket, merge_hdr,
     recover_response,
 };
-use depthgraph::nodes::sensor::{BracketParams, simulate_bracket};
-use depthgraph::nodes::synthetic::{RenderOptions, Scene, render};
+use depthgraph::nodes::sim::sensor::{BracketParams, simulate_bracket};
+use depthgraph::nodes::sim::synthetic::{RenderOptions, Scene, render};
 
 /// Median wall time in ms of `repeats` calls, and the last result.
 fn median_ms<T>(repeats: usize, mut f: impl FnMut() -> T) -> (Option<T>, f64) {
@@ -833,7 +833,7 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
 /// The image files a list names (for the peer), in order.
 fn load_list_files(list: &Path) -> Vec<PathBuf> {
     let text = std::fs::read_to_string(list).unwrap_or_default();
-    depthgraph::nodes::hdr::parse_bracket_list(&text, list)
+    depthgraph::nodes::camera::hdr::parse_bracket_list(&text, list)
         .map(|v| v.into_iter().map(|e| e.0).collect())
         .unwrap_or_default()
 }

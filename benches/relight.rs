@@ -32,10 +32,11 @@ use std::time::Instant;
 
 use depthgraph::graph::pipeline::OutputRef;
 use depthgraph::graph::prelude::*;
-use depthgraph::nodes::relight::{RelightInputs, RelightParams, Relit, relight};
-use depthgraph::nodes::relight_reference::relight_reference;
-use depthgraph::nodes::relight_scene::{RelightScene, relight_moved};
-use depthgraph::nodes::vpl::{Vpl, VplParams, luminance, sample_vpls};
+use depthgraph::nodes::relight::paired::relight;
+use depthgraph::nodes::relight::reference::relight_reference;
+use depthgraph::nodes::relight::scene_cached::{RelightScene, relight_moved};
+use depthgraph::nodes::relight::shading::{RelightInputs, RelightParams, Relit};
+use depthgraph::nodes::relight::vpl::{Vpl, VplParams, luminance, sample_vpls};
 
 /// The graph's values at 640x480.
 struct Scene {

@@ -157,7 +157,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
 
 /// A synthetic preset rendered with exact ground truth.
 pub fn synthetic_scene(preset: &str, width: usize, height: usize) -> Option<TruthScene> {
-    use depthgraph_nodes::synthetic::{RenderOptions, Scene, render};
+    use depthgraph_nodes::sim::synthetic::{RenderOptions, Scene, render};
     let scene = Scene::preset(preset, width, height)?;
     let r = render(&scene, &RenderOptions { supersample: 1 });
     Some(TruthScene {

@@ -31,7 +31,7 @@ fn check_dims(what: &str, w: usize, h: usize, k: &Intrinsics) -> Result<(), Node
 /// use depthgraph_graph::value::{Image, Intrinsics};
 /// let k = Intrinsics { fx: 1.0, fy: 1.0, cx: 1.0, cy: 0.5, width: 2, height: 1 };
 /// let d = Image::from_vec(2, 1, vec![2.0f32, 0.0]).unwrap();
-/// let pc = depthgraph_nodes::unproject::unproject(&d, &k, None).unwrap();
+/// let pc = depthgraph_nodes::depth::unproject::unproject(&d, &k, None).unwrap();
 /// assert_eq!(pc.positions, vec![[-1.0, 0.0, 2.0]]);
 /// ```
 pub fn unproject(
@@ -153,7 +153,7 @@ node_params! {
 /// result with the NL-means upsampling / inpainting nodes.
 ///
 /// ```
-/// use depthgraph_nodes::unproject::{reproject_depth, ReprojectParams};
+/// use depthgraph_nodes::depth::unproject::{reproject_depth, ReprojectParams};
 /// use depthgraph_graph::value::{DepthMap, Intrinsics};
 /// let k = Intrinsics { fx: 20.0, fy: 20.0, cx: 8.0, cy: 8.0, width: 16, height: 16 };
 /// let d = DepthMap::filled(16, 16, 2.0);
@@ -391,7 +391,7 @@ mod tests {
 
     #[test]
     fn a_depth_camera_beside_the_color_camera_lands_on_the_truth() {
-        use crate::synthetic::{RenderOptions, Scene, render};
+        use crate::sim::synthetic::{RenderOptions, Scene, render};
         let color_cam = Scene::preset("tabletop", 80, 60).unwrap();
         let truth = render(&color_cam, &RenderOptions::default());
         let mut depth_cam = Scene::preset("tabletop", 80, 60).unwrap();

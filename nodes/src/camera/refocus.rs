@@ -7,7 +7,7 @@
 //! For each of `n` stratified points `s` of the aperture (see
 //! [`Aperture::samples`]) the RGB-D image is re-projected through a pinhole
 //! at `s`, sheared so that the focus plane stays put: every pixel moves by
-//! `d(s, z) = C s (1/u - 1/z)` (see [`crate::lens`]). The move is a forward
+//! `d(s, z) = C s (1/u - 1/z)` (see [`crate::camera::lens`]). The move is a forward
 //! warp with a z-buffer (the nearest surface wins; ties go to the lower
 //! source index, so the result does not depend on the thread count). Pixels
 //! that receive nothing are disocclusions (the new viewpoint sees behind a
@@ -40,7 +40,7 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
-use crate::lens::{APERTURES, Aperture, ThinLens, inv_depth};
+use crate::camera::lens::{APERTURES, Aperture, ThinLens, inv_depth};
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
 pub const TILE: usize = 16;
@@ -204,8 +204,8 @@ struct View {
 /// the thin lens and aperture of `p` (Sec. 2.3; see the module docs).
 ///
 /// ```
-/// use depthgraph_nodes::refocus::{refocus, RefocusParams};
-/// use depthgraph_nodes::lens::Aperture;
+/// use depthgraph_nodes::camera::refocus::{refocus, RefocusParams};
+/// use depthgraph_nodes::camera::lens::Aperture;
 /// use depthgraph_graph::value::{ColorImage, DepthMap};
 /// // A bright dot on a dark wall at 4 m, focused at 1 m: the dot spreads.
 /// let mut c = ColorImage::filled(48, 48, [0.0; 3]);
@@ -227,7 +227,7 @@ pub fn refocus(
 ) -> Result<(ColorImage, RefocusReport), NodeError> {
     check_inputs(color, depth)?;
     let lens = p.lens();
-    let coc = crate::lens::coc_map(depth, &lens)?;
+    let coc = crate::camera::lens::coc_map(depth, &lens)?;
     let gain = 2f64.powf(p.exposure_stops);
     let max_coc = coc.as_slice().iter().fold(0.0f64, |m, &c| m.max(c as f64));
     let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
@@ -517,7 +517,7 @@ pub fn reverse_mapped_dof(
     p: &RefocusParams,
 ) -> Result<ColorImage, NodeError> {
     check_inputs(color, depth)?;
-    let coc = crate::lens::coc_map(depth, &p.lens())?;
+    let coc = crate::camera::lens::coc_map(depth, &p.lens())?;
     let gain = 2f64.powf(p.exposure_stops);
     let (w, h) = color.dims();
     let src: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
@@ -731,7 +731,9 @@ mod tests {
         *c.get_mut(48, 48) = [1.0e4; 3];
         let d = DepthMap::filled(w, h, 8.0);
         let p = params(1.5, 2.0, 1024);
-        let coc = crate::lens::coc_map(&d, &p.lens()).unwrap().as_slice()[0] as f64;
+        let coc = crate::camera::lens::coc_map(&d, &p.lens())
+            .unwrap()
+            .as_slice()[0] as f64;
         for ap in [
             Aperture::Disc,
             Aperture::Polygon {
@@ -821,7 +823,7 @@ mod tests {
         let d = DepthMap::from_fn(w, h, |x, y| 0.8 + ((x / 8 + y / 6) % 4) as f32);
         let p = params(1.5, 1.8, 48);
         let run = |threads| {
-            crate::test_util::with_threads(threads, || {
+            crate::test_support::with_threads(threads, || {
                 refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap().0
             })
         };
@@ -887,7 +889,9 @@ mod tests {
         let c = ColorImage::from_fn(w, h, |x, _| [x as f32; 3]);
         let d = DepthMap::filled(w, h, 1.0);
         let p = params(5.0, 2.0, 32);
-        let coc = crate::lens::coc_map(&d, &p.lens()).unwrap().as_slice()[0];
+        let coc = crate::camera::lens::coc_map(&d, &p.lens())
+            .unwrap()
+            .as_slice()[0];
         assert!(coc > 5.0, "{coc}");
         let (out, rep) = refocus(&c, &d, &Aperture::Mask(m), &p, |_| Ok(())).unwrap();
         assert_eq!(rep.samples, 32);
@@ -934,7 +938,7 @@ mod tests {
             }
         });
         let p = params(1.0, 8.0, 32);
-        let coc = crate::lens::coc_map(&d, &p.lens()).unwrap();
+        let coc = crate::camera::lens::coc_map(&d, &p.lens()).unwrap();
         let max = coc.as_slice().iter().fold(0.0f32, |m, &v| m.max(v));
         assert!(max > 2.0 && max < 16.0, "{max}");
         let (out, rep) = refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap();
@@ -961,7 +965,7 @@ mod tests {
             focus in proptest::prop_oneof![proptest::prelude::Just(0.06), proptest::prelude::Just(1.0), proptest::prelude::Just(f64::INFINITY)],
         ) {
             let mut s = seed;
-            let mut next = || { s = crate::sensor::splitmix64(s); (s >> 11) as f64 / (1u64 << 53) as f64 };
+            let mut next = || { s = crate::sim::sensor::splitmix64(s); (s >> 11) as f64 / (1u64 << 53) as f64 };
             let d = DepthMap::from_fn(w, h, |_, _| match (next() * 6.0) as u32 {
                 0 => 0.0,
                 1 => f32::NAN,
@@ -993,7 +997,7 @@ mod tests {
 #[cfg(test)]
 mod ground_truth {
     use super::*;
-    use crate::synthetic::{RenderOptions, Scene, ThinLensRender, render, render_thin_lens};
+    use crate::sim::synthetic::{RenderOptions, Scene, ThinLensRender, render, render_thin_lens};
 
     /// RMSE of display values (linear clamped to [0, 1]), f64 sums.
     fn display_rmse(a: &ColorImage, b: &ColorImage) -> f64 {

@@ -1,6 +1,6 @@
 //! Exact ray-cast visibility against triangle meshes: a bounding volume
 //! hierarchy (BVH) and any-hit shadow rays. The reference of `Relight`'s
-//! imperfect shadow maps ([`crate::relight_reference`]).
+//! imperfect shadow maps ([`crate::relight::reference`]).
 //!
 //! The BVH is binary, split at the median centroid along the longest axis
 //! of each node's centroid bounds, with up to [`Bvh::LEAF`] triangles per
@@ -209,7 +209,7 @@ mod tests {
     /// for every ray.
     #[test]
     fn the_bvh_agrees_with_testing_every_triangle() {
-        let mut rng = crate::vpl::SplitMix64(3);
+        let mut rng = crate::relight::vpl::SplitMix64(3);
         let mut r = || rng.next_f64() * 2.0 - 1.0;
         let tris: Vec<[DVec3; 3]> = (0..500)
             .map(|_| {

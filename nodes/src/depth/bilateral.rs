@@ -162,7 +162,7 @@ fn exp2_neg(y: f32) -> f32 {
 ///
 /// ```
 /// use depthgraph_graph::value::Image;
-/// use depthgraph_nodes::bilateral::{joint_bilateral, BilateralParams};
+/// use depthgraph_nodes::depth::bilateral::{joint_bilateral, BilateralParams};
 /// // A 4x1 strip: two noisy samples near 1 m, a hole, then a far pixel at 3 m.
 /// let depth = Image::from_vec(4, 1, vec![1.0f32, 1.02, 0.0, 3.0]).unwrap();
 /// let color = Image::filled(4, 1, [0.5f32; 3]);
@@ -390,7 +390,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sensor::PixelRng;
+    use crate::sim::sensor::PixelRng;
 
     /// Straightforward reference: exact `exp` per neighbour, `f64` throughout.
     fn reference(depth: &DepthMap, color: &ColorImage, p: &BilateralParams) -> DepthMap {
@@ -602,7 +602,7 @@ mod tests {
         let c = inside.map(|&b| if b { [0.7, 0.2, 0.2] } else { [0.2, 0.2, 0.7] });
         let p = BilateralParams::default();
         let run = |n: usize| {
-            crate::test_util::with_threads(n, || joint_bilateral(&noisy, &c, &p).unwrap())
+            crate::test_support::with_threads(n, || joint_bilateral(&noisy, &c, &p).unwrap())
         };
         let one = run(1);
         let three = run(3);
@@ -661,7 +661,7 @@ mod tests {
         inputs.insert("depth", Value::Depth(d.clone()));
         inputs.insert("color", ColorImage::filled(6, 4, [0.5; 3]).into());
         let p = BilateralParams::default();
-        let test_ctx = crate::test_util::TestCtx::new("jb");
+        let test_ctx = crate::test_support::TestCtx::new("jb");
         let ctx = test_ctx.ctx();
         let out = eval(&ctx, &inputs, &p).unwrap();
         assert!(out.passthrough.is_some());

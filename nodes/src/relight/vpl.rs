@@ -11,7 +11,7 @@
 //! # Sampling
 //!
 //! Pixel `i` of the equirectangular map (direction convention in
-//! [`crate::envmap`]) is chosen with probability
+//! [`crate::relight::envmap`]) is chosen with probability
 //! `p_i = w_i / W`, `w_i = lum(L_i) ΔΩ_i` (luminance times the pixel's solid
 //! angle, the `sin θ` per row), `W = Σ w_i` (f64), by the marginal row CDF
 //! and the conditional column CDF. The `N` uniform pairs are stratified
@@ -43,7 +43,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::{PointCloud, Rgb};
 
-use crate::envmap::{pixel_direction, pixel_solid_angle};
+use crate::relight::envmap::{pixel_direction, pixel_solid_angle};
 
 node_params! {
     /// Parameters of `VplSample`.
@@ -266,7 +266,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::envmap::{EnvMapParams, sample_sky};
+    use crate::relight::envmap::{EnvMapParams, sample_sky};
     use glam::DVec3;
 
     fn irradiance_ref(map: &ColorImage, n: DVec3) -> [f64; 3] {
@@ -324,7 +324,7 @@ mod tests {
             .sum();
         assert!((total - w_ref).abs() < 1e-4 * w_ref);
         // normals that see the sun: its energy dominates and is sampled densely
-        let sun = crate::envmap::sun_direction(50.0, -35.0);
+        let sun = crate::relight::envmap::sun_direction(50.0, -35.0);
         for n in [DVec3::NEG_Y, sun, (sun + DVec3::X).normalize()] {
             let (a, b) = (irradiance_ref(&map, n), irradiance_vpl(&vpls, n));
             for c in 0..3 {

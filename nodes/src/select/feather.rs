@@ -112,7 +112,7 @@ fn near_boundary(m: &[f32], w: usize, h: usize, r: usize) -> (Vec<bool>, bool) {
 ///
 /// ```
 /// use depthgraph_graph::value::Image;
-/// use depthgraph_nodes::feather::{feather, FeatherParams};
+/// use depthgraph_nodes::select::feather::{feather, FeatherParams};
 /// let m = Image::from_fn(40, 1, |x, _| if x < 20 { 1.0f32 } else { 0.0 });
 /// let (f, changed) = feather(&m, &FeatherParams::default()).unwrap();
 /// assert!(changed);

@@ -25,7 +25,7 @@
 //!
 //! # Orthographic maps for directional VPLs
 //!
-//! The environment's VPLs are directional (at infinity, see [`crate::vpl`]),
+//! The environment's VPLs are directional (at infinity, see [`crate::relight::vpl`]),
 //! so every shadow ray towards one is parallel: an **orthographic** depth map
 //! along the direction `d` is exact for them, where a paraboloid map (the
 //! ISM paper's choice for point VPLs at finite positions) would waste
@@ -36,7 +36,7 @@
 //! point projecting outside it cannot shadow any receiver. Texels are square,
 //! `texel_m = extent / resolution`.
 //!
-//! Holes between splats are filled by pull-push ([`crate::pull_push`],
+//! Holes between splats are filled by pull-push ([`crate::depth::pull_push`],
 //! bilinear weights) on the stored `t` (shifted to be positive).
 //!
 //! Two maps are built from the **same** samples, one without the object's
@@ -56,8 +56,8 @@ use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use glam::DVec3;
 
-use crate::pull_push::{PullPushParams, Weights, pull_push};
-use crate::vpl::SplitMix64;
+use crate::depth::pull_push::{PullPushParams, Weights, pull_push};
+use crate::relight::vpl::SplitMix64;
 
 node_params! {
     /// Parameters of the imperfect shadow maps.
@@ -879,55 +879,12 @@ impl Grid {
     }
 }
 
-/// Scenes with an exact answer, shared by the tests of the shadow maps and
-/// of `Relight`.
-#[cfg(test)]
-pub(crate) mod fixtures {
-    use super::*;
-
-    /// Floor `y = 0.4` m (rows below the horizon, seen by a Kinect-like
-    /// camera) and a horizontal slab `x in [-0.2, 0.2]`, `z in [1.6, 2.4]`
-    /// at `y = 0.2` m, pasted with alpha 1: intrinsics, floor depth, slab
-    /// depth, slab alpha.
-    pub(crate) fn floor_and_slab(w: usize, h: usize) -> (Intrinsics, DepthMap, DepthMap, Mask) {
-        floor_and_slab_at(w, h, 0.0)
-    }
-
-    /// [`floor_and_slab`] with the slab moved by `dx` metres along x.
-    pub(crate) fn floor_and_slab_at(
-        w: usize,
-        h: usize,
-        dx_m: f64,
-    ) -> (Intrinsics, DepthMap, DepthMap, Mask) {
-        let k = crate::synthetic::kinect_like_intrinsics(w, h);
-        let floor = Image::from_fn(w, h, |_, y| {
-            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
-            if dy > 0.05 { (0.4 / dy) as f32 } else { 0.0 }
-        });
-        let slab = Image::from_fn(w, h, |x, y| {
-            let dx = (x as f64 + 0.5 - k.cx) / k.fx;
-            let dy = (y as f64 + 0.5 - k.cy) / k.fy;
-            if dy <= 0.0 {
-                return 0.0;
-            }
-            let z = 0.2 / dy;
-            if (1.6..=2.4).contains(&z) && (dx * z - dx_m).abs() <= 0.2 {
-                z as f32
-            } else {
-                0.0
-            }
-        });
-        let alpha = slab.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
-        (k, floor, slab, alpha)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn cam(w: usize, h: usize) -> Intrinsics {
-        crate::synthetic::kinect_like_intrinsics(w, h)
+        crate::sim::synthetic::kinect_like_intrinsics(w, h)
     }
 
     /// A floor (y = 0.4 m, seen from above at an angle: depth rows) and a
@@ -938,7 +895,7 @@ mod tests {
     fn a_slab_shadows_the_floor_below_it_only_with_the_object() {
         let (w, h) = (160, 120);
         let k = cam(w, h);
-        let (_, floor, slab, _) = fixtures::floor_and_slab(w, h);
+        let (_, floor, slab, _) = crate::test_support::relight::floor_and_slab(w, h);
         assert!(slab.hole_count() < w * h);
         let centre = DVec3::new(0.0, 0.2, 2.0);
         let set = PointSet::new(&[(&floor, false), (&slab, true)], &k, &[centre], 0.05);

@@ -1,8 +1,8 @@
 //! The reference of `Relight`: the same differential composite (the model
-//! of [`crate::relight`]: directional VPLs, Lambertian surfaces, one bounce
+//! of [`crate::relight::paired`]: directional VPLs, Lambertian surfaces, one bounce
 //! each way with the same clamp and reach) with **exact visibility**, shadow
 //! rays cast against the meshes of the target and of the pasted object
-//! ([`crate::mesh::depth_to_mesh`], [`crate::raycast`]) instead of imperfect
+//! ([`crate::depth::mesh::depth_to_mesh`], [`crate::relight::raycast`]) instead of imperfect
 //! shadow maps. It is slow (a ray per pixel and VPL) and meant for
 //! benchmarks and tests: it renders only the pixels it is asked for.
 //!
@@ -12,7 +12,7 @@
 //! any contact the scenes have).
 //!
 //! The meshes drop cells across depth jumps of more than 10 % (as
-//! [`crate::mesh`] does at discontinuities): a surface seen at a grazing
+//! [`crate::depth::mesh`] does at discontinuities): a surface seen at a grazing
 //! angle at a low resolution, whose neighbouring pixels differ by more,
 //! loses its cells here (and casts no shadow), where the shadow maps'
 //! splats keep it. Use the reference at resolutions where the surfaces of
@@ -28,14 +28,14 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::mesh::{MeshParams, depth_to_mesh};
-use crate::raycast::Bvh;
-use crate::relight::{
+use crate::depth::mesh::{MeshParams, depth_to_mesh};
+use crate::relight::raycast::Bvh;
+use crate::relight::shading::{
     Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, centre_and_radius, clean_alpha,
     composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
     target_albedo, target_surfaces,
 };
-use crate::vpl::Vpl;
+use crate::relight::vpl::Vpl;
 
 /// Offset of shadow rays, per metre of distance from the camera.
 /// (The reference renders the whole image as `Relight`'s
@@ -45,9 +45,9 @@ pub const RAY_EPS_REL: f64 = 1e-3;
 /// The composite `I_m` (eq. 5) and the difference `I_{s+t} - I_t` at the
 /// pixels `pixels` (indices `y w + x`), with ray-cast visibility (module
 /// docs). `Ok(None)` when there is nothing to relight, as for
-/// [`crate::relight::relight`]. Out-of-range pixels are an error. Only the
+/// [`crate::relight::paired::relight`]. Out-of-range pixels are an error. Only the
 /// VPLs whose ray can pass the object are traced (the cone test of
-/// [`crate::relight`], exact here), and pixels the object cannot change are
+/// [`crate::relight::paired`], exact here), and pixels the object cannot change are
 /// the photo.
 pub fn relight_reference(
     inp: &RelightInputs,
@@ -249,7 +249,7 @@ mod tests {
     #[test]
     fn the_reference_casts_the_analytic_shadow_and_the_isms_match_it() {
         let (w, h) = (160, 120);
-        let sc = crate::relight::tests::SlabScene::new(w, h, 0.0);
+        let sc = crate::test_support::relight::SlabScene::new(w, h, 0.0);
         let (k, floor, alpha, photo) = (sc.k, &sc.floor, &sc.alpha, &sc.photo);
         let inp = sc.inputs(true);
         let p = RelightParams {
@@ -259,10 +259,12 @@ mod tests {
             scene_vpls: 0,
             ..Default::default()
         };
-        let vpls = crate::relight::tests::overhead();
+        let vpls = crate::test_support::relight::overhead();
         let all: Vec<usize> = (0..w * h).collect();
         let r = relight_reference(&inp, &vpls, &p, &all).unwrap().unwrap();
-        let ism = crate::relight::relight(&inp, &vpls, &p).unwrap().unwrap();
+        let ism = crate::relight::paired::relight(&inp, &vpls, &p)
+            .unwrap()
+            .unwrap();
         let (mut shadowed, mut agree, mut edge) = (0, 0, 0);
         for (i, &(c, _)) in r.iter().enumerate() {
             let z = *floor.get(i % w, i / w);
@@ -317,11 +319,11 @@ mod tests {
     fn the_node_offers_the_reference_as_a_visibility() {
         use std::sync::Arc;
         let (w, h) = (160, 120);
-        let sc = crate::relight::tests::SlabScene::new(w, h, 0.0);
+        let sc = crate::test_support::relight::SlabScene::new(w, h, 0.0);
         let mut reg = Registry::new();
-        crate::relight::register(&mut reg).unwrap();
+        crate::relight::node::register(&mut reg).unwrap();
         let node = reg.get("Relight").unwrap();
-        let test_ctx = crate::test_util::TestCtx::new("relight");
+        let test_ctx = crate::test_support::TestCtx::new("relight");
         let ctx = test_ctx.ctx();
         let mut inputs = Inputs::new();
         inputs.insert("photo", Value::from(sc.photo.clone()));
@@ -331,8 +333,8 @@ mod tests {
         inputs.insert("pasted_depth", Value::from(sc.slab.clone()));
         inputs.insert("alpha", Value::Mask(Arc::new(sc.alpha.clone())));
         inputs.insert("intrinsics", Value::from(sc.k));
-        let vpls = crate::relight::tests::overhead();
-        inputs.insert("vpls", Value::from(crate::vpl::to_cloud(&vpls)));
+        let vpls = crate::test_support::relight::overhead();
+        inputs.insert("vpls", Value::from(crate::relight::vpl::to_cloud(&vpls)));
         let with = |vis: &str| RelightParams {
             visibility: vis.into(),
             bounce_vpls: 0,

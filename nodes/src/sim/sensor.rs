@@ -269,8 +269,8 @@ fn luminance(c: Rgb) -> f64 {
 /// 5. **Range**: results outside `[min_depth_m, max_depth_m]` are holes.
 ///
 /// ```
-/// use depthgraph_nodes::sensor::{simulate_kinect, KinectParams};
-/// use depthgraph_nodes::synthetic::kinect_like_intrinsics;
+/// use depthgraph_nodes::sim::sensor::{simulate_kinect, KinectParams};
+/// use depthgraph_nodes::sim::synthetic::kinect_like_intrinsics;
 /// use depthgraph_graph::value::DepthMap;
 /// let k = kinect_like_intrinsics(64, 48);
 /// let gt = DepthMap::filled(64, 48, 2.0);
@@ -490,8 +490,8 @@ fn integrate(zs: &[f64], n_total: usize, p: &ToFParams, range_m: f64) -> Option<
 /// become holes.
 ///
 /// ```
-/// use depthgraph_nodes::sensor::{simulate_tof, ToFParams};
-/// use depthgraph_nodes::synthetic::kinect_like_intrinsics;
+/// use depthgraph_nodes::sim::sensor::{simulate_tof, ToFParams};
+/// use depthgraph_nodes::sim::synthetic::kinect_like_intrinsics;
 /// use depthgraph_graph::value::DepthMap;
 /// let k = kinect_like_intrinsics(64, 48);
 /// let gt = DepthMap::filled(64, 48, 2.0);
@@ -637,7 +637,7 @@ impl Curve {
 /// exactly; inputs are clipped to `[0, 1]` (NaN to 0).
 ///
 /// ```
-/// use depthgraph_nodes::sensor::{inverse_response, response};
+/// use depthgraph_nodes::sim::sensor::{inverse_response, response};
 /// let y = response(0.18, 2.2);
 /// assert!(y > 0.42 && y < 0.45);
 /// assert!((inverse_response(y, 2.2) - 0.18).abs() < 1e-6);
@@ -680,7 +680,7 @@ node_params! {
 /// radiance counts as 0.
 ///
 /// ```
-/// use depthgraph_nodes::sensor::{simulate_bracket, BracketParams};
+/// use depthgraph_nodes::sim::sensor::{simulate_bracket, BracketParams};
 /// use depthgraph_graph::value::ColorImage;
 /// let hdr = ColorImage::filled(4, 4, [0.5, 1.0, 8.0]);
 /// let p = BracketParams { noise_sigma: 0.0, ..Default::default() };
@@ -805,7 +805,7 @@ pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synthetic::{RenderOptions, Scene, kinect_like_intrinsics, render};
+    use crate::sim::synthetic::{RenderOptions, Scene, kinect_like_intrinsics, render};
 
     fn quiet_kinect() -> KinectParams {
         KinectParams {
@@ -1055,7 +1055,7 @@ mod tests {
         let p = KinectParams::default();
         let run = |seed: u64, threads: usize| {
             let p = KinectParams { seed, ..p.clone() };
-            crate::test_util::with_threads(threads, || {
+            crate::test_support::with_threads(threads, || {
                 simulate_kinect(&gt.depth, Some(&gt.color), &gt.intrinsics, &p).unwrap()
             })
         };
@@ -1345,7 +1345,7 @@ mod tests {
         inputs.insert("color", gt.color.clone().into());
         inputs.insert("intrinsics", gt.intrinsics.into());
         inputs.insert("radiance", gt.color.clone().into());
-        let test_ctx = crate::test_util::TestCtx::new("n");
+        let test_ctx = crate::test_support::TestCtx::new("n");
         let ctx = test_ctx.ctx();
         for kind in ["SimulateKinect", "SimulateToF", "SimulateBracket"] {
             let node = reg.get(kind).unwrap();

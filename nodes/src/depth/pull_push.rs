@@ -114,7 +114,7 @@ fn pull(fine: &Level) -> Level {
 ///
 /// ```
 /// use depthgraph_graph::value::{Image, Intrinsics};
-/// use depthgraph_nodes::pull_push::{pull_push, PullPushParams, Weights};
+/// use depthgraph_nodes::depth::pull_push::{pull_push, PullPushParams, Weights};
 /// let depth = Image::from_vec(3, 1, vec![1.0f32, 0.0, 3.0]).unwrap();
 /// let color = Image::filled(3, 1, [0.5f32; 3]);
 /// let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 1.5, cy: 0.5, width: 3, height: 1 };
@@ -671,7 +671,7 @@ mod tests {
             [(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]
         });
         let run = |n| {
-            crate::test_util::with_threads(n, || {
+            crate::test_support::with_threads(n, || {
                 pull_push(
                     &d,
                     &c,

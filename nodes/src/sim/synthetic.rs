@@ -25,7 +25,7 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::lens::{Aperture, ThinLens};
+use crate::camera::lens::{Aperture, ThinLens};
 
 /// Names of the scene presets, for the `preset` parameter.
 pub const PRESETS: &[&str] = &["tabletop", "corridor", "thin"];
@@ -388,7 +388,7 @@ pub struct Light {
 /// move it to the camera's right (`+x`).
 ///
 /// ```
-/// use depthgraph_nodes::synthetic::sun_direction;
+/// use depthgraph_nodes::sim::synthetic::sun_direction;
 /// let up = sun_direction(90.0, 0.0);
 /// assert!((up.y + 1.0).abs() < 1e-12);
 /// let right = sun_direction(0.0, 90.0);
@@ -569,7 +569,7 @@ impl Scene {
     /// object listed first.
     ///
     /// ```
-    /// use depthgraph_nodes::synthetic::Scene;
+    /// use depthgraph_nodes::sim::synthetic::Scene;
     /// use glam::DVec3;
     /// let scene = Scene::preset("tabletop", 64, 48).unwrap();
     /// let hit = scene.intersect(DVec3::ZERO, DVec3::new(0.0, -0.2, 1.0)).unwrap();
@@ -962,7 +962,7 @@ fn render_row(scene: &Scene, y: usize, width: usize, ss: usize) -> Row {
 /// docs for the shading).
 ///
 /// ```
-/// use depthgraph_nodes::synthetic::{render, RenderOptions, Scene};
+/// use depthgraph_nodes::sim::synthetic::{render, RenderOptions, Scene};
 /// let scene = Scene::preset("tabletop", 32, 24).unwrap();
 /// let out = render(&scene, &RenderOptions::default());
 /// assert_eq!(out.depth.dims(), (32, 24));
@@ -1036,10 +1036,10 @@ pub struct ThinLensRender {
 /// pass through the point where the pixel's pinhole ray meets the focus plane
 /// `z = u` (parallel to the pinhole ray when focused at infinity); the pixel
 /// is their mean radiance (f64 sums). The aperture point `s` (in aperture
-/// diameters, see [`crate::lens`]) sits at `L = (s_x C / fx, s_y C / fy, 0)`
+/// diameters, see [`crate::camera::lens`]) sits at `L = (s_x C / fx, s_y C / fy, 0)`
 /// metres, `C` = [`ThinLens::coc_scale`], so a point at depth `z` is spread
 /// over exactly the circle of confusion `C |1/z - 1/u|` pixels that
-/// [`crate::refocus::refocus`] uses: the two differ only by what a single
+/// [`crate::camera::refocus::refocus`] uses: the two differ only by what a single
 /// RGB-D image cannot know (what hides behind edges). Rays go through pixel
 /// centres, like the pinhole render the refocusing starts from. Each pixel
 /// draws its own aperture samples (seeded by the pixel), so the noise is
@@ -1073,7 +1073,7 @@ pub fn render_thin_lens(
             .map(|y| {
                 (0..w)
                     .map(|x| {
-                        let pixel_seed = crate::sensor::splitmix64(
+                        let pixel_seed = crate::sim::sensor::splitmix64(
                             lens.seed ^ ((y * w + x) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
                         );
                         let points = lens.aperture.samples(lens.samples, pixel_seed)?;
@@ -1208,7 +1208,7 @@ node_params! {
 /// The scene the parameters describe (preset, sun, emitter radiance).
 ///
 /// ```
-/// use depthgraph_nodes::synthetic::{scene_from_params, SyntheticSceneParams};
+/// use depthgraph_nodes::sim::synthetic::{scene_from_params, SyntheticSceneParams};
 /// let p = SyntheticSceneParams { width: 64, height: 48, ..Default::default() };
 /// let scene = scene_from_params(&p).unwrap();
 /// assert_eq!(scene.camera.fx, 52.5);
@@ -1589,7 +1589,7 @@ mod tests {
     fn render_is_independent_of_thread_count() {
         let scene = Scene::preset("corridor", 48, 36).unwrap();
         let opts = RenderOptions { supersample: 2 };
-        let run = |threads| crate::test_util::with_threads(threads, || render(&scene, &opts));
+        let run = |threads| crate::test_support::with_threads(threads, || render(&scene, &opts));
         assert_eq!(run(1), run(3));
     }
 

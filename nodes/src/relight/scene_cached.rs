@@ -14,7 +14,7 @@
 //! `E^{s+t} - E^t = -Σ_k Φ_k max(0, n·ω_k) V^t_k (1 - V^o_k)`,
 //!
 //! a sum over the VPLs the object blocks, which are found by the cone test
-//! of [`crate::relight`] (a ray towards `ω_k` meets the object only when it
+//! of [`crate::relight::paired`] (a ray towards `ω_k` meets the object only when it
 //! passes within its reach). So:
 //!
 //! - **per scene** ([`RelightScene::new`]): the target's surfaces and pixel
@@ -32,7 +32,7 @@
 //!
 //! The near-object importance of eq. 6 does not enter this path: the
 //! object's shadows come from maps of the object alone, which sample it
-//! densely by construction. The `"paired"` visibility of [`crate::relight`]
+//! densely by construction. The `"paired"` visibility of [`crate::relight::paired`]
 //! keeps the paper's scheme (eq. 6 over scene and object, maps rebuilt on
 //! every run).
 
@@ -43,14 +43,16 @@ use depthgraph_graph::value::{PointCloud, Rgb};
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::ism::{IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows};
-pub use crate::relight::SceneInputs;
-use crate::relight::{
+use crate::relight::ism::{
+    IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows,
+};
+pub use crate::relight::shading::SceneInputs;
+use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
     centre_and_radius, check, clean_alpha, composite, lit_vpls, object_bounce_vpls,
     object_radiance, pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
 };
-use crate::vpl::Vpl;
+use crate::relight::vpl::Vpl;
 
 /// VPL directions grouped by the cells of an octahedral grid, each group a
 /// cone `(axis, half angle)` holding all its directions: a pixel whose cone
@@ -199,7 +201,7 @@ impl Tile {
 }
 
 /// The slope factor of the ISM bias, `1 + min(tan θ, 10)` with
-/// `cos θ = n·ω > 0` (module docs of [`crate::ism`]).
+/// `cos θ = n·ω > 0` (module docs of [`crate::relight::ism`]).
 #[inline]
 fn slope(cos: f64) -> f64 {
     let c = cos.max(1e-6);
@@ -368,7 +370,7 @@ fn object_maps(set: &PointSet, dirs: &[DVec3], p: &RelightParams) -> ObjectMaps 
 }
 
 /// `Relight` with the scene's part from `scene` (module docs): the same
-/// outputs as [`crate::relight::relight`], up to the visibility scheme.
+/// outputs as [`crate::relight::paired::relight`], up to the visibility scheme.
 /// `inp`'s scene part must be the one `scene` was built from (the node
 /// guarantees it; a different size or intrinsics is an error).
 pub fn relight_moved(
@@ -765,9 +767,9 @@ pub(crate) fn memo_scene_in(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ism::fixtures::floor_and_slab_at;
-    use crate::relight::relight;
-    use crate::relight::tests::{SlabScene, overhead, slab_shadow_is_analytic};
+    use crate::relight::paired::relight;
+    use crate::test_support::relight::floor_and_slab_at;
+    use crate::test_support::relight::{SlabScene, overhead, slab_shadow_is_analytic};
 
     fn cached(inp: &RelightInputs, vpls: &[Vpl], p: &RelightParams) -> Relit {
         let scene = RelightScene::new(&inp.scene(), vpls, p).unwrap();
@@ -833,7 +835,7 @@ mod tests {
         assert_eq!(rb, cached(&ib, &vpls, &p));
         assert_ne!(ra.color, rb.color);
         for threads in [1, 3] {
-            let again = crate::test_util::with_threads(threads, || {
+            let again = crate::test_support::with_threads(threads, || {
                 let s = RelightScene::new(&ia.scene(), &vpls, &p).unwrap();
                 relight_moved(&s, &ib, &p).unwrap().unwrap()
             });
@@ -932,7 +934,7 @@ mod tests {
         let (k, floor, _, _) = floor_and_slab_at(w, h, 0.0);
         let photo = Arc::new(Image::filled(w, h, [0.5f32; 3]));
         let depth = Arc::new(floor);
-        let vpls = Arc::new(crate::vpl::to_cloud(&overhead()));
+        let vpls = Arc::new(crate::relight::vpl::to_cloud(&overhead()));
         let key = |photo: &Arc<ColorImage>, p: &RelightParams| SceneKey {
             photo: photo.clone(),
             depth: depth.clone(),

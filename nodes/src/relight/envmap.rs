@@ -51,7 +51,7 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 
-pub use crate::synthetic::sun_direction;
+pub use crate::sim::synthetic::sun_direction;
 
 node_params! {
     /// Parameters of `EnvironmentMap`.

@@ -26,7 +26,7 @@
 //! ... and perturbing the view frustum such that the image coordinates of
 //! points at a chosen distance u remain unchanged"). The set of `d(s, z)` over
 //! the aperture is the aperture's shape scaled to `coc_px(z)`: this is where
-//! bokeh comes from. [`crate::synthetic::render_thin_lens`] traces rays with
+//! bokeh comes from. [`crate::sim::synthetic::render_thin_lens`] traces rays with
 //! exactly this lens so the two can be compared.
 //!
 //! Pixels without a depth measurement (0, negative, NaN) are treated as
@@ -35,7 +35,7 @@
 
 use depthgraph_graph::prelude::*;
 
-use crate::sensor::splitmix64;
+use crate::sim::sensor::splitmix64;
 
 /// Names of the aperture shapes, for the `aperture` parameter.
 pub const APERTURES: &[&str] = &["disc", "polygon", "triangle", "mask"];
@@ -257,7 +257,7 @@ impl Aperture {
     /// masks, so that a lopsided mask does not shift the in-focus image.
     ///
     /// ```
-    /// use depthgraph_nodes::lens::Aperture;
+    /// use depthgraph_nodes::camera::lens::Aperture;
     /// let s = Aperture::Disc.samples(256, 0).unwrap();
     /// assert_eq!(s.len(), 256);
     /// assert!(s.iter().all(|p| p[0] * p[0] + p[1] * p[1] <= 0.25));

@@ -8,7 +8,7 @@
 //! the detected area is enclosed [...] stored as source object mask alpha
 //! (1 where source objects is present and 0 otherwise)."
 //!
-//! Here, with the edge strength `s` of [`crate::edges`], the clicks are not
+//! Here, with the edge strength `s` of [`crate::select::edges`], the clicks are not
 //! snapped one by one: each proposes a set of candidate anchors, and the
 //! anchors are chosen together with the path that joins them, as the
 //! cheapest closed path through one candidate of every click (intelligent
@@ -234,7 +234,7 @@ fn strength_at(s: &[f32], i: usize) -> f32 {
 ///
 /// ```
 /// use depthgraph_graph::value::Image;
-/// use depthgraph_nodes::lasso::snap_click;
+/// use depthgraph_nodes::select::lasso::snap_click;
 /// let s = Image::from_fn(10, 10, |x, _| if x == 6 { 1.0f32 } else { 0.0 });
 /// assert_eq!(snap_click(&s, [3.2, 4.7], 4.0, 0.05), [6, 4]);
 /// assert_eq!(snap_click(&s, [-5.0, 40.0], 0.0, 0.05), [0, 9]); // clamped, not snapped
@@ -451,7 +451,7 @@ fn wire_search(
 ///
 /// ```
 /// use depthgraph_graph::value::Image;
-/// use depthgraph_nodes::lasso::live_wire_segment;
+/// use depthgraph_nodes::select::lasso::live_wire_segment;
 /// // A strong vertical line at x = 5 between the endpoints' columns 3 and 7.
 /// let s = Image::from_fn(12, 12, |x, _| if x == 5 { 1.0f32 } else { 0.0 });
 /// let path = live_wire_segment(&s, [5, 1], [5, 10], 4, 0.05);
@@ -489,7 +489,7 @@ pub fn live_wire_segment(
 /// The 8-connected straight line from `a` to `b` (both included).
 ///
 /// ```
-/// use depthgraph_nodes::lasso::straight_segment;
+/// use depthgraph_nodes::select::lasso::straight_segment;
 /// assert_eq!(straight_segment([0, 0], [3, 1]), vec![[0, 0], [1, 0], [2, 1], [3, 1]]);
 /// ```
 pub fn straight_segment(a: [usize; 2], b: [usize; 2]) -> Vec<[usize; 2]> {
@@ -786,7 +786,7 @@ pub fn lasso_path(strength: &Confidence, p: &LassoParams) -> Result<LassoPath, N
 /// of the selection. Vertices outside the image are clamped into it.
 ///
 /// ```
-/// use depthgraph_nodes::lasso::fill_polygon;
+/// use depthgraph_nodes::select::lasso::fill_polygon;
 /// let m = fill_polygon(10, 8, &[[2, 1], [6, 1], [6, 4], [2, 4]]);
 /// assert_eq!(m.as_slice().iter().filter(|v| **v == 1.0).count(), 5 * 4);
 /// assert_eq!(*m.get(4, 2), 1.0);
@@ -933,8 +933,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::edges::{EdgeParams, detect_edges};
-    use crate::synthetic::{RenderOptions, Scene, render};
+    use crate::select::edges::{EdgeParams, detect_edges};
+    use crate::sim::synthetic::{RenderOptions, Scene, render};
 
     /// Deterministic uniform numbers in [0, 1).
     struct Lcg(u64);
@@ -1207,7 +1207,7 @@ mod tests {
         let node = reg.get("Lasso").unwrap();
         let mut inputs = Inputs::new();
         inputs.insert("strength", Value::Confidence(std::sync::Arc::new(s)));
-        let test_ctx = crate::test_util::TestCtx::new("lasso");
+        let test_ctx = crate::test_support::TestCtx::new("lasso");
         let ctx = test_ctx.ctx();
         let out = node
             .eval(&ctx, &inputs, &LassoParams::default().to_values())

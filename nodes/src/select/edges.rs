@@ -13,7 +13,7 @@
 //! - **Color term** `C(p) = min(1, |grad E(p)| / color_scale)`: `E` is the
 //!   gamma-2 encoded color (`sqrt` of linear RGB clamped to `[0, 1]`, close to
 //!   sRGB / 255, so one scale works in dark and bright regions alike; the
-//!   same encoding as [`crate::bilateral`]), `grad` is the 3x3 Sobel
+//!   same encoding as [`crate::depth::bilateral`]), `grad` is the 3x3 Sobel
 //!   derivative divided by 8 (a per-pixel derivative: a step of height `h`
 //!   gives `h / 2` on the two pixels that straddle it), and `|.|` the
 //!   Euclidean norm over the three channels and both axes.
@@ -31,7 +31,7 @@
 //!     next to a far background scores `1 - z_near / z_far`, the background
 //!     pixel beside it 0. An object's silhouette is thus one pixel wide and
 //!     lies on the object's own outermost pixels, which is where the lasso
-//!     (§III.C, [`crate::lasso`]) should run to select it.
+//!     (§III.C, [`crate::select::lasso`]) should run to select it.
 //!
 //!     Creases (where an object stands on a table, the edges of a box) have no
 //!     depth step, only a kink, which the same second difference measures
@@ -179,7 +179,7 @@ fn encode(v: f32) -> f32 {
 ///
 /// ```
 /// use depthgraph_graph::value::Image;
-/// use depthgraph_nodes::edges::{detect_edges, EdgeParams};
+/// use depthgraph_nodes::select::edges::{detect_edges, EdgeParams};
 /// // Near (1 m) on the left, far (2 m) on the right, one flat color.
 /// let depth = Image::from_fn(8, 4, |x, _| if x < 4 { 1.0f32 } else { 2.0 });
 /// let color = Image::filled(8, 4, [0.5f32; 3]);

@@ -68,7 +68,7 @@ pub const Z_MID: usize = 128;
 /// `min(z, 255 - z)`, 0 at (and beyond) both ends and for NaN.
 ///
 /// ```
-/// use depthgraph_nodes::hdr::hat_weight;
+/// use depthgraph_nodes::camera::hdr::hat_weight;
 /// assert_eq!(hat_weight(0.0), 0.0);
 /// assert_eq!(hat_weight(255.0), 0.0);
 /// assert_eq!(hat_weight(100.0), 100.0);
@@ -107,7 +107,7 @@ pub struct ResponseCurve {
 }
 
 impl ResponseCurve {
-    /// A known gamma camera: the inverse of [`crate::sensor::response`]
+    /// A known gamma camera: the inverse of [`crate::sim::sensor::response`]
     /// (the curve `SimulateBracket` applies), `g(z) = ln f^-1(z / 255)`, so
     /// `g(255) = 0`. A value 0 only says that the exposure was below half a
     /// level, so `g(0) = ln f^-1(0.5 / 255)` (finite, instead of `ln 0`).
@@ -115,7 +115,7 @@ impl ResponseCurve {
     pub fn gamma(gamma: f64) -> Self {
         let g: [f64; LEVELS] = std::array::from_fn(|z| {
             let v = if z == 0 { 0.5 } else { z as f64 } / Z_MAX;
-            let x = crate::sensor::inverse_response(v as f32, gamma as f32) as f64;
+            let x = crate::sim::sensor::inverse_response(v as f32, gamma as f32) as f64;
             // guard: the inverse of a positive value is positive; the floor only
             // protects the logarithm against a future change of the curve
             x.max(1e-30).ln()
@@ -519,8 +519,8 @@ fn recover_channel(
 ///
 /// ```
 /// use depthgraph_graph::value::ColorImage;
-/// use depthgraph_nodes::hdr::{recover_response, ResponseParams};
-/// use depthgraph_nodes::sensor::{simulate_bracket, BracketParams};
+/// use depthgraph_nodes::camera::hdr::{recover_response, ResponseParams};
+/// use depthgraph_nodes::sim::sensor::{simulate_bracket, BracketParams};
 /// let hdr = ColorImage::from_fn(64, 16, |x, _| [0.01 * 1.1f32.powi(x as i32); 3]);
 /// let p = BracketParams { stops: vec![-4.0, -2.0, 0.0, 2.0, 4.0], ..Default::default() };
 /// let stack = simulate_bracket(&hdr, &p).unwrap();
@@ -696,8 +696,8 @@ impl Eq6 {
 ///
 /// ```
 /// use depthgraph_graph::value::ColorImage;
-/// use depthgraph_nodes::hdr::{merge_hdr, ResponseCurve};
-/// use depthgraph_nodes::sensor::{simulate_bracket, BracketParams};
+/// use depthgraph_nodes::camera::hdr::{merge_hdr, ResponseCurve};
+/// use depthgraph_nodes::sim::sensor::{simulate_bracket, BracketParams};
 /// let hdr = ColorImage::filled(4, 4, [0.05, 0.5, 5.0]);
 /// let p = BracketParams { noise_sigma: 0.0, stops: vec![-4.0, 0.0, 4.0], ..Default::default() };
 /// let stack = simulate_bracket(&hdr, &p).unwrap();
@@ -1111,8 +1111,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sensor::{BracketParams, inverse_response, simulate_bracket};
-    use crate::synthetic::{RenderOptions, Scene, render};
+    use crate::sim::sensor::{BracketParams, inverse_response, simulate_bracket};
+    use crate::sim::synthetic::{RenderOptions, Scene, render};
 
     /// Radiance 1e-3..1e2: a log ramp (different per channel) above the
     /// tabletop scene's color.
@@ -1469,7 +1469,7 @@ mod tests {
     fn thread_count_does_not_change_bits() {
         let stack = simulate_bracket(&hdr_scene(), &bracket(2.2)).unwrap();
         let run = |n| {
-            crate::test_util::with_threads(n, || {
+            crate::test_support::with_threads(n, || {
                 let g = recover_response(&stack, &ResponseParams::default()).unwrap();
                 merge_hdr(&stack, &g).unwrap()
             })

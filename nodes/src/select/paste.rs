@@ -847,7 +847,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synthetic::{RenderOptions, Scene, kinect_like_intrinsics, render};
+    use crate::sim::synthetic::{RenderOptions, Scene, kinect_like_intrinsics, render};
 
     fn custom(fx: f64, w: usize, h: usize) -> Intrinsics {
         Intrinsics {
@@ -1113,7 +1113,7 @@ mod tests {
         inputs.insert("source_intrinsics", Value::from(k));
         inputs.insert("target_depth", Value::from(target.clone()));
         inputs.insert("target_intrinsics", Value::from(k));
-        let test_ctx = crate::test_util::TestCtx::new("paste");
+        let test_ctx = crate::test_support::TestCtx::new("paste");
         let ctx = test_ctx.ctx();
         let out = reg
             .get("Paste")
@@ -1256,7 +1256,7 @@ mod tests {
             ..fixed(false)
         };
         let run = |n| {
-            crate::test_util::with_threads(n, || {
+            crate::test_support::with_threads(n, || {
                 paste(
                     &src.color,
                     &src.depth,

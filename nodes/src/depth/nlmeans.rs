@@ -441,7 +441,7 @@ fn normal_pdf(d: f64, var: f64) -> f64 {
 /// changed. Pixels with a valid depth but confidence 0 are passed through.
 ///
 /// ```
-/// use depthgraph_nodes::nlmeans::{prune_outliers, PruneParams};
+/// use depthgraph_nodes::depth::nlmeans::{prune_outliers, PruneParams};
 /// use depthgraph_graph::value::DepthMap;
 /// let mut depth = DepthMap::from_fn(7, 7, |x, _| 2.0 + 0.01 * x as f32);
 /// *depth.get_mut(3, 3) = 5.0; // a spike
@@ -980,7 +980,7 @@ impl PairKernel for DepthKernel<'_> {
 /// out of range.
 ///
 /// ```
-/// use depthgraph_nodes::nlmeans::{nlmeans_filter, NLMeansDepthParams};
+/// use depthgraph_nodes::depth::nlmeans::{nlmeans_filter, NLMeansDepthParams};
 /// use depthgraph_graph::value::{ColorImage, DepthMap};
 /// let depth = DepthMap::from_vec(4, 1, vec![2.0, 2.02, 1.98, 0.0]).unwrap();
 /// let color = ColorImage::filled(4, 1, [0.5; 3]);
@@ -1045,7 +1045,7 @@ pub fn nlmeans_filter_with(
 /// `p.prune`) then [`nlmeans_filter`] with the pruned confidence.
 ///
 /// ```
-/// use depthgraph_nodes::nlmeans::{nlmeans_denoise, NLMeansDepthParams};
+/// use depthgraph_nodes::depth::nlmeans::{nlmeans_denoise, NLMeansDepthParams};
 /// use depthgraph_graph::value::{ColorImage, DepthMap};
 /// let mut depth = DepthMap::filled(9, 9, 1.5);
 /// *depth.get_mut(4, 4) = 4.0;
@@ -1195,7 +1195,7 @@ fn inpaint_state(
 /// valid pixel). Filled values lie within the range of the valid inputs.
 ///
 /// ```
-/// use depthgraph_nodes::nlmeans::{nlmeans_inpaint, NLMeansInpaintParams};
+/// use depthgraph_nodes::depth::nlmeans::{nlmeans_inpaint, NLMeansInpaintParams};
 /// use depthgraph_graph::value::{ColorImage, DepthMap};
 /// let depth = DepthMap::from_fn(20, 3, |x, _| if x < 4 { 1.0 } else if x < 16 { 0.0 } else { 3.0 });
 /// let color = ColorImage::filled(20, 3, [0.5; 3]);
@@ -1379,7 +1379,7 @@ fn log_add_exp(a: f64, b: f64) -> f64 {
 /// in the window (low-resolution holes count as 0).
 ///
 /// ```
-/// use depthgraph_nodes::nlmeans::{nlmeans_upsample, NLMeansUpsampleParams};
+/// use depthgraph_nodes::depth::nlmeans::{nlmeans_upsample, NLMeansUpsampleParams};
 /// use depthgraph_graph::value::{ColorImage, DepthMap, Intrinsics};
 /// let low = DepthMap::from_fn(4, 4, |x, _| if x < 2 { 1.0 } else { 2.0 });
 /// let k = Intrinsics { fx: 4.0, fy: 4.0, cx: 2.0, cy: 2.0, width: 4, height: 4 };
@@ -1682,8 +1682,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sensor::{KinectParams, PixelRng, ToFParams, simulate_kinect, simulate_tof};
-    use crate::synthetic::{RenderOptions, RenderOutput, Scene, render};
+    use crate::sim::sensor::{KinectParams, PixelRng, ToFParams, simulate_kinect, simulate_tof};
+    use crate::sim::synthetic::{RenderOptions, RenderOutput, Scene, render};
 
     fn tabletop(w: usize, h: usize) -> RenderOutput {
         render(
@@ -1810,7 +1810,7 @@ mod tests {
     }
 
     fn k_for(w: usize, h: usize) -> Intrinsics {
-        crate::synthetic::kinect_like_intrinsics(w, h)
+        crate::sim::synthetic::kinect_like_intrinsics(w, h)
     }
 
     /// Valid depths' range.
@@ -2339,7 +2339,7 @@ mod tests {
         )
         .unwrap();
         let run = |threads: usize| {
-            crate::test_util::with_threads(threads, || {
+            crate::test_support::with_threads(threads, || {
                 (
                     nlmeans_denoise(&kin, None, &gt.color, &Default::default()).unwrap(),
                     nlmeans_inpaint(&kin, None, &gt.color, &Default::default()).unwrap(),

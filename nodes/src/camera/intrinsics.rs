@@ -60,7 +60,7 @@ node_params! {
 /// The intrinsics the parameters describe.
 ///
 /// ```
-/// use depthgraph_nodes::camera::{camera_intrinsics, CameraParams};
+/// use depthgraph_nodes::camera::intrinsics::{camera_intrinsics, CameraParams};
 /// let k = camera_intrinsics(&CameraParams { width: 320, height: 240, ..Default::default() }).unwrap();
 /// assert_eq!(k.fx, 262.5);
 /// ```

@@ -188,7 +188,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synthetic::{RenderOptions, Scene, render};
+    use crate::sim::synthetic::{RenderOptions, Scene, render};
 
     /// A square in the tabletop at 2 m, partly behind the red box (id 3, at
     /// 1.4-1.8 m): hidden exactly on the box's pixels, counted from the
@@ -249,13 +249,13 @@ mod tests {
     /// are hidden, all others keep the pasted alpha.
     #[test]
     fn paste_feather_composite_hides_the_object_behind_the_box() {
-        use crate::feather::{FeatherParams, feather};
-        use crate::paste::{PasteParams, paste};
+        use crate::select::feather::{FeatherParams, feather};
+        use crate::select::paste::{PasteParams, paste};
         let tgt = render(
             &Scene::preset("tabletop", 200, 150).unwrap(),
             &RenderOptions::default(),
         );
-        let ks = crate::synthetic::kinect_like_intrinsics(160, 120);
+        let ks = crate::sim::synthetic::kinect_like_intrinsics(160, 120);
         let depth = Image::filled(160, 120, 1.0f32);
         let color = Image::filled(160, 120, [0.1f32, 0.9, 0.2]);
         let mask = Image::from_fn(160, 120, |x, y| {
@@ -369,7 +369,7 @@ mod tests {
             "pasted_alpha",
             Value::Mask(Arc::new(Image::filled(4, 3, 0.0f32))),
         );
-        let test_ctx = crate::test_util::TestCtx::new("composite");
+        let test_ctx = crate::test_support::TestCtx::new("composite");
         let ctx = test_ctx.ctx();
         let out = reg
             .get("OcclusionComposite")

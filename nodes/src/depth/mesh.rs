@@ -2,7 +2,7 @@
 //! "3D point clouds X(p_i) and it's triangular mesh are constructed").
 //!
 //! Every valid pixel is unprojected through its centre (eq. 1, see
-//! [`crate::unproject`]); the pixel grid gives the connectivity: each 2x2 quad
+//! [`crate::depth::unproject`]); the pixel grid gives the connectivity: each 2x2 quad
 //! of valid pixels becomes two triangles split along its shorter 3-D
 //! diagonal, and triangles that straddle a depth discontinuity are dropped, so
 //! a near object is not glued to the wall behind it by long "rubber sheet"
@@ -229,7 +229,7 @@ fn vertex_normal(sum: DVec3, v: DVec3) -> [f32; 3] {
 ///
 /// ```
 /// use depthgraph_graph::value::{Image, Intrinsics};
-/// use depthgraph_nodes::mesh::{depth_to_mesh, MeshParams};
+/// use depthgraph_nodes::depth::mesh::{depth_to_mesh, MeshParams};
 /// let k = Intrinsics { fx: 2.0, fy: 2.0, cx: 1.0, cy: 1.0, width: 2, height: 2 };
 /// let d = Image::from_vec(2, 2, vec![1.0f32; 4]).unwrap();
 /// let m = depth_to_mesh(&d, &k, None, &MeshParams::default()).unwrap();
@@ -432,7 +432,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synthetic::{RenderOptions, Scene, kinect_like_intrinsics, render};
+    use crate::sim::synthetic::{RenderOptions, Scene, kinect_like_intrinsics, render};
     use proptest::prelude::*;
 
     fn v3(a: [f32; 3]) -> DVec3 {
@@ -553,7 +553,7 @@ mod tests {
             // vertex normal is the plane's.
             let planar = matches!(
                 scene.object(id).map(|o| o.primitive),
-                Some(crate::synthetic::Primitive::Plane { .. })
+                Some(crate::sim::synthetic::Primitive::Plane { .. })
             );
             let interior = (x > 0 && y > 0 && x + 1 < k.width && y + 1 < k.height)
                 && (0..9).all(|j| *out.ids.get(x + j % 3 - 1, y + j / 3 - 1) == id);

@@ -1,0 +1,23 @@
+//! Relighting by differential rendering with instant radiosity
+//! (3d-editing §III.E): the environment map, VPL sampling, imperfect shadow
+//! maps, the paired and scene-cached schemes, and the ray-cast reference
+//! with its BVH.
+pub mod envmap;
+pub mod ism;
+pub mod node;
+pub mod paired;
+pub mod raycast;
+pub mod reference;
+pub mod scene_cached;
+pub mod shading;
+pub mod vpl;
+
+use depthgraph_graph::registry::{Registry, RegistryError};
+
+/// Registers the node kinds of this family.
+pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    envmap::register(reg)?;
+    vpl::register(reg)?;
+    node::register(reg)?;
+    Ok(())
+}

@@ -1,0 +1,118 @@
+//! The `Relight` node: reads its inputs and runs the chosen visibility
+//! scheme ([`crate::relight::paired`], [`crate::relight::scene_cached`] or
+//! [`crate::relight::reference`]).
+
+use std::sync::Arc;
+
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::registry::RegistryError;
+
+use crate::relight::vpl::{from_cloud, luminance};
+
+use crate::relight::paired::relight;
+use crate::relight::shading::{RelightInputs, RelightParams, VISIBILITY};
+
+fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, NodeError> {
+    let photo = inputs.color("photo")?;
+    let k = inputs.intrinsics("intrinsics")?;
+    let cloud = inputs.point_cloud("vpls")?;
+    let vpls = from_cloud(cloud, "vpls")?;
+    let normals = match inputs.get("normals") {
+        Some(Value::Normals(n)) => Some(n.clone()),
+        Some(other) => {
+            return Err(NodeError::input(
+                "normals",
+                format!("expected Normals, found {}", other.value_type()),
+            ));
+        }
+        None => None,
+    };
+    let inp = RelightInputs {
+        photo,
+        depth: inputs.depth("depth")?,
+        normals: normals.as_deref(),
+        albedo: inputs.color_opt("albedo")?.map(|a| a.as_ref()),
+        pasted_color: inputs.color("pasted_color")?,
+        pasted_depth: inputs.depth("pasted_depth")?,
+        alpha: inputs.mask("alpha")?,
+        k: &k,
+    };
+    ctx.check_cancelled()?;
+    let result = match p.visibility.as_str() {
+        "paired" => relight(&inp, &vpls, p)?,
+        "raycast" => crate::relight::reference::relight_reference_image(&inp, &vpls, p)?,
+        "scene_cached" => {
+            let key = crate::relight::scene_cached::SceneKey {
+                photo: photo.clone(),
+                depth: inputs.depth("depth")?.clone(),
+                normals: normals.clone(),
+                albedo: inputs.color_opt("albedo")?.cloned(),
+                vpls: cloud.clone(),
+                k,
+                params: crate::relight::scene_cached::SceneKey::params_of(p),
+            };
+            let (scene, _reused) = crate::relight::scene_cached::memo_scene(key, || {
+                crate::relight::scene_cached::RelightScene::new(&inp.scene(), &vpls, p)
+            })?;
+            ctx.check_cancelled()?;
+            crate::relight::scene_cached::relight_moved(&scene, &inp, p)?
+        }
+        other => {
+            return Err(NodeError::param(
+                "visibility",
+                format!("\"{other}\" is not one of {VISIBILITY:?}"),
+            ));
+        }
+    };
+    match result {
+        Some(r) => Ok(Outputs::new()
+            .with("color", r.color)
+            .with("region", Value::Mask(Arc::new(r.region)))
+            .with("difference", r.difference)),
+        None => {
+            let (w, h) = photo.dims();
+            let reason = if vpls.iter().all(|v| luminance(v.power) <= 0.0) {
+                "no VPL carries energy (black environment map): nothing to relight"
+            } else {
+                "nothing pasted: the alpha is 0 everywhere"
+            };
+            Ok(Outputs::new()
+                .with("color", Value::Color(photo.clone()))
+                .with("region", Value::Mask(Arc::new(Image::filled(w, h, 0.0))))
+                .with("difference", Image::filled(w, h, [0.0f32; 3]))
+                .passthrough(reason))
+        }
+    }
+}
+
+/// Registers `Relight`.
+pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    reg.register(TypedNode::new(
+        "Relight",
+        3,
+        "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
+         directional VPLs of an environment map, imperfect shadow maps, one bounce each way with clamped \
+         1/r² (object to scene; scene to object through secondary VPLs read off the photo).\n\
+         Only the pixels the object changes are rendered; elsewhere the photo is kept bit for bit.\n\
+         visibility: scene_cached keeps the scene's shadow maps while only the object changes (fast moves); \
+         paired rebuilds scene+object maps with near-object importance (eq. 6) every run; raycast traces \
+         exact shadow rays through the meshes (the reference, slow).",
+        vec![
+            PortSpec::required("photo", ValueType::Color, "the target photo P, linear RGB"),
+            PortSpec::required("depth", ValueType::Depth, "target depth, metres"),
+            PortSpec::optional("normals", ValueType::Normals, "target normals (else from the depth)"),
+            PortSpec::optional("albedo", ValueType::Color, "target albedo (else photo / shading)"),
+            PortSpec::required("pasted_color", ValueType::Color, "Paste.color"),
+            PortSpec::required("pasted_depth", ValueType::Depth, "Paste.depth"),
+            PortSpec::required("alpha", ValueType::Mask, "OcclusionComposite.alpha (after the depth test)"),
+            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the target"),
+            PortSpec::required("vpls", ValueType::PointCloud, "VplSample.vpls"),
+        ],
+        vec![
+            PortSpec::output("color", ValueType::Color, "the composite I_m of eq. 5, linear RGB"),
+            PortSpec::output("region", ValueType::Mask, "1 where rendered, 0 where the photo was kept"),
+            PortSpec::output("difference", ValueType::Color, "I_{s+t} - I_t on the target surface"),
+        ],
+        eval,
+    ))
+}

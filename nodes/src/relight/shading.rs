@@ -1,0 +1,593 @@
+//! The shading kit both relighting schemes and the reference share
+//! (3d-editing §IV.A): the parameters and inputs of `Relight`, target
+//! surfaces and pixel areas, the cone test, the object's radiance and its
+//! bounce VPLs, the scene's bounce VPLs, the differential composite of
+//! eq. 5 and the target albedo estimate.
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::value::Rgb;
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::relight::ism::pixel_area;
+use crate::relight::vpl::{Vpl, luminance};
+
+node_params! {
+    /// Parameters of `Relight`.
+    pub struct RelightParams {
+        /// Texels per side of each imperfect shadow map.
+        pub ism_resolution: usize = 96usize, ParamKind::Int { min: 4, max: 2048 };
+        /// Point samples splatted into each shadow map.
+        pub ism_points: usize = 8192usize, ParamKind::Int { min: 16, max: 1 << 22 };
+        /// Visibility bias in units of max(texel, splat radius), scaled by the slope.
+        pub bias_scale: f64 = 1.5, ParamKind::Float { min: 0.0, max: 100.0 };
+        /// Floor of the distance of eq. 6, metres.
+        pub min_distance_m: f64 = 0.05, ParamKind::Float { min: 1e-6, max: 1e3 };
+        /// Object pixels used as bounce VPLs (0 = no bounce).
+        pub bounce_vpls: usize = 256usize, ParamKind::Int { min: 0, max: 65536 };
+        /// Scene pixels used as secondary VPLs that light the object (one bounce; 0 = none).
+        pub scene_vpls: usize = 256usize, ParamKind::Int { min: 0, max: 65536 };
+        /// Shadow the bounce VPLs with paraboloid ISMs (off: the bounce is unshadowed).
+        pub bounce_shadows: bool = false, ParamKind::Bool;
+        /// Scene samples splatted into each bounce VPL's paraboloid map.
+        pub bounce_ism_points: usize = 1024usize, ParamKind::Int { min: 16, max: 1 << 20 };
+        /// Texels per side of each bounce VPL's paraboloid map.
+        pub bounce_ism_resolution: usize = 32usize, ParamKind::Int { min: 4, max: 1024 };
+        /// Clamp of the bounce's 1/r², metres (bias: too dark closer than this).
+        pub clamp_distance_m: f64 = 0.05, ParamKind::Float { min: 1e-4, max: 10.0 };
+        /// The bounce reaches this many object radii from its centre.
+        pub bounce_radius_rel: f64 = 3.0, ParamKind::Float { min: 0.0, max: 100.0 };
+        /// Below this fraction of the total VPL irradiance the albedo is unknown (taken as 0).
+        pub min_shading_rel: f64 = 1e-3, ParamKind::Float { min: 1e-9, max: 1.0 };
+        /// Seed of the shadow maps' point subsets.
+        pub seed: u64 = 1u64, ParamKind::Int { min: 0, max: 1 << 53 };
+        /// Point-sample density of the paired shadow maps: "near_object" (eq. 6) or "uniform" (by area).
+        pub importance: String = "near_object", ParamKind::Choice(IMPORTANCE);
+        /// "scene_cached": scene maps kept per scene, object maps per run (fast moves);
+        /// "paired": scene+object maps with eq. 6 rebuilt every run (the paper's scheme);
+        /// "raycast": exact shadow rays through the meshes (the reference; slow).
+        pub visibility: String = "scene_cached", ParamKind::Choice(VISIBILITY);
+        /// Texels per side of the object's own maps (scene_cached).
+        pub object_ism_resolution: usize = 64usize, ParamKind::Int { min: 4, max: 2048 };
+        /// Object samples splatted into each of its maps (scene_cached).
+        pub object_ism_points: usize = 2048usize, ParamKind::Int { min: 16, max: 1 << 22 };
+    }
+}
+
+/// Names of the sampling densities (the `importance` parameter).
+pub const IMPORTANCE: &[&str] = &["near_object", "uniform"];
+
+/// Names of the visibility schemes (the `visibility` parameter).
+pub const VISIBILITY: &[&str] = &["scene_cached", "paired", "raycast"];
+
+/// The inputs of [`relight`], all `k.width x k.height`.
+#[derive(Debug, Clone, Copy)]
+pub struct RelightInputs<'a> {
+    pub photo: &'a ColorImage,
+    pub depth: &'a DepthMap,
+    /// Target normals; `None` (or zero normals) = estimated from the depth.
+    pub normals: Option<&'a NormalMap>,
+    /// Target albedo; `None` = estimated as photo / shading.
+    pub albedo: Option<&'a ColorImage>,
+    pub pasted_color: &'a ColorImage,
+    pub pasted_depth: &'a DepthMap,
+    pub alpha: &'a Mask,
+    pub k: &'a Intrinsics,
+}
+
+/// The scene's part of [`RelightInputs`]: what the scene-cached path
+/// ([`crate::relight::scene_cached`]) keeps while the object moves.
+#[derive(Debug, Clone, Copy)]
+pub struct SceneInputs<'a> {
+    pub photo: &'a ColorImage,
+    pub depth: &'a DepthMap,
+    pub normals: Option<&'a NormalMap>,
+    pub albedo: Option<&'a ColorImage>,
+    pub k: &'a Intrinsics,
+}
+
+impl SceneInputs<'_> {
+    /// Sane intrinsics, and every image at their size.
+    pub(crate) fn check(&self) -> Result<(), NodeError> {
+        let k = self.k;
+        if !k.is_sane() {
+            return Err(NodeError::input(
+                "intrinsics",
+                "focal lengths must be finite and positive",
+            ));
+        }
+        check("photo", self.photo.dims(), k)?;
+        check("depth", self.depth.dims(), k)?;
+        if let Some(n) = self.normals {
+            check("normals", n.dims(), k)?;
+        }
+        if let Some(a) = self.albedo {
+            check("albedo", a.dims(), k)?;
+        }
+        Ok(())
+    }
+}
+
+impl<'a> RelightInputs<'a> {
+    /// The scene's part.
+    pub fn scene(&self) -> SceneInputs<'a> {
+        SceneInputs {
+            photo: self.photo,
+            depth: self.depth,
+            normals: self.normals,
+            albedo: self.albedo,
+            k: self.k,
+        }
+    }
+
+    /// [`SceneInputs::check`], and the object's images at the same size.
+    pub(crate) fn check(&self) -> Result<(), NodeError> {
+        self.scene().check()?;
+        check("pasted_color", self.pasted_color.dims(), self.k)?;
+        check("pasted_depth", self.pasted_depth.dims(), self.k)?;
+        check("alpha", self.alpha.dims(), self.k)
+    }
+
+    /// The object's surface at pixel `i` (a valid pasted depth): its
+    /// unprojected centre, and its normal from the pasted depth, else
+    /// facing the camera.
+    pub(crate) fn object_surface(&self, i: usize) -> Surf {
+        let (k, w) = (self.k, self.k.width);
+        let (x, y) = (i % w, i / w);
+        let z = *self.pasted_depth.get(x, y) as f64;
+        let pos = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z);
+        let n = depth_normal(self.pasted_depth, k, x, y).unwrap_or(-pos.normalize());
+        Surf { pos, n }
+    }
+}
+
+/// Result of [`relight`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Relit {
+    /// `I_m` (eq. 5).
+    pub color: ColorImage,
+    /// 1 where rendered, 0 where the photo was kept.
+    pub region: Mask,
+    /// `I_{s+t} - I_t` on the target surface (0 outside the region).
+    pub difference: ColorImage,
+}
+
+/// Unit normal of a depth pixel from its neighbours on the same surface,
+/// facing the camera; `None` without two neighbours.
+pub(crate) fn depth_normal(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> Option<DVec3> {
+    let (w, h) = depth.dims();
+    let z = *depth.get(x, y) as f64;
+    let at = |xx: usize, yy: usize| {
+        k.unproject(xx as f64 + 0.5, yy as f64 + 0.5, *depth.get(xx, yy) as f64)
+    };
+    let same = |xx: usize, yy: usize| {
+        let zz = *depth.get(xx, yy) as f64;
+        // guard: both > 0 when valid
+        DepthMap::is_valid(zz as f32) && zz.max(z) / zz.min(z) <= 1.1
+    };
+    let p = at(x, y);
+    let du = if x + 1 < w && same(x + 1, y) {
+        at(x + 1, y) - p
+    } else if x > 0 && same(x - 1, y) {
+        p - at(x - 1, y)
+    } else {
+        return None;
+    };
+    let dv = if y + 1 < h && same(x, y + 1) {
+        at(x, y + 1) - p
+    } else if y > 0 && same(x, y - 1) {
+        p - at(x, y - 1)
+    } else {
+        return None;
+    };
+    let n = du.cross(dv).normalize_or_zero();
+    if n == DVec3::ZERO {
+        return None;
+    }
+    Some(if n.dot(p) > 0.0 { -n } else { n })
+}
+
+pub(crate) fn check(port: &str, dims: (usize, usize), k: &Intrinsics) -> Result<(), NodeError> {
+    if dims != (k.width, k.height) {
+        return Err(NodeError::input(
+            port,
+            format!(
+                "is {}x{} but the intrinsics are for {}x{}",
+                dims.0, dims.1, k.width, k.height
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The directions `d` whose ray `x + t d` (`t >= 0`) passes within `reach`
+/// of `c`, as a cone `d·u >= cos_min` around the unit `u` towards `c`; every
+/// direction (`cos_min = -1`) when `x` is within `reach` of `c`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Cone {
+    pub(crate) u: DVec3,
+    pub(crate) cos_min: f64,
+    /// `sin` of the cone's half angle (`reach / d`); 1 for every direction.
+    pub(crate) sin: f64,
+}
+
+impl Cone {
+    pub(crate) fn new(x: DVec3, c: DVec3, reach: f64) -> Self {
+        let v = c - x;
+        let d = v.length();
+        if d <= reach {
+            return Self {
+                u: DVec3::ZERO,
+                cos_min: -1.0,
+                sin: 1.0,
+            };
+        }
+        // guard: d > reach >= 0. The ray's closest approach to c is
+        // d sin θ (θ = angle between d and v, when cos θ > 0), so it passes
+        // within reach iff cos θ >= sqrt(1 - (reach / d)²).
+        let s = reach / d;
+        Self {
+            u: v / d,
+            cos_min: (1.0 - s * s).max(0.0).sqrt(),
+            sin: s,
+        }
+    }
+
+    #[inline]
+    pub(crate) fn contains(&self, d: DVec3) -> bool {
+        self.cos_min <= -1.0 || d.dot(self.u) >= self.cos_min
+    }
+}
+
+#[derive(Debug, Clone)]
+pub(crate) struct Surf {
+    pub(crate) pos: DVec3,
+    pub(crate) n: DVec3,
+}
+
+/// The target's surfaces, per pixel: unprojected centre and unit normal
+/// (the given one when finite and non-zero, else from the depth); `None`
+/// for a hole or a pixel without a normal.
+pub(crate) fn target_surfaces(
+    depth: &DepthMap,
+    normals: Option<&NormalMap>,
+    k: &Intrinsics,
+) -> Vec<Option<Surf>> {
+    let w = k.width;
+    (0..w * k.height)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let z = *depth.get(x, y);
+            if !DepthMap::is_valid(z) {
+                return None;
+            }
+            let pos = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64);
+            let given = normals
+                .map(|n| DVec3::from_array(n.get(x, y).map(|c| c as f64)))
+                .filter(|n| n.is_finite() && n.length_squared() > 0.5);
+            let n = given
+                .map(|n| n.normalize())
+                .or_else(|| depth_normal(depth, k, x, y))?;
+            Some(Surf { pos, n })
+        })
+        .collect()
+}
+
+/// Surface area (m²) of every valid pixel of `depth` ([`pixel_area`]), 0
+/// for holes.
+pub(crate) fn pixel_areas(depth: &DepthMap, k: &Intrinsics) -> Vec<f64> {
+    let w = k.width;
+    (0..w * k.height)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if DepthMap::is_valid(*depth.get(x, y)) {
+                pixel_area(depth, k, x, y).0
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The alpha of eq. 5: clamped to [0, 1], 0 where it is NaN or the pasted
+/// depth is a hole.
+pub(crate) fn clean_alpha(alpha: &Mask, pasted_depth: &DepthMap) -> Vec<f32> {
+    alpha
+        .as_slice()
+        .iter()
+        .zip(pasted_depth.as_slice())
+        .map(|(a, z)| {
+            if a.is_nan() || !DepthMap::is_valid(*z) {
+                0.0
+            } else {
+                a.clamp(0.0, 1.0)
+            }
+        })
+        .collect()
+}
+
+/// The VPLs with energy, their unit directions and `E_ref = Σ_k lum(Φ_k)`.
+pub(crate) fn lit_vpls(vpls: &[Vpl]) -> (Vec<Vpl>, Vec<DVec3>, f64) {
+    let vpls: Vec<Vpl> = vpls
+        .iter()
+        .copied()
+        .filter(|v| luminance(v.power) > 0.0)
+        .collect();
+    let e_ref: f64 = vpls.iter().map(|v| luminance(v.power)).sum();
+    let dirs = vpls
+        .iter()
+        .map(|v| DVec3::from_array(v.direction.map(|c| c as f64)).normalize_or_zero())
+        .collect();
+    (vpls, dirs, e_ref)
+}
+
+/// Centre (mean) of the object's points and their largest distance from
+/// it (at least 1 mm).
+pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {
+    // guard: max(1) for an empty set (then the centre is 0)
+    let c = pts.iter().copied().sum::<DVec3>() / pts.len().max(1) as f64;
+    let radius = pts
+        .iter()
+        .map(|q| (*q - c).length())
+        .fold(0.0f64, f64::max)
+        .max(1e-3);
+    (c, radius)
+}
+
+/// The object's shaded colour (module docs, "Bounce from the scene"):
+/// `ρ_o (E^{s+t} + B_s)` with `ρ_o = P_o / max(E_free + B_s, e_floor)`.
+pub(crate) fn object_radiance(
+    pc: Rgb,
+    est: [f64; 3],
+    efree: [f64; 3],
+    bs: [f64; 3],
+    e_floor: f64,
+) -> Rgb {
+    std::array::from_fn(|ch| {
+        // The pasted colour was lit directly and by bounced light alike:
+        // ρ_o = P / (E_free + B_s), so the shaded object is
+        // P (E^{s+t} + B_s) / (E_free + B_s) <= P (no firefly where the
+        // direct light is weak).
+        let free = (efree[ch] + bs[ch]).max(e_floor);
+        // guard: free >= e_floor > 0
+        let rho = (pc[ch].max(0.0) as f64) / free;
+        (rho * (est[ch] + bs[ch])) as f32
+    })
+}
+
+/// Up to `count` object pixels (a stratified subset of `obj_idx`) as
+/// bounce VPLs `(position, normal, L a)`: each stands for `step` pixels of
+/// outgoing radiance `ρ E / π`. `surf(j)` and `radiance(j)` give the
+/// surface and the shaded colour of the `j`-th pixel of `obj_idx`; they are
+/// asked only of the picked pixels, in parallel.
+pub(crate) fn object_bounce_vpls(
+    obj_idx: &[usize],
+    surf: &(dyn Fn(usize) -> Option<(DVec3, DVec3)> + Sync),
+    radiance: &(dyn Fn(usize) -> Rgb + Sync),
+    pasted_depth: &DepthMap,
+    k: &Intrinsics,
+    count: usize,
+) -> Vec<(DVec3, DVec3, [f64; 3])> {
+    let w = k.width;
+    let (picks, step) = bounce_picks(obj_idx.len(), count);
+    picks
+        .par_iter()
+        .filter_map(|&j| {
+            let i = obj_idx[j];
+            let (pos, nrm) = surf(j)?;
+            let (area, _) = pixel_area(pasted_depth, k, i % w, i / w);
+            let flux = radiance(j).map(|v| v as f64 / std::f64::consts::PI * area * step);
+            Some((pos, nrm, flux))
+        })
+        .collect()
+}
+
+/// The positions (in a list of `n` object pixels) of the `min(count, n)`
+/// stratified bounce VPLs, and how many pixels each stands for.
+fn bounce_picks(n: usize, count: usize) -> (Vec<usize>, f64) {
+    let m = count.min(n);
+    if m == 0 {
+        return (Vec::new(), 0.0);
+    }
+    // guard: m >= 1
+    let step = n as f64 / m as f64;
+    let picks = (0..m)
+        .map(|j| (((j as f64 + 0.5) * step) as usize).min(n - 1))
+        .collect();
+    (picks, step)
+}
+
+/// The shadows of point VPLs `(position, normal, _)` (`bounce_shadows`):
+/// one paraboloid map each, built in parallel from the given sample sets;
+/// none when off, and then every VPL is seen.
+pub(crate) struct PointVplShadows {
+    maps: Vec<crate::relight::ism::ParaboloidMap>,
+    bias_scale: f64,
+}
+
+impl PointVplShadows {
+    pub(crate) fn new(
+        vpls: &[(DVec3, DVec3, [f64; 3])],
+        samples: &[crate::relight::ism::ParaboloidSamples],
+        p: &RelightParams,
+        seed: u64,
+    ) -> Self {
+        let maps = if p.bounce_shadows && !samples.is_empty() {
+            vpls.par_iter()
+                .enumerate()
+                .map(|(j, (q, nq, _))| {
+                    let s = seed.wrapping_mul(0x2545_F491).wrapping_add(j as u64);
+                    crate::relight::ism::ParaboloidMap::build(
+                        *q,
+                        *nq,
+                        samples,
+                        p.bounce_ism_resolution,
+                        s,
+                    )
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        Self {
+            maps,
+            bias_scale: p.bias_scale,
+        }
+    }
+
+    /// [`bounce_sum`] at `(x, n)` (its own splat radius `r`) over the
+    /// `(index, VPL)` items, each VPL counted where its map sees `x`.
+    pub(crate) fn bounce<'a>(
+        &self,
+        x: DVec3,
+        n: DVec3,
+        r: f64,
+        vpls: impl Iterator<Item = (usize, &'a (DVec3, DVec3, [f64; 3]))>,
+        r2_min: f64,
+    ) -> [f64; 3] {
+        bounce_sum(x, n, vpls, r2_min, |j| {
+            self.maps
+                .get(j)
+                .is_none_or(|m| m.visible(x, n, r, self.bias_scale))
+        })
+    }
+}
+
+/// Splats of the bounce maps are this many ISM radii (no pull-push).
+pub(crate) const BOUNCE_SPLAT_SCALE: f64 = 2.0;
+
+/// One pixel of eq. 5: `α obj + (1 - α)(P + diff)`, clamped to >= 0; the
+/// photo where the result is not finite.
+#[inline]
+pub(crate) fn composite(pp: Rgb, a: f32, obj: Rgb, diff: [f64; 3]) -> Rgb {
+    std::array::from_fn(|ch| {
+        let bg = pp[ch] as f64 + diff[ch];
+        let v = a as f64 * obj[ch] as f64 + (1.0 - a as f64) * bg;
+        if v.is_finite() {
+            v.max(0.0) as f32
+        } else {
+            pp[ch]
+        }
+    })
+}
+
+/// The albedo of a target pixel (module docs): the given one, else
+/// `P / E^t` where `E^t >= e_floor`, else 0.
+#[inline]
+pub(crate) fn target_albedo(given: Option<Rgb>, pp: Rgb, et: [f64; 3], e_floor: f64) -> [f64; 3] {
+    std::array::from_fn(|ch| match given {
+        Some(a) => a[ch].max(0.0) as f64,
+        // guard: divide only when et >= e_floor > 0
+        None if et[ch] >= e_floor => pp[ch].max(0.0) as f64 / et[ch],
+        None => 0.0,
+    })
+}
+
+/// Secondary VPLs on the target surfaces (one bounce, scene to object;
+/// module docs): `m = p.scene_vpls` pixels drawn, stratified, with probability
+/// `∝ a_i / max(d_i, d_min)²` (`d_min = p.clamp_distance_m`, `a_i` the pixel's surface area, `d_i` its
+/// distance to the object centre `c`: the bounce falls off as 1/r², so the
+/// samples go where it is strong). A Lambertian surface seen in the photo
+/// has radiance `L_i = P_i / π` (`P = ρ E` is the pixel value), so a drawn
+/// pixel carries `L_i a_i / (m pdf_i)`. Empty for `m = 0` or no surface.
+pub(crate) fn scene_bounce_vpls(
+    target: &[Option<Surf>],
+    areas: &[f64],
+    photo: &ColorImage,
+    c: DVec3,
+    p: &RelightParams,
+) -> Vec<(DVec3, DVec3, [f64; 3])> {
+    let (d_min, m, seed) = (p.clamp_distance_m, p.scene_vpls, p.seed);
+    if m == 0 {
+        return Vec::new();
+    }
+    let d_min = d_min.max(1e-6);
+    let mut idx = Vec::new();
+    let mut cdf = Vec::new();
+    let mut acc = 0.0f64;
+    for ((i, s), &area) in target.iter().enumerate().zip(areas) {
+        let Some(s) = s else {
+            continue;
+        };
+        let d = (s.pos - c).length().max(d_min);
+        // guard: d >= d_min > 0
+        let wgt = area / (d * d);
+        if !(wgt.is_finite() && wgt > 0.0) {
+            continue;
+        }
+        acc += wgt;
+        idx.push(i);
+        cdf.push(acc);
+    }
+    if idx.is_empty() || !(acc.is_finite() && acc > 0.0) {
+        return Vec::new();
+    }
+    let mut rng = crate::relight::vpl::SplitMix64(seed ^ 0x5EC0_4DA2_B0C3_u64);
+    let photo = photo.as_slice();
+    (0..m)
+        .filter_map(|j| {
+            // guard: m >= 1
+            let t = (j as f64 + rng.next_f64()) / m as f64 * acc;
+            let n = cdf.partition_point(|&q| q <= t).min(idx.len() - 1);
+            let i = idx[n];
+            let s = target[i].as_ref()?;
+            // L a / (m pdf) with pdf = a / (d² acc): the area cancels.
+            // guard: m >= 1; d >= d_min > 0 as in the weights
+            let d = (s.pos - c).length().max(d_min);
+            let scale = d * d * acc / (m as f64 * std::f64::consts::PI);
+            let flux = photo[i].map(|v| {
+                if v.is_finite() {
+                    f64::from(v.max(0.0)) * scale
+                } else {
+                    0.0
+                }
+            });
+            Some((s.pos, s.n, flux))
+        })
+        .collect()
+}
+
+/// Irradiance bounced onto `(x, n)` by point VPLs `(position, normal,
+/// flux-like L a)` with the clamped `1 / max(r², r2_min)` (module docs).
+pub fn bounce_at(x: DVec3, n: DVec3, vpls: &[(DVec3, DVec3, [f64; 3])], r2_min: f64) -> [f64; 3] {
+    bounce_sum(x, n, vpls.iter().enumerate(), r2_min, |_| true)
+}
+
+/// [`bounce_at`] over `(index, VPL)` items, each VPL counted only where
+/// `visible(index)` (asked only of VPLs that face `x` and that `x` faces).
+pub fn bounce_sum<'a>(
+    x: DVec3,
+    n: DVec3,
+    vpls: impl Iterator<Item = (usize, &'a (DVec3, DVec3, [f64; 3]))>,
+    r2_min: f64,
+    visible: impl Fn(usize) -> bool,
+) -> [f64; 3] {
+    let mut b = [0.0f64; 3];
+    for (j, (q, nq, l)) in vpls {
+        let v = *q - x;
+        let r2 = v.length_squared();
+        if r2 < 1e-18 {
+            continue;
+        }
+        // cos at the receiver and at the VPL times r² (no square root):
+        // (n·v)(-nq·v) = r² (n·u)(nq·(-u))
+        let (cr, cq) = (n.dot(v), -nq.dot(v));
+        if cr <= 0.0 || cq <= 0.0 {
+            continue;
+        }
+        if !visible(j) {
+            continue;
+        }
+        // guard: r2 >= 1e-18 > 0 and r2_min >= 0
+        let g = cr * cq / (r2 * r2.max(r2_min));
+        for ch in 0..3 {
+            b[ch] += l[ch] * g;
+        }
+    }
+    b
+}

@@ -1,0 +1,39 @@
+//! Fixtures shared by the unit tests of the node modules: thread pools,
+//! evaluation contexts, small scenes. No test module imports another's.
+
+pub(crate) mod relight;
+/// Runs `f` on a rayon pool of `threads` threads (the tests that a
+/// result does not depend on the thread count).
+pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a test thread pool")
+        .install(f)
+}
+
+/// What a node's `eval` needs in a test: a fresh cancel token, no
+/// progress, outputs under `.`, no input files.
+pub(crate) struct TestCtx {
+    node: &'static str,
+    cancel: depthgraph_graph::prelude::CancelToken,
+}
+
+impl TestCtx {
+    pub(crate) fn new(node: &'static str) -> Self {
+        Self {
+            node,
+            cancel: depthgraph_graph::prelude::CancelToken::new(),
+        }
+    }
+
+    pub(crate) fn ctx(&self) -> depthgraph_graph::prelude::EvalCtx<'_> {
+        depthgraph_graph::prelude::EvalCtx {
+            node: self.node,
+            cancel: &self.cancel,
+            progress: None,
+            out_dir: std::path::Path::new("."),
+            input_files: &[],
+        }
+    }
+}
