@@ -30,24 +30,19 @@ type MethodFn = fn(&DepthMap, &TruthScene) -> DepthMap;
 
 fn methods() -> Vec<(&'static str, MethodFn)> {
     vec![
-        ("pull-push (bilinear, Fig. 4c)", |d, s| {
-            pull_push(
-                d,
-                &s.color,
-                &s.intrinsics,
-                &PullPushParams::default(),
-                Weights::Bilinear,
-            )
-            .map(|r| r.depth)
-            .unwrap_or_else(|_| d.clone())
+        ("pull-push (bilinear, Fig. 4c)", |d, _| {
+            pull_push(d, &PullPushParams::default(), Weights::Bilinear)
+                .map(|r| r.depth)
+                .unwrap_or_else(|_| d.clone())
         }),
         ("dual-weight pull-push (eq. 2-4)", |d, s| {
             pull_push(
                 d,
-                &s.color,
-                &s.intrinsics,
                 &PullPushParams::default(),
-                Weights::Dual,
+                Weights::Dual {
+                    color: &s.color,
+                    k: &s.intrinsics,
+                },
             )
             .map(|r| r.depth)
             .unwrap_or_else(|_| d.clone())
@@ -55,10 +50,11 @@ fn methods() -> Vec<(&'static str, MethodFn)> {
         ("dual-weight pull-push + joint bilateral (r=5)", |d, s| {
             let filled = pull_push(
                 d,
-                &s.color,
-                &s.intrinsics,
                 &PullPushParams::default(),
-                Weights::Dual,
+                Weights::Dual {
+                    color: &s.color,
+                    k: &s.intrinsics,
+                },
             )
             .map(|r| r.depth)
             .unwrap_or_else(|_| d.clone());
@@ -121,7 +117,9 @@ fn write_peer_inputs(
         .color
         .as_slice()
         .iter()
-        .flat_map(|c| c.map(|v| (depthgraph::nodes::io::linear_to_srgb(v) * 255.0).round() as u8))
+        .flat_map(|c| {
+            c.map(|v| (depthgraph::nodes::kit::color::linear_to_srgb(v) * 255.0).round() as u8)
+        })
         .collect();
     std::fs::write(dir.join(format!("{case}.color.u8")), rgb)
 }

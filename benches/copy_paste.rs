@@ -23,7 +23,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use depthgraph::graph::prelude::*;
-use depthgraph::nodes::io::linear_to_srgb;
+use depthgraph::nodes::kit::color::linear_to_srgb;
 use depthgraph::nodes::select::composite::{CompositeParams, occlusion_composite};
 use depthgraph::nodes::select::edges::{EdgeParams, detect_edges};
 use depthgraph::nodes::select::feather::{FeatherParams, feather};

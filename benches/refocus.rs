@@ -24,7 +24,7 @@ use depthgraph::graph::prelude::*;
 use depthgraph::metrics::{display_psnr, display_ssim};
 use depthgraph::nodes::camera::lens::Aperture;
 use depthgraph::nodes::camera::refocus::{RefocusParams, refocus, reverse_mapped_dof};
-use depthgraph::nodes::io::linear_to_srgb;
+use depthgraph::nodes::kit::color::linear_to_srgb;
 use depthgraph::nodes::sim::synthetic::{
     RenderOptions, RenderOutput, Scene, ThinLensRender, render, render_thin_lens,
 };

@@ -32,11 +32,12 @@ use std::time::Instant;
 
 use depthgraph::graph::pipeline::OutputRef;
 use depthgraph::graph::prelude::*;
+use depthgraph::nodes::kit::color::luminance_clamped;
 use depthgraph::nodes::relight::paired::relight;
 use depthgraph::nodes::relight::reference::relight_reference;
 use depthgraph::nodes::relight::scene_cached::{RelightScene, relight_moved};
 use depthgraph::nodes::relight::shading::{RelightInputs, RelightParams, Relit};
-use depthgraph::nodes::relight::vpl::{Vpl, VplParams, luminance, sample_vpls};
+use depthgraph::nodes::relight::vpl::{Vpl, VplParams, sample_vpls};
 
 /// The graph's values at 640x480.
 struct Scene {
@@ -87,7 +88,11 @@ fn load_scene(root: &Path, extra: &[&str]) -> Scene {
         other => panic!("{k}: {other:?}"),
     };
     let depth = |k: &str| match o.get(k) {
-        Some(Value::Depth(c)) | Some(Value::Mask(c)) => (**c).clone(),
+        Some(Value::Depth(c)) => (**c).clone(),
+        other => panic!("{k}: {other:?}"),
+    };
+    let mask = |k: &str| match o.get(k) {
+        Some(Value::Mask(c)) => (**c).clone(),
         other => panic!("{k}: {other:?}"),
     };
     Scene {
@@ -100,7 +105,7 @@ fn load_scene(root: &Path, extra: &[&str]) -> Scene {
         albedo: color("target.albedo"),
         pasted_color: color("paste.color"),
         pasted_depth: depth("paste.depth"),
-        alpha: depth("composite.alpha"),
+        alpha: mask("composite.alpha"),
         k: match o.get("target.intrinsics") {
             Some(Value::Intrinsics(k)) => *k,
             other => panic!("intrinsics: {other:?}"),
@@ -278,7 +283,7 @@ fn main() {
     let shadow: Vec<usize> = (0..grid.len())
         .filter(|&g| {
             let i = grid[g];
-            alpha[i] <= 0.0 && luminance(reference[g]) < luminance(photo[i]) - 1e-4
+            alpha[i] <= 0.0 && luminance_clamped(reference[g]) < luminance_clamped(photo[i]) - 1e-4
         })
         .collect();
     let on_object: Vec<usize> = changed

@@ -84,17 +84,15 @@ pub fn compare(
                 acc.add(*x as f64, *r as f64);
             }
         }
-        (Value::Color(a), Value::Color(b)) | (Value::Normals(a), Value::Normals(b)) => {
-            dims(a.dims(), b.dims())?;
-            for (x, r) in a.as_slice().iter().zip(b.as_slice()) {
-                for c in 0..3 {
-                    acc.add(x[c] as f64, r[c] as f64);
-                }
-            }
-        }
-        (Value::Mask(a) | Value::Confidence(a), Value::Mask(b) | Value::Confidence(b)) => {
-            dims(a.dims(), b.dims())?;
-            for (x, r) in a.as_slice().iter().zip(b.as_slice()) {
+        (Value::Color(_), Value::Color(_))
+        | (Value::Normals(_), Value::Normals(_))
+        | (Value::Mask(_) | Value::Confidence(_), Value::Mask(_) | Value::Confidence(_)) => {
+            // every sample alike; `samples` is Some for these kinds
+            let (Some(a), Some(b)) = (result.samples(), reference.samples()) else {
+                return Err(MetricError::Unsupported(result.value_type()));
+            };
+            dims((a.width, a.height), (b.width, b.height))?;
+            for (x, r) in a.samples.iter().zip(b.samples) {
                 acc.add(*x as f64, *r as f64);
             }
         }
@@ -211,7 +209,7 @@ mod tests {
 /// Display-referred luma of a linear image: each channel clamped to
 /// `[0, 1]` and sRGB-encoded (what a viewer sees), then Rec. 709 weights.
 pub fn display_luma(img: &ColorImage) -> Vec<f64> {
-    use depthgraph_nodes::io::linear_to_srgb;
+    use depthgraph_nodes::kit::color::linear_to_srgb;
     img.as_slice()
         .iter()
         .map(|c| {
@@ -231,7 +229,7 @@ pub fn display_luma(img: &ColorImage) -> Vec<f64> {
 /// of two linear color images, all channels, peak 1. Identical images give
 /// `f64::INFINITY`.
 pub fn display_psnr(a: &ColorImage, b: &ColorImage) -> Result<f64, MetricError> {
-    use depthgraph_nodes::io::linear_to_srgb;
+    use depthgraph_nodes::kit::color::linear_to_srgb;
     dims(a.dims(), b.dims())?;
     if a.is_empty() {
         return Err(MetricError::Empty);

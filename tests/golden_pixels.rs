@@ -34,11 +34,23 @@ fn hash_value(v: &Value) -> String {
         h.update(&(ht as u64).to_le_bytes());
     };
     match v {
-        Value::Color(i) | Value::Normals(i) => {
+        Value::Color(i) => {
             dims(&mut h, i.width(), i.height());
             f32s(&mut h, i.as_slice().as_flattened());
         }
-        Value::Depth(i) | Value::Mask(i) | Value::Confidence(i) => {
+        Value::Normals(i) => {
+            dims(&mut h, i.width(), i.height());
+            f32s(&mut h, i.as_slice().as_flattened());
+        }
+        Value::Depth(i) => {
+            dims(&mut h, i.width(), i.height());
+            f32s(&mut h, i.as_slice());
+        }
+        Value::Mask(i) => {
+            dims(&mut h, i.width(), i.height());
+            f32s(&mut h, i.as_slice());
+        }
+        Value::Confidence(i) => {
             dims(&mut h, i.width(), i.height());
             f32s(&mut h, i.as_slice());
         }
@@ -73,6 +85,15 @@ fn hash_value(v: &Value) -> String {
                 h.update(&t.to_le_bytes());
             }
         }
+        Value::Vpls(ls) => {
+            let dirs: Vec<[f32; 3]> = ls.iter().map(|l| l.direction).collect();
+            let power: Vec<[f32; 3]> = ls.iter().map(|l| l.power).collect();
+            for part in [&dirs, &power] {
+                h.update(&(part.len() as u64).to_le_bytes());
+                f32s(&mut h, part.as_flattened());
+            }
+        }
+        Value::Extension(_) => {}
         Value::ExposureStack(s) => {
             for (i, t) in s.images.iter().zip(&s.times_s) {
                 h.update(&t.to_bits().to_le_bytes());

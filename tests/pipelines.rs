@@ -168,10 +168,13 @@ fn in_process(threads: usize) -> Vec<(String, Vec<u32>)> {
         .iter()
         .map(|(k, v)| {
             let bits: Vec<u32> = match v {
-                Value::Color(i) | Value::Normals(i) => {
-                    i.as_slice().iter().flatten().map(|x| x.to_bits()).collect()
-                }
-                Value::Depth(i) => i.as_slice().iter().map(|x| x.to_bits()).collect(),
+                Value::Color(_) | Value::Normals(_) | Value::Depth(_) => v
+                    .samples()
+                    .unwrap()
+                    .samples
+                    .iter()
+                    .map(|x| x.to_bits())
+                    .collect(),
                 Value::Labels(i) => i.as_slice().to_vec(),
                 Value::PointCloud(pc) => pc
                     .positions

@@ -29,8 +29,10 @@ pub fn type_color(ty: ValueType) -> Color32 {
         ValueType::PointCloud => Color32::from_rgb(60, 200, 200),
         ValueType::Mesh => Color32::from_rgb(40, 170, 120),
         ValueType::ExposureStack => Color32::from_rgb(230, 90, 160),
+        ValueType::Vpls => Color32::from_rgb(255, 170, 60),
         ValueType::Scalar => Color32::from_rgb(250, 250, 120),
         ValueType::File => Color32::from_rgb(150, 150, 190),
+        ValueType::Extension(_) => Color32::from_rgb(200, 200, 200),
     }
 }
 
@@ -815,8 +817,8 @@ impl EditorApp {
             .and_then(preview::picture);
         let lasso = self.selected_kind().as_deref() == Some("Lasso");
         let picture = match (value, background) {
-            (Value::Mask(m) | Value::Confidence(m), Some(mut bg)) => {
-                let size = [m.width(), m.height()];
+            (Value::Mask(_) | Value::Confidence(_), Some(mut bg)) => {
+                let size = value.image_dims().map_or([0, 0], |(w, h)| [w, h]);
                 if lasso {
                     preview::overlay_mask(
                         &mut bg.image,
@@ -843,7 +845,7 @@ impl EditorApp {
                 } else {
                     preview::overlay_mask(
                         &mut bg.image,
-                        m.as_slice(),
+                        value.samples().map_or(&[][..], |m| m.samples),
                         size,
                         Color32::from_rgb(255, 120, 40),
                         0.6,

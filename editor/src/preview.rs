@@ -4,44 +4,14 @@
 //! screen points and image pixels that zoom and lasso clicks need.
 
 use depthgraph_graph::prelude::Value;
+use depthgraph_nodes::kit::color::rgb_to_srgb8;
 use eframe::egui::{self, Color32, ColorImage};
 
-/// Linear → sRGB byte, clamped; non-finite values show as black.
-pub fn srgb_byte(x: f32) -> u8 {
-    let x = if x.is_finite() {
-        x.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let s = if x <= 0.003_130_8 {
-        12.92 * x
-    } else {
-        1.055 * x.powf(1.0 / 2.4) - 0.055
-    };
-    (s * 255.0 + 0.5) as u8
-}
-
-/// A blue → green → yellow colormap (viridis stops) of `t` in [0, 1].
+/// The depth colormap of `t` in [0, 1] as 8-bit sRGB: the nodes' one
+/// ([`depthgraph_nodes::kit::colormap::colormap`]), so a preview and a
+/// `DepthPreview` output look alike.
 pub fn colormap(t: f32) -> [u8; 3] {
-    let stops = [
-        [68.0, 1.0, 84.0],
-        [59.0, 82.0, 139.0],
-        [33.0, 145.0, 140.0],
-        [94.0, 201.0, 98.0],
-        [253.0, 231.0, 37.0],
-    ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.0
-    } * 4.0;
-    let i = (t.floor() as usize).min(3);
-    let f = t - i as f32;
-    let mut out = [0u8; 3];
-    for (c, o) in out.iter_mut().enumerate() {
-        *o = (stops[i][c] * (1.0 - f) + stops[i + 1][c] * f) as u8;
-    }
-    out
+    depthgraph_nodes::kit::color::rgb_to_srgb8(depthgraph_nodes::kit::colormap::colormap(t))
 }
 
 /// The depth range a colour-mapped preview spans (metres), for its legend.
@@ -81,7 +51,8 @@ pub fn picture(v: &Value) -> Option<Picture> {
             let (w, h) = img.dims();
             let mut rgba = Vec::with_capacity(w * h * 4);
             for p in img.as_slice() {
-                rgba.extend_from_slice(&[srgb_byte(p[0]), srgb_byte(p[1]), srgb_byte(p[2]), 255]);
+                let [r, g, b] = rgb_to_srgb8(*p);
+                rgba.extend_from_slice(&[r, g, b, 255]);
             }
             Some(Picture {
                 image: ColorImage::from_rgba_unmultiplied([w, h], &rgba),
@@ -113,10 +84,11 @@ pub fn picture(v: &Value) -> Option<Picture> {
                 }),
             })
         }
-        Value::Mask(img) | Value::Confidence(img) => {
-            let (w, h) = img.dims();
+        Value::Mask(_) | Value::Confidence(_) => {
+            let img = v.samples()?;
+            let (w, h) = (img.width, img.height);
             let mut rgba = Vec::with_capacity(w * h * 4);
-            for x in img.as_slice() {
+            for x in img.samples {
                 let g = (if x.is_finite() {
                     x.clamp(0.0, 1.0)
                 } else {
@@ -230,7 +202,8 @@ pub fn describe_pixel(v: &Value, x: usize, y: usize) -> Option<String> {
                 format!("({x}, {y}) no depth")
             }
         }
-        Value::Mask(img) | Value::Confidence(img) => format!("({x}, {y}) {:.3}", img.get(x, y)),
+        Value::Mask(img) => format!("({x}, {y}) {:.3}", img.get(x, y)),
+        Value::Confidence(img) => format!("({x}, {y}) {:.3}", img.get(x, y)),
         _ => return None,
     })
 }

@@ -110,11 +110,12 @@ impl DiskCache {
         let hex = key.to_hex();
         self.dir.join(&hex[..2]).join(format!("{hex}.bin"))
     }
-    /// Reads an entry; `None` on a miss or an unreadable entry.
-    pub fn get(&self, key: &Key) -> Option<Outputs> {
+    /// Reads an entry; `None` on a miss or an unreadable entry. Extension
+    /// values are read with `decoders`.
+    pub fn get(&self, key: &Key, decoders: &codec::Decoders) -> Option<Outputs> {
         let path = self.path(key);
         let bytes = fs::read(&path).ok()?;
-        let out = codec::decode(&bytes);
+        let out = codec::decode(&bytes, decoders);
         if out.is_none() {
             let _ = fs::remove_file(&path);
         } else if let Ok(f) = fs::File::options().append(true).open(&path) {
@@ -124,6 +125,9 @@ impl DiskCache {
     }
     /// Writes an entry, then trims the store to its budget.
     pub fn put(&self, key: &Key, out: &Outputs) -> std::io::Result<()> {
+        if !codec::persistable(out) {
+            return Ok(());
+        }
         let bytes = codec::encode(out);
         if bytes.len() as u64 > self.budget_bytes {
             return Ok(());
@@ -219,14 +223,17 @@ mod tests {
         c.put(&key(1), &out(100)).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
         c.put(&key(2), &out(100)).unwrap();
-        assert_eq!(c.get(&key(1)).unwrap().values, out(100).values);
+        assert_eq!(
+            c.get(&key(1), &Default::default()).unwrap().values,
+            out(100).values
+        );
         std::thread::sleep(std::time::Duration::from_millis(20));
         c.put(&key(3), &out(100)).unwrap();
         assert!(c.used_bytes() <= one * 2 + 10);
         // key 2 was the least recently used
-        assert!(c.get(&key(2)).is_none());
-        assert!(c.get(&key(1)).is_some());
-        assert!(c.get(&key(3)).is_some());
+        assert!(c.get(&key(2), &Default::default()).is_none());
+        assert!(c.get(&key(1), &Default::default()).is_some());
+        assert!(c.get(&key(3), &Default::default()).is_some());
     }
 
     #[test]
@@ -236,7 +243,7 @@ mod tests {
         c.put(&key(7), &out(4)).unwrap();
         let p = c.path(&key(7));
         fs::write(&p, b"garbage").unwrap();
-        assert!(c.get(&key(7)).is_none());
+        assert!(c.get(&key(7), &Default::default()).is_none());
         assert!(!p.exists());
     }
 }

@@ -9,9 +9,11 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use crate::node::Outputs;
-use crate::value::{ExposureStack, Image, Intrinsics, Mesh, PointCloud, Value};
+use crate::value::{
+    ExposureStack, ExtensionDecoder, Image, Intrinsics, Mesh, PointCloud, Value, Vpl,
+};
 
-const MAGIC: &[u8; 8] = b"DGCACHE1";
+const MAGIC: &[u8; 8] = b"DGCACHE2";
 
 /// Encodes outputs (values and the pass-through reason).
 pub fn encode(out: &Outputs) -> Vec<u8> {
@@ -27,9 +29,18 @@ pub fn encode(out: &Outputs) -> Vec<u8> {
     w
 }
 
-/// Decodes what [`encode`] wrote; `None` for anything malformed.
-pub fn decode(bytes: &[u8]) -> Option<Outputs> {
-    let mut r = Reader { b: bytes, i: 0 };
+/// Decoders of extension values by type name.
+pub type Decoders = BTreeMap<&'static str, ExtensionDecoder>;
+
+/// Decodes what [`encode`] wrote; `None` for anything malformed, and for an
+/// extension value without a decoder in `decoders` or whose bytes fail
+/// their checksum.
+pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
+    let mut r = Reader {
+        b: bytes,
+        i: 0,
+        decoders,
+    };
     if r.take(8)? != MAGIC {
         return None;
     }
@@ -77,12 +88,12 @@ fn put_u32s(w: &mut Vec<u8>, xs: &[u32]) {
 fn flat3(v: &[[f32; 3]]) -> &[f32] {
     v.as_flattened()
 }
-fn put_image3(w: &mut Vec<u8>, img: &Image<[f32; 3]>) {
+fn put_image3<K>(w: &mut Vec<u8>, img: &Image<[f32; 3], K>) {
     put_u64(w, img.width() as u64);
     put_u64(w, img.height() as u64);
     put_f32s(w, flat3(img.as_slice()));
 }
-fn put_image1(w: &mut Vec<u8>, img: &Image<f32>) {
+fn put_image1<K>(w: &mut Vec<u8>, img: &Image<f32, K>) {
     put_u64(w, img.width() as u64);
     put_u64(w, img.height() as u64);
     put_f32s(w, img.as_slice());
@@ -153,12 +164,41 @@ fn put_value(w: &mut Vec<u8>, v: &Value) {
             w.push(11);
             put_str(w, &p.to_string_lossy());
         }
+        Value::Vpls(v) => {
+            w.push(12);
+            put_u64(w, v.len() as u64);
+            for l in v.iter() {
+                for x in l.direction.iter().chain(&l.power) {
+                    w.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+        }
+        Value::Extension(e) => {
+            // `encode` checked `persistable` first; an extension without an
+            // encoding never reaches here
+            let payload = e.encode().unwrap_or_default();
+            w.push(13);
+            put_str(w, e.type_name());
+            put_u64(w, payload.len() as u64);
+            w.extend_from_slice(blake3::hash(&payload).as_bytes());
+            w.extend_from_slice(&payload);
+        }
     }
+}
+
+/// Whether every value of `out` can be written to disk (extensions may be
+/// memory-only).
+pub fn persistable(out: &Outputs) -> bool {
+    out.values.values().all(|v| match v {
+        Value::Extension(e) => e.encode().is_some(),
+        _ => true,
+    })
 }
 
 struct Reader<'a> {
     b: &'a [u8],
     i: usize,
+    decoders: &'a Decoders,
 }
 
 impl<'a> Reader<'a> {
@@ -211,11 +251,11 @@ impl<'a> Reader<'a> {
         }
         Some(f.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
     }
-    fn image3(&mut self) -> Option<Image<[f32; 3]>> {
+    fn image3<K>(&mut self) -> Option<Image<[f32; 3], K>> {
         let (w, h) = (self.usize()?, self.usize()?);
         Image::from_vec(w, h, self.triples()?).ok()
     }
-    fn image1(&mut self) -> Option<Image<f32>> {
+    fn image1<K>(&mut self) -> Option<Image<f32, K>> {
         let (w, h) = (self.usize()?, self.usize()?);
         Image::from_vec(w, h, self.f32s()?).ok()
     }
@@ -273,6 +313,36 @@ impl<'a> Reader<'a> {
             }
             10 => Value::Scalar(self.f64()?),
             11 => Value::File(PathBuf::from(self.string()?)),
+            12 => {
+                let n = self.usize()?;
+                let f = self.take(n.checked_mul(24)?)?;
+                let x = |c: &[u8], i: usize| {
+                    f32::from_le_bytes([c[4 * i], c[4 * i + 1], c[4 * i + 2], c[4 * i + 3]])
+                };
+                Value::Vpls(Arc::new(
+                    f.chunks_exact(24)
+                        .map(|c| Vpl {
+                            direction: [x(c, 0), x(c, 1), x(c, 2)],
+                            power: [x(c, 3), x(c, 4), x(c, 5)],
+                        })
+                        .collect(),
+                ))
+            }
+            13 => {
+                let name = self.string()?;
+                let n = self.usize()?;
+                let sum = self.take(32)?;
+                let payload = self.take(n)?;
+                if blake3::hash(payload).as_bytes() != sum {
+                    return None;
+                }
+                let decode = self.decoders.get(name.as_str())?;
+                let v = decode(payload)?;
+                if v.type_name() != name {
+                    return None;
+                }
+                Value::Extension(v)
+            }
             _ => return None,
         })
     }
@@ -289,8 +359,8 @@ mod tests {
         let out = Outputs::new()
             .with("c", Value::Color(Arc::new(img3.clone())))
             .with("d", Value::Depth(Arc::new(img1.clone())))
-            .with("m", Value::Mask(Arc::new(img1.clone())))
-            .with("n", Value::Normals(Arc::new(img3.clone())))
+            .with("m", Value::Mask(Arc::new(img1.clone().retag())))
+            .with("n", Value::Normals(Arc::new(img3.clone().retag())))
             .with(
                 "l",
                 Value::Labels(Arc::new(Image::from_fn(2, 2, |x, _| x as u32))),
@@ -326,7 +396,7 @@ mod tests {
             .with("f", Value::File("a/b.png".into()))
             .passthrough("no holes to fill");
         let bytes = encode(&out);
-        let back = decode(&bytes).unwrap();
+        let back = decode(&bytes, &Decoders::new()).unwrap();
         assert_eq!(back.values, out.values);
         assert_eq!(back.passthrough.as_deref(), Some("no holes to fill"));
     }
@@ -336,11 +406,11 @@ mod tests {
         let out = Outputs::new().with("d", Value::Scalar(1.0));
         let bytes = encode(&out);
         for cut in 0..bytes.len() {
-            assert!(decode(&bytes[..cut]).is_none());
+            assert!(decode(&bytes[..cut], &Decoders::new()).is_none());
         }
         let mut huge = bytes.clone();
         // claim an absurd string length right after the magic
         huge[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
-        assert!(decode(&huge).is_none());
+        assert!(decode(&huge, &Decoders::new()).is_none());
     }
 }

@@ -1,9 +1,10 @@
 //! Errors with a location a person can act on.
 
 use std::fmt;
+use std::path::PathBuf;
 
-use crate::node::NodeError;
 use crate::ron_text::Pos;
+use crate::value::ShapeError;
 use crate::value::ValueType;
 
 /// Where in which text something is at fault.
@@ -163,12 +164,16 @@ impl std::error::Error for CheckErrors {}
 /// A failure while running a checked pipeline.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
-    #[error("node `{node}` ({kind}): {source}")]
+    /// A node failed; the message is the node's error, printed once (it
+    /// is not also returned as the error's source).
+    #[error("node `{node}` ({kind}): {error}")]
     Node {
+        /// The node's name in the pipeline.
         node: String,
+        /// Its kind.
         kind: String,
-        #[source]
-        source: NodeError,
+        /// What went wrong.
+        error: NodeError,
     },
     #[error("node `{node}` ({kind}) did not produce its declared output `{port}`")]
     MissingOutput {
@@ -188,4 +193,107 @@ pub enum RunError {
     Cancelled,
     #[error("cannot start worker threads: {0}")]
     Threads(String),
+}
+
+/// Errors a node reports. The scheduler adds the node's name and kind
+/// ([`RunError::Node`]). Every message names what it is about (port,
+/// parameter or file) and is complete by itself: no variant also returns
+/// its cause as [`source`](std::error::Error::source), so a printer that
+/// walks the chain prints each part once.
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    /// An input is missing, mistyped or unusable.
+    #[error("input `{port}`: {message}")]
+    Input {
+        /// The input port.
+        port: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// A parameter value that the schema's range admits but the node cannot use.
+    #[error("parameter `{param}`: {message}")]
+    Param {
+        /// The parameter.
+        param: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// A file could not be read or written.
+    #[error("{path}: {error}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The operating system's error.
+        error: std::io::Error,
+    },
+    /// A file was read but its contents are not what the node expects.
+    #[error("{path}: cannot decode: {message}")]
+    Decode {
+        /// The file.
+        path: PathBuf,
+        /// What was expected and found.
+        message: String,
+    },
+    /// A result could not be encoded into a file.
+    #[error("{path}: cannot encode: {message}")]
+    Encode {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
+    /// A sink was asked to write over a file the pipeline reads.
+    #[error("{path}: refusing to write over a file this pipeline reads")]
+    WouldOverwriteInput {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A buffer whose length does not match its image's dimensions (an
+    /// internal inconsistency, reported instead of a panic).
+    #[error("{0}")]
+    Shape(#[from] ShapeError),
+    /// Anything else, with its explanation.
+    #[error("{0}")]
+    Invalid(String),
+    /// The run was cancelled.
+    #[error("cancelled")]
+    Cancelled,
+}
+
+impl NodeError {
+    /// An error of input `port`.
+    pub fn input(port: &str, message: impl Into<String>) -> Self {
+        NodeError::Input {
+            port: port.to_string(),
+            message: message.into(),
+        }
+    }
+    /// An error of parameter `param`.
+    pub fn param(param: &str, message: impl Into<String>) -> Self {
+        NodeError::Param {
+            param: param.to_string(),
+            message: message.into(),
+        }
+    }
+    /// An I/O error on `path`.
+    pub fn io(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
+        NodeError::Io {
+            path: path.into(),
+            error,
+        }
+    }
+    /// A decoding error of `path`.
+    pub fn decode(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        NodeError::Decode {
+            path: path.into(),
+            message: message.into(),
+        }
+    }
+    /// An encoding error of `path`.
+    pub fn encode(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        NodeError::Encode {
+            path: path.into(),
+            message: message.into(),
+        }
+    }
 }

@@ -67,6 +67,45 @@ pub fn node_key(kind: &str, version: u32, params: &ParamMap, inputs: &[(&str, &s
     Key(*h.finalize().as_bytes())
 }
 
+/// Key of a value a node derives from some of its inputs
+/// ([`EvalCtx::derived`](crate::node::EvalCtx::derived)): the node's kind
+/// and version, the value's name, the node's own key material for it
+/// (`extra`, e.g. the parameters it depends on) and the keys of the inputs
+/// it reads, so two runs that feed it the same upstream results share it.
+pub fn derived_key(
+    kind: &str,
+    version: u32,
+    name: &str,
+    extra: &[u8],
+    inputs: &[(&str, Option<Key>)],
+) -> Key {
+    let mut h = blake3::Hasher::new();
+    h.update(RECIPE);
+    h.update(b"derived");
+    for s in [kind, name] {
+        h.update(&(s.len() as u64).to_le_bytes());
+        h.update(s.as_bytes());
+    }
+    h.update(&version.to_le_bytes());
+    h.update(&(extra.len() as u64).to_le_bytes());
+    h.update(extra);
+    h.update(&(inputs.len() as u64).to_le_bytes());
+    for (port, key) in inputs {
+        h.update(&(port.len() as u64).to_le_bytes());
+        h.update(port.as_bytes());
+        match key {
+            Some(k) => {
+                h.update(&[1]);
+                h.update(k.as_bytes());
+            }
+            None => {
+                h.update(&[0]);
+            }
+        }
+    }
+    Key(*h.finalize().as_bytes())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -92,6 +131,18 @@ mod tests {
             ParamValue::Float(f64::from_bits(1.0f64.to_bits() + 1)),
         );
         assert_ne!(base, node_key("K", 1, &q, &[("in", "out", k0)]));
+    }
+
+    #[test]
+    fn derived_key_depends_on_every_part() {
+        let a = Key::from_bytes([1; 32]);
+        let base = derived_key("K", 1, "scene", b"p", &[("x", Some(a))]);
+        assert_eq!(base, derived_key("K", 1, "scene", b"p", &[("x", Some(a))]));
+        assert_ne!(base, derived_key("K", 2, "scene", b"p", &[("x", Some(a))]));
+        assert_ne!(base, derived_key("K", 1, "other", b"p", &[("x", Some(a))]));
+        assert_ne!(base, derived_key("K", 1, "scene", b"q", &[("x", Some(a))]));
+        assert_ne!(base, derived_key("K", 1, "scene", b"p", &[("x", None)]));
+        assert_ne!(base, derived_key("K", 1, "scene", b"p", &[("y", Some(a))]));
     }
 
     #[test]

@@ -59,9 +59,9 @@ pub mod value;
 pub mod prelude {
     pub use crate::cache::{DiskCache, MemoryCache};
     pub use crate::document::Document;
-    pub use crate::error::{CheckError, CheckErrors, RunError};
+    pub use crate::error::{CheckError, CheckErrors, NodeError, RunError};
     pub use crate::node::{
-        CancelToken, EvalCtx, Inputs, Node, NodeError, NodeSchema, Outputs, PortSpec, TypedNode,
+        CancelToken, EvalCtx, Inputs, Node, NodeSchema, Outputs, PortSpec, TypedNode,
     };
     pub use crate::params::{NodeParams, ParamKind, ParamMap, ParamValue};
     pub use crate::pipeline::Pipeline;
@@ -70,6 +70,6 @@ pub mod prelude {
     pub use crate::trace::{Status, Trace};
     pub use crate::value::{
         ColorImage, Confidence, DepthMap, ExposureStack, Image, Intrinsics, LabelImage, Mask, Mesh,
-        NormalMap, PointCloud, Value, ValueType,
+        NormalMap, PointCloud, Value, ValueType, Vpl, VplSet,
     };
 }

@@ -5,15 +5,19 @@
 //! (`depthgraph-nodes`); the `Node` impl is a thin adapter that takes typed
 //! inputs from [`Inputs`], calls the function and wraps the results.
 
+use std::any::Any;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 
+pub use crate::error::NodeError;
+use crate::key::{Key, derived_key};
 use crate::params::{NodeParams, ParamMap, ParamSpec};
+use crate::trace::{DerivedRecord, Status};
 use crate::value::{
-    ColorImage, Confidence, DepthMap, ExposureStack, Intrinsics, LabelImage, Mask, Mesh, NormalMap,
-    PointCloud, Value, ValueType,
+    ColorImage, Confidence, DepthMap, ExposureStack, Extension, Intrinsics, LabelImage, Mask, Mesh,
+    NormalMap, PointCloud, Value, ValueType, VplSet,
 };
 
 /// A declared input or output.
@@ -78,46 +82,6 @@ impl NodeSchema {
     }
 }
 
-/// Errors a node reports. The scheduler adds the node's name and kind.
-#[derive(Debug, thiserror::Error)]
-pub enum NodeError {
-    #[error("input `{port}`: {message}")]
-    Input { port: String, message: String },
-    #[error("parameter `{param}`: {message}")]
-    Param { param: String, message: String },
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("{path}: cannot decode: {message}")]
-    Decode { path: PathBuf, message: String },
-    #[error("{path}: {message}")]
-    Encode { path: PathBuf, message: String },
-    #[error("{path}: refusing to write over a file this pipeline reads")]
-    WouldOverwriteInput { path: PathBuf },
-    #[error("{0}")]
-    Invalid(String),
-    #[error("cancelled")]
-    Cancelled,
-}
-
-impl NodeError {
-    pub fn input(port: &str, message: impl Into<String>) -> Self {
-        NodeError::Input {
-            port: port.to_string(),
-            message: message.into(),
-        }
-    }
-    pub fn param(param: &str, message: impl Into<String>) -> Self {
-        NodeError::Param {
-            param: param.to_string(),
-            message: message.into(),
-        }
-    }
-}
-
 /// Shared flag that asks running nodes to stop.
 #[derive(Debug, Clone, Default)]
 pub struct CancelToken(Arc<AtomicBool>);
@@ -137,6 +101,30 @@ impl CancelToken {
 /// Receives progress reports: `(node name, fraction in [0, 1])`.
 pub type ProgressFn = Arc<dyn Fn(&str, f32) + Send + Sync>;
 
+/// Where the engine keeps values that nodes derive from their inputs: the
+/// memory cache (whose budget counts them) and the disk cache.
+pub trait ValueStore: Sync {
+    /// The value kept under `key`, unless lookups are off (`--no-cache`).
+    fn lookup(&self, key: &Key) -> Option<Value>;
+    /// Keeps `value` under `key`.
+    fn store(&self, key: Key, value: Value);
+}
+
+/// What [`EvalCtx::derived`] needs: the store, the node's identity and the
+/// keys of its inputs; it records what it did for the trace.
+pub struct Derivations<'a> {
+    /// Where the values live.
+    pub store: &'a dyn ValueStore,
+    /// The node's kind.
+    pub kind: &'a str,
+    /// The node kind's version.
+    pub version: u32,
+    /// Key of the value on each connected input port.
+    pub input_keys: &'a BTreeMap<String, Key>,
+    /// What was derived, for the trace.
+    pub records: Mutex<Vec<DerivedRecord>>,
+}
+
 /// What a node sees of the run besides its inputs.
 pub struct EvalCtx<'a> {
     /// The node's name in the pipeline.
@@ -147,9 +135,59 @@ pub struct EvalCtx<'a> {
     pub out_dir: &'a std::path::Path,
     /// Files the pipeline reads (sinks refuse to write over them).
     pub input_files: &'a [PathBuf],
+    /// The engine's store of derived values; `None` outside an engine (then
+    /// [`EvalCtx::derived`] builds every time).
+    pub derivations: Option<&'a Derivations<'a>>,
 }
 
 impl EvalCtx<'_> {
+    /// A value derived from some of the node's inputs (`ports`) and its own
+    /// key material (`extra`: the parameters it depends on, canonically
+    /// encoded), kept by the engine under a Merkle key like any output, so
+    /// a later run whose other inputs changed reuses it. This is how a
+    /// node keeps per-photo work across edits of the rest (the relighting's
+    /// scene part): never in a static. `build` runs on a miss.
+    pub fn derived<T: Extension>(
+        &self,
+        name: &'static str,
+        ports: &[&str],
+        extra: &[u8],
+        build: impl FnOnce() -> Result<T, NodeError>,
+    ) -> Result<Arc<T>, NodeError> {
+        let Some(d) = self.derivations else {
+            return Ok(Arc::new(build()?));
+        };
+        let inputs: Vec<(&str, Option<Key>)> = ports
+            .iter()
+            .map(|p| (*p, d.input_keys.get(*p).copied()))
+            .collect();
+        let key = derived_key(d.kind, d.version, name, extra, &inputs);
+        let t = std::time::Instant::now();
+        let record = |status, bytes| {
+            let rec = DerivedRecord {
+                name: name.to_string(),
+                status,
+                ms: t.elapsed().as_secs_f64() * 1e3,
+                bytes,
+            };
+            d.records
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(rec);
+        };
+        if let Some(Value::Extension(e)) = d.store.lookup(&key) {
+            let any: Arc<dyn Any + Send + Sync> = e;
+            if let Ok(v) = any.downcast::<T>() {
+                record(Status::Cached, v.bytes());
+                return Ok(v);
+            }
+        }
+        let v = Arc::new(build()?);
+        record(Status::Ran, v.bytes());
+        d.store.store(key, Value::Extension(v.clone()));
+        Ok(v)
+    }
+
     /// Reports progress; long nodes call this now and then.
     pub fn progress(&self, fraction: f32) {
         if let Some(p) = self.progress {
@@ -246,29 +284,16 @@ impl Inputs {
     typed_getter!(
         (color, color_opt, Color, ColorImage),
         (depth, depth_opt, Depth, DepthMap),
+        (mask, mask_opt, Mask, Mask),
+        (confidence, confidence_opt, Confidence, Confidence),
         (normals, normals_opt, Normals, NormalMap),
         (labels, labels_opt, Labels, LabelImage),
         (point_cloud, point_cloud_opt, PointCloud, PointCloud),
         (mesh, mesh_opt, Mesh, Mesh),
         (exposures, exposures_opt, ExposureStack, ExposureStack),
+        (vpls, vpls_opt, Vpls, VplSet),
     );
-    /// A Mask or Confidence input (they share a representation).
-    pub fn mask(&self, port: &str) -> Result<&Arc<Mask>, NodeError> {
-        match self.values.get(port) {
-            Some(Value::Mask(v)) | Some(Value::Confidence(v)) => Ok(v),
-            Some(other) => Err(NodeError::input(
-                port,
-                format!("expected Mask, found {}", other.value_type()),
-            )),
-            None => Err(NodeError::input(port, "not connected")),
-        }
-    }
-    pub fn mask_opt(&self, port: &str) -> Result<Option<&Arc<Confidence>>, NodeError> {
-        match self.values.get(port) {
-            None => Ok(None),
-            Some(_) => self.mask(port).map(Some),
-        }
-    }
+    /// The required `Intrinsics` input `port`.
     pub fn intrinsics(&self, port: &str) -> Result<Intrinsics, NodeError> {
         match self.values.get(port) {
             Some(Value::Intrinsics(k)) => Ok(*k),
@@ -279,18 +304,36 @@ impl Inputs {
             None => Err(NodeError::input(port, "not connected")),
         }
     }
+    /// The optional `Intrinsics` input `port`.
     pub fn intrinsics_opt(&self, port: &str) -> Result<Option<Intrinsics>, NodeError> {
         match self.values.get(port) {
             None => Ok(None),
             Some(_) => self.intrinsics(port).map(Some),
         }
     }
+    /// The required `Scalar` input `port`.
     pub fn scalar(&self, port: &str) -> Result<f64, NodeError> {
         match self.values.get(port) {
             Some(Value::Scalar(x)) => Ok(*x),
             Some(other) => Err(NodeError::input(
                 port,
                 format!("expected Scalar, found {}", other.value_type()),
+            )),
+            None => Err(NodeError::input(port, "not connected")),
+        }
+    }
+    /// The required extension input `port`, downcast to `T`.
+    pub fn extension<T: Extension>(&self, port: &str) -> Result<&T, NodeError> {
+        match self.values.get(port) {
+            Some(Value::Extension(e)) => e.as_any().downcast_ref::<T>().ok_or_else(|| {
+                NodeError::input(
+                    port,
+                    format!("expected another kind than {}", e.type_name()),
+                )
+            }),
+            Some(other) => Err(NodeError::input(
+                port,
+                format!("expected an extension value, found {}", other.value_type()),
             )),
             None => Err(NodeError::input(port, "not connected")),
         }
@@ -323,27 +366,6 @@ impl Outputs {
     /// Total bytes held by the values.
     pub fn bytes(&self) -> usize {
         self.values.values().map(Value::bytes).sum()
-    }
-}
-
-impl From<DepthMap> for Value {
-    fn from(v: DepthMap) -> Value {
-        Value::Depth(Arc::new(v))
-    }
-}
-impl From<Intrinsics> for Value {
-    fn from(v: Intrinsics) -> Value {
-        Value::Intrinsics(v)
-    }
-}
-impl From<f64> for Value {
-    fn from(v: f64) -> Value {
-        Value::Scalar(v)
-    }
-}
-impl From<PathBuf> for Value {
-    fn from(v: PathBuf) -> Value {
-        Value::File(v)
     }
 }
 

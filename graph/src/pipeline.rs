@@ -10,6 +10,7 @@ use std::sync::Arc;
 use petgraph::algo::{tarjan_scc, toposort};
 use petgraph::graph::{DiGraph, NodeIndex};
 
+use crate::codec::Decoders;
 use crate::document::{Document, split_ref};
 use crate::error::{CheckError, Location};
 use crate::node::Node;
@@ -54,6 +55,8 @@ pub struct Pipeline {
     /// Node indices in a topological order.
     pub order: Vec<usize>,
     pub outputs: Vec<OutputRef>,
+    /// How the disk cache reads extension values back (from the registry).
+    pub decoders: Arc<Decoders>,
 }
 
 impl Pipeline {
@@ -332,6 +335,7 @@ impl Pipeline {
             graph,
             order,
             outputs,
+            decoders: registry.decoders(),
         })
     }
 

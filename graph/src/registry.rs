@@ -3,7 +3,9 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use crate::codec::Decoders;
 use crate::node::Node;
+use crate::value::ExtensionDecoder;
 
 /// Node kinds by name. A kind may have several backends ("cpu", "wgpu") with
 /// identical schemas; [`Registry::get`] returns the preferred one available.
@@ -12,6 +14,8 @@ pub struct Registry {
     kinds: BTreeMap<&'static str, Vec<Arc<dyn Node>>>,
     /// Backend names in order of preference, e.g. `["wgpu", "cpu"]`.
     preference: Vec<&'static str>,
+    /// Decoders of extension values, for the disk cache.
+    decoders: Arc<Decoders>,
 }
 
 /// Registering a kind twice, or a backend whose schema differs.
@@ -33,6 +37,7 @@ impl Registry {
         Self {
             kinds: BTreeMap::new(),
             preference: vec!["cpu"],
+            decoders: Arc::default(),
         }
     }
 
@@ -66,6 +71,17 @@ impl Registry {
         }
         list.push(Arc::new(node));
         Ok(())
+    }
+
+    /// Declares an extension value kind ([`Extension`](crate::value::Extension))
+    /// and how the disk cache reads it back.
+    pub fn register_value(&mut self, type_name: &'static str, decoder: ExtensionDecoder) {
+        Arc::make_mut(&mut self.decoders).insert(type_name, decoder);
+    }
+
+    /// The decoders of extension values.
+    pub fn decoders(&self) -> Arc<Decoders> {
+        self.decoders.clone()
     }
 
     /// Sets the preferred backends, most preferred first; "cpu" is always the fallback.

@@ -18,11 +18,14 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use crate::cache::{DiskCache, MemoryCache};
+use crate::codec::Decoders;
 use crate::error::RunError;
 use crate::key::{Key, node_key};
-use crate::node::{CancelToken, EvalCtx, Inputs, NodeError, Outputs, ProgressFn};
+use crate::node::{
+    CancelToken, Derivations, EvalCtx, Inputs, NodeError, Outputs, ProgressFn, ValueStore,
+};
 use crate::pipeline::Pipeline;
-use crate::trace::{NodeRecord, Status, Trace};
+use crate::trace::{DerivedRecord, NodeRecord, Status, Trace};
 use crate::value::Value;
 
 /// How an [`Engine`] keeps results and how many threads it uses.
@@ -79,7 +82,7 @@ pub struct Engine {
 }
 
 /// A node index with its outputs and time (ms), or the error it raised.
-type Finished = (usize, Result<(Outputs, f64), RunError>);
+type Finished = (usize, Result<(Outputs, f64, Vec<DerivedRecord>), RunError>);
 
 enum State {
     Unvisited,
@@ -159,7 +162,7 @@ impl Engine {
             let node = &p.nodes[i];
             let cacheable = !node.node.schema().sink && !opts.force.contains(&i);
             let hit = if cacheable && !opts.no_cache_lookup {
-                self.lookup(&keys[i])
+                self.lookup(&keys[i], &p.decoders)
             } else {
                 None
             };
@@ -196,6 +199,7 @@ impl Engine {
             })
             .collect();
         let mut timings: Vec<f64> = vec![0.0; n];
+        let mut derived: Vec<Vec<DerivedRecord>> = vec![Vec::new(); n];
         let mut input_files = p.input_files();
         input_files.extend(opts.protected_files.iter().cloned());
 
@@ -215,8 +219,9 @@ impl Engine {
                 for &i in &batch {
                     let done = &done;
                     let input_files = &input_files;
+                    let keys = &keys;
                     s.spawn(move |_| {
-                        let r = self.eval_node(p, i, results_ref, opts, input_files);
+                        let r = self.eval_node(p, i, results_ref, opts, input_files, keys);
                         done.lock().unwrap_or_else(|e| e.into_inner()).push((i, r));
                     });
                 }
@@ -225,7 +230,8 @@ impl Engine {
             // Deterministic error reporting: the first failing node in order.
             done.sort_by_key(|(i, _)| p.order.iter().position(|o| o == i));
             for (i, r) in done {
-                let (out, ms) = r?;
+                let (out, ms, derived_here) = r?;
+                derived[i] = derived_here;
                 let out = Arc::new(out);
                 if !p.nodes[i].node.schema().sink {
                     self.lock_memory().put(keys[i], out.clone());
@@ -278,6 +284,7 @@ impl Engine {
                     bytes: results[i].as_ref().map(|o| o.bytes()).unwrap_or(0),
                     backend: node.node.backend().to_string(),
                     key: keys[i].to_hex(),
+                    derived: std::mem::take(&mut derived[i]),
                 }
             })
             .collect();
@@ -290,13 +297,13 @@ impl Engine {
         })
     }
 
-    fn lookup(&self, key: &Key) -> Option<(Arc<Outputs>, f64)> {
+    fn lookup(&self, key: &Key, decoders: &Decoders) -> Option<(Arc<Outputs>, f64)> {
         let t = Instant::now();
         if let Some(o) = self.lock_memory().get(key) {
             return Some((o, t.elapsed().as_secs_f64() * 1e3));
         }
         let disk = self.disk.as_ref()?;
-        let out = Arc::new(disk.get(key)?);
+        let out = Arc::new(disk.get(key, decoders)?);
         self.lock_memory().put(*key, out.clone());
         Some((out, t.elapsed().as_secs_f64() * 1e3))
     }
@@ -308,13 +315,14 @@ impl Engine {
         results: &[Option<Arc<Outputs>>],
         opts: &RunOptions,
         input_files: &[PathBuf],
-    ) -> Result<(Outputs, f64), RunError> {
+        keys: &[Key],
+    ) -> Result<(Outputs, f64, Vec<DerivedRecord>), RunError> {
         let node = &p.nodes[i];
         let schema = node.node.schema();
-        let fail = |source: NodeError| RunError::Node {
+        let fail = |error: NodeError| RunError::Node {
             node: node.name.clone(),
             kind: node.kind.clone(),
-            source,
+            error,
         };
         if opts.cancel.is_cancelled() {
             return Err(RunError::Cancelled);
@@ -329,14 +337,42 @@ impl Engine {
                     kind: p.nodes[src.node].kind.clone(),
                     port: src.port.clone(),
                 })?;
-            inputs.insert(port.clone(), v.clone());
+            // a Mask feeding a Confidence port (or the reverse) is retagged here
+            let v = match schema.input(port) {
+                Some(spec) => v.clone().converted_to(spec.ty),
+                None => v.clone(),
+            };
+            inputs.insert(port.clone(), v);
         }
+        let input_keys: BTreeMap<String, Key> = node
+            .inputs
+            .iter()
+            .map(|(port, src)| {
+                let mut h = blake3::Hasher::new();
+                h.update(keys[src.node].as_bytes());
+                h.update(src.port.as_bytes());
+                (port.clone(), Key::from_bytes(*h.finalize().as_bytes()))
+            })
+            .collect();
+        let store = EngineStore {
+            engine: self,
+            decoders: &p.decoders,
+            lookup: !opts.no_cache_lookup,
+        };
+        let derivations = Derivations {
+            store: &store,
+            kind: schema.kind,
+            version: schema.version,
+            input_keys: &input_keys,
+            records: Mutex::new(Vec::new()),
+        };
         let ctx = EvalCtx {
             node: &node.name,
             cancel: &opts.cancel,
             progress: opts.progress.as_ref(),
             out_dir: &opts.out_dir,
             input_files,
+            derivations: Some(&derivations),
         };
         let t = Instant::now();
         let out = node
@@ -369,6 +405,36 @@ impl Engine {
             }
         }
         ctx.progress(1.0);
-        Ok((out, ms))
+        let records = derivations
+            .records
+            .into_inner()
+            .unwrap_or_else(|e| e.into_inner());
+        Ok((out, ms, records))
+    }
+}
+
+/// The engine's caches as the store of derived values: one value under
+/// the port name `value`.
+struct EngineStore<'a> {
+    engine: &'a Engine,
+    decoders: &'a Decoders,
+    lookup: bool,
+}
+
+impl ValueStore for EngineStore<'_> {
+    fn lookup(&self, key: &Key) -> Option<Value> {
+        if !self.lookup {
+            return None;
+        }
+        let (out, _) = self.engine.lookup(key, self.decoders)?;
+        out.values.get("value").cloned()
+    }
+    fn store(&self, key: Key, value: Value) {
+        let out = Arc::new(Outputs::new().with("value", value));
+        self.engine.lock_memory().put(key, out.clone());
+        if let Some(disk) = &self.engine.disk {
+            // A cache that cannot be written is not an error of the run.
+            let _ = disk.put(&key, &out);
+        }
     }
 }

@@ -44,6 +44,22 @@ pub struct NodeRecord {
     pub backend: String,
     /// Hex cache key.
     pub key: String,
+    /// Values the node derived from its inputs and the engine keeps
+    /// ([`EvalCtx::derived`](crate::node::EvalCtx::derived)).
+    pub derived: Vec<DerivedRecord>,
+}
+
+/// One derived value of a node in a run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DerivedRecord {
+    /// The value's name, e.g. `"relight scene"`.
+    pub name: String,
+    /// `Cached` when taken from the memory or disk cache, else `Ran`.
+    pub status: Status,
+    /// Time to build or fetch it, milliseconds.
+    pub ms: f64,
+    /// Its size.
+    pub bytes: usize,
 }
 
 /// The whole run.
@@ -106,6 +122,18 @@ impl Trace {
                 human_bytes(r.bytes),
                 r.reason.as_deref().unwrap_or("")
             );
+            for d in &r.derived {
+                let _ = writeln!(
+                    s,
+                    "{:<w_node$}  {:<w_kind$}  {:<11}  {:>9.2}  {:>10}  derived: {}",
+                    "",
+                    "",
+                    d.status.as_str(),
+                    d.ms,
+                    human_bytes(d.bytes),
+                    d.name
+                );
+            }
         }
         let total: f64 = self.nodes.iter().map(|r| r.ms).sum();
         let _ = writeln!(

@@ -16,20 +16,63 @@
 //! - Images are row-major, `y` down, pixel centres at integer + 0.5.
 //! - Camera frame: `x` right, `y` down, `z` forward (OpenCV convention).
 
+use std::any::Any;
 use std::fmt;
+use std::marker::PhantomData;
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-/// A row-major 2-D grid of pixels.
-#[derive(Clone, PartialEq)]
-pub struct Image<T> {
+/// Marker types that tell images of the same pixel type apart (the second
+/// parameter of [`Image`]): a depth map is not a mask, though both hold one
+/// `f32` per pixel. Constructors are generic in the tag, so the tag comes
+/// from the type the caller asks for; turning one kind into another is an
+/// explicit [`Image::retag`].
+pub mod tag {
+    /// An image with no further meaning (color, labels, scratch buffers).
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+    pub struct Plain;
+    /// Depth in metres, `0` = no measurement.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+    pub struct Depth;
+    /// Selection or alpha in `[0, 1]`.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+    pub struct Mask;
+    /// Confidence in `[0, 1]`.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+    pub struct Confidence;
+    /// Unit normals in the camera frame.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+    pub struct Normals;
+}
+
+/// A row-major 2-D grid of pixels of type `T`; `K` (a [`tag`]) says what
+/// the pixels mean.
+pub struct Image<T, K = tag::Plain> {
     width: usize,
     height: usize,
     data: Vec<T>,
+    kind: PhantomData<K>,
 }
 
-impl<T: fmt::Debug> fmt::Debug for Image<T> {
+impl<T: Clone, K> Clone for Image<T, K> {
+    fn clone(&self) -> Self {
+        Self {
+            width: self.width,
+            height: self.height,
+            data: self.data.clone(),
+            kind: PhantomData,
+        }
+    }
+}
+
+impl<T: PartialEq, K> PartialEq for Image<T, K> {
+    fn eq(&self, o: &Self) -> bool {
+        self.width == o.width && self.height == o.height && self.data == o.data
+    }
+}
+
+impl<T, K> fmt::Debug for Image<T, K> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "Image({}x{})", self.width, self.height)
     }
@@ -45,18 +88,19 @@ pub struct ShapeError {
     pub found: usize,
 }
 
-impl<T: Clone> Image<T> {
+impl<T: Clone, K> Image<T, K> {
     /// An image filled with one value.
     pub fn filled(width: usize, height: usize, value: T) -> Self {
         Self {
             width,
             height,
             data: vec![value; width * height],
+            kind: PhantomData,
         }
     }
 }
 
-impl<T> Image<T> {
+impl<T, K> Image<T, K> {
     /// Wraps a row-major buffer; fails when its length is not `width * height`.
     pub fn from_vec(width: usize, height: usize, data: Vec<T>) -> Result<Self, ShapeError> {
         let expected = width.saturating_mul(height);
@@ -72,6 +116,7 @@ impl<T> Image<T> {
             width,
             height,
             data,
+            kind: PhantomData,
         })
     }
 
@@ -87,12 +132,15 @@ impl<T> Image<T> {
             width,
             height,
             data,
+            kind: PhantomData,
         }
     }
 
+    /// Width in pixels.
     pub fn width(&self) -> usize {
         self.width
     }
+    /// Height in pixels.
     pub fn height(&self) -> usize {
         self.height
     }
@@ -100,18 +148,23 @@ impl<T> Image<T> {
     pub fn dims(&self) -> (usize, usize) {
         (self.width, self.height)
     }
+    /// Number of pixels.
     pub fn len(&self) -> usize {
         self.data.len()
     }
+    /// True for an image without pixels.
     pub fn is_empty(&self) -> bool {
         self.data.is_empty()
     }
+    /// The pixels, row-major.
     pub fn as_slice(&self) -> &[T] {
         &self.data
     }
+    /// The pixels, row-major, writable.
     pub fn as_mut_slice(&mut self) -> &mut [T] {
         &mut self.data
     }
+    /// The pixel buffer, row-major.
     pub fn into_vec(self) -> Vec<T> {
         self.data
     }
@@ -120,6 +173,7 @@ impl<T> Image<T> {
     pub fn get(&self, x: usize, y: usize) -> &T {
         &self.data[y * self.width + x]
     }
+    /// Mutable pixel at `(x, y)`; panics when out of bounds (an internal bug).
     #[inline]
     pub fn get_mut(&mut self, x: usize, y: usize) -> &mut T {
         &mut self.data[y * self.width + x]
@@ -137,16 +191,32 @@ impl<T> Image<T> {
     pub fn row(&self, y: usize) -> &[T] {
         &self.data[y * self.width..(y + 1) * self.width]
     }
-    /// Applies `f` to every pixel.
-    pub fn map<U>(&self, f: impl Fn(&T) -> U) -> Image<U> {
+    /// Applies `f` to every pixel; the result's kind is the one the caller asks for.
+    pub fn map<U, K2>(&self, f: impl Fn(&T) -> U) -> Image<U, K2> {
         Image {
             width: self.width,
             height: self.height,
             data: self.data.iter().map(f).collect(),
+            kind: PhantomData,
+        }
+    }
+    /// Applies `f` to every pixel, keeping the pixel type and the kind (a
+    /// depth map stays a depth map).
+    pub fn map_same(&self, f: impl Fn(&T) -> T) -> Self {
+        self.map(f)
+    }
+    /// The same pixels with another meaning: the one explicit way to turn,
+    /// say, a mask into a confidence.
+    pub fn retag<K2>(self) -> Image<T, K2> {
+        Image {
+            width: self.width,
+            height: self.height,
+            data: self.data,
+            kind: PhantomData,
         }
     }
     /// Same dimensions as `other`.
-    pub fn same_dims<U>(&self, other: &Image<U>) -> bool {
+    pub fn same_dims<U, K2>(&self, other: &Image<U, K2>) -> bool {
         self.width == other.width && self.height == other.height
     }
 }
@@ -158,16 +228,16 @@ pub type Rgb = [f32; 3];
 pub type ColorImage = Image<Rgb>;
 
 /// Depth in metres, `0.0` = no measurement (see the module conventions).
-pub type DepthMap = Image<f32>;
+pub type DepthMap = Image<f32, tag::Depth>;
 
 /// Per-pixel values in `[0, 1]`: selection masks, alpha.
-pub type Mask = Image<f32>;
+pub type Mask = Image<f32, tag::Mask>;
 
 /// Per-pixel confidence in `[0, 1]`.
-pub type Confidence = Image<f32>;
+pub type Confidence = Image<f32, tag::Confidence>;
 
 /// Unit normals in the camera frame; `[0, 0, 0]` where unknown.
-pub type NormalMap = Image<[f32; 3]>;
+pub type NormalMap = Image<[f32; 3], tag::Normals>;
 
 /// Integer labels per pixel (object ids); `0` = background / none.
 pub type LabelImage = Image<u32>;
@@ -275,26 +345,75 @@ pub struct ExposureStack {
     pub times_s: Vec<f64>,
 }
 
+/// One directional virtual point light (instant radiosity, 3d-editing
+/// §IV.A): light arriving from `direction` with irradiance `power`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Vpl {
+    /// Unit direction towards the light, camera frame.
+    pub direction: [f32; 3],
+    /// Irradiance at normal incidence, linear RGB.
+    pub power: Rgb,
+}
+
+/// A set of directional VPLs, as `VplSample` draws them from an environment map.
+pub type VplSet = Vec<Vpl>;
+
+/// A value of a kind defined outside this crate (by a node crate): its
+/// type name, its size for the cache budgets and, where it can be kept on
+/// disk, its encoding. Adding such a kind touches only the crate that
+/// defines it: implement this trait and, for the disk cache, register a
+/// decoder with [`Registry::register_value`](crate::registry::Registry::register_value).
+pub trait Extension: Any + Send + Sync + fmt::Debug {
+    /// Name shown in port types and errors; also the key of its decoder.
+    fn type_name(&self) -> &'static str;
+    /// Approximate heap size in bytes.
+    fn bytes(&self) -> usize;
+    /// The bytes the registered decoder reads back, or `None` when the
+    /// value is kept in memory only.
+    fn encode(&self) -> Option<Vec<u8>>;
+    /// `self` as [`Any`], to downcast to the concrete type.
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// Reads back what [`Extension::encode`] wrote; `None` for malformed bytes.
+pub type ExtensionDecoder = fn(&[u8]) -> Option<Arc<dyn Extension>>;
+
 /// The type of a port or value.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum ValueType {
+    /// Linear RGB image.
     Color,
+    /// Depth map, metres.
     Depth,
+    /// Mask in `[0, 1]`.
     Mask,
+    /// Confidence in `[0, 1]`.
     Confidence,
+    /// Unit normals.
     Normals,
+    /// Integer labels.
     Labels,
+    /// Pinhole intrinsics.
     Intrinsics,
+    /// Camera-space points.
     PointCloud,
+    /// Camera-space triangle mesh.
     Mesh,
+    /// LDR exposures and their times.
     ExposureStack,
+    /// Directional virtual point lights.
+    Vpls,
+    /// A number.
     Scalar,
     /// A file that a sink node wrote.
     File,
+    /// A kind defined by a node crate ([`Extension`]), by its type name.
+    Extension(&'static str),
 }
 
 impl ValueType {
-    pub const ALL: [ValueType; 12] = [
+    /// Every built-in type (extensions are not listed).
+    pub const ALL: [ValueType; 13] = [
         ValueType::Color,
         ValueType::Depth,
         ValueType::Mask,
@@ -305,6 +424,7 @@ impl ValueType {
         ValueType::PointCloud,
         ValueType::Mesh,
         ValueType::ExposureStack,
+        ValueType::Vpls,
         ValueType::Scalar,
         ValueType::File,
     ];
@@ -322,13 +442,16 @@ impl ValueType {
             ValueType::PointCloud => "PointCloud",
             ValueType::Mesh => "Mesh",
             ValueType::ExposureStack => "ExposureStack",
+            ValueType::Vpls => "Vpls",
             ValueType::Scalar => "Scalar",
             ValueType::File => "File",
+            ValueType::Extension(name) => name,
         }
     }
 
-    /// Whether a value of type `self` may feed a port of type `to`.
-    /// Mask and Confidence share a representation and convert freely.
+    /// Whether a value of type `self` may feed a port of type `to`: the
+    /// same type, or Mask and Confidence (both in `[0, 1]`; the input
+    /// getters retag one as the other).
     pub fn connects_to(self, to: ValueType) -> bool {
         self == to
             || matches!(
@@ -344,25 +467,72 @@ impl fmt::Display for ValueType {
     }
 }
 
+impl Serialize for ValueType {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
 /// A value on a wire.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub enum Value {
+    /// Linear RGB image.
     Color(Arc<ColorImage>),
+    /// Depth map.
     Depth(Arc<DepthMap>),
+    /// Mask in `[0, 1]`.
     Mask(Arc<Mask>),
+    /// Confidence in `[0, 1]`.
     Confidence(Arc<Confidence>),
+    /// Unit normals.
     Normals(Arc<NormalMap>),
+    /// Integer labels.
     Labels(Arc<LabelImage>),
+    /// Pinhole intrinsics.
     Intrinsics(Intrinsics),
+    /// Camera-space points.
     PointCloud(Arc<PointCloud>),
+    /// Camera-space mesh.
     Mesh(Arc<Mesh>),
+    /// LDR exposures.
     ExposureStack(Arc<ExposureStack>),
+    /// Directional VPLs.
+    Vpls(Arc<VplSet>),
+    /// A number.
     Scalar(f64),
     /// Path of a file written by a sink.
     File(std::path::PathBuf),
+    /// A value of a kind defined by a node crate.
+    Extension(Arc<dyn Extension>),
+}
+
+impl PartialEq for Value {
+    /// Equal contents; extension values are equal only when they are the
+    /// same allocation.
+    fn eq(&self, o: &Value) -> bool {
+        use Value as V;
+        match (self, o) {
+            (V::Color(a), V::Color(b)) => a == b,
+            (V::Depth(a), V::Depth(b)) => a == b,
+            (V::Mask(a), V::Mask(b)) => a == b,
+            (V::Confidence(a), V::Confidence(b)) => a == b,
+            (V::Normals(a), V::Normals(b)) => a == b,
+            (V::Labels(a), V::Labels(b)) => a == b,
+            (V::Intrinsics(a), V::Intrinsics(b)) => a == b,
+            (V::PointCloud(a), V::PointCloud(b)) => a == b,
+            (V::Mesh(a), V::Mesh(b)) => a == b,
+            (V::ExposureStack(a), V::ExposureStack(b)) => a == b,
+            (V::Vpls(a), V::Vpls(b)) => a == b,
+            (V::Scalar(a), V::Scalar(b)) => a == b,
+            (V::File(a), V::File(b)) => a == b,
+            (V::Extension(a), V::Extension(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        }
+    }
 }
 
 impl Value {
+    /// The value's type.
     pub fn value_type(&self) -> ValueType {
         match self {
             Value::Color(_) => ValueType::Color,
@@ -375,8 +545,10 @@ impl Value {
             Value::PointCloud(_) => ValueType::PointCloud,
             Value::Mesh(_) => ValueType::Mesh,
             Value::ExposureStack(_) => ValueType::ExposureStack,
+            Value::Vpls(_) => ValueType::Vpls,
             Value::Scalar(_) => ValueType::Scalar,
             Value::File(_) => ValueType::File,
+            Value::Extension(e) => ValueType::Extension(e.type_name()),
         }
     }
 
@@ -385,7 +557,9 @@ impl Value {
         use std::mem::size_of;
         match self {
             Value::Color(i) => i.len() * size_of::<Rgb>(),
-            Value::Depth(i) | Value::Mask(i) | Value::Confidence(i) => i.len() * 4,
+            Value::Depth(i) => i.len() * 4,
+            Value::Mask(i) => i.len() * 4,
+            Value::Confidence(i) => i.len() * 4,
             Value::Normals(i) => i.len() * 12,
             Value::Labels(i) => i.len() * 4,
             Value::Intrinsics(_) => size_of::<Intrinsics>(),
@@ -396,16 +570,56 @@ impl Value {
             Value::ExposureStack(s) => {
                 s.images.iter().map(|i| i.len() * 12).sum::<usize>() + s.times_s.len() * 8
             }
+            Value::Vpls(v) => v.len() * size_of::<Vpl>(),
             Value::Scalar(_) => 8,
             Value::File(p) => p.as_os_str().len(),
+            Value::Extension(e) => e.bytes(),
         }
+    }
+
+    /// The value as a port of type `to` takes it: a Mask for a Confidence
+    /// port and the other way round are retagged (a copy of the pixels);
+    /// everything else is returned as it is.
+    pub fn converted_to(self, to: ValueType) -> Value {
+        match (self, to) {
+            (Value::Mask(m), ValueType::Confidence) => {
+                Value::Confidence(Arc::new(Arc::unwrap_or_clone(m).retag()))
+            }
+            (Value::Confidence(c), ValueType::Mask) => {
+                Value::Mask(Arc::new(Arc::unwrap_or_clone(c).retag()))
+            }
+            (v, _) => v,
+        }
+    }
+
+    /// The samples of an image value of `f32` channels (Color, Normals:
+    /// 3; Depth, Mask, Confidence: 1), whatever its kind, for code that
+    /// treats pixels alike (metrics, hashes, previews).
+    pub fn samples(&self) -> Option<Samples<'_>> {
+        let (w, h) = self.image_dims()?;
+        let (channels, samples) = match self {
+            Value::Color(i) => (3, i.as_slice().as_flattened()),
+            Value::Normals(i) => (3, i.as_slice().as_flattened()),
+            Value::Depth(i) => (1, i.as_slice()),
+            Value::Mask(i) => (1, i.as_slice()),
+            Value::Confidence(i) => (1, i.as_slice()),
+            _ => return None,
+        };
+        Some(Samples {
+            width: w,
+            height: h,
+            channels,
+            samples,
+        })
     }
 
     /// Pixel dimensions for image-like values.
     pub fn image_dims(&self) -> Option<(usize, usize)> {
         match self {
             Value::Color(i) => Some(i.dims()),
-            Value::Depth(i) | Value::Mask(i) | Value::Confidence(i) => Some(i.dims()),
+            Value::Depth(i) => Some(i.dims()),
+            Value::Mask(i) => Some(i.dims()),
+            Value::Confidence(i) => Some(i.dims()),
             Value::Normals(i) => Some(i.dims()),
             Value::Labels(i) => Some(i.dims()),
             Value::ExposureStack(s) => s.images.first().map(|i| i.dims()),
@@ -414,14 +628,59 @@ impl Value {
     }
 }
 
+/// A read-only view of an image value's `f32` samples ([`Value::samples`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Samples<'a> {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Samples per pixel.
+    pub channels: usize,
+    /// Row-major, `channels` per pixel.
+    pub samples: &'a [f32],
+}
+
 macro_rules! value_from {
     ($($variant:ident : $t:ty),*) => {$(
         impl From<$t> for Value {
             fn from(v: $t) -> Value { Value::$variant(Arc::new(v)) }
         }
+        impl From<Arc<$t>> for Value {
+            fn from(v: Arc<$t>) -> Value { Value::$variant(v) }
+        }
     )*};
 }
-value_from!(Color: ColorImage, Labels: LabelImage, PointCloud: PointCloud, Mesh: Mesh, ExposureStack: ExposureStack);
+// Every kind of value converts into `Value` by its own type, so an output
+// built as a `Mask` cannot be wrapped as a `Depth` by mistake.
+value_from!(
+    Color: ColorImage,
+    Depth: DepthMap,
+    Mask: Mask,
+    Confidence: Confidence,
+    Normals: NormalMap,
+    Labels: LabelImage,
+    PointCloud: PointCloud,
+    Mesh: Mesh,
+    ExposureStack: ExposureStack,
+    Vpls: VplSet
+);
+
+impl From<Intrinsics> for Value {
+    fn from(v: Intrinsics) -> Value {
+        Value::Intrinsics(v)
+    }
+}
+impl From<f64> for Value {
+    fn from(v: f64) -> Value {
+        Value::Scalar(v)
+    }
+}
+impl From<std::path::PathBuf> for Value {
+    fn from(v: std::path::PathBuf) -> Value {
+        Value::File(v)
+    }
+}
 
 #[cfg(test)]
 mod tests {
@@ -429,10 +688,10 @@ mod tests {
 
     #[test]
     fn from_vec_rejects_wrong_length() {
-        let err = Image::from_vec(3, 2, vec![0.0f32; 5]).unwrap_err();
+        let err = Image::<f32>::from_vec(3, 2, vec![0.0f32; 5]).unwrap_err();
         assert_eq!(err.expected, 6);
         assert_eq!(err.found, 5);
-        assert!(Image::from_vec(3, 2, vec![0.0f32; 6]).is_ok());
+        assert!(Image::<f32>::from_vec(3, 2, vec![0.0f32; 6]).is_ok());
     }
 
     #[test]

@@ -28,7 +28,7 @@ node_params! {
 
 fn source(ctx: &EvalCtx, _: &Inputs, p: &SourceParams) -> Result<Outputs, NodeError> {
     ctx.progress(0.5);
-    let img = Image::from_fn(p.size, p.size, |x, y| {
+    let img = DepthMap::from_fn(p.size, p.size, |x, y| {
         (x * 31 + y * 7) as f32 * 0.01 + p.offset as f32
     });
     Ok(Outputs::new().with("depth", img))
@@ -40,7 +40,7 @@ fn scale(_: &EvalCtx, i: &Inputs, p: &ScaleParams) -> Result<Outputs, NodeError>
             .with("depth", Value::Depth(d.clone()))
             .passthrough("factor is 1"));
     }
-    Ok(Outputs::new().with("depth", d.map(|v| v * p.factor as f32)))
+    Ok(Outputs::new().with("depth", d.map_same(|v| v * p.factor as f32)))
 }
 fn add(_: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
     let a = i.depth("a")?;
@@ -54,10 +54,7 @@ fn add(_: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
         .zip(b.as_slice())
         .map(|(x, y)| x + y)
         .collect();
-    Ok(Outputs::new().with(
-        "depth",
-        Image::from_vec(a.width(), a.height(), v).map_err(|e| NodeError::Invalid(e.to_string()))?,
-    ))
+    Ok(Outputs::new().with("depth", DepthMap::from_vec(a.width(), a.height(), v)?))
 }
 fn wait_cancel(ctx: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
     // A long node: checks cancellation between chunks of work.
@@ -301,7 +298,7 @@ fn memory_budget_is_respected_across_runs() {
 fn a_second_backend_is_chosen_at_run_time_with_the_same_cache_key() {
     fn scale_gpu(_: &EvalCtx, i: &Inputs, p: &ScaleParams) -> Result<Outputs, NodeError> {
         // stands in for a GPU implementation: same result, different backend
-        Ok(Outputs::new().with("depth", i.depth("depth")?.map(|v| v * p.factor as f32)))
+        Ok(Outputs::new().with("depth", i.depth("depth")?.map_same(|v| v * p.factor as f32)))
     }
     let d = |n| PortSpec::required(n, ValueType::Depth, "depth");
     let o = || vec![PortSpec::output("depth", ValueType::Depth, "depth")];

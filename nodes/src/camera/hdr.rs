@@ -54,7 +54,6 @@ use std::sync::Arc;
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
-use depthgraph_graph::value::ShapeError;
 use rayon::prelude::*;
 
 /// Number of levels of the response curve (8-bit codes).
@@ -737,10 +736,10 @@ pub fn merge_hdr(stack: &ExposureStack, curve: &ResponseCurve) -> Result<Merged,
                 }
             });
     }
-    let bad = |e: ShapeError| NodeError::Invalid(e.to_string());
+
     Ok(Merged {
-        color: Image::from_vec(w, h, color).map_err(bad)?,
-        fallback: Image::from_vec(w, h, fallback).map_err(bad)?,
+        color: Image::from_vec(w, h, color)?,
+        fallback: Image::from_vec(w, h, fallback)?,
     })
 }
 
@@ -831,7 +830,7 @@ pub fn bracket_entries(p: &LoadBracketParams) -> Result<Vec<(PathBuf, f64)>, Nod
         let path = Path::new(&p.list);
         let text = std::fs::read_to_string(path).map_err(|source| NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         })?;
         return parse_bracket_list(&text, path);
     }
@@ -1267,6 +1266,7 @@ mod tests {
             progress: None,
             out_dir: Path::new("."),
             input_files: &[],
+            derivations: None,
         };
         let mut inputs = Inputs::new();
         inputs.insert("stack", stack.into());

@@ -35,7 +35,7 @@
 
 use depthgraph_graph::prelude::*;
 
-use crate::sim::sensor::splitmix64;
+use crate::kit::rng::splitmix64;
 
 /// Names of the aperture shapes, for the `aperture` parameter.
 pub const APERTURES: &[&str] = &["disc", "polygon", "triangle", "mask"];

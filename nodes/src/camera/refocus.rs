@@ -353,7 +353,7 @@ pub fn refocus(
             }
         })
         .collect();
-    let out = Image::from_vec(w, h, data).map_err(|e| NodeError::Invalid(e.to_string()))?;
+    let out = Image::from_vec(w, h, data)?;
     Ok((
         out,
         RefocusReport {
@@ -554,7 +554,7 @@ pub fn reverse_mapped_dof(
             sum.map(|v| (v * inv) as f32)
         })
         .collect();
-    Image::from_vec(w, h, data).map_err(|e| NodeError::Invalid(e.to_string()))
+    Ok(Image::from_vec(w, h, data)?)
 }
 
 /// Pixel offsets inside `aperture` scaled to `diameter` pixels; always
@@ -965,7 +965,7 @@ mod tests {
             focus in proptest::prop_oneof![proptest::prelude::Just(0.06), proptest::prelude::Just(1.0), proptest::prelude::Just(f64::INFINITY)],
         ) {
             let mut s = seed;
-            let mut next = || { s = crate::sim::sensor::splitmix64(s); (s >> 11) as f64 / (1u64 << 53) as f64 };
+            let mut next = || { s = crate::kit::rng::splitmix64(s); (s >> 11) as f64 / (1u64 << 53) as f64 };
             let d = DepthMap::from_fn(w, h, |_, _| match (next() * 6.0) as u32 {
                 0 => 0.0,
                 1 => f32::NAN,

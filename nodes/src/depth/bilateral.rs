@@ -219,7 +219,7 @@ pub fn joint_bilateral(
     out.par_chunks_mut(w)
         .enumerate()
         .for_each(|(y, row)| ctx.filter_row(y, row));
-    Image::from_vec(w, h, out).map_err(|e| NodeError::Invalid(e.to_string()))
+    Ok(Image::from_vec(w, h, out)?)
 }
 
 /// What every row of [`joint_bilateral`] reads; exponents are in base 2
@@ -390,7 +390,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::sensor::PixelRng;
+    use crate::kit::rng::SplitMix64;
 
     /// Straightforward reference: exact `exp` per neighbour, `f64` throughout.
     fn reference(depth: &DepthMap, color: &ColorImage, p: &BilateralParams) -> DepthMap {
@@ -436,7 +436,7 @@ mod tests {
         });
         let truth = inside.map(|&b| if b { 1.0f32 } else { 2.0 });
         let noisy = Image::from_fn(w, h, |x, y| {
-            let mut rng = PixelRng::new(7, 0, x as u64, y as u64);
+            let mut rng = SplitMix64::for_pixel(7, 0, x as u64, y as u64);
             (*truth.get(x, y) as f64 + sigma_m * rng.gaussian()) as f32
         });
         (truth, noisy, inside)

@@ -10,6 +10,8 @@
 
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
+
+use crate::kit::checks::fits_intrinsics;
 use depthgraph_graph::registry::RegistryError;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -32,21 +34,7 @@ fn check_inputs(
     color: Option<&ColorImage>,
 ) -> Result<(), NodeError> {
     let (w, h) = depth.dims();
-    if (w, h) != (k.width, k.height) {
-        return Err(NodeError::input(
-            "depth",
-            format!(
-                "is {w}x{h} but the intrinsics are for {}x{}; give the Camera node the image's size",
-                k.width, k.height
-            ),
-        ));
-    }
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            "intrinsics",
-            "focal lengths must be finite and positive",
-        ));
-    }
+    fits_intrinsics("intrinsics", k, "depth map", (w, h))?;
     if let Some(c) = color {
         if !c.same_dims(depth) {
             return Err(NodeError::input(

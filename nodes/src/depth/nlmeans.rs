@@ -61,6 +61,8 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use rayon::prelude::*;
 
+use crate::kit::checks::{fits_intrinsics, same_size};
+
 /// Rows per band of the parallel passes (fixed, so results do not depend on
 /// the number of threads).
 const BAND_ROWS: usize = 32;
@@ -77,6 +79,20 @@ pub const MAX_SEARCH_RADIUS: usize = 30;
 pub const MAX_PATCH_RADIUS: usize = 10;
 /// "No sample" in the upsampling's sample map.
 const NO_SAMPLE: usize = usize::MAX;
+
+/// An optional confidence map must have the depth map's size.
+fn check_confidence(confidence: Option<&Confidence>, depth: &DepthMap) -> Result<(), NodeError> {
+    match confidence {
+        Some(c) => same_size(
+            "confidence",
+            "a confidence map",
+            c.dims(),
+            "the depth map",
+            depth.dims(),
+        ),
+        None => Ok(()),
+    }
+}
 
 // ---------------------------------------------------------------------------
 // Parameters
@@ -351,53 +367,8 @@ fn sanitize(depth: &DepthMap, confidence: Option<&Confidence>) -> (Vec<f32>, Vec
     (z, c)
 }
 
-fn check_dims<T, U>(
-    port: &str,
-    what: &str,
-    img: &Image<T>,
-    depth: &Image<U>,
-) -> Result<(), NodeError> {
-    if img.same_dims(depth) {
-        return Ok(());
-    }
-    Err(NodeError::input(
-        port,
-        format!(
-            "is {}x{} but the depth map is {}x{}; expected {what} of the depth map's size",
-            img.width(),
-            img.height(),
-            depth.width(),
-            depth.height()
-        ),
-    ))
-}
-
-fn check_camera(
-    port: &str,
-    k: &Intrinsics,
-    what: &str,
-    dims: (usize, usize),
-) -> Result<(), NodeError> {
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            port,
-            "expected finite, positive focal lengths and a finite principal point",
-        ));
-    }
-    if (k.width, k.height) != dims {
-        return Err(NodeError::input(
-            port,
-            format!(
-                "describe a {}x{} image but the {what} is {}x{}",
-                k.width, k.height, dims.0, dims.1
-            ),
-        ));
-    }
-    Ok(())
-}
-
-fn image<T>(w: usize, h: usize, data: Vec<T>) -> Result<Image<T>, NodeError> {
-    Image::from_vec(w, h, data).map_err(|e| NodeError::Invalid(e.to_string()))
+fn image<T, K>(w: usize, h: usize, data: Vec<T>) -> Result<Image<T, K>, NodeError> {
+    Ok(Image::from_vec(w, h, data)?)
 }
 
 // ---------------------------------------------------------------------------
@@ -457,9 +428,7 @@ pub fn prune_outliers(
     p: &PruneParams,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     p.check()?;
-    if let Some(c) = confidence {
-        check_dims("confidence", "a confidence map", c, depth)?;
-    }
+    check_confidence(confidence, depth)?;
     let (w, h) = depth.dims();
     let (z, c) = sanitize(depth, confidence);
     let mut out_z = z.clone();
@@ -1008,10 +977,14 @@ pub fn nlmeans_filter_with(
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
-    check_dims("color", "a guide image", guide_color, depth)?;
-    if let Some(c) = confidence {
-        check_dims("confidence", "a confidence map", c, depth)?;
-    }
+    same_size(
+        "color",
+        "a guide image",
+        guide_color.dims(),
+        "the depth map",
+        depth.dims(),
+    )?;
+    check_confidence(confidence, depth)?;
     let (w, h) = depth.dims();
     let (z, c) = sanitize(depth, confidence);
     let guide = guide_features(guide_color);
@@ -1076,7 +1049,13 @@ pub fn nlmeans_denoise_with(
     }
     // Check the filter's inputs before the pruning's work.
     Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
-    check_dims("color", "a guide image", guide_color, depth)?;
+    same_size(
+        "color",
+        "a guide image",
+        guide_color.dims(),
+        "the depth map",
+        depth.dims(),
+    )?;
     let (d, c) = prune_outliers(depth, confidence, &p.prune_params())?;
     nlmeans_filter_with(&d, Some(&c), guide_color, p, on_progress)
 }
@@ -1227,10 +1206,14 @@ pub fn nlmeans_inpaint_with(
     if core.search == 0 {
         return Err(NodeError::param("search_radius", "must be at least 1"));
     }
-    check_dims("color", "a guide image", guide_color, depth)?;
-    if let Some(c) = confidence {
-        check_dims("confidence", "a confidence map", c, depth)?;
-    }
+    same_size(
+        "color",
+        "a guide image",
+        guide_color.dims(),
+        "the depth map",
+        depth.dims(),
+    )?;
+    check_confidence(confidence, depth)?;
     let (w, h) = depth.dims();
     let (mut z, mut c) = sanitize(depth, confidence);
     let guide = guide_features(guide_color);
@@ -1427,11 +1410,11 @@ pub fn nlmeans_upsample_with(
     if !(0.0..=1.0).contains(&p.alpha) {
         return Err(NodeError::param("alpha", "must be in [0, 1]"));
     }
-    check_camera("intrinsics", low_k, "depth map", low_depth.dims())?;
+    fits_intrinsics("intrinsics", low_k, "depth map", low_depth.dims())?;
     let (w, h) = guide_color_high.dims();
     let high_k = match color_k {
         Some(k) => {
-            check_camera("color_intrinsics", k, "color image", (w, h))?;
+            fits_intrinsics("color_intrinsics", k, "color image", (w, h))?;
             *k
         }
         None => low_k.scaled_to(w, h),
@@ -1532,7 +1515,7 @@ fn eval_depth(
 ) -> Result<Outputs, NodeError> {
     let depth = inputs.depth("depth")?;
     let color = inputs.color("color")?;
-    let conf = inputs.mask_opt("confidence")?;
+    let conf = inputs.confidence_opt("confidence")?;
     let (d, c) = nlmeans_denoise_with(depth, conf.map(|c| c.as_ref()), color, p, |f| {
         ctx.progress(f);
         ctx.check_cancelled()
@@ -1568,13 +1551,25 @@ fn eval_inpaint(
 ) -> Result<Outputs, NodeError> {
     let depth = inputs.depth("depth")?;
     let color = inputs.color("color")?;
-    let conf = inputs.mask_opt("confidence")?;
+    let conf = inputs.confidence_opt("confidence")?;
     if depth.hole_count() == 0 {
         // Same checks as a real run, so a wrong wiring is not hidden.
-        check_dims("color", "a guide image", color.as_ref(), depth.as_ref())?;
+        same_size(
+            "color",
+            "a guide image",
+            color.as_ref().dims(),
+            "the depth map",
+            depth.as_ref().dims(),
+        )?;
         let c = match conf {
             Some(c) => {
-                check_dims("confidence", "a confidence map", c.as_ref(), depth.as_ref())?;
+                same_size(
+                    "confidence",
+                    "a confidence map",
+                    c.as_ref().dims(),
+                    "the depth map",
+                    depth.as_ref().dims(),
+                )?;
                 Arc::clone(c)
             }
             None => Arc::new(image(
@@ -1682,7 +1677,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::sensor::{KinectParams, PixelRng, ToFParams, simulate_kinect, simulate_tof};
+    use crate::kit::rng::SplitMix64;
+    use crate::sim::sensor::{KinectParams, ToFParams, simulate_kinect, simulate_tof};
     use crate::sim::synthetic::{RenderOptions, RenderOutput, Scene, render};
 
     fn tabletop(w: usize, h: usize) -> RenderOutput {
@@ -1783,7 +1779,7 @@ mod tests {
         let w = truth.width();
         let mut out = truth.clone();
         for (i, z) in out.as_mut_slice().iter_mut().enumerate() {
-            let mut rng = PixelRng::new(seed, 77, (i % w) as u64, (i / w) as u64);
+            let mut rng = SplitMix64::for_pixel(seed, 77, (i % w) as u64, (i / w) as u64);
             *z = (*z as f64 + (sigma_m + rel * *z as f64) * rng.gaussian()) as f32;
         }
         out
@@ -1796,7 +1792,7 @@ mod tests {
         let mut out = truth.clone();
         let mut mask = vec![false; truth.len()];
         for (i, z) in out.as_mut_slice().iter_mut().enumerate() {
-            let mut rng = PixelRng::new(seed, 78, (i % w) as u64, (i / w) as u64);
+            let mut rng = SplitMix64::for_pixel(seed, 78, (i % w) as u64, (i / w) as u64);
             if rng.uniform() < rate {
                 *z = (lo + (hi - lo) * rng.uniform()) as f32;
                 mask[i] = true;
@@ -2349,7 +2345,9 @@ mod tests {
         };
         let a = run(1);
         let b = run(3);
-        let bits = |m: &Image<f32>| m.as_slice().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        fn bits<K>(m: &Image<f32, K>) -> Vec<u32> {
+            m.as_slice().iter().map(|v| v.to_bits()).collect()
+        }
         for (x, y) in [(&a.0, &b.0), (&a.1, &b.1), (&a.2, &b.2)] {
             assert_eq!(bits(&x.0), bits(&y.0));
             assert_eq!(bits(&x.1), bits(&y.1));
@@ -2471,6 +2469,7 @@ mod tests {
             progress: Some(&progress),
             out_dir: std::path::Path::new("."),
             input_files: &[],
+            derivations: None,
         };
         for kind in ["NLMeansDepth", "NLMeansUpsample", "NLMeansInpaint"] {
             let node = reg.get(kind).unwrap();
@@ -2560,7 +2559,7 @@ mod tests {
             far_prior in any::<bool>(),
         ) {
             let depth = DepthMap::from_fn(w, h, |x, y| {
-                let mut rng = PixelRng::new(seed, 1, x as u64, y as u64);
+                let mut rng = SplitMix64::for_pixel(seed, 1, x as u64, y as u64);
                 if rng.uniform() < hole_rate {
                     [0.0, f32::NAN, -1.0][(rng.next_u64() % 3) as usize]
                 } else {
@@ -2568,7 +2567,7 @@ mod tests {
                 }
             });
             let color = ColorImage::from_fn(w, h, |x, y| {
-                let mut rng = PixelRng::new(seed, 2, x as u64, y as u64);
+                let mut rng = SplitMix64::for_pixel(seed, 2, x as u64, y as u64);
                 [rng.uniform() as f32, rng.uniform() as f32 * 4.0, 0.5]
             });
             let (lo, hi) = valid_range(&depth);

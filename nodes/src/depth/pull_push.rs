@@ -23,16 +23,24 @@
 
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
+
+use crate::kit::checks::sane_intrinsics;
 use depthgraph_graph::registry::RegistryError;
 use rayon::prelude::*;
 
-/// Which push weights to use.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Weights {
+/// Which push weights to use, with what each needs.
+#[derive(Debug, Clone, Copy)]
+pub enum Weights<'a> {
     /// Bilinear weights only (plain pull-push).
     Bilinear,
-    /// 3D-distance x color-similarity weights (eq. 2-4).
-    Dual,
+    /// 3D-distance x color-similarity weights (eq. 2-4): the color guide
+    /// and the intrinsics of the depth, both of the depth's size.
+    Dual {
+        /// Linear RGB guide.
+        color: &'a ColorImage,
+        /// Intrinsics of the depth image.
+        k: &'a Intrinsics,
+    },
 }
 
 node_params! {
@@ -108,29 +116,23 @@ fn pull(fine: &Level) -> Level {
     out
 }
 
-/// Fills the holes of `depth` (see the module docs). `k` and `color` are
-/// needed for [`Weights::Dual`] and ignored by [`Weights::Bilinear`] (pass the
-/// depth's own size for both).
+/// Fills the holes of `depth` (see the module docs) with the given weights.
 ///
 /// ```
-/// use depthgraph_graph::value::{Image, Intrinsics};
+/// use depthgraph_graph::value::{DepthMap, Intrinsics};
 /// use depthgraph_nodes::depth::pull_push::{pull_push, PullPushParams, Weights};
-/// let depth = Image::from_vec(3, 1, vec![1.0f32, 0.0, 3.0]).unwrap();
-/// let color = Image::filled(3, 1, [0.5f32; 3]);
-/// let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 1.5, cy: 0.5, width: 3, height: 1 };
-/// let out = pull_push(&depth, &color, &k, &PullPushParams::default(), Weights::Bilinear).unwrap();
+/// let depth = DepthMap::from_vec(3, 1, vec![1.0f32, 0.0, 3.0]).unwrap();
+/// let out = pull_push(&depth, &PullPushParams::default(), Weights::Bilinear).unwrap();
 /// assert!(out.depth.get(1, 0) > &1.0 && out.depth.get(1, 0) < &3.0);
 /// assert_eq!(out.holes_left, 0);
 /// ```
 pub fn pull_push(
     depth: &DepthMap,
-    color: &ColorImage,
-    k: &Intrinsics,
     p: &PullPushParams,
     weights: Weights,
 ) -> Result<Filled, NodeError> {
     let (w, h) = depth.dims();
-    if weights == Weights::Dual {
+    if let Weights::Dual { color, k } = weights {
         if !color.same_dims(depth) {
             return Err(NodeError::input(
                 "color",
@@ -147,12 +149,7 @@ pub fn pull_push(
                 format!("are for {}x{} but the depth is {w}x{h}", k.width, k.height),
             ));
         }
-        if !k.is_sane() {
-            return Err(NodeError::input(
-                "intrinsics",
-                "focal lengths must be finite and positive",
-            ));
-        }
+        sane_intrinsics("intrinsics", k)?;
     }
     let eps = p.epsilon;
     let mut levels = vec![Level {
@@ -174,14 +171,13 @@ pub fn pull_push(
             .iter()
             .map(|z| if DepthMap::is_valid(*z) { 1.0 } else { 0.0 })
             .collect(),
-        color: if weights == Weights::Dual {
-            color
+        color: match weights {
+            Weights::Dual { color, .. } => color
                 .as_slice()
                 .iter()
                 .map(|c| c.map(|v| if v.is_finite() { v as f64 } else { 0.0 }))
-                .collect()
-        } else {
-            vec![[0.0; 3]; w * h]
+                .collect(),
+            Weights::Bilinear => vec![[0.0; 3]; w * h],
         },
     }];
     // Pull until the coarsest level has no hole (auto) or the requested count.
@@ -268,7 +264,7 @@ pub fn pull_push(
                     let z_est = bd / bw; // guard: bw > 0 ensured above
                     let value = match weights {
                         Weights::Bilinear => z_est,
-                        Weights::Dual => {
+                        Weights::Dual { k, .. } => {
                             let u = (x as f64 + 0.5, y as f64 + 0.5);
                             let xi = unproject_at(k, scale_f, u, z_est);
                             let ci = fine_color[i];
@@ -334,7 +330,7 @@ pub fn pull_push(
         })
         .collect();
     Ok(Filled {
-        depth: Image::from_vec(w, h, out).map_err(|e| NodeError::Invalid(e.to_string()))?,
+        depth: Image::from_vec(w, h, out)?,
         filled,
         levels: (levels.len() - 1) as u32,
         holes_left,
@@ -356,64 +352,39 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
-fn eval_with(inputs: &Inputs, p: &PullPushParams, weights: Weights) -> Result<Outputs, NodeError> {
+fn eval_with(inputs: &Inputs, p: &PullPushParams, dual: bool) -> Result<Outputs, NodeError> {
     let depth = inputs.depth("depth")?;
     let holes = depth.hole_count();
     if holes == 0 {
         return Ok(Outputs::new()
             .with("depth", Value::Depth(depth.clone()))
-            .with(
-                "filled",
-                Value::Mask(std::sync::Arc::new(Image::filled(
-                    depth.width(),
-                    depth.height(),
-                    0.0,
-                ))),
-            )
+            .with("filled", Mask::filled(depth.width(), depth.height(), 0.0))
             .passthrough("no holes to fill"));
     }
     if holes == depth.len() {
         return Ok(Outputs::new()
             .with("depth", Value::Depth(depth.clone()))
-            .with(
-                "filled",
-                Value::Mask(std::sync::Arc::new(Image::filled(
-                    depth.width(),
-                    depth.height(),
-                    0.0,
-                ))),
-            )
+            .with("filled", Mask::filled(depth.width(), depth.height(), 0.0))
             .passthrough("no valid depth to fill from"));
     }
-    let (color, k) = match weights {
-        Weights::Dual => (
-            inputs.color("color")?.clone(),
-            inputs.intrinsics("intrinsics")?,
-        ),
-        Weights::Bilinear => (
-            std::sync::Arc::new(Image::filled(1, 1, [0.0f32; 3])),
-            Intrinsics {
-                fx: 1.0,
-                fy: 1.0,
-                cx: 0.0,
-                cy: 0.0,
-                width: depth.width(),
-                height: depth.height(),
-            },
-        ),
+    let r = if dual {
+        let color = inputs.color("color")?;
+        let k = inputs.intrinsics("intrinsics")?;
+        pull_push(depth, p, Weights::Dual { color, k: &k })?
+    } else {
+        pull_push(depth, p, Weights::Bilinear)?
     };
-    let r = pull_push(depth, &color, &k, p, weights)?;
     Ok(Outputs::new()
         .with("depth", r.depth)
-        .with("filled", Value::Mask(std::sync::Arc::new(r.filled))))
+        .with("filled", r.filled))
 }
 
 fn eval_plain(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs, NodeError> {
-    eval_with(inputs, p, Weights::Bilinear)
+    eval_with(inputs, p, false)
 }
 
 fn eval_dual(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs, NodeError> {
-    eval_with(inputs, p, Weights::Dual)
+    eval_with(inputs, p, true)
 }
 
 /// Registers `PullPush` and `DualPullPush`.
@@ -469,8 +440,8 @@ mod tests {
     fn both(depth: &DepthMap, color: &ColorImage, p: &PullPushParams) -> [Filled; 2] {
         let kk = k(depth.width(), depth.height());
         [
-            pull_push(depth, color, &kk, p, Weights::Bilinear).unwrap(),
-            pull_push(depth, color, &kk, p, Weights::Dual).unwrap(),
+            pull_push(depth, p, Weights::Bilinear).unwrap(),
+            pull_push(depth, p, Weights::Dual { color, k: &kk }).unwrap(),
         ]
     }
 
@@ -510,7 +481,7 @@ mod tests {
         // Left half near (1 m, dark), right half far (3 m, bright); a hole band across the edge.
         let (w, h) = (64, 32);
         let near = |x: usize| x < 32;
-        let gt = Image::from_fn(w, h, |x, _| if near(x) { 1.0f32 } else { 3.0 });
+        let gt = DepthMap::from_fn(w, h, |x, _| if near(x) { 1.0f32 } else { 3.0 });
         let c = Image::from_fn(w, h, |x, _| {
             if near(x) {
                 [0.1f32, 0.1, 0.1]
@@ -610,11 +581,8 @@ mod tests {
     #[test]
     fn too_few_levels_leave_large_holes_and_say_so() {
         let d = Image::from_fn(32, 32, |x, _| if x < 2 { 1.0 } else { 0.0 });
-        let c = Image::filled(32, 32, [0.0f32; 3]);
         let r = pull_push(
             &d,
-            &c,
-            &k(32, 32),
             &PullPushParams {
                 levels: 1,
                 ..Default::default()
@@ -624,14 +592,7 @@ mod tests {
         .unwrap();
         assert!(r.holes_left > 0);
         assert_eq!(r.levels, 1);
-        let auto = pull_push(
-            &d,
-            &c,
-            &k(32, 32),
-            &PullPushParams::default(),
-            Weights::Bilinear,
-        )
-        .unwrap();
+        let auto = pull_push(&d, &PullPushParams::default(), Weights::Bilinear).unwrap();
         assert_eq!(auto.holes_left, 0);
     }
 
@@ -640,19 +601,21 @@ mod tests {
         let d = Image::filled(4, 4, 1.0f32);
         let e = pull_push(
             &d,
-            &Image::filled(2, 2, [0.0; 3]),
-            &k(4, 4),
             &PullPushParams::default(),
-            Weights::Dual,
+            Weights::Dual {
+                color: &Image::filled(2, 2, [0.0; 3]),
+                k: &k(4, 4),
+            },
         )
         .unwrap_err();
         assert!(e.to_string().contains("color"), "{e}");
         let e = pull_push(
             &d,
-            &Image::filled(4, 4, [0.0; 3]),
-            &k(8, 8),
             &PullPushParams::default(),
-            Weights::Dual,
+            Weights::Dual {
+                color: &Image::filled(4, 4, [0.0; 3]),
+                k: &k(8, 8),
+            },
         )
         .unwrap_err();
         assert!(e.to_string().contains("intrinsics"), "{e}");
@@ -674,10 +637,11 @@ mod tests {
             crate::test_support::with_threads(n, || {
                 pull_push(
                     &d,
-                    &c,
-                    &k(50, 40),
                     &PullPushParams::default(),
-                    Weights::Dual,
+                    Weights::Dual {
+                        color: &c,
+                        k: &k(50, 40),
+                    },
                 )
                 .unwrap()
                 .depth

@@ -4,24 +4,7 @@ use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
-fn check_dims(what: &str, w: usize, h: usize, k: &Intrinsics) -> Result<(), NodeError> {
-    if (w, h) != (k.width, k.height) {
-        return Err(NodeError::input(
-            what,
-            format!(
-                "is {w}x{h} but the intrinsics are for {}x{}; give the Camera node the image's size",
-                k.width, k.height
-            ),
-        ));
-    }
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            "intrinsics",
-            "focal lengths must be finite and positive",
-        ));
-    }
-    Ok(())
-}
+use crate::kit::checks::{fits_intrinsics, sane_intrinsics};
 
 /// Unprojects every valid pixel: `X = (u - cx) z / fx`, `Y = (v - cy) z / fy`, `Z = z`
 /// (3d-editing eq. 1), with `(u, v)` the pixel centre `(x + 0.5, y + 0.5)`.
@@ -39,7 +22,7 @@ pub fn unproject(
     k: &Intrinsics,
     color: Option<&ColorImage>,
 ) -> Result<PointCloud, NodeError> {
-    check_dims("depth", depth.width(), depth.height(), k)?;
+    fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
     if let Some(c) = color {
         if !c.same_dims(depth) {
             return Err(NodeError::input(
@@ -74,12 +57,7 @@ pub fn unproject(
 /// Projects points into an image with a z-buffer (nearest point wins, one
 /// pixel per point): depth (0 where nothing lands) and color (black there).
 pub fn project(points: &PointCloud, k: &Intrinsics) -> Result<(DepthMap, ColorImage), NodeError> {
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            "intrinsics",
-            "focal lengths must be finite and positive",
-        ));
-    }
+    sane_intrinsics("intrinsics", k)?;
     let mut depth = Image::filled(k.width, k.height, 0.0f32);
     let mut color = Image::filled(k.width, k.height, [0.0f32; 3]);
     let has_color = points.colors.len() == points.positions.len();
@@ -171,13 +149,8 @@ pub fn reproject_depth(
     p: &ReprojectParams,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     let (w, h) = depth.dims();
-    check_dims("depth", w, h, k_depth)?;
-    if !k_target.is_sane() {
-        return Err(NodeError::input(
-            "target",
-            "focal lengths must be finite and positive",
-        ));
-    }
+    fits_intrinsics("intrinsics", k_depth, "depth map", (w, h))?;
+    sane_intrinsics("target", k_target)?;
     let [rx, ry, rz] = p.rotation_deg.map(f64::to_radians);
     let rot = glam::DMat3::from_rotation_z(rz)
         * glam::DMat3::from_rotation_y(ry)

@@ -16,7 +16,8 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use image::{DynamicImage, ImageFormat};
 
-use crate::imageops::{colormap_depth, depth_range};
+use crate::kit::color::{linear_to_srgb, srgb_to_linear};
+use crate::kit::colormap::{colormap_depth, depth_range};
 
 /// Largest accepted image side in pixels.
 pub const MAX_SIDE: usize = 1 << 15;
@@ -48,27 +49,6 @@ fn check_dims(path: &Path, w: usize, h: usize) -> Result<(), NodeError> {
 
 // ---------------------------------------------------------------- sRGB
 
-/// sRGB electro-optical transfer: encoded value in [0, 1] to linear.
-#[inline]
-pub fn srgb_to_linear(v: f32) -> f32 {
-    if v <= 0.04045 {
-        v / 12.92
-    } else {
-        ((v + 0.055) / 1.055).powf(2.4)
-    }
-}
-
-/// Linear to sRGB-encoded value; input clamped to [0, 1].
-#[inline]
-pub fn linear_to_srgb(v: f32) -> f32 {
-    let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
-    if v <= 0.003_130_8 {
-        v * 12.92
-    } else {
-        1.055 * v.powf(1.0 / 2.4) - 0.055
-    }
-}
-
 fn srgb8_table() -> &'static [f32; 256] {
     static T: OnceLock<[f32; 256]> = OnceLock::new();
     T.get_or_init(|| std::array::from_fn(|i| srgb_to_linear(i as f32 / 255.0)))
@@ -89,12 +69,12 @@ fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
     let reader = image::ImageReader::open(path)
         .map_err(|source| NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         })?
         .with_guessed_format()
         .map_err(|source| NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         })?;
     let (w, h) = reader
         .into_dimensions()
@@ -103,12 +83,12 @@ fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
     let mut reader = image::ImageReader::open(path)
         .map_err(|source| NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         })?
         .with_guessed_format()
         .map_err(|source| NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         })?;
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(MAX_SIDE as u32);
@@ -139,7 +119,7 @@ pub struct Pnm {
 pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
     let bytes = fs::read(path).map_err(|source| NodeError::Io {
         path: path.to_path_buf(),
-        source,
+        error: source,
     })?;
     // header: magic, width, height, maxval, separated by whitespace and comments
     let mut pos = 0usize;
@@ -452,7 +432,7 @@ pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
         .and_then(|mut f| f.read_to_end(&mut bytes))
         .map_err(|source| NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         })?;
     // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
     let mut tokens = Vec::new();
@@ -661,7 +641,7 @@ pub fn write_atomic(
     };
     fs::create_dir_all(&parent).map_err(|source| NodeError::Io {
         path: parent.clone(),
-        source,
+        error: source,
     })?;
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
     let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
@@ -676,7 +656,7 @@ pub fn write_atomic(
         let _ = fs::remove_file(&tmp);
         NodeError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         }
     })?;
     Ok(path.to_path_buf())

@@ -57,7 +57,7 @@ use depthgraph_graph::prelude::*;
 use glam::DVec3;
 
 use crate::depth::pull_push::{PullPushParams, Weights, pull_push};
-use crate::relight::vpl::SplitMix64;
+use crate::kit::rng::SplitMix64;
 
 node_params! {
     /// Parameters of the imperfect shadow maps.
@@ -165,6 +165,18 @@ struct Elem {
     /// `sqrt(W / (π M)) / sqrt(I)`.
     inv_sqrt_importance: f64,
     object: bool,
+}
+
+impl PointSet {
+    /// Approximate heap size in bytes.
+    pub fn heap_bytes(&self) -> usize {
+        self.positions.len() * 24
+            + self.object.len()
+            + self.cdf.len() * 8
+            + self.min_radius.len() * 8
+            + self.centres.len() * 24
+            + self.elems.len() * std::mem::size_of::<Elem>()
+    }
 }
 
 impl PointSet {
@@ -415,22 +427,7 @@ fn fill_holes(t: &mut [f32], res: usize) {
     let Ok(img) = Image::from_vec(res, res, shifted) else {
         return;
     };
-    let k = Intrinsics {
-        fx: 1.0,
-        fy: 1.0,
-        cx: 0.0,
-        cy: 0.0,
-        width: res,
-        height: res,
-    };
-    let color = Image::filled(1, 1, [0.0f32; 3]);
-    if let Ok(f) = pull_push(
-        &img,
-        &color,
-        &k,
-        &PullPushParams::default(),
-        Weights::Bilinear,
-    ) {
+    if let Ok(f) = pull_push(&img, &PullPushParams::default(), Weights::Bilinear) {
         for (o, v) in t.iter_mut().zip(f.depth.as_slice()) {
             if !o.is_finite() && DepthMap::is_valid(*v) {
                 *o = v - 1.0 + lo;

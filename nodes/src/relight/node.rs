@@ -2,12 +2,12 @@
 //! scheme ([`crate::relight::paired`], [`crate::relight::scene_cached`] or
 //! [`crate::relight::reference`]).
 
-use std::sync::Arc;
-
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
-use crate::relight::vpl::{from_cloud, luminance};
+use crate::kit::color::luminance_clamped;
+use crate::relight::scene_cached::{RelightScene, SCENE_PORTS, relight_moved, scene_key_params};
+use crate::relight::vpl::checked_vpls;
 
 use crate::relight::paired::relight;
 use crate::relight::shading::{RelightInputs, RelightParams, VISIBILITY};
@@ -15,22 +15,12 @@ use crate::relight::shading::{RelightInputs, RelightParams, VISIBILITY};
 fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, NodeError> {
     let photo = inputs.color("photo")?;
     let k = inputs.intrinsics("intrinsics")?;
-    let cloud = inputs.point_cloud("vpls")?;
-    let vpls = from_cloud(cloud, "vpls")?;
-    let normals = match inputs.get("normals") {
-        Some(Value::Normals(n)) => Some(n.clone()),
-        Some(other) => {
-            return Err(NodeError::input(
-                "normals",
-                format!("expected Normals, found {}", other.value_type()),
-            ));
-        }
-        None => None,
-    };
+    let vpls = checked_vpls(inputs.vpls("vpls")?, "vpls")?;
+    let normals = inputs.normals_opt("normals")?;
     let inp = RelightInputs {
         photo,
         depth: inputs.depth("depth")?,
-        normals: normals.as_deref(),
+        normals: normals.map(|n| n.as_ref()),
         albedo: inputs.color_opt("albedo")?.map(|a| a.as_ref()),
         pasted_color: inputs.color("pasted_color")?,
         pasted_depth: inputs.depth("pasted_depth")?,
@@ -42,20 +32,13 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
         "paired" => relight(&inp, &vpls, p)?,
         "raycast" => crate::relight::reference::relight_reference_image(&inp, &vpls, p)?,
         "scene_cached" => {
-            let key = crate::relight::scene_cached::SceneKey {
-                photo: photo.clone(),
-                depth: inputs.depth("depth")?.clone(),
-                normals: normals.clone(),
-                albedo: inputs.color_opt("albedo")?.cloned(),
-                vpls: cloud.clone(),
-                k,
-                params: crate::relight::scene_cached::SceneKey::params_of(p),
-            };
-            let (scene, _reused) = crate::relight::scene_cached::memo_scene(key, || {
-                crate::relight::scene_cached::RelightScene::new(&inp.scene(), &vpls, p)
+            // The per-photo part is a value the engine keeps under the keys
+            // of the inputs it reads: moving the object reuses it.
+            let scene = ctx.derived("relight scene", SCENE_PORTS, &scene_key_params(p), || {
+                RelightScene::new(&inp.scene(), &vpls, p)
             })?;
             ctx.check_cancelled()?;
-            crate::relight::scene_cached::relight_moved(&scene, &inp, p)?
+            relight_moved(&scene, &inp, p)?
         }
         other => {
             return Err(NodeError::param(
@@ -67,19 +50,19 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
     match result {
         Some(r) => Ok(Outputs::new()
             .with("color", r.color)
-            .with("region", Value::Mask(Arc::new(r.region)))
+            .with("region", r.region)
             .with("difference", r.difference)),
         None => {
             let (w, h) = photo.dims();
-            let reason = if vpls.iter().all(|v| luminance(v.power) <= 0.0) {
+            let reason = if vpls.iter().all(|v| luminance_clamped(v.power) <= 0.0) {
                 "no VPL carries energy (black environment map): nothing to relight"
             } else {
                 "nothing pasted: the alpha is 0 everywhere"
             };
             Ok(Outputs::new()
                 .with("color", Value::Color(photo.clone()))
-                .with("region", Value::Mask(Arc::new(Image::filled(w, h, 0.0))))
-                .with("difference", Image::filled(w, h, [0.0f32; 3]))
+                .with("region", Mask::filled(w, h, 0.0))
+                .with("difference", ColorImage::filled(w, h, [0.0f32; 3]))
                 .passthrough(reason))
         }
     }
@@ -106,7 +89,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
             PortSpec::required("pasted_depth", ValueType::Depth, "Paste.depth"),
             PortSpec::required("alpha", ValueType::Mask, "OcclusionComposite.alpha (after the depth test)"),
             PortSpec::required("intrinsics", ValueType::Intrinsics, "of the target"),
-            PortSpec::required("vpls", ValueType::PointCloud, "VplSample.vpls"),
+            PortSpec::required("vpls", ValueType::Vpls, "VplSample.vpls"),
         ],
         vec![
             PortSpec::output("color", ValueType::Color, "the composite I_m of eq. 5, linear RGB"),

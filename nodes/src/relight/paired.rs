@@ -411,9 +411,8 @@ pub fn relight(
         })
         .collect();
     let (color, difference): (Vec<Rgb>, Vec<Rgb>) = px.into_iter().unzip();
-    let shape = |e: depthgraph_graph::value::ShapeError| NodeError::Invalid(e.to_string());
     Ok(Some(Relit {
-        color: Image::from_vec(w, h, color).map_err(shape)?,
+        color: Image::from_vec(w, h, color)?,
         region: Image::from_vec(
             w,
             h,
@@ -421,9 +420,8 @@ pub fn relight(
                 .iter()
                 .map(|r| if *r { 1.0 } else { 0.0 })
                 .collect(),
-        )
-        .map_err(shape)?,
-        difference: Image::from_vec(w, h, difference).map_err(shape)?,
+        )?,
+        difference: Image::from_vec(w, h, difference)?,
     }))
 }
 
@@ -517,7 +515,7 @@ mod tests {
     fn nothing_pasted_or_no_light_passes_the_photo_through() {
         let (w, h) = (40, 30);
         let (k, floor, slab, alpha) = floor_and_slab(w, h);
-        let photo = Image::from_fn(w, h, |x, y| [x as f32 * 0.01, y as f32 * 0.02, 0.3]);
+        let photo = ColorImage::from_fn(w, h, |x, y| [x as f32 * 0.01, y as f32 * 0.02, 0.3]);
         let zero = Image::filled(w, h, 0.0f32);
         let mut reg = Registry::new();
         register(&mut reg).unwrap();
@@ -532,7 +530,7 @@ mod tests {
             inputs.insert("pasted_depth", Value::from(slab.clone()));
             inputs.insert("alpha", Value::Mask(Arc::new(a.clone())));
             inputs.insert("intrinsics", Value::from(k));
-            inputs.insert("vpls", Value::from(crate::relight::vpl::to_cloud(vpls)));
+            inputs.insert("vpls", Value::from(vpls.to_vec()));
             node.eval(&ctx, &inputs, &RelightParams::default().to_values())
                 .unwrap()
         };

@@ -209,7 +209,7 @@ mod tests {
     /// for every ray.
     #[test]
     fn the_bvh_agrees_with_testing_every_triangle() {
-        let mut rng = crate::relight::vpl::SplitMix64(3);
+        let mut rng = crate::kit::rng::SplitMix64(3);
         let mut r = || rng.next_f64() * 2.0 - 1.0;
         let tris: Vec<[DVec3; 3]> = (0..500)
             .map(|_| {

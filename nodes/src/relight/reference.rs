@@ -230,11 +230,10 @@ pub fn relight_reference_image(
         })
         .collect();
     let (color, difference): (Vec<Rgb>, Vec<Rgb>) = px.into_iter().unzip();
-    let shape = |e: depthgraph_graph::value::ShapeError| NodeError::Invalid(e.to_string());
     Ok(Some(Relit {
-        color: Image::from_vec(w, h, color).map_err(shape)?,
-        region: Image::from_vec(w, h, region).map_err(shape)?,
-        difference: Image::from_vec(w, h, difference).map_err(shape)?,
+        color: Image::from_vec(w, h, color)?,
+        region: Image::from_vec(w, h, region)?,
+        difference: Image::from_vec(w, h, difference)?,
     }))
 }
 
@@ -334,7 +333,7 @@ mod tests {
         inputs.insert("alpha", Value::Mask(Arc::new(sc.alpha.clone())));
         inputs.insert("intrinsics", Value::from(sc.k));
         let vpls = crate::test_support::relight::overhead();
-        inputs.insert("vpls", Value::from(crate::relight::vpl::to_cloud(&vpls)));
+        inputs.insert("vpls", Value::from(vpls.clone()));
         let with = |vis: &str| RelightParams {
             visibility: vis.into(),
             bounce_vpls: 0,

@@ -36,21 +36,20 @@
 //! keeps the paper's scheme (eq. 6 over scene and object, maps rebuilt on
 //! every run).
 
-use std::sync::{Arc, Mutex};
-
 use depthgraph_graph::prelude::*;
-use depthgraph_graph::value::{PointCloud, Rgb};
+use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::kit::checks::fits_intrinsics;
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows,
 };
 pub use crate::relight::shading::SceneInputs;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
-    centre_and_radius, check, clean_alpha, composite, lit_vpls, object_bounce_vpls,
-    object_radiance, pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
+    centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
+    pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 
@@ -162,6 +161,31 @@ struct Tile {
     centre: DVec3,
     radius: f64,
     pixels: Vec<usize>,
+}
+
+impl RelightScene {
+    /// Approximate heap size in bytes (what the engine's cache budget counts).
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        let maps: usize = self
+            .maps
+            .iter()
+            .map(|m| size_of::<Option<ShadowMap>>() + m.as_ref().map_or(0, |m| m.t.len() * 4))
+            .sum();
+        let members: usize = self.groups.members.iter().map(|m| m.len() * 8 + 24).sum();
+        let tiles: usize = self.tiles.iter().map(|t| t.pixels.len() * 8 + 56).sum();
+        self.vpls.len() * size_of::<Vpl>()
+            + self.dirs.len() * 24
+            + self.target.len() * size_of::<Option<Surf>>()
+            + self.areas.len() * 8
+            + maps
+            + self.e_t.as_ref().map_or(0, |e| e.len() * 24)
+            + self.groups.axis.len() * 40
+            + members
+            + self.bias_t.len() * 8
+            + tiles
+            + self.pool.as_ref().map_or(0, PointSet::heap_bytes)
+    }
 }
 
 impl Tile {
@@ -385,12 +409,12 @@ pub fn relight_moved(
             "differ from those the cached scene was built with",
         ));
     }
-    check("photo", inp.photo.dims(), k)?;
-    check("pasted_color", inp.pasted_color.dims(), k)?;
-    check("pasted_depth", inp.pasted_depth.dims(), k)?;
-    check("alpha", inp.alpha.dims(), k)?;
+    fits_intrinsics("intrinsics", k, "photo", inp.photo.dims())?;
+    fits_intrinsics("intrinsics", k, "pasted_color", inp.pasted_color.dims())?;
+    fits_intrinsics("intrinsics", k, "pasted_depth", inp.pasted_depth.dims())?;
+    fits_intrinsics("intrinsics", k, "alpha", inp.alpha.dims())?;
     if let Some(a) = inp.albedo {
-        check("albedo", a.dims(), k)?;
+        fits_intrinsics("intrinsics", k, "albedo", a.dims())?;
     }
     if inp.albedo.is_some() != scene.with_albedo {
         return Err(NodeError::input(
@@ -678,90 +702,36 @@ pub fn relight_moved(
     }))
 }
 
-/// What identifies a scene in the node's memo: its inputs by identity (the
-/// memo holds them, so an address is never reused while it is there) and
-/// the parameters [`RelightScene::new`] reads.
-#[derive(Clone)]
-pub(crate) struct SceneKey {
-    pub photo: Arc<ColorImage>,
-    pub depth: Arc<DepthMap>,
-    pub normals: Option<Arc<NormalMap>>,
-    pub albedo: Option<Arc<ColorImage>>,
-    pub vpls: Arc<PointCloud>,
-    pub k: Intrinsics,
-    pub params: (usize, usize, u64, u64, u64, bool),
+/// The parameters [`RelightScene::new`] reads, canonically encoded: the
+/// key material of the scene as a derived value (with the keys of the
+/// inputs it reads, [`SCENE_PORTS`]).
+pub fn scene_key_params(p: &RelightParams) -> Vec<u8> {
+    let mut b = Vec::with_capacity(41);
+    b.extend_from_slice(&(p.ism_resolution as u64).to_le_bytes());
+    b.extend_from_slice(&(p.ism_points as u64).to_le_bytes());
+    b.extend_from_slice(&p.seed.to_le_bytes());
+    b.extend_from_slice(&p.bias_scale.to_bits().to_le_bytes());
+    b.extend_from_slice(&p.min_distance_m.to_bits().to_le_bytes());
+    b.push(u8::from(p.bounce_shadows));
+    b
 }
 
-impl SceneKey {
-    pub(crate) fn params_of(p: &RelightParams) -> (usize, usize, u64, u64, u64, bool) {
-        (
-            p.ism_resolution,
-            p.ism_points,
-            p.seed,
-            p.bias_scale.to_bits(),
-            p.min_distance_m.to_bits(),
-            p.bounce_shadows,
-        )
+/// The inputs of `Relight` that [`RelightScene::new`] reads.
+pub const SCENE_PORTS: &[&str] = &["photo", "depth", "normals", "albedo", "vpls", "intrinsics"];
+
+impl depthgraph_graph::value::Extension for RelightScene {
+    fn type_name(&self) -> &'static str {
+        "RelightScene"
     }
-
-    fn same(&self, o: &SceneKey) -> bool {
-        fn opt<T>(a: &Option<Arc<T>>, b: &Option<Arc<T>>) -> bool {
-            match (a, b) {
-                (Some(a), Some(b)) => Arc::ptr_eq(a, b),
-                (None, None) => true,
-                _ => false,
-            }
-        }
-        Arc::ptr_eq(&self.photo, &o.photo)
-            && Arc::ptr_eq(&self.depth, &o.depth)
-            && opt(&self.normals, &o.normals)
-            && opt(&self.albedo, &o.albedo)
-            && Arc::ptr_eq(&self.vpls, &o.vpls)
-            && self.k == o.k
-            && self.params == o.params
+    fn bytes(&self) -> usize {
+        self.heap_bytes()
     }
-}
-
-/// Scenes by key, the most recently used last.
-pub(crate) type Memo = Mutex<Vec<(SceneKey, Arc<RelightScene>)>>;
-
-/// The scenes `Relight` nodes built last (at most [`MEMO_SCENES`]).
-static MEMO: Memo = Mutex::new(Vec::new());
-
-/// Scenes the memo keeps (the most recently used).
-pub const MEMO_SCENES: usize = 2;
-
-/// The node's memo's scene for `key`, or `build()`'s, then remembered. The
-/// second value says whether it was reused.
-pub(crate) fn memo_scene(
-    key: SceneKey,
-    build: impl FnOnce() -> Result<RelightScene, NodeError>,
-) -> Result<(Arc<RelightScene>, bool), NodeError> {
-    memo_scene_in(&MEMO, key, build)
-}
-
-/// [`memo_scene`] with a given memo. The lock is not held while building.
-pub(crate) fn memo_scene_in(
-    memo: &Memo,
-    key: SceneKey,
-    build: impl FnOnce() -> Result<RelightScene, NodeError>,
-) -> Result<(Arc<RelightScene>, bool), NodeError> {
-    let lock = || memo.lock().unwrap_or_else(|e| e.into_inner());
-    {
-        let mut memo = lock();
-        if let Some(pos) = memo.iter().position(|(k, _)| k.same(&key)) {
-            let entry = memo.remove(pos);
-            let scene = entry.1.clone();
-            memo.push(entry);
-            return Ok((scene, true));
-        }
+    fn encode(&self) -> Option<Vec<u8>> {
+        None
     }
-    let scene = Arc::new(build()?);
-    let mut memo = lock();
-    memo.push((key, scene.clone()));
-    let excess = memo.len().saturating_sub(MEMO_SCENES);
-    memo.drain(..excess);
-    Ok((scene, false))
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
 }
 
 #[cfg(test)]
@@ -817,9 +787,10 @@ mod tests {
             k: Box::leak(Box::new(k)),
         };
         let leak_d = |d: DepthMap| -> &'static DepthMap { Box::leak(Box::new(d)) };
+        let leak_m = |m: Mask| -> &'static Mask { Box::leak(Box::new(m)) };
         let (ia, ib) = (
-            inp(leak_d(slab_a), leak_d(alpha_a)),
-            inp(leak_d(slab_b), leak_d(alpha_b)),
+            inp(leak_d(slab_a), leak_m(alpha_a)),
+            inp(leak_d(slab_b), leak_m(alpha_b)),
         );
         let vpls = sky(24);
         let p = RelightParams {
@@ -923,72 +894,5 @@ mod tests {
             ..inp
         };
         assert!(relight_moved(&scene, &none, &p).unwrap().is_none());
-    }
-
-    /// The memo hands back the scene it holds for the same inputs (by
-    /// identity) and parameters, builds anew for any other, and keeps the
-    /// last [`MEMO_SCENES`].
-    #[test]
-    fn the_memo_reuses_a_scene_only_for_the_same_inputs() {
-        let (w, h) = (40, 30);
-        let (k, floor, _, _) = floor_and_slab_at(w, h, 0.0);
-        let photo = Arc::new(Image::filled(w, h, [0.5f32; 3]));
-        let depth = Arc::new(floor);
-        let vpls = Arc::new(crate::relight::vpl::to_cloud(&overhead()));
-        let key = |photo: &Arc<ColorImage>, p: &RelightParams| SceneKey {
-            photo: photo.clone(),
-            depth: depth.clone(),
-            normals: None,
-            albedo: None,
-            vpls: vpls.clone(),
-            k,
-            params: SceneKey::params_of(p),
-        };
-        let p = RelightParams::default();
-        let built = std::cell::Cell::new(0);
-        let build = |photo: &Arc<ColorImage>| {
-            built.set(built.get() + 1);
-            RelightScene::new(
-                &SceneInputs {
-                    photo,
-                    depth: &depth,
-                    normals: None,
-                    albedo: None,
-                    k: &k,
-                },
-                &overhead(),
-                &p,
-            )
-        };
-        let memo: Memo = Mutex::new(Vec::new());
-        let (a, reused) = memo_scene_in(&memo, key(&photo, &p), || build(&photo)).unwrap();
-        assert!(!reused);
-        let (b, reused) = memo_scene_in(&memo, key(&photo, &p), || build(&photo)).unwrap();
-        assert!(reused && Arc::ptr_eq(&a, &b));
-        // equal content, other value: built anew (identity, not content)
-        let copy = Arc::new((*photo).clone());
-        assert!(
-            !memo_scene_in(&memo, key(&copy, &p), || build(&copy))
-                .unwrap()
-                .1
-        );
-        // other parameters
-        let p2 = RelightParams {
-            ism_points: 1000,
-            ..p.clone()
-        };
-        assert!(
-            !memo_scene_in(&memo, key(&photo, &p2), || build(&photo))
-                .unwrap()
-                .1
-        );
-        assert_eq!(built.get(), 3);
-        // the first was the least recently used of three: evicted
-        assert_eq!(memo.lock().unwrap().len(), MEMO_SCENES);
-        assert!(
-            !memo_scene_in(&memo, key(&photo, &p), || build(&photo))
-                .unwrap()
-                .1
-        );
     }
 }

@@ -10,8 +10,10 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::kit::checks::fits_intrinsics;
+use crate::kit::color::luminance_clamped;
 use crate::relight::ism::pixel_area;
-use crate::relight::vpl::{Vpl, luminance};
+use crate::relight::vpl::Vpl;
 
 node_params! {
     /// Parameters of `Relight`.
@@ -91,19 +93,13 @@ impl SceneInputs<'_> {
     /// Sane intrinsics, and every image at their size.
     pub(crate) fn check(&self) -> Result<(), NodeError> {
         let k = self.k;
-        if !k.is_sane() {
-            return Err(NodeError::input(
-                "intrinsics",
-                "focal lengths must be finite and positive",
-            ));
-        }
-        check("photo", self.photo.dims(), k)?;
-        check("depth", self.depth.dims(), k)?;
+        fits_intrinsics("intrinsics", k, "photo", self.photo.dims())?;
+        fits_intrinsics("intrinsics", k, "depth", self.depth.dims())?;
         if let Some(n) = self.normals {
-            check("normals", n.dims(), k)?;
+            fits_intrinsics("intrinsics", k, "normals", n.dims())?;
         }
         if let Some(a) = self.albedo {
-            check("albedo", a.dims(), k)?;
+            fits_intrinsics("intrinsics", k, "albedo", a.dims())?;
         }
         Ok(())
     }
@@ -124,9 +120,19 @@ impl<'a> RelightInputs<'a> {
     /// [`SceneInputs::check`], and the object's images at the same size.
     pub(crate) fn check(&self) -> Result<(), NodeError> {
         self.scene().check()?;
-        check("pasted_color", self.pasted_color.dims(), self.k)?;
-        check("pasted_depth", self.pasted_depth.dims(), self.k)?;
-        check("alpha", self.alpha.dims(), self.k)
+        fits_intrinsics(
+            "intrinsics",
+            self.k,
+            "pasted_color",
+            self.pasted_color.dims(),
+        )?;
+        fits_intrinsics(
+            "intrinsics",
+            self.k,
+            "pasted_depth",
+            self.pasted_depth.dims(),
+        )?;
+        fits_intrinsics("intrinsics", self.k, "alpha", self.alpha.dims())
     }
 
     /// The object's surface at pixel `i` (a valid pasted depth): its
@@ -186,19 +192,6 @@ pub(crate) fn depth_normal(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize)
         return None;
     }
     Some(if n.dot(p) > 0.0 { -n } else { n })
-}
-
-pub(crate) fn check(port: &str, dims: (usize, usize), k: &Intrinsics) -> Result<(), NodeError> {
-    if dims != (k.width, k.height) {
-        return Err(NodeError::input(
-            port,
-            format!(
-                "is {}x{} but the intrinsics are for {}x{}",
-                dims.0, dims.1, k.width, k.height
-            ),
-        ));
-    }
-    Ok(())
 }
 
 /// The directions `d` whose ray `x + t d` (`t >= 0`) passes within `reach`
@@ -316,9 +309,9 @@ pub(crate) fn lit_vpls(vpls: &[Vpl]) -> (Vec<Vpl>, Vec<DVec3>, f64) {
     let vpls: Vec<Vpl> = vpls
         .iter()
         .copied()
-        .filter(|v| luminance(v.power) > 0.0)
+        .filter(|v| luminance_clamped(v.power) > 0.0)
         .collect();
-    let e_ref: f64 = vpls.iter().map(|v| luminance(v.power)).sum();
+    let e_ref: f64 = vpls.iter().map(|v| luminance_clamped(v.power)).sum();
     let dirs = vpls
         .iter()
         .map(|v| DVec3::from_array(v.direction.map(|c| c as f64)).normalize_or_zero())
@@ -527,7 +520,7 @@ pub(crate) fn scene_bounce_vpls(
     if idx.is_empty() || !(acc.is_finite() && acc > 0.0) {
         return Vec::new();
     }
-    let mut rng = crate::relight::vpl::SplitMix64(seed ^ 0x5EC0_4DA2_B0C3_u64);
+    let mut rng = crate::kit::rng::SplitMix64(seed ^ 0x5EC0_4DA2_B0C3_u64);
     let photo = photo.as_slice();
     (0..m)
         .filter_map(|j| {

@@ -29,20 +29,24 @@
 //!
 //! Luminance is `0.2126 R + 0.7152 G + 0.0722 B` of the channels clamped to
 //! `>= 0` (NaN counts as 0). A map with `W = 0` (all black, or no finite
-//! positive radiance) gives **no VPLs** (an empty cloud) and the node says so
+//! positive radiance) gives **no VPLs** (an empty set) and the node says so
 //! as a pass-through.
 //!
-//! # Encoding (there is no VPL value type)
+//! # The value
 //!
-//! The VPLs are a [`PointCloud`]: `positions[k]` = the unit direction `ω_k`
-//! towards the light (camera frame, **not** a position), `colors[k]` =
-//! `Φ_k` (irradiance at normal incidence, linear RGB), `normals` empty.
+//! The VPLs travel as their own value type ([`Value::Vpls`]): per light
+//! the unit direction `ω_k` towards it (camera frame) and `Φ_k`
+//! (irradiance at normal incidence, linear RGB), so a point cloud cannot be
+//! wired where lights are expected.
 
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
-use depthgraph_graph::value::{PointCloud, Rgb};
 
+pub use depthgraph_graph::value::Vpl;
+
+use crate::kit::color::luminance_clamped;
+use crate::kit::rng::SplitMix64;
 use crate::relight::envmap::{pixel_direction, pixel_solid_angle};
 
 node_params! {
@@ -53,50 +57,6 @@ node_params! {
         /// Seed of the jitter and the stratum permutation.
         pub seed: u64 = 1u64, ParamKind::Int { min: 0, max: 1 << 53 };
     }
-}
-
-/// SplitMix64: a small deterministic generator (no global state).
-#[derive(Debug, Clone)]
-pub struct SplitMix64(pub u64);
-
-impl SplitMix64 {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in `[0, 1)`.
-    pub fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-    /// Uniform integer in `0..n` (`n >= 1`).
-    pub fn below(&mut self, n: usize) -> usize {
-        ((self.next_f64() * n as f64) as usize).min(n.saturating_sub(1))
-    }
-}
-
-/// Luminance of the channels clamped to `>= 0` (NaN = 0).
-#[inline]
-pub fn luminance(c: Rgb) -> f64 {
-    let f = |v: f32| {
-        if v > 0.0 && v.is_finite() {
-            v as f64
-        } else {
-            0.0
-        }
-    };
-    0.2126 * f(c[0]) + 0.7152 * f(c[1]) + 0.0722 * f(c[2])
-}
-
-/// One directional VPL.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Vpl {
-    /// Unit direction towards the light, camera frame.
-    pub direction: [f32; 3],
-    /// Irradiance at normal incidence, linear RGB.
-    pub power: Rgb,
 }
 
 /// First index whose cumulative value exceeds `t` (the CDF is non-decreasing
@@ -130,7 +90,7 @@ pub fn sample_vpls(map: &ColorImage, p: &VplParams) -> Vec<Vpl> {
         let d_omega = pixel_solid_angle(y, w, h);
         let mut acc = 0.0f64;
         for x in 0..w {
-            acc += luminance(*map.get(x, y)) * d_omega;
+            acc += luminance_clamped(*map.get(x, y)) * d_omega;
             col_cdf[y * w + x] = acc;
         }
         acc_rows += acc;
@@ -160,7 +120,7 @@ pub fn sample_vpls(map: &ColorImage, p: &VplParams) -> Vec<Vpl> {
             (w / 2, 0.5)
         };
         let l = *map.get(x, y);
-        let lum = luminance(l);
+        let lum = luminance_clamped(l);
         // guard: the chosen pixel has w_i > 0 so lum > 0; a rounding pick of
         // a zero pixel carries no energy and is skipped
         if lum <= 0.0 {
@@ -183,30 +143,15 @@ pub fn sample_vpls(map: &ColorImage, p: &VplParams) -> Vec<Vpl> {
     out
 }
 
-/// VPLs as the [`PointCloud`] encoding of the module docs.
-pub fn to_cloud(vpls: &[Vpl]) -> PointCloud {
-    PointCloud {
-        positions: vpls.iter().map(|v| v.direction).collect(),
-        colors: vpls.iter().map(|v| v.power).collect(),
-        normals: Vec::new(),
-    }
-}
-
-/// Reads the [`PointCloud`] encoding back; `port` names the input in errors.
-/// Non-finite or negative powers are refused, zero directions dropped.
-pub fn from_cloud(cloud: &PointCloud, port: &str) -> Result<Vec<Vpl>, NodeError> {
-    if cloud.colors.len() != cloud.positions.len() {
-        return Err(NodeError::input(
-            port,
-            format!(
-                "VPL cloud has {} directions but {} powers (colors); expected one each (VplSample output)",
-                cloud.positions.len(),
-                cloud.colors.len()
-            ),
-        ));
-    }
-    let mut out = Vec::with_capacity(cloud.positions.len());
-    for (i, (d, c)) in cloud.positions.iter().zip(&cloud.colors).enumerate() {
+/// The VPLs a node may shade with: every power finite and `>= 0`, every
+/// direction finite; zero directions are dropped and the others made unit
+/// (directions already unit to f32 rounding are kept bit for bit). `port`
+/// names the input in errors. (A [`Vpl`] set can come from elsewhere than
+/// `VplSample`, e.g. a cache file or another tool.)
+pub fn checked_vpls(vpls: &[Vpl], port: &str) -> Result<Vec<Vpl>, NodeError> {
+    let mut out = Vec::with_capacity(vpls.len());
+    for (i, l) in vpls.iter().enumerate() {
+        let (d, c) = (&l.direction, &l.power);
         if c.iter().any(|v| !v.is_finite() || *v < 0.0) || d.iter().any(|v| !v.is_finite()) {
             return Err(NodeError::input(
                 port,
@@ -234,7 +179,7 @@ pub fn from_cloud(cloud: &PointCloud, port: &str) -> Result<Vec<Vpl>, NodeError>
 fn eval(_: &EvalCtx, inputs: &Inputs, p: &VplParams) -> Result<Outputs, NodeError> {
     let map = inputs.color("map")?;
     let vpls = sample_vpls(map, p);
-    let out = Outputs::new().with("vpls", to_cloud(&vpls));
+    let out = Outputs::new().with("vpls", vpls.clone());
     if vpls.is_empty() {
         return Ok(out.passthrough("the environment map carries no energy: no VPLs"));
     }
@@ -247,8 +192,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
         "VplSample",
         1,
         "Importance-samples N directional virtual point lights from an equirectangular environment map by \
-         luminance x solid angle, stratified, seeded (3d-editing §IV.A, instant radiosity).\nOutput encoding: a \
-         PointCloud whose positions are unit directions towards the lights and colors their powers.",
+         luminance x solid angle, stratified, seeded (3d-editing §IV.A, instant radiosity).",
         vec![PortSpec::required(
             "map",
             ValueType::Color,
@@ -256,8 +200,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
         )],
         vec![PortSpec::output(
             "vpls",
-            ValueType::PointCloud,
-            "positions = unit direction towards each light, colors = power (irradiance at normal incidence)",
+            ValueType::Vpls,
+            "unit direction towards each light and its power (irradiance at normal incidence)",
         )],
         eval,
     ))
@@ -312,7 +256,7 @@ mod tests {
             },
         );
         assert_eq!(vpls.len(), 256);
-        let lums: Vec<f64> = vpls.iter().map(|v| luminance(v.power)).collect();
+        let lums: Vec<f64> = vpls.iter().map(|v| luminance_clamped(v.power)).collect();
         let total: f64 = lums.iter().sum();
         for l in &lums {
             assert!((l - lums[0]).abs() < 1e-3 * lums[0]);
@@ -320,7 +264,7 @@ mod tests {
         let (w, h) = map.dims();
         let w_ref: f64 = (0..h)
             .flat_map(|y| (0..w).map(move |x| (x, y)))
-            .map(|(x, y)| luminance(*map.get(x, y)) * pixel_solid_angle(y, w, h))
+            .map(|(x, y)| luminance_clamped(*map.get(x, y)) * pixel_solid_angle(y, w, h))
             .sum();
         assert!((total - w_ref).abs() < 1e-4 * w_ref);
         // normals that see the sun: its energy dominates and is sampled densely
@@ -384,20 +328,23 @@ mod tests {
     }
 
     #[test]
-    fn cloud_round_trip_and_bad_clouds_name_the_port() {
+    fn checked_vpls_keep_good_sets_and_bad_ones_name_the_port() {
         let map = sample_sky(&EnvMapParams::default()).unwrap();
         let v = sample_vpls(&map, &VplParams { count: 8, seed: 1 });
-        assert_eq!(from_cloud(&to_cloud(&v), "vpls").unwrap(), v);
-        let mut c = to_cloud(&v);
-        c.colors.pop();
+        assert_eq!(checked_vpls(&v, "vpls").unwrap(), v);
+        let mut c = v.clone();
+        c[0].power[1] = f32::NAN;
         assert!(
-            from_cloud(&c, "vpls")
+            checked_vpls(&c, "vpls")
                 .unwrap_err()
                 .to_string()
                 .contains("vpls")
         );
-        let mut c = to_cloud(&v);
-        c.colors[0][1] = f32::NAN;
-        assert!(from_cloud(&c, "vpls").is_err());
+        let mut c = v.clone();
+        c[0].direction = [0.0; 3];
+        c[1].direction = [2.0, 0.0, 0.0];
+        let out = checked_vpls(&c, "vpls").unwrap();
+        assert_eq!(out.len(), v.len() - 1);
+        assert_eq!(out[0].direction, [1.0, 0.0, 0.0]);
     }
 }

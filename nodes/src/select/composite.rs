@@ -128,11 +128,10 @@ pub fn occlusion_composite(
         depth.push(z);
         alpha.push(a);
     }
-    let shape = |e: depthgraph_graph::value::ShapeError| NodeError::Invalid(e.to_string());
     Ok(Composite {
-        color: Image::from_vec(w, h, color).map_err(shape)?,
-        depth: Image::from_vec(w, h, depth).map_err(shape)?,
-        alpha: Image::from_vec(w, h, alpha).map_err(shape)?,
+        color: Image::from_vec(w, h, color)?,
+        depth: Image::from_vec(w, h, depth)?,
+        alpha: Image::from_vec(w, h, alpha)?,
     })
 }
 

@@ -268,8 +268,7 @@ pub fn detect_edges(
             *out = s.clamp(0.0, 1.0);
         }
     });
-    let strength =
-        Image::from_vec(w, h, strength).map_err(|e| NodeError::Invalid(e.to_string()))?;
+    let strength = Image::from_vec(w, h, strength)?;
     let edges = binary_edges(&strength, p.threshold as f32, p.thin);
     Ok(Edges { strength, edges })
 }

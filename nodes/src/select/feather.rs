@@ -139,14 +139,13 @@ pub fn feather(mask: &Mask, p: &FeatherParams) -> Result<(Mask, bool), NodeError
     }
     let (w, h) = mask.dims();
     let m: Vec<f32> = mask.as_slice().par_iter().map(|v| clean(*v)).collect();
-    let shape = |e: depthgraph_graph::value::ShapeError| NodeError::Invalid(e.to_string());
     if p.sigma_px == 0.0 || w == 0 || h == 0 {
-        return Ok((Image::from_vec(w, h, m).map_err(shape)?, false));
+        return Ok((Image::from_vec(w, h, m)?, false));
     }
     let r = (3.0 * p.sigma_px).ceil() as usize;
     let (near, any) = near_boundary(&m, w, h, r);
     if !any {
-        return Ok((Image::from_vec(w, h, m).map_err(shape)?, false));
+        return Ok((Image::from_vec(w, h, m)?, false));
     }
     // Normalised kernel; guard: the centre weight is 1, so the sum is >= 1.
     let two_s2 = 2.0 * p.sigma_px * p.sigma_px;
@@ -189,7 +188,7 @@ pub fn feather(mask: &Mask, p: &FeatherParams) -> Result<(Mask, bool), NodeError
             *o = if inside { b.min(m[i]) } else { b };
         }
     });
-    Ok((Image::from_vec(w, h, out).map_err(shape)?, true))
+    Ok((Image::from_vec(w, h, out)?, true))
 }
 
 fn eval(_: &EvalCtx, inputs: &Inputs, p: &FeatherParams) -> Result<Outputs, NodeError> {

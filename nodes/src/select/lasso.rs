@@ -881,7 +881,7 @@ pub fn lasso(strength: &Confidence, p: &LassoParams) -> Result<Selection, NodeEr
 }
 
 fn eval(_: &EvalCtx, inputs: &Inputs, p: &LassoParams) -> Result<Outputs, NodeError> {
-    let strength = inputs.mask("strength")?;
+    let strength = inputs.confidence("strength")?;
     let sel = lasso(strength, p)?;
     let out = Outputs::new()
         .with("mask", Value::Mask(std::sync::Arc::new(sel.mask)))

@@ -55,6 +55,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
+
+use crate::kit::checks::{fits_intrinsics, sane_intrinsics};
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -125,22 +127,6 @@ pub struct Pasted {
     pub anchor: DVec3,
     /// Number of source object points (0: nothing was selected).
     pub object_points: usize,
-}
-
-fn check_intrinsics(port: &str, k: &Intrinsics, w: usize, h: usize) -> Result<(), NodeError> {
-    if (k.width, k.height) != (w, h) {
-        return Err(NodeError::input(
-            port,
-            format!("are for {}x{} but the image is {w}x{h}", k.width, k.height),
-        ));
-    }
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            port,
-            "focal lengths must be finite and positive",
-        ));
-    }
-    Ok(())
 }
 
 fn check_same(port: &str, a: (usize, usize), depth: (usize, usize)) -> Result<(), NodeError> {
@@ -412,12 +398,7 @@ pub fn suggest_scale(
             anchor.z
         )));
     }
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            "target_intrinsics",
-            "focal lengths must be finite and positive",
-        ));
-    }
+    sane_intrinsics("target_intrinsics", k)?;
     let Some((x0, x1, y0, y1)) = box_rect(k, w, h, anchor + lo_rel, anchor + hi_rel) else {
         return Ok(1.0);
     };
@@ -505,9 +486,9 @@ pub fn paste(
     let (sw, sh) = src_depth.dims();
     check_same("source_color", src_color.dims(), (sw, sh))?;
     check_same("source_mask", src_mask.dims(), (sw, sh))?;
-    check_intrinsics("source_intrinsics", k_src, sw, sh)?;
+    fits_intrinsics("source_intrinsics", k_src, "source image", (sw, sh))?;
     let (tw, th) = tgt_depth.dims();
-    check_intrinsics("target_intrinsics", k_tgt, tw, th)?;
+    fits_intrinsics("target_intrinsics", k_tgt, "target image", (tw, th))?;
     if !(p.scale.is_finite() && p.scale > 0.0) {
         return Err(NodeError::param(
             "scale",
@@ -747,11 +728,10 @@ pub fn paste(
         depth.push(z);
         alpha.push(a);
     }
-    let shape = |e: depthgraph_graph::value::ShapeError| NodeError::Invalid(e.to_string());
     Ok(Pasted {
-        color: Image::from_vec(tw, th, color).map_err(shape)?,
-        depth: Image::from_vec(tw, th, depth).map_err(shape)?,
-        alpha: Image::from_vec(tw, th, alpha).map_err(shape)?,
+        color: Image::from_vec(tw, th, color)?,
+        depth: Image::from_vec(tw, th, depth)?,
+        alpha: Image::from_vec(tw, th, alpha)?,
         scale: s,
         suggested_scale: suggested,
         anchor,

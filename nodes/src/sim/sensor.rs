@@ -14,12 +14,14 @@
 //!   linear HDR radiance image through a camera response curve, the input of
 //!   the depth-blur paper's HDR composition.
 //!
-//! Randomness comes from [`PixelRng`], seeded from `(seed, stream, x, y)`,
+//! Randomness comes from [`SplitMix64::for_pixel`](crate::kit::rng::SplitMix64::for_pixel), seeded from `(seed, stream, x, y)`,
 //! so results are identical whatever the number of threads.
 
+use crate::kit::checks::fits_intrinsics;
+use crate::kit::color::luminance;
+use crate::kit::rng::SplitMix64;
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
-use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -36,82 +38,8 @@ const ZBUF_SUBCELLS: f64 = 8.0;
 /// Speed of light in m/s.
 const SPEED_OF_LIGHT: f64 = 299_792_458.0;
 
-/// One step of the splitmix64 generator's output function (Steele et al.
-/// 2014): a bijective 64-bit mixer.
-#[inline]
-pub fn splitmix64(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-/// A small deterministic random number generator (splitmix64), one per pixel:
-/// seeded from `(seed, stream, x, y)`, so the numbers a pixel draws do not
-/// depend on the order pixels are processed in.
-#[derive(Debug, Clone)]
-pub struct PixelRng {
-    state: u64,
-}
-
-impl PixelRng {
-    /// The generator of pixel `(x, y)` in `stream` for `seed`.
-    pub fn new(seed: u64, stream: u64, x: u64, y: u64) -> Self {
-        let mut h = splitmix64(seed);
-        h = splitmix64(h ^ stream);
-        h = splitmix64(h ^ x);
-        h = splitmix64(h ^ y);
-        Self { state: h }
-    }
-
-    /// Next 64 random bits.
-    #[inline]
-    pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        splitmix64(self.state)
-    }
-
-    /// Uniform in `[0, 1)` with 53 random bits.
-    #[inline]
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-
-    /// Standard normal deviate (Box-Muller, one of the pair).
-    #[inline]
-    pub fn gaussian(&mut self) -> f64 {
-        // 1 - uniform() is in (0, 1]: the guard of the logarithm.
-        let u1 = 1.0 - self.uniform();
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-}
-
-/// Checks that `k` is usable and describes an image of `depth`'s size.
-fn check_camera(k: &Intrinsics, depth: &DepthMap) -> Result<(), NodeError> {
-    if !k.is_sane() {
-        return Err(NodeError::input(
-            "intrinsics",
-            "focal lengths must be finite and positive",
-        ));
-    }
-    if (k.width, k.height) != depth.dims() {
-        return Err(NodeError::input(
-            "intrinsics",
-            format!(
-                "describe a {}x{} image but the depth map is {}x{}",
-                k.width,
-                k.height,
-                depth.width(),
-                depth.height()
-            ),
-        ));
-    }
-    Ok(())
-}
-
-fn image<T>(w: usize, h: usize, data: Vec<T>) -> Result<Image<T>, NodeError> {
-    Image::from_vec(w, h, data).map_err(|e| NodeError::Invalid(e.to_string()))
+fn image<T, K>(w: usize, h: usize, data: Vec<T>) -> Result<Image<T, K>, NodeError> {
+    Ok(Image::from_vec(w, h, data)?)
 }
 
 // ---------------------------------------------------------------------------
@@ -237,11 +165,6 @@ fn normal_at(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> Option<(DV
     (n != DVec3::ZERO).then_some((n, c))
 }
 
-/// Rec. 709 luminance of linear RGB.
-fn luminance(c: Rgb) -> f64 {
-    0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
-}
-
 /// Simulates a Kinect-v1-like structured-light measurement of the ground
 /// truth `depth` (metres, 0 = none) seen with intrinsics `k`; `color`
 /// (linear, same size) drives the dark-surface dropouts and may be omitted.
@@ -285,7 +208,7 @@ pub fn simulate_kinect(
     k: &Intrinsics,
     p: &KinectParams,
 ) -> Result<DepthMap, NodeError> {
-    check_camera(k, depth)?;
+    fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
     if let Some(c) = color {
         if !c.same_dims(depth) {
             return Err(NodeError::input(
@@ -335,7 +258,7 @@ pub fn simulate_kinect(
                 }
             }
             // Fixed draw order per pixel, whatever is used.
-            let mut rng = PixelRng::new(p.seed, STREAM_KINECT, u as u64, y as u64);
+            let mut rng = SplitMix64::for_pixel(p.seed, STREAM_KINECT, u as u64, y as u64);
             let u_dark = rng.uniform();
             let g = rng.gaussian();
             if p.dropouts {
@@ -506,7 +429,7 @@ pub fn simulate_tof(
     k: &Intrinsics,
     p: &ToFParams,
 ) -> Result<(DepthMap, Intrinsics), NodeError> {
-    check_camera(k, depth)?;
+    fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
     let (lw, lh) = (p.width, p.height);
     if lw == 0 || lh == 0 {
         return Err(NodeError::param(
@@ -540,7 +463,7 @@ pub fn simulate_tof(
                         .map(|z| *z as f64),
                 );
             }
-            let mut rng = PixelRng::new(p.seed, STREAM_TOF, i as u64, j as u64);
+            let mut rng = SplitMix64::for_pixel(p.seed, STREAM_TOF, i as u64, j as u64);
             let g = rng.gaussian();
             let u_outlier = rng.uniform();
             let u_value = rng.uniform();
@@ -714,8 +637,12 @@ pub fn simulate_bracket(
         if w > 0 {
             data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
                 for (x, px) in row.iter_mut().enumerate() {
-                    let mut rng =
-                        PixelRng::new(p.seed, STREAM_BRACKET + i as u64, x as u64, y as u64);
+                    let mut rng = SplitMix64::for_pixel(
+                        p.seed,
+                        STREAM_BRACKET + i as u64,
+                        x as u64,
+                        y as u64,
+                    );
                     for (out, &l) in px.iter_mut().zip(radiance.get(x, y)) {
                         let g = rng.gaussian();
                         let r = l as f64;

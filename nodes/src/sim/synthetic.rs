@@ -1073,7 +1073,7 @@ pub fn render_thin_lens(
             .map(|y| {
                 (0..w)
                     .map(|x| {
-                        let pixel_seed = crate::sim::sensor::splitmix64(
+                        let pixel_seed = crate::kit::rng::splitmix64(
                             lens.seed ^ ((y * w + x) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
                         );
                         let points = lens.aperture.samples(lens.samples, pixel_seed)?;
@@ -1631,6 +1631,7 @@ mod tests {
             progress: Some(&progress),
             out_dir: std::path::Path::new("."),
             input_files: &[],
+            derivations: None,
         };
         let out = node.eval(&ctx, &Inputs::new(), &params).unwrap();
         for port in &node.schema().outputs {

@@ -34,6 +34,7 @@ impl TestCtx {
             progress: None,
             out_dir: std::path::Path::new("."),
             input_files: &[],
+            derivations: None,
         }
     }
 }
