@@ -19,11 +19,14 @@ use depthgraph_graph::prelude::*;
 /// Failures of loading a pipeline file.
 #[derive(Debug, thiserror::Error)]
 pub enum LoadError {
-    #[error("{path}: {source}")]
+    /// The file could not be read (the message includes the cause; it is
+    /// not also the error's source, so it prints once).
+    #[error("{path}: {error}")]
     Io {
+        /// The pipeline file.
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        /// Why it could not be read.
+        error: std::io::Error,
     },
     #[error("{0}")]
     Check(CheckErrors),
@@ -31,9 +34,9 @@ pub enum LoadError {
 
 /// Reads a pipeline file and applies `--set` overrides; checks nothing else.
 pub fn read_document(path: &Path, sets: &[String]) -> Result<Document, LoadError> {
-    let text = std::fs::read_to_string(path).map_err(|source| LoadError::Io {
+    let text = std::fs::read_to_string(path).map_err(|error| LoadError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     let mut doc = Document::parse(&text, &path.display().to_string())
         .map_err(|e| LoadError::Check(CheckErrors(e)))?;

@@ -55,11 +55,10 @@ pub enum SweepError {
     BadRef(String),
     #[error("the run produced no value for `{0}`")]
     NoValue(String),
-    #[error("comparing `{output}`: {source}")]
+    #[error("comparing `{output}`: {error}")]
     Metric {
         output: String,
-        #[source]
-        source: MetricError,
+        error: MetricError,
     },
     #[error("give --reference or --truth to measure an error against")]
     NoReference,
@@ -171,10 +170,10 @@ pub fn run_sweep(
         let (error, note) = match compare(result, reference, spec.metric) {
             Ok(m) => (Some(m), None),
             Err(MetricError::Empty) => (None, Some("no valid reference pixel".to_string())),
-            Err(source) => {
+            Err(e) => {
                 return Err(SweepError::Metric {
                     output: spec.output.clone(),
-                    source,
+                    error: e,
                 });
             }
         };

@@ -423,3 +423,69 @@ fn refocus_pipeline_runs_and_passes_through_without_blur() {
     let err = String::from_utf8_lossy(&r.stderr);
     assert!(err.contains("refocus") && err.contains("focus_m"), "{err}");
 }
+
+/// The relighting's per-photo part is a value the engine keeps: moving the
+/// object reuses it (from memory, and from disk in a new engine), the
+/// result equals a run that built everything afresh, `--no-cache` and a
+/// change of a parameter it depends on rebuild it, and `explain` shows it.
+#[test]
+fn the_relight_scene_is_an_engine_cached_value() {
+    let reg = depthgraph::nodes::registry().unwrap();
+    let file = graph("copy_paste_relit.ron");
+    let load = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        let (_, mut p) = depthgraph::load_pipeline(&file, &sets, &reg).unwrap();
+        let i = p.index_of("relight").unwrap();
+        p.outputs = vec![OutputRef {
+            node: i,
+            port: Some("color".into()),
+        }];
+        p
+    };
+    let scene_status = |r: &RunResult| {
+        let rec = r.trace.get("relight").unwrap();
+        assert_eq!(rec.status, Status::Ran, "{rec:?}");
+        assert_eq!(rec.derived.len(), 1, "{rec:?}");
+        assert_eq!(rec.derived[0].name, "relight scene");
+        assert!(rec.derived[0].bytes > 0);
+        rec.derived[0].status
+    };
+    let color = |r: &RunResult| r.outputs["relight.color"].clone();
+    let disk = tempfile::tempdir().unwrap();
+    let engine = |with_disk: bool| {
+        Engine::new(EngineOptions {
+            disk: with_disk.then(|| DiskCache::new(disk.path(), 1 << 30)),
+            ..EngineOptions::default()
+        })
+        .unwrap()
+    };
+    let e = engine(true);
+    let run = |e: &Engine, p: &Pipeline, no_cache: bool| {
+        e.run(
+            p,
+            &RunOptions {
+                no_cache_lookup: no_cache,
+                ..RunOptions::default()
+            },
+        )
+        .unwrap()
+    };
+    let first = run(&e, &load(&[]), false);
+    assert_eq!(scene_status(&first), Status::Ran);
+    assert!(first.trace.table().contains("derived: relight scene"));
+    // the object moves: Relight runs again, its scene does not
+    let moved = load(&["paste.target_pixel=[(80.5, 160.5)]"]);
+    let again = run(&e, &moved, false);
+    assert_eq!(scene_status(&again), Status::Cached);
+    let fresh = run(&engine(false), &moved, false);
+    assert_eq!(scene_status(&fresh), Status::Ran);
+    assert_eq!(color(&again), color(&fresh));
+    assert_ne!(color(&again), color(&first), "the object moved");
+    // a new engine (a second CLI run) reads it from the disk cache
+    let from_disk = run(&engine(true), &load(&["paste.target_pixel=[(70.5, 155.5)]"]), false);
+    assert_eq!(scene_status(&from_disk), Status::Cached);
+    // --no-cache and a parameter of the scene part rebuild it
+    assert_eq!(scene_status(&run(&e, &moved, true)), Status::Ran);
+    let other = load(&["paste.target_pixel=[(80.5, 160.5)]", "relight.ism_points=2000"]);
+    assert_eq!(scene_status(&run(&e, &other, false)), Status::Ran);
+}

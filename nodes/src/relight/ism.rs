@@ -139,7 +139,7 @@ pub fn pixel_area(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (f64,
 }
 
 /// The surface elements of the scene, with their sampling CDF.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct PointSet {
     pub positions: Vec<DVec3>,
     /// Whether each element belongs to the pasted object.
@@ -157,7 +157,7 @@ pub struct PointSet {
 }
 
 /// What splatting needs of one element.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct Elem {
     pos: DVec3,
     min_radius: f64,
@@ -168,6 +168,15 @@ struct Elem {
 }
 
 impl PointSet {
+    /// Whether the per-element arrays have one entry per element.
+    pub(crate) fn consistent(&self) -> bool {
+        let n = self.positions.len();
+        self.object.len() == n
+            && self.cdf.len() == n
+            && self.min_radius.len() == n
+            && self.elems.len() == n
+    }
+
     /// Approximate heap size in bytes.
     pub fn heap_bytes(&self) -> usize {
         self.positions.len() * 24
@@ -284,7 +293,7 @@ impl PointSet {
 }
 
 /// An orthographic depth map along a light direction (module docs).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct ShadowMap {
     /// Unit direction towards the light.
     pub dir: DVec3,
@@ -308,6 +317,11 @@ fn basis(d: DVec3) -> (DVec3, DVec3) {
 }
 
 impl ShadowMap {
+    /// Whether the texel array is `res`² (a decoded map is indexed by it).
+    pub(crate) fn consistent(&self) -> bool {
+        self.res.checked_mul(self.res) == Some(self.t.len())
+    }
+
     /// Continuous texel coordinate of `p`.
     #[inline]
     fn texel(&self, p: DVec3) -> (f64, f64) {

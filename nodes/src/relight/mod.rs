@@ -19,5 +19,6 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     envmap::register(reg)?;
     vpl::register(reg)?;
     node::register(reg)?;
+    reg.register_value("RelightScene", scene_cached::decode_scene);
     Ok(())
 }

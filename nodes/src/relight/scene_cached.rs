@@ -36,6 +36,8 @@
 //! keeps the paper's scheme (eq. 6 over scene and object, maps rebuilt on
 //! every run).
 
+use std::sync::Arc;
+
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::value::Rgb;
 use glam::DVec3;
@@ -56,7 +58,7 @@ use crate::relight::vpl::Vpl;
 /// VPL directions grouped by the cells of an octahedral grid, each group a
 /// cone `(axis, half angle)` holding all its directions: a pixel whose cone
 /// towards the object misses a group's cone skips all its VPLs.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct DirGroups {
     axis: Vec<DVec3>,
     cos_h: Vec<f64>,
@@ -129,7 +131,7 @@ impl DirGroups {
 
 /// What [`relight_moved`] reuses while only the object changes (module
 /// docs). Built by [`RelightScene::new`].
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct RelightScene {
     k: Intrinsics,
     vpls: Vec<Vpl>,
@@ -156,7 +158,7 @@ pub struct RelightScene {
 /// holding their surface points. A ray from any of them passes within
 /// `reach` of a point only if the parallel ray from the centre passes
 /// within `reach + radius`, so one cone test culls the whole tile.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct Tile {
     centre: DVec3,
     radius: f64,
@@ -706,7 +708,8 @@ pub fn relight_moved(
 /// key material of the scene as a derived value (with the keys of the
 /// inputs it reads, [`SCENE_PORTS`]).
 pub fn scene_key_params(p: &RelightParams) -> Vec<u8> {
-    let mut b = Vec::with_capacity(41);
+    let mut b = Vec::with_capacity(45);
+    b.extend_from_slice(&SCENE_CODEC.to_le_bytes());
     b.extend_from_slice(&(p.ism_resolution as u64).to_le_bytes());
     b.extend_from_slice(&(p.ism_points as u64).to_le_bytes());
     b.extend_from_slice(&p.seed.to_le_bytes());
@@ -719,6 +722,44 @@ pub fn scene_key_params(p: &RelightParams) -> Vec<u8> {
 /// The inputs of `Relight` that [`RelightScene::new`] reads.
 pub const SCENE_PORTS: &[&str] = &["photo", "depth", "normals", "albedo", "vpls", "intrinsics"];
 
+/// Layout version of an encoded [`RelightScene`]; part of its key, so a
+/// changed layout never meets an old file.
+const SCENE_CODEC: u32 = 1;
+
+impl RelightScene {
+    /// Whether the parts agree with each other (lengths and indices), so a
+    /// decoded scene can be indexed without a panic.
+    fn consistent(&self) -> bool {
+        let n = self.vpls.len();
+        let px = self.k.width.saturating_mul(self.k.height);
+        self.dirs.len() == n
+            && self.maps.len() == n
+            && self.bias_t.len() == n
+            && self.target.len() == px
+            && self.areas.len() == px
+            && self.e_t.as_ref().is_none_or(|e| e.len() == px)
+            && self.groups.axis.len() == self.groups.members.len()
+            && self.groups.cos_h.len() == self.groups.members.len()
+            && self.groups.sin_h.len() == self.groups.members.len()
+            && self.groups.members.iter().flatten().all(|&j| j < n)
+            && self.tiles.iter().flat_map(|t| &t.pixels).all(|&i| i < px)
+            && self.maps.iter().flatten().all(ShadowMap::consistent)
+            && self.pool.as_ref().is_none_or(PointSet::consistent)
+    }
+}
+
+/// Reads back what [`RelightScene`]'s `encode` wrote (the disk cache's
+/// decoder, registered with the `Relight` node); `None` for anything
+/// malformed or inconsistent.
+pub fn decode_scene(bytes: &[u8]) -> Option<Arc<dyn depthgraph_graph::value::Extension>> {
+    let (version, rest) = bytes.split_first_chunk::<4>()?;
+    if u32::from_le_bytes(*version) != SCENE_CODEC {
+        return None;
+    }
+    let scene: RelightScene = postcard::from_bytes(rest).ok()?;
+    scene.consistent().then(|| Arc::new(scene) as _)
+}
+
 impl depthgraph_graph::value::Extension for RelightScene {
     fn type_name(&self) -> &'static str {
         "RelightScene"
@@ -727,7 +768,7 @@ impl depthgraph_graph::value::Extension for RelightScene {
         self.heap_bytes()
     }
     fn encode(&self) -> Option<Vec<u8>> {
-        None
+        postcard::to_extend(self, SCENE_CODEC.to_le_bytes().to_vec()).ok()
     }
     fn as_any(&self) -> &dyn std::any::Any {
         self

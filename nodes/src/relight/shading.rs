@@ -233,7 +233,7 @@ impl Cone {
     }
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub(crate) struct Surf {
     pub(crate) pos: DVec3,
     pub(crate) n: DVec3,
