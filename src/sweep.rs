@@ -56,10 +56,7 @@ pub enum SweepError {
     #[error("the run produced no value for `{0}`")]
     NoValue(String),
     #[error("comparing `{output}`: {error}")]
-    Metric {
-        output: String,
-        error: MetricError,
-    },
+    Metric { output: String, error: MetricError },
     #[error("give --reference or --truth to measure an error against")]
     NoReference,
 }

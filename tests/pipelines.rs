@@ -482,10 +482,17 @@ fn the_relight_scene_is_an_engine_cached_value() {
     assert_eq!(color(&again), color(&fresh));
     assert_ne!(color(&again), color(&first), "the object moved");
     // a new engine (a second CLI run) reads it from the disk cache
-    let from_disk = run(&engine(true), &load(&["paste.target_pixel=[(70.5, 155.5)]"]), false);
+    let from_disk = run(
+        &engine(true),
+        &load(&["paste.target_pixel=[(70.5, 155.5)]"]),
+        false,
+    );
     assert_eq!(scene_status(&from_disk), Status::Cached);
     // --no-cache and a parameter of the scene part rebuild it
     assert_eq!(scene_status(&run(&e, &moved, true)), Status::Ran);
-    let other = load(&["paste.target_pixel=[(80.5, 160.5)]", "relight.ism_points=2000"]);
+    let other = load(&[
+        "paste.target_pixel=[(80.5, 160.5)]",
+        "relight.ism_points=2000",
+    ]);
     assert_eq!(scene_status(&run(&e, &other, false)), Status::Ran);
 }

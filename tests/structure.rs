@@ -28,7 +28,10 @@ fn module_of(src: &Path, file: &Path) -> String {
         .components()
         .map(|c| c.as_os_str().to_string_lossy().to_string())
         .collect();
-    if matches!(parts.last().map(String::as_str), Some("mod" | "lib" | "main")) {
+    if matches!(
+        parts.last().map(String::as_str),
+        Some("mod" | "lib" | "main")
+    ) {
         parts.pop();
     }
     parts.join("::")
@@ -186,7 +189,11 @@ fn the_circle_finder_finds_circles() {
         paths,
         vec![
             vec!["relight".to_string(), "shading".to_string()],
-            vec!["kit".to_string(), "rng".to_string(), "splitmix64".to_string()],
+            vec![
+                "kit".to_string(),
+                "rng".to_string(),
+                "splitmix64".to_string()
+            ],
         ]
     );
 }
