@@ -117,9 +117,7 @@ fn write_peer_inputs(
         .color
         .as_slice()
         .iter()
-        .flat_map(|c| {
-            c.map(|v| (depthgraph::nodes::kit::color::linear_to_srgb(v) * 255.0).round() as u8)
-        })
+        .flat_map(|c| c.map(depthgraph::nodes::kit::color::srgb8))
         .collect();
     std::fs::write(dir.join(format!("{case}.color.u8")), rgb)
 }
@@ -413,7 +411,7 @@ fn upsampling(data: &Path) -> String {
     use depthgraph::nodes::io::{LoadDepthParams, load_color, load_depth};
     let mut s = String::from("\n## Joint upsampling (Park et al. 2011 benchmark)\n\n");
     let p = LoadDepthParams {
-        encoding: "disparity".into(),
+        encoding: depthgraph::nodes::io::DepthEncoding::Disparity,
         scale: 1.0,
         focal_px: 3740.0,
         baseline_m: 0.160,
@@ -427,7 +425,10 @@ fn upsampling(data: &Path) -> String {
     for scene in ["art_big", "books_big", "moebius_big"] {
         let dir = data.join("park2011_depth_sr").join(scene);
         let (Ok(color), Ok(truth)) = (
-            load_color(&dir.join(format!("{scene}_color.png")), "srgb"),
+            load_color(
+                &dir.join(format!("{scene}_color.png")),
+                depthgraph::nodes::io::ColorSpace::Srgb,
+            ),
             load_depth(&dir.join("_gth").join(format!("{scene}.png")), &p),
         ) else {
             continue;

@@ -23,7 +23,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use depthgraph::graph::prelude::*;
-use depthgraph::nodes::kit::color::linear_to_srgb;
+use depthgraph::nodes::kit::color::srgb8;
 use depthgraph::nodes::select::composite::{CompositeParams, occlusion_composite};
 use depthgraph::nodes::select::edges::{EdgeParams, detect_edges};
 use depthgraph::nodes::select::feather::{FeatherParams, feather};
@@ -42,11 +42,7 @@ fn opencv_peer(color: &ColorImage) -> (String, Option<[f64; 3]>) {
         return ("OpenCV peer did not run (no temporary folder)".into(), None);
     };
     let (w, h) = color.dims();
-    let rgb: Vec<u8> = color
-        .as_slice()
-        .iter()
-        .flat_map(|c| c.map(|v| (linear_to_srgb(v) * 255.0).round() as u8))
-        .collect();
+    let rgb: Vec<u8> = color.as_slice().iter().flat_map(|c| c.map(srgb8)).collect();
     let written = std::fs::write(dir.path().join("color.u8"), rgb).and_then(|_| {
         std::fs::write(
             dir.path().join("meta.json"),

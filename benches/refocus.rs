@@ -24,7 +24,7 @@ use depthgraph::graph::prelude::*;
 use depthgraph::metrics::{display_psnr, display_ssim};
 use depthgraph::nodes::camera::lens::Aperture;
 use depthgraph::nodes::camera::refocus::{RefocusParams, refocus, reverse_mapped_dof};
-use depthgraph::nodes::kit::color::linear_to_srgb;
+use depthgraph::nodes::kit::color::srgb8;
 use depthgraph::nodes::sim::synthetic::{
     RenderOptions, RenderOutput, Scene, ThinLensRender, render, render_thin_lens,
 };
@@ -43,11 +43,7 @@ fn lens_params(width: usize, focus_m: f64, samples: usize) -> RefocusParams {
 
 fn save_png(path: &Path, img: &ColorImage) {
     let (w, h) = img.dims();
-    let bytes: Vec<u8> = img
-        .as_slice()
-        .iter()
-        .flat_map(|c| c.map(|v| (linear_to_srgb(v) * 255.0 + 0.5) as u8))
-        .collect();
+    let bytes: Vec<u8> = img.as_slice().iter().flat_map(|c| c.map(srgb8)).collect();
     if let Some(dir) = path.parent() {
         let _ = std::fs::create_dir_all(dir);
     }

@@ -36,7 +36,9 @@ use depthgraph::nodes::kit::color::luminance_clamped;
 use depthgraph::nodes::relight::paired::relight;
 use depthgraph::nodes::relight::reference::relight_reference;
 use depthgraph::nodes::relight::scene_cached::{RelightScene, relight_moved};
-use depthgraph::nodes::relight::shading::{RelightInputs, RelightParams, Relit};
+use depthgraph::nodes::relight::shading::{
+    Importance, RelightInputs, RelightParams, Relit, Visibility,
+};
 use depthgraph::nodes::relight::vpl::{Vpl, VplParams, sample_vpls};
 
 /// The graph's values at 640x480.
@@ -132,7 +134,7 @@ fn inputs(s: &Scene) -> RelightInputs<'_> {
 fn run(s: &Scene, vpls: &[Vpl], p: &RelightParams) -> (Relit, f64) {
     let inp = inputs(s);
     let t = Instant::now();
-    let r = if p.visibility == "paired" {
+    let r = if p.visibility == Visibility::Paired {
         relight(&inp, vpls, p)
     } else {
         RelightScene::new(&inp.scene(), vpls, p).and_then(|sc| relight_moved(&sc, &inp, p))
@@ -144,8 +146,8 @@ fn run(s: &Scene, vpls: &[Vpl], p: &RelightParams) -> (Relit, f64) {
 fn params(points: usize, importance: &str, visibility: &str) -> RelightParams {
     RelightParams {
         ism_points: points,
-        importance: importance.to_string(),
-        visibility: visibility.to_string(),
+        importance: Importance::from_name(importance).expect("an importance name"),
+        visibility: Visibility::from_name(visibility).expect("a visibility name"),
         ..Default::default()
     }
 }

@@ -88,7 +88,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
     for name in ["Art", "Books", "Dolls", "Moebius"] {
         let dir = data.join("middlebury2005_thirdsize").join(name);
         let p = LoadDepthParams {
-            encoding: "disparity".into(),
+            encoding: depthgraph_nodes::io::DepthEncoding::Disparity,
             scale: 1.0,
             focal_px: 3740.0,
             baseline_m: 0.160,
@@ -96,7 +96,10 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
             ..Default::default()
         };
         match (
-            load_color(&dir.join("view1.png"), "srgb"),
+            load_color(
+                &dir.join("view1.png"),
+                depthgraph_nodes::io::ColorSpace::Srgb,
+            ),
             load_depth(&dir.join("disp1.png"), &p),
         ) {
             (Ok(color), Ok(depth)) => {
@@ -122,7 +125,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
     // MiddEval3 ArtL half size: Z[m] = 0.160 * 1870 / (d + 100), PFM, +inf = unknown.
     let dir = data.join("middeval3_half").join("ArtL");
     let p = LoadDepthParams {
-        encoding: "disparity".into(),
+        encoding: depthgraph_nodes::io::DepthEncoding::Disparity,
         scale: 1.0,
         focal_px: 1870.0,
         baseline_m: 0.160,
@@ -130,7 +133,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
         ..Default::default()
     };
     match (
-        load_color(&dir.join("im0.png"), "srgb"),
+        load_color(&dir.join("im0.png"), depthgraph_nodes::io::ColorSpace::Srgb),
         load_depth(&dir.join("disp0GT.pfm"), &p),
     ) {
         (Ok(color), Ok(depth)) => {

@@ -40,9 +40,17 @@ fn demo_writes_every_output_and_they_read_back() {
     let r = cli(&args);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let d = out.path().join("demo");
-    let color = depthgraph::nodes::io::load_color(&d.join("color.png"), "srgb").unwrap();
+    let color = depthgraph::nodes::io::load_color(
+        &d.join("color.png"),
+        depthgraph::nodes::io::ColorSpace::Srgb,
+    )
+    .unwrap();
     assert_eq!(color.dims(), (160, 120));
-    let hdr = depthgraph::nodes::io::load_color(&d.join("color.exr"), "linear").unwrap();
+    let hdr = depthgraph::nodes::io::load_color(
+        &d.join("color.exr"),
+        depthgraph::nodes::io::ColorSpace::Linear,
+    )
+    .unwrap();
     // the 8-bit PNG is the sRGB encoding of the linear EXR (clipped at 1)
     for (a, b) in color.as_slice().iter().zip(hdr.as_slice()) {
         for c in 0..3 {
@@ -267,8 +275,13 @@ fn sinks_never_overwrite_an_input_file() {
         "save.path=bright.png",
     ]);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-    let a = depthgraph::nodes::io::load_color(&input, "srgb").unwrap();
-    let b = depthgraph::nodes::io::load_color(&dir.path().join("bright.png"), "srgb").unwrap();
+    let a =
+        depthgraph::nodes::io::load_color(&input, depthgraph::nodes::io::ColorSpace::Srgb).unwrap();
+    let b = depthgraph::nodes::io::load_color(
+        &dir.path().join("bright.png"),
+        depthgraph::nodes::io::ColorSpace::Srgb,
+    )
+    .unwrap();
     let (pa, pb) = (a.get(1, 1), b.get(1, 1));
     assert!(
         (pb[0] - (2.0 * pa[0]).min(1.0)).abs() < 0.01,
@@ -387,9 +400,11 @@ fn refocus_pipeline_runs_and_passes_through_without_blur() {
     for n in ["hdr", "to_color", "upsample", "refocus"] {
         assert_eq!(status_of(&rows, n), "ran", "{n}");
     }
-    let img =
-        depthgraph::nodes::io::load_color(&out.path().join("refocus/refocused.exr"), "linear")
-            .unwrap();
+    let img = depthgraph::nodes::io::load_color(
+        &out.path().join("refocus/refocused.exr"),
+        depthgraph::nodes::io::ColorSpace::Linear,
+    )
+    .unwrap();
     assert_eq!(img.dims(), (160, 120));
     assert!(
         img.as_slice()

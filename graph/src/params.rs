@@ -469,8 +469,7 @@ macro_rules! node_params {
         }
     ) => {
         $(#[$meta])*
-        #[derive(Debug, Clone, PartialEq, ::serde::Serialize, ::serde::Deserialize)]
-        #[serde(default, deny_unknown_fields)]
+        #[derive(Debug, Clone, PartialEq)]
         $vis struct $name {
             $( $(#[doc = $doc])+ $fvis $field: $ty, )*
         }
@@ -509,6 +508,83 @@ macro_rules! node_params {
                 let mut m = $crate::params::ParamMap::new();
                 $( m.insert(stringify!($field).to_string(), $crate::params::ToParam::to_param(&self.$field)); )*
                 m
+            }
+        }
+    };
+}
+
+/// Declares a choice parameter's type: a Rust enum whose variants are
+/// written in pipelines as the given names. The schema takes its names
+/// from `NAMES` (`ParamKind::Choice(Enum::NAMES)`), so a node matches on
+/// the enum and has no arm for a name it does not know.
+///
+/// ```
+/// use depthgraph_graph::param_choice;
+/// use depthgraph_graph::params::{FromParam, ParamValue, ToParam};
+/// param_choice! {
+///     /// Border handling.
+///     pub enum Border {
+///         /// Repeat the edge pixel.
+///         Clamp = "clamp",
+///         /// Zero outside.
+///         Zero = "zero",
+///     }
+/// }
+/// assert_eq!(Border::NAMES, &["clamp", "zero"]);
+/// assert_eq!(Border::from_param(&ParamValue::Text("zero".into())), Ok(Border::Zero));
+/// assert_eq!(Border::Clamp.to_param(), ParamValue::Text("clamp".into()));
+/// assert!(Border::from_param(&ParamValue::Text("wrap".into())).is_err());
+/// ```
+#[macro_export]
+macro_rules! param_choice {
+    (
+        $(#[$meta:meta])*
+        $vis:vis enum $name:ident {
+            $(
+                $(#[doc = $doc:literal])*
+                $variant:ident = $text:literal
+            ),+ $(,)?
+        }
+    ) => {
+        $(#[$meta])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+        $vis enum $name {
+            $( $(#[doc = $doc])* $variant, )+
+        }
+
+        impl $name {
+            /// The names as written in pipelines, in declaration order.
+            pub const NAMES: &'static [&'static str] = &[$($text),+];
+            /// The name as written in pipelines.
+            pub fn name(self) -> &'static str {
+                match self { $( Self::$variant => $text, )+ }
+            }
+            /// The choice written `name`, if any.
+            pub fn from_name(name: &str) -> ::core::option::Option<Self> {
+                match name { $( $text => Some(Self::$variant), )+ _ => None }
+            }
+        }
+
+        impl ::core::fmt::Display for $name {
+            fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+                f.write_str(self.name())
+            }
+        }
+
+        impl $crate::params::ToParam for $name {
+            fn to_param(&self) -> $crate::params::ParamValue {
+                $crate::params::ParamValue::Text(self.name().to_string())
+            }
+        }
+
+        impl $crate::params::FromParam for $name {
+            fn from_param(v: &$crate::params::ParamValue) -> ::core::result::Result<Self, ::std::string::String> {
+                match v {
+                    $crate::params::ParamValue::Text(t) => Self::from_name(t).ok_or_else(|| {
+                        format!("\"{t}\" is not one of {:?}", Self::NAMES)
+                    }),
+                    other => Err(format!("expected one of {:?}, found {}", Self::NAMES, other.type_name())),
+                }
             }
         }
     };

@@ -874,7 +874,7 @@ pub fn load_bracket(p: &LoadBracketParams) -> Result<ExposureStack, NodeError> {
     let entries = bracket_entries(p)?;
     let loaded: Vec<Result<ColorImage, NodeError>> = entries
         .par_iter()
-        .map(|(path, _)| crate::io::load_color(path, "linear"))
+        .map(|(path, _)| crate::io::load_color(path, crate::io::ColorSpace::Linear))
         .collect();
     let mut stack = ExposureStack::default();
     for ((path, t), img) in entries.iter().zip(loaded) {
@@ -927,15 +927,24 @@ fn bracket_files(p: &LoadBracketParams) -> Vec<PathBuf> {
 // Nodes
 // ---------------------------------------------------------------------------
 
-/// Sources of the response curve.
-pub const RESPONSES: &[&str] = &["recover", "gamma", "linear"];
+depthgraph_graph::param_choice! {
+    /// Where the response curve comes from (the `response` parameter).
+    pub enum ResponseSource {
+        /// Estimated from the stack (eq. 5).
+        Recover = "recover",
+        /// A known gamma camera (the curve of SimulateBracket).
+        Gamma = "gamma",
+        /// A linear camera.
+        Linear = "linear",
+    }
+}
 
 node_params! {
     /// Parameters of `HdrMerge`.
     pub struct HdrMergeParams {
         /// "recover": estimate g from the stack (eq. 5); "gamma": a known gamma camera (the curve
         /// of SimulateBracket); "linear": a linear camera. A connected `curve` input overrides it.
-        pub response: String = "recover", ParamKind::Choice(RESPONSES);
+        pub response: ResponseSource = ResponseSource::Recover, ParamKind::Choice(ResponseSource::NAMES);
         /// Gamma of the "gamma" response (see SimulateBracket).
         pub gamma: f64 = 2.2, ParamKind::Float { min: 1.0, max: 5.0 };
         /// "recover": pixels sampled per channel (spread over the radiance range, flat regions
@@ -967,10 +976,10 @@ fn hdr_merge_eval(
     let (w, h) = check_stack(stack)?;
     let curve = match inputs.color_opt("curve")? {
         Some(img) => ResponseCurve::from_image(img, "curve")?,
-        None => match p.response.as_str() {
-            "gamma" => ResponseCurve::gamma(p.gamma),
-            "linear" => ResponseCurve::linear(),
-            _ => {
+        None => match p.response {
+            ResponseSource::Gamma => ResponseCurve::gamma(p.gamma),
+            ResponseSource::Linear => ResponseCurve::linear(),
+            ResponseSource::Recover => {
                 if stack.images.len() == 1 {
                     return Ok(Outputs::new()
                         .with("color", Value::Color(Arc::new(stack.images[0].clone())))
@@ -1299,7 +1308,7 @@ mod tests {
         );
         // with a given curve one exposure is linearised, not passed through
         let p = HdrMergeParams {
-            response: "gamma".into(),
+            response: ResponseSource::Gamma,
             ..Default::default()
         };
         let out = eval_node(stack.clone(), &p, None).unwrap();

@@ -3,29 +3,37 @@
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
-/// Names of the presets, for the `preset` parameter.
-pub const PRESETS: &[&str] = &[
-    "kinect_v1",
-    "tum_fr1",
-    "tum_fr2",
-    "tum_fr3",
-    "nyu",
-    "custom",
-];
+depthgraph_graph::param_choice! {
+    /// A known camera, or custom values (the `preset` parameter).
+    pub enum CameraPreset {
+        /// Kinect v1 / ROS default.
+        KinectV1 = "kinect_v1",
+        /// TUM RGB-D freiburg1 colour camera.
+        TumFr1 = "tum_fr1",
+        /// TUM RGB-D freiburg2 colour camera.
+        TumFr2 = "tum_fr2",
+        /// TUM RGB-D freiburg3 colour camera.
+        TumFr3 = "tum_fr3",
+        /// NYU Depth v2 colour camera.
+        Nyu = "nyu",
+        /// fx, fy, cx, cy as given.
+        Custom = "custom",
+    }
+}
 
-/// Intrinsics of a preset at its native 640x480, or `None` for an unknown name.
+/// Intrinsics of a preset at its native 640x480; `None` for `Custom`.
 ///
 /// Sources: Kinect v1 / ROS default (fx = fy = 525, c = 319.5, 239.5);
 /// TUM RGB-D calibrated colour cameras fr1, fr2, fr3 (Sturm et al. 2012);
 /// NYU Depth v2 colour camera (Silberman et al. 2012 toolbox).
-pub fn preset(name: &str) -> Option<Intrinsics> {
-    let (fx, fy, cx, cy) = match name {
-        "kinect_v1" => (525.0, 525.0, 319.5, 239.5),
-        "tum_fr1" => (517.3, 516.5, 318.6, 255.3),
-        "tum_fr2" => (520.9, 521.0, 325.1, 249.7),
-        "tum_fr3" => (535.4, 539.2, 320.1, 247.6),
-        "nyu" => (518.8579, 519.4696, 325.5824, 253.7362),
-        _ => return None,
+pub fn preset(preset: CameraPreset) -> Option<Intrinsics> {
+    let (fx, fy, cx, cy) = match preset {
+        CameraPreset::KinectV1 => (525.0, 525.0, 319.5, 239.5),
+        CameraPreset::TumFr1 => (517.3, 516.5, 318.6, 255.3),
+        CameraPreset::TumFr2 => (520.9, 521.0, 325.1, 249.7),
+        CameraPreset::TumFr3 => (535.4, 539.2, 320.1, 247.6),
+        CameraPreset::Nyu => (518.8579, 519.4696, 325.5824, 253.7362),
+        CameraPreset::Custom => return None,
     };
     Some(Intrinsics {
         fx,
@@ -41,7 +49,7 @@ node_params! {
     /// Parameters of the `Camera` node.
     pub struct CameraParams {
         /// A known camera, or "custom" to use fx, fy, cx, cy as given.
-        pub preset: String = "kinect_v1", ParamKind::Choice(PRESETS);
+        pub preset: CameraPreset = CameraPreset::KinectV1, ParamKind::Choice(CameraPreset::NAMES);
         /// Image width in pixels; presets are rescaled to it.
         pub width: usize = 640usize, ParamKind::Int { min: 1, max: 65536 };
         /// Image height in pixels; presets are rescaled to it.
@@ -65,19 +73,17 @@ node_params! {
 /// assert_eq!(k.fx, 262.5);
 /// ```
 pub fn camera_intrinsics(p: &CameraParams) -> Result<Intrinsics, NodeError> {
-    if p.preset == "custom" {
-        return Ok(Intrinsics {
+    Ok(match preset(p.preset) {
+        Some(k) => k.scaled_to(p.width, p.height),
+        None => Intrinsics {
             fx: p.fx,
             fy: p.fy,
             cx: p.cx,
             cy: p.cy,
             width: p.width,
             height: p.height,
-        });
-    }
-    let k = preset(&p.preset)
-        .ok_or_else(|| NodeError::param("preset", format!("unknown preset `{}`", p.preset)))?;
-    Ok(k.scaled_to(p.width, p.height))
+        },
+    })
 }
 
 fn eval(_: &EvalCtx, _: &Inputs, p: &CameraParams) -> Result<Outputs, NodeError> {
@@ -107,15 +113,16 @@ mod tests {
     #[test]
     fn presets_scale_with_resolution() {
         let k = camera_intrinsics(&CameraParams {
-            preset: "tum_fr1".into(),
+            preset: CameraPreset::TumFr1,
             width: 320,
             height: 240,
             ..Default::default()
         })
         .unwrap();
         assert!((k.fx - 258.65).abs() < 1e-9 && (k.cy - 127.65).abs() < 1e-9);
-        for name in PRESETS.iter().filter(|n| **n != "custom") {
-            assert!(preset(name).is_some(), "{name}");
+        for name in CameraPreset::NAMES {
+            let p = CameraPreset::from_name(name).unwrap();
+            assert_eq!(preset(p).is_some(), p != CameraPreset::Custom, "{name}");
         }
     }
 }

@@ -37,8 +37,19 @@ use depthgraph_graph::prelude::*;
 
 use crate::kit::rng::splitmix64;
 
-/// Names of the aperture shapes, for the `aperture` parameter.
-pub const APERTURES: &[&str] = &["disc", "polygon", "triangle", "mask"];
+depthgraph_graph::param_choice! {
+    /// The diaphragm's shape (the `aperture` parameter).
+    pub enum ApertureShape {
+        /// Round.
+        Disc = "disc",
+        /// A regular polygon of `blades` sides.
+        Polygon = "polygon",
+        /// A regular triangle.
+        Triangle = "triangle",
+        /// A custom shape from a Mask input.
+        Mask = "mask",
+    }
+}
 
 /// A thin lens and the sensor it images onto.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -160,17 +171,17 @@ pub enum Aperture {
 }
 
 impl Aperture {
-    /// The aperture the parameters name: `"disc"`, `"polygon"` (with
-    /// `blades`), `"triangle"`, or `"mask"` (which needs `mask`).
+    /// The aperture the parameters name: a disc, a polygon (with
+    /// `blades`), a triangle, or a mask (which needs `mask`).
     pub fn from_params(
-        name: &str,
+        shape: ApertureShape,
         blades: u32,
         rotation_deg: f64,
         mask: Option<&Mask>,
     ) -> Result<Aperture, NodeError> {
-        match name {
-            "disc" => Ok(Aperture::Disc),
-            "polygon" => {
+        match shape {
+            ApertureShape::Disc => Ok(Aperture::Disc),
+            ApertureShape::Polygon => {
                 if !(3..=64).contains(&blades) {
                     return Err(NodeError::param(
                         "blades",
@@ -182,21 +193,17 @@ impl Aperture {
                     rotation_deg,
                 })
             }
-            "triangle" => Ok(Aperture::Polygon {
+            ApertureShape::Triangle => Ok(Aperture::Polygon {
                 blades: 3,
                 rotation_deg,
             }),
-            "mask" => match mask {
+            ApertureShape::Mask => match mask {
                 Some(m) => Ok(Aperture::Mask(m.clone())),
                 None => Err(NodeError::input(
                     "aperture",
                     "aperture = \"mask\" needs a Mask connected to the `aperture` input",
                 )),
             },
-            other => Err(NodeError::param(
-                "aperture",
-                format!("unknown aperture `{other}`; expected one of {APERTURES:?}"),
-            )),
         }
     }
 
@@ -504,7 +511,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("aperture") && e.contains("no open pixel"), "{e}");
-        let missing = Aperture::from_params("mask", 6, 0.0, None)
+        let missing = Aperture::from_params(ApertureShape::Mask, 6, 0.0, None)
             .unwrap_err()
             .to_string();
         assert!(missing.contains("aperture"), "{missing}");

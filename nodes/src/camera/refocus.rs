@@ -40,7 +40,7 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
-use crate::camera::lens::{APERTURES, Aperture, ThinLens, inv_depth};
+use crate::camera::lens::{Aperture, ApertureShape, ThinLens, inv_depth};
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
 pub const TILE: usize = 16;
@@ -69,7 +69,7 @@ node_params! {
         pub sensor_width_mm: f64 = 36.0, ParamKind::Float { min: 0.1, max: 1000.0 };
         /// Aperture shape: disc, polygon (`blades` sides), triangle, or mask
         /// (the `aperture` input, values are transmittance).
-        pub aperture: String = "disc", ParamKind::Choice(APERTURES);
+        pub aperture: ApertureShape = ApertureShape::Disc, ParamKind::Choice(ApertureShape::NAMES);
         /// Number of diaphragm blades of the polygonal aperture.
         pub blades: u32 = 6u32, ParamKind::Int { min: 3, max: 64 };
         /// Rotation of the polygon in degrees (0: a vertex straight up).
@@ -596,7 +596,7 @@ fn kernel(aperture: &Aperture, diameter: f64) -> Vec<(isize, isize)> {
 
 fn aperture_of(inputs: &Inputs, p: &RefocusParams) -> Result<Aperture, NodeError> {
     let mask = inputs.mask_opt("aperture")?;
-    Aperture::from_params(&p.aperture, p.blades, p.rotation_deg, mask.map(|m| &**m))
+    Aperture::from_params(p.aperture, p.blades, p.rotation_deg, mask.map(|m| &**m))
 }
 
 fn eval_refocus(ctx: &EvalCtx, inputs: &Inputs, p: &RefocusParams) -> Result<Outputs, NodeError> {

@@ -16,7 +16,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use image::{DynamicImage, ImageFormat};
 
-use crate::kit::color::{linear_to_srgb, srgb_to_linear};
+use crate::kit::color::{srgb_to_linear, srgb8, srgb16};
 use crate::kit::colormap::{colormap_depth, depth_range};
 
 /// Largest accepted image side in pixels.
@@ -247,8 +247,15 @@ fn load_pnm_color(path: &Path, srgb: bool) -> Result<ColorImage, NodeError> {
     Image::from_vec(pnm.width, pnm.height, data).map_err(|e| decode_err(path, e.to_string()))
 }
 
-/// Color space of integer-valued color files.
-pub const COLOR_SPACES: &[&str] = &["srgb", "linear"];
+depthgraph_graph::param_choice! {
+    /// How 8- and 16-bit files are encoded (the `color_space` parameter).
+    pub enum ColorSpace {
+        /// sRGB-encoded, linearised on load.
+        Srgb = "srgb",
+        /// Already linear.
+        Linear = "linear",
+    }
+}
 
 node_params! {
     /// Parameters of `LoadColor`.
@@ -256,23 +263,24 @@ node_params! {
         /// PNG, JPEG, TIFF (8 or 16 bit) or EXR file.
         pub path: String = "", ParamKind::InputPath;
         /// Encoding of 8/16-bit files: "srgb" (almost every photo) is linearised; float files are always linear.
-        pub color_space: String = "srgb", ParamKind::Choice(COLOR_SPACES);
+        pub color_space: ColorSpace = ColorSpace::Srgb, ParamKind::Choice(ColorSpace::NAMES);
     }
 }
 
 /// Reads a color image as linear RGB (alpha is dropped).
 ///
 /// ```no_run
-/// let img = depthgraph_nodes::io::load_color(std::path::Path::new("photo.png"), "srgb").unwrap();
+/// use depthgraph_nodes::io::{load_color, ColorSpace};
+/// let img = load_color(std::path::Path::new("photo.png"), ColorSpace::Srgb).unwrap();
 /// println!("{}x{}", img.width(), img.height());
 /// ```
-pub fn load_color(path: &Path, color_space: &str) -> Result<ColorImage, NodeError> {
+pub fn load_color(path: &Path, color_space: ColorSpace) -> Result<ColorImage, NodeError> {
     if is_pnm(path) {
-        return load_pnm_color(path, color_space == "srgb");
+        return load_pnm_color(path, color_space == ColorSpace::Srgb);
     }
     let img = open_image(path)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let srgb = color_space == "srgb";
+    let srgb = color_space == ColorSpace::Srgb;
     let data: Vec<[f32; 3]> = match &img {
         DynamicImage::ImageLuma8(_)
         | DynamicImage::ImageLumaA8(_)
@@ -324,13 +332,22 @@ fn load_color_eval(_: &EvalCtx, _: &Inputs, p: &LoadColorParams) -> Result<Outpu
             "no file given; set it with --set <node>.path=FILE",
         ));
     }
-    Ok(Outputs::new().with("color", load_color(Path::new(&p.path), &p.color_space)?))
+    Ok(Outputs::new().with("color", load_color(Path::new(&p.path), p.color_space)?))
 }
 
 // ---------------------------------------------------------------- depth
 
-/// What the stored numbers mean.
-pub const DEPTH_ENCODINGS: &[&str] = &["depth", "disparity", "nyu_raw"];
+depthgraph_graph::param_choice! {
+    /// What the samples of a depth file are (the `encoding` parameter).
+    pub enum DepthEncoding {
+        /// Depth, times `scale` to metres.
+        Depth = "depth",
+        /// Disparity in pixels (with `focal_px`, `baseline_m`, `doffs_px`).
+        Disparity = "disparity",
+        /// NYU Depth v2 raw Kinect disparity.
+        NyuRaw = "nyu_raw",
+    }
+}
 
 node_params! {
     /// Parameters of `LoadDepth`.
@@ -340,7 +357,7 @@ node_params! {
         /// "depth": values are distances along z; "disparity": values are stereo disparities;
         /// "nyu_raw": NYU Depth v2 raw Kinect dump (16-bit PGM whose samples are little-endian raw
         /// disparity): z = 351.3 / (1092.5 - raw) metres, raw >= 1093 or 0 a hole; scale is unused.
-        pub encoding: String = "depth", ParamKind::Choice(DEPTH_ENCODINGS);
+        pub encoding: DepthEncoding = DepthEncoding::Depth, ParamKind::Choice(DepthEncoding::NAMES);
         /// Stored units per metre (depth) or per pixel of disparity. 0 = auto: 1000 (millimetres) for
         /// integer files, 1 for float files. TUM uses 5000; Middlebury 2003 quarter-size disparity 4.
         pub scale: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e9 };
@@ -546,7 +563,7 @@ const NYU_RAW_INVALID: f64 = 1093.0;
 /// with little-endian PGM samples. Raw zeros in integer files, non-finite
 /// values, and non-positive results are holes. Binary PGM (P5) is read as well.
 pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeError> {
-    let nyu = p.encoding == "nyu_raw";
+    let nyu = p.encoding == DepthEncoding::NyuRaw;
     if nyu && !is_pnm(path) {
         return Err(NodeError::param(
             "encoding",
@@ -564,7 +581,7 @@ pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeErro
     } else {
         1.0
     };
-    let disparity = p.encoding == "disparity";
+    let disparity = p.encoding == DepthEncoding::Disparity;
     if disparity && (p.focal_px <= 0.0 || p.baseline_m <= 0.0) {
         return Err(NodeError::param(
             if p.focal_px <= 0.0 {
@@ -676,8 +693,15 @@ fn extension(path: &Path) -> String {
         .to_ascii_lowercase()
 }
 
-/// Bit depths for PNG color output.
-pub const PNG_BITS: &[&str] = &["8", "16"];
+depthgraph_graph::param_choice! {
+    /// Bits per channel of a written PNG (the `bits` parameter).
+    pub enum PngBits {
+        /// 8-bit sRGB.
+        Eight = "8",
+        /// 16-bit sRGB.
+        Sixteen = "16",
+    }
+}
 
 node_params! {
     /// Parameters of `SaveColor`.
@@ -685,7 +709,7 @@ node_params! {
         /// Output file; `.png` (sRGB, 8 or 16 bit) or `.exr` (linear float). Relative paths go under `--out`.
         pub path: String = "color.png", ParamKind::OutputPath;
         /// PNG bit depth.
-        pub bits: String = "8", ParamKind::Choice(PNG_BITS);
+        pub bits: PngBits = PngBits::Eight, ParamKind::Choice(PngBits::NAMES);
         /// Exposure adjustment in stops applied before encoding (PNG clips at 1 after it).
         pub exposure_stops: f64 = 0.0, ParamKind::Float { min: -30.0, max: 30.0 };
     }
@@ -719,7 +743,7 @@ pub fn save_color(
                 let data: Vec<u16> = img
                     .as_slice()
                     .iter()
-                    .flat_map(|p| p.map(|v| (linear_to_srgb(v * gain) * 65535.0).round() as u16))
+                    .flat_map(|p| p.map(|v| srgb16(v * gain)))
                     .collect();
                 let buf = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_raw(w, h, data)
                     .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
@@ -730,7 +754,7 @@ pub fn save_color(
                 let data: Vec<u8> = img
                     .as_slice()
                     .iter()
-                    .flat_map(|p| p.map(|v| (linear_to_srgb(v * gain) * 255.0).round() as u8))
+                    .flat_map(|p| p.map(|v| srgb8(v * gain)))
                     .collect();
                 let buf = image::RgbImage::from_raw(w, h, data)
                     .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
@@ -753,12 +777,23 @@ fn save_color_eval(
 ) -> Result<Outputs, NodeError> {
     let img = inputs.color("color")?;
     let path = ctx.output_path(&p.path)?;
-    let written = save_color(img, &path, p.bits == "16", p.exposure_stops)?;
+    let written = save_color(img, &path, p.bits == PngBits::Sixteen, p.exposure_stops)?;
     Ok(Outputs::new().with("file", written))
 }
 
-/// Depth output forms.
-pub const DEPTH_FORMATS: &[&str] = &["auto", "png16", "exr", "preview"];
+depthgraph_graph::param_choice! {
+    /// How a depth map is written (the `format` parameter of SaveDepth).
+    pub enum DepthFormat {
+        /// By the file's extension: `.exr` is EXR, anything else PNG16.
+        Auto = "auto",
+        /// 16-bit PNG in millimetres.
+        Png16 = "png16",
+        /// 32-bit float EXR in metres.
+        Exr = "exr",
+        /// A colour-mapped 8-bit preview.
+        Preview = "preview",
+    }
+}
 
 node_params! {
     /// Parameters of `SaveDepth`.
@@ -767,7 +802,7 @@ node_params! {
         pub path: String = "depth.png", ParamKind::OutputPath;
         /// "png16" (integer, `scale` units per metre), "exr" (float metres), "preview"
         /// (colormapped 8-bit PNG, holes black), or "auto" (from the extension: .exr, else png16).
-        pub format: String = "auto", ParamKind::Choice(DEPTH_FORMATS);
+        pub format: DepthFormat = DepthFormat::Auto, ParamKind::Choice(DepthFormat::NAMES);
         /// png16 only: stored units per metre (1000 = millimetres, TUM uses 5000).
         pub scale: f64 = 1000.0, ParamKind::Float { min: 1e-6, max: 1e9 };
         /// preview only: depth mapped to the first color; 0 with max 0 = 2nd percentile of the data.
@@ -786,13 +821,13 @@ pub fn save_depth(
     p: &SaveDepthParams,
 ) -> Result<(PathBuf, usize), NodeError> {
     let (w, h) = (depth.width() as u32, depth.height() as u32);
-    let format = match p.format.as_str() {
-        "auto" if extension(path) == "exr" => "exr",
-        "auto" => "png16",
+    let format = match p.format {
+        DepthFormat::Auto if extension(path) == "exr" => DepthFormat::Exr,
+        DepthFormat::Auto => DepthFormat::Png16,
         f => f,
     };
     match format {
-        "exr" => {
+        DepthFormat::Exr => {
             use exr::prelude::*;
             let data: Vec<f32> = depth
                 .as_slice()
@@ -814,7 +849,7 @@ pub fn save_depth(
             })?;
             Ok((written, 0))
         }
-        "png16" => {
+        DepthFormat::Png16 => {
             let mut clipped = 0;
             let data: Vec<u16> = depth
                 .as_slice()
@@ -839,18 +874,15 @@ pub fn save_depth(
             })?;
             Ok((written, clipped))
         }
-        _ => {
+        // `Auto` was resolved to Exr or Png16 above
+        DepthFormat::Preview | DepthFormat::Auto => {
             let (lo, hi) = if p.max_m > p.min_m {
                 (p.min_m as f32, p.max_m as f32)
             } else {
                 depth_range(depth, 0.02, 0.98)
             };
             let rgb = colormap_depth(depth, lo, hi);
-            let data: Vec<u8> = rgb
-                .as_slice()
-                .iter()
-                .flat_map(|p| p.map(|v| (linear_to_srgb(v) * 255.0).round() as u8))
-                .collect();
+            let data: Vec<u8> = rgb.as_slice().iter().flat_map(|p| p.map(srgb8)).collect();
             let buf = image::RgbImage::from_raw(w, h, data)
                 .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
             let written = write_atomic(path, |tmp| {
@@ -876,8 +908,15 @@ fn save_depth_eval(
 
 // ---------------------------------------------------------------- PLY
 
-/// PLY encodings.
-pub const PLY_FORMATS: &[&str] = &["binary", "ascii"];
+depthgraph_graph::param_choice! {
+    /// PLY encoding (the `format` parameter of SavePoints / SaveMesh).
+    pub enum PlyFormat {
+        /// Little-endian binary.
+        Binary = "binary",
+        /// Text.
+        Ascii = "ascii",
+    }
+}
 
 node_params! {
     /// Parameters of `SavePointCloud` and `SaveMesh`.
@@ -885,7 +924,7 @@ node_params! {
         /// Output `.ply` file. Relative paths go under `--out`.
         pub path: String = "points.ply", ParamKind::OutputPath;
         /// "binary" (little-endian, compact) or "ascii" (readable).
-        pub format: String = "binary", ParamKind::Choice(PLY_FORMATS);
+        pub format: PlyFormat = PlyFormat::Binary, ParamKind::Choice(PlyFormat::NAMES);
     }
 }
 
@@ -937,7 +976,7 @@ pub fn write_ply(
         header.push_str("end_header\n");
         let io = |e: std::io::Error| e.to_string();
         w.write_all(header.as_bytes()).map_err(io)?;
-        let c8 = |c: &[f32; 3]| c.map(|v| (linear_to_srgb(v) * 255.0).round() as u8);
+        let c8 = |c: &[f32; 3]| c.map(srgb8);
         for i in 0..positions.len() {
             let p = positions[i];
             if ascii {
@@ -994,7 +1033,7 @@ fn save_points_eval(
         &pc.colors,
         &pc.normals,
         &[],
-        p.format == "ascii",
+        p.format == PlyFormat::Ascii,
     )?;
     Ok(Outputs::new().with("file", written))
 }
@@ -1008,7 +1047,7 @@ fn save_mesh_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SavePlyParams) -> Result<O
         &m.colors,
         &m.normals,
         &m.triangles,
-        p.format == "ascii",
+        p.format == PlyFormat::Ascii,
     )?;
     Ok(Outputs::new().with("file", written))
 }
@@ -1125,7 +1164,7 @@ mod tests {
         let mut b = b"P6\n# comment\n2 1\n255\n".to_vec();
         b.extend_from_slice(&[255, 255, 255, 0, 0, 0]);
         std::fs::write(&ppm, b).unwrap();
-        let c = super::load_color(&ppm, "srgb").unwrap();
+        let c = super::load_color(&ppm, ColorSpace::Srgb).unwrap();
         assert_eq!(c.dims(), (2, 1));
         assert!((c.get(0, 0)[0] - 1.0).abs() < 1e-6 && c.get(1, 0)[2] == 0.0);
         // 3x1 P5 16-bit with little-endian raw disparity (the NYU dump): 839, 2047 (none), 0 (none)
@@ -1136,7 +1175,7 @@ mod tests {
         }
         std::fs::write(&pgm, b).unwrap();
         let p = super::LoadDepthParams {
-            encoding: "nyu_raw".into(),
+            encoding: DepthEncoding::NyuRaw,
             ..Default::default()
         };
         let d = super::load_depth(&pgm, &p).unwrap();
@@ -1159,9 +1198,9 @@ mod tests {
     fn srgb_round_trip() {
         for i in 0..=255u8 {
             let lin = srgb8_table()[i as usize];
-            assert_eq!((linear_to_srgb(lin) * 255.0).round() as u8, i);
+            assert_eq!(srgb8(lin), i);
         }
-        assert_eq!(linear_to_srgb(f32::NAN), 0.0);
+        assert_eq!(srgb8(f32::NAN), 0);
     }
 
     #[test]
@@ -1171,7 +1210,7 @@ mod tests {
         for bits16 in [false, true] {
             let path = dir.path().join(format!("c{bits16}.png"));
             save_color(&img, &path, bits16, 0.0).unwrap();
-            let back = load_color(&path, "srgb").unwrap();
+            let back = load_color(&path, ColorSpace::Srgb).unwrap();
             let tol = if bits16 { 1e-4 } else { 6e-3 };
             for (a, b) in img.as_slice().iter().zip(back.as_slice()) {
                 for c in 0..3 {
@@ -1182,7 +1221,7 @@ mod tests {
         let exr = dir.path().join("c.exr");
         let hdr = Image::from_fn(4, 3, |x, _| [x as f32 * 10.0, 0.5, 1e-3]);
         save_color(&hdr, &exr, false, 0.0).unwrap();
-        assert_eq!(load_color(&exr, "srgb").unwrap(), hdr);
+        assert_eq!(load_color(&exr, ColorSpace::Srgb).unwrap(), hdr);
     }
 
     #[test]
@@ -1233,7 +1272,7 @@ mod tests {
         // top row: 50 px and +inf (unknown); bottom row 100, 0
         write_pfm(&path, 2, 2, &[50.0, f32::INFINITY, 100.0, 0.0]);
         let p = LoadDepthParams {
-            encoding: "disparity".into(),
+            encoding: DepthEncoding::Disparity,
             focal_px: 1870.0,
             baseline_m: 0.160,
             doffs_px: 100.0,
@@ -1248,7 +1287,7 @@ mod tests {
         let e = load_depth(
             &path,
             &LoadDepthParams {
-                encoding: "disparity".into(),
+                encoding: DepthEncoding::Disparity,
                 ..Default::default()
             },
         )
@@ -1279,14 +1318,17 @@ mod tests {
                 e.unwrap_err().to_string().contains(name),
                 "error must name the file"
             );
-            assert!(load_color(&path, "srgb").is_err(), "{name} loaded as color");
+            assert!(
+                load_color(&path, ColorSpace::Srgb).is_err(),
+                "{name} loaded as color"
+            );
         }
         // a color PNG is not a depth map
         let rgb = dir.path().join("rgb.png");
         save_color(&Image::filled(2, 2, [0.5, 0.5, 0.5]), &rgb, false, 0.0).unwrap();
         let e = load_depth(&rgb, &depth_params()).unwrap_err();
         assert!(e.to_string().contains("single-channel"), "{e}");
-        assert!(load_color(&dir.path().join("missing.png"), "srgb").is_err());
+        assert!(load_color(&dir.path().join("missing.png"), ColorSpace::Srgb).is_err());
     }
 
     #[test]

@@ -231,7 +231,7 @@ pub fn environment_map(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
     let base = if p.path.is_empty() {
         sample_sky(p)?
     } else {
-        crate::io::load_color(Path::new(&p.path), "linear")?
+        crate::io::load_color(Path::new(&p.path), crate::io::ColorSpace::Linear)?
     };
     Ok(rotate_and_expose(&base, p.yaw_deg, p.exposure_ev))
 }

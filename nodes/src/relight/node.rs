@@ -10,7 +10,7 @@ use crate::relight::scene_cached::{RelightScene, SCENE_PORTS, relight_moved, sce
 use crate::relight::vpl::checked_vpls;
 
 use crate::relight::paired::relight;
-use crate::relight::shading::{RelightInputs, RelightParams, VISIBILITY};
+use crate::relight::shading::{RelightInputs, RelightParams, Visibility};
 
 fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, NodeError> {
     let photo = inputs.color("photo")?;
@@ -28,10 +28,10 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
         k: &k,
     };
     ctx.check_cancelled()?;
-    let result = match p.visibility.as_str() {
-        "paired" => relight(&inp, &vpls, p)?,
-        "raycast" => crate::relight::reference::relight_reference_image(&inp, &vpls, p)?,
-        "scene_cached" => {
+    let result = match p.visibility {
+        Visibility::Paired => relight(&inp, &vpls, p)?,
+        Visibility::Raycast => crate::relight::reference::relight_reference_image(&inp, &vpls, p)?,
+        Visibility::SceneCached => {
             // The per-photo part is a value the engine keeps under the keys
             // of the inputs it reads: moving the object reuses it.
             let scene = ctx.derived("relight scene", SCENE_PORTS, &scene_key_params(p), || {
@@ -39,12 +39,6 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
             })?;
             ctx.check_cancelled()?;
             relight_moved(&scene, &inp, p)?
-        }
-        other => {
-            return Err(NodeError::param(
-                "visibility",
-                format!("\"{other}\" is not one of {VISIBILITY:?}"),
-            ));
         }
     };
     match result {

@@ -101,8 +101,8 @@ use crate::relight::ism::{IsmParams, PointSet, ShadowMap, build_pair_in, windows
 use crate::relight::vpl::Vpl;
 
 use crate::relight::shading::{
-    BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
-    centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
+    BOUNCE_SPLAT_SCALE, Cone, Importance, PointVplShadows, RelightInputs, RelightParams, Relit,
+    Surf, centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
     pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
 };
 
@@ -207,16 +207,7 @@ pub fn relight(
 ) -> Result<Option<Relit>, NodeError> {
     let k = inp.k;
     inp.check()?;
-    let near_object = match p.importance.as_str() {
-        "near_object" => true,
-        "uniform" => false,
-        other => {
-            return Err(NodeError::param(
-                "importance",
-                format!("\"{other}\" is not one of \"near_object\", \"uniform\""),
-            ));
-        }
-    };
+    let near_object = p.importance == Importance::NearObject;
     let (w, h) = (k.width, k.height);
     let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
     let (vpls, dirs, e_ref) = lit_vpls(vpls);
@@ -613,7 +604,7 @@ mod tests {
         let one = run(1, &shadowed);
         assert_eq!(one, run(3, &shadowed));
         let uni = RelightParams {
-            importance: "uniform".into(),
+            importance: Importance::Uniform,
             ..p.clone()
         };
         assert!(
@@ -624,11 +615,10 @@ mod tests {
                 .flatten()
                 .all(|v| v.is_finite())
         );
-        let bad = RelightParams {
-            importance: "nearest".into(),
-            ..p
-        };
-        assert!(relight(&inp, &vpls, &bad).is_err());
+        // a name that is no importance is refused before any run
+        let mut bad = p.to_values();
+        bad.insert("importance".into(), ParamValue::Text("nearest".into()));
+        assert!(RelightParams::from_values(&bad).is_err());
     }
 
     /// A bounce VPL at (or touching) the receiver: finite, and no

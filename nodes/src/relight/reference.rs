@@ -335,7 +335,7 @@ mod tests {
         let vpls = crate::test_support::relight::overhead();
         inputs.insert("vpls", Value::from(vpls.clone()));
         let with = |vis: &str| RelightParams {
-            visibility: vis.into(),
+            visibility: crate::relight::shading::Visibility::from_name(vis).unwrap(),
             bounce_vpls: 0,
             scene_vpls: 0,
             ..Default::default()
@@ -356,7 +356,9 @@ mod tests {
             })
             .count();
         assert!(dark > 20, "{dark} shadowed pixels");
-        let err = node.eval(&ctx, &inputs, &with("exact").to_values());
-        assert!(err.is_err());
+        // a name that is no scheme is refused by the node
+        let mut bad = with("raycast").to_values();
+        bad.insert("visibility".into(), ParamValue::Text("exact".into()));
+        assert!(node.eval(&ctx, &inputs, &bad).is_err());
     }
 }

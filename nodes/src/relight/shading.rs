@@ -45,11 +45,11 @@ node_params! {
         /// Seed of the shadow maps' point subsets.
         pub seed: u64 = 1u64, ParamKind::Int { min: 0, max: 1 << 53 };
         /// Point-sample density of the paired shadow maps: "near_object" (eq. 6) or "uniform" (by area).
-        pub importance: String = "near_object", ParamKind::Choice(IMPORTANCE);
+        pub importance: Importance = Importance::NearObject, ParamKind::Choice(Importance::NAMES);
         /// "scene_cached": scene maps kept per scene, object maps per run (fast moves);
         /// "paired": scene+object maps with eq. 6 rebuilt every run (the paper's scheme);
         /// "raycast": exact shadow rays through the meshes (the reference; slow).
-        pub visibility: String = "scene_cached", ParamKind::Choice(VISIBILITY);
+        pub visibility: Visibility = Visibility::SceneCached, ParamKind::Choice(Visibility::NAMES);
         /// Texels per side of the object's own maps (scene_cached).
         pub object_ism_resolution: usize = 64usize, ParamKind::Int { min: 4, max: 2048 };
         /// Object samples splatted into each of its maps (scene_cached).
@@ -57,11 +57,27 @@ node_params! {
     }
 }
 
-/// Names of the sampling densities (the `importance` parameter).
-pub const IMPORTANCE: &[&str] = &["near_object", "uniform"];
+depthgraph_graph::param_choice! {
+    /// Point-sample density of the paired shadow maps (the `importance` parameter).
+    pub enum Importance {
+        /// Denser near the pasted object (eq. 6).
+        NearObject = "near_object",
+        /// By area only.
+        Uniform = "uniform",
+    }
+}
 
-/// Names of the visibility schemes (the `visibility` parameter).
-pub const VISIBILITY: &[&str] = &["scene_cached", "paired", "raycast"];
+depthgraph_graph::param_choice! {
+    /// How visibility is computed (the `visibility` parameter).
+    pub enum Visibility {
+        /// Scene maps kept per scene, object maps per run (fast moves).
+        SceneCached = "scene_cached",
+        /// Scene+object maps with eq. 6 rebuilt every run (the paper's scheme).
+        Paired = "paired",
+        /// Exact shadow rays through the meshes (the reference; slow).
+        Raycast = "raycast",
+    }
+}
 
 /// The inputs of [`relight`], all `k.width x k.height`.
 #[derive(Debug, Clone, Copy)]

@@ -63,29 +63,14 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use rayon::prelude::*;
 
-/// Names of the depth-term choices (the `depth_term` parameter).
-pub const DEPTH_TERMS: &[&str] = &["occlusion", "gradient"];
-
-/// Which depth derivative the depth term uses (see the module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum DepthTerm {
-    /// Occluding-side second difference of inverse depth, relative to depth.
-    Occlusion,
-    /// Sobel gradient magnitude of depth, relative to depth.
-    Gradient,
-}
-
-impl DepthTerm {
-    /// Parses a `depth_term` parameter value.
-    pub fn from_name(name: &str) -> Result<Self, NodeError> {
-        match name {
-            "occlusion" => Ok(DepthTerm::Occlusion),
-            "gradient" => Ok(DepthTerm::Gradient),
-            other => Err(NodeError::param(
-                "depth_term",
-                format!("\"{other}\" is not one of \"occlusion\", \"gradient\""),
-            )),
-        }
+depthgraph_graph::param_choice! {
+    /// Which depth derivative the depth term uses (the `depth_term`
+    /// parameter; see the module docs).
+    pub enum DepthTerm {
+        /// Occluding-side second difference of inverse depth, relative to depth.
+        Occlusion = "occlusion",
+        /// Sobel gradient magnitude of depth, relative to depth.
+        Gradient = "gradient",
     }
 }
 
@@ -112,7 +97,7 @@ node_params! {
         /// "occlusion": occluding-side second difference of inverse depth
         /// (planes score 0, only the nearer side of a step scores);
         /// "gradient": relative Sobel gradient magnitude.
-        pub depth_term: String = "occlusion", ParamKind::Choice(DEPTH_TERMS);
+        pub depth_term: DepthTerm = DepthTerm::Occlusion, ParamKind::Choice(DepthTerm::NAMES);
         /// Strength at or above which a pixel is an edge in the binary `edges` output.
         pub threshold: f64 = 0.5, ParamKind::Float { min: 0.0, max: 1.0 };
         /// Thin the binary edges to one pixel by non-maximum suppression.
@@ -165,7 +150,7 @@ fn check_params(p: &EdgeParams) -> Result<DepthTerm, NodeError> {
             ));
         }
     }
-    DepthTerm::from_name(&p.depth_term)
+    Ok(p.depth_term)
 }
 
 /// Gamma-2 encoding (see the module docs): finite, in `[0, 1]`, NaN -> 0.
@@ -468,7 +453,7 @@ mod tests {
             &flat(40, 30),
             &d,
             &EdgeParams {
-                depth_term: "gradient".into(),
+                depth_term: DepthTerm::Gradient,
                 ..Default::default()
             },
         )
@@ -510,7 +495,7 @@ mod tests {
     fn gradient_mode_marks_both_sides_and_color_edges_thin_to_one_pixel() {
         let d = Image::from_fn(16, 8, |x, _| if x < 8 { 1.0f32 } else { 2.0 });
         let p = EdgeParams {
-            depth_term: "gradient".into(),
+            depth_term: DepthTerm::Gradient,
             ..Default::default()
         };
         let e = detect_edges(&flat(16, 8), &d, &p).unwrap();
@@ -560,12 +545,12 @@ mod tests {
             1 => [1e30, 0.0, 0.5],
             _ => [0.2, 0.2, 0.2],
         });
-        for term in DEPTH_TERMS {
+        for term in [DepthTerm::Occlusion, DepthTerm::Gradient] {
             let e = detect_edges(
                 &c,
                 &d,
                 &EdgeParams {
-                    depth_term: term.to_string(),
+                    depth_term: term,
                     ..Default::default()
                 },
             )
@@ -611,15 +596,9 @@ mod tests {
             e.to_string().contains("depth") && e.to_string().contains("3x4"),
             "{e}"
         );
-        let e = detect_edges(
-            &c,
-            &d,
-            &EdgeParams {
-                depth_term: "laplace".into(),
-                ..Default::default()
-            },
-        )
-        .unwrap_err();
-        assert!(e.to_string().contains("depth_term"), "{e}");
+        let mut bad = EdgeParams::default().to_values();
+        bad.insert("depth_term".into(), ParamValue::Text("laplace".into()));
+        let e = EdgeParams::from_values(&bad).unwrap_err();
+        assert!(e.contains("depth_term"), "{e}");
     }
 }

@@ -30,8 +30,15 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use rayon::prelude::*;
 
-/// Names of the modes (the `mode` parameter).
-pub const MODES: &[&str] = &["inside", "centered"];
+depthgraph_graph::param_choice! {
+    /// How the mask is feathered (the `mode` parameter).
+    pub enum FeatherMode {
+        /// Fade inwards only (min of mask and blur): nothing leaks outside.
+        Inside = "inside",
+        /// Plain blur across the boundary.
+        Centered = "centered",
+    }
+}
 
 node_params! {
     /// Parameters of `Feather`.
@@ -39,7 +46,7 @@ node_params! {
         /// Standard deviation of the Gaussian in pixels; 0 passes the mask through.
         pub sigma_px: f64 = 2.0, ParamKind::Float { min: 0.0, max: 100.0 };
         /// "inside": fade inwards only (min of mask and blur); "centered": plain blur.
-        pub mode: String = "inside", ParamKind::Choice(MODES);
+        pub mode: FeatherMode = FeatherMode::Inside, ParamKind::Choice(FeatherMode::NAMES);
     }
 }
 
@@ -121,16 +128,7 @@ fn near_boundary(m: &[f32], w: usize, h: usize, r: usize) -> (Vec<bool>, bool) {
 /// assert_eq!(*f.get(20, 0), 0.0); // "inside" mode: nothing outside
 /// ```
 pub fn feather(mask: &Mask, p: &FeatherParams) -> Result<(Mask, bool), NodeError> {
-    let inside = match p.mode.as_str() {
-        "inside" => true,
-        "centered" => false,
-        other => {
-            return Err(NodeError::param(
-                "mode",
-                format!("\"{other}\" is not one of \"inside\", \"centered\""),
-            ));
-        }
-    };
+    let inside = p.mode == FeatherMode::Inside;
     if !(p.sigma_px.is_finite() && p.sigma_px >= 0.0 && p.sigma_px <= 1e4) {
         return Err(NodeError::param(
             "sigma_px",
@@ -237,10 +235,10 @@ mod tests {
         // the kernel's support is a square of radius r = 6: up to r sqrt 2 away
         // along a diagonal, plus a pixel of slack for the discrete circle
         let band = 6.0 * std::f64::consts::SQRT_2 + 1.0;
-        for mode in MODES {
+        for mode in [FeatherMode::Inside, FeatherMode::Centered] {
             let p = FeatherParams {
                 sigma_px: sigma,
-                mode: mode.to_string(),
+                mode,
             };
             let (f, changed) = feather(&m, &p).unwrap();
             assert!(changed);
@@ -256,7 +254,7 @@ mod tests {
                     if d > 15.0 + band {
                         assert_eq!(v, 0.0, "{mode} exterior ({x},{y})");
                     }
-                    if *mode == "inside" && *m.get(x, y) == 0.0 {
+                    if mode == FeatherMode::Inside && *m.get(x, y) == 0.0 {
                         assert_eq!(v, 0.0, "inside mode leaks at ({x},{y})");
                     }
                 }
@@ -270,7 +268,7 @@ mod tests {
             &m,
             &FeatherParams {
                 sigma_px: sigma,
-                mode: "centered".into(),
+                mode: FeatherMode::Centered,
             },
         )
         .unwrap();
@@ -299,12 +297,12 @@ mod tests {
             2 => -2.0,
             _ => 0.5,
         });
-        for mode in MODES {
+        for mode in [FeatherMode::Inside, FeatherMode::Centered] {
             let (f, _) = feather(
                 &m,
                 &FeatherParams {
                     sigma_px: 1.3,
-                    mode: mode.to_string(),
+                    mode,
                 },
             )
             .unwrap();
@@ -338,14 +336,10 @@ mod tests {
                 .iter()
                 .all(|v| v.is_finite() && (0.0..=1.0).contains(v))
         );
-        let e = feather(
-            &m,
-            &FeatherParams {
-                mode: "outside".into(),
-                ..Default::default()
-            },
-        )
-        .unwrap_err();
-        assert!(e.to_string().contains("mode"), "{e}");
+        // a name that is no mode is refused with the parameter's name
+        let mut bad = FeatherParams::default().to_values();
+        bad.insert("mode".into(), ParamValue::Text("outside".into()));
+        let e = FeatherParams::from_values(&bad).unwrap_err();
+        assert!(e.contains("mode"), "{e}");
     }
 }

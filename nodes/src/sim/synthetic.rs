@@ -25,10 +25,19 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::camera::lens::{Aperture, ThinLens};
+use crate::camera::lens::{Aperture, ApertureShape, ThinLens};
 
-/// Names of the scene presets, for the `preset` parameter.
-pub const PRESETS: &[&str] = &["tabletop", "corridor", "thin"];
+depthgraph_graph::param_choice! {
+    /// The built-in scenes (the `preset` parameter).
+    pub enum ScenePreset {
+        /// Objects on a table before a wall.
+        Tabletop = "tabletop",
+        /// A corridor receding from the camera.
+        Corridor = "corridor",
+        /// Thin structures in front of a far background.
+        Thin = "thin",
+    }
+}
 
 /// Radiance (brightest channel) of the preset emitters before
 /// [`Scene::scale_emission`]; the default of the `emitter_radiance` parameter.
@@ -519,18 +528,23 @@ impl Scene {
     ///
     /// Every preset is closed (every camera ray hits something).
     pub fn preset(name: &str, width: usize, height: usize) -> Option<Scene> {
+        ScenePreset::from_name(name).map(|p| Scene::of(p, width, height))
+    }
+
+    /// The built-in scene `preset`, seen by a Kinect-like camera of
+    /// `width` x `height` pixels.
+    pub fn of(preset: ScenePreset, width: usize, height: usize) -> Scene {
         let camera = kinect_like_intrinsics(width, height);
-        let (objects, light) = match name {
-            "tabletop" => tabletop(),
-            "corridor" => corridor(),
-            "thin" => thin(),
-            _ => return None,
+        let (objects, light) = match preset {
+            ScenePreset::Tabletop => tabletop(),
+            ScenePreset::Corridor => corridor(),
+            ScenePreset::Thin => thin(),
         };
-        Some(Scene {
+        Scene {
             objects,
             light,
             camera,
-        })
+        }
     }
 
     /// The object with id `id`, if any (the first one when ids repeat).
@@ -1112,7 +1126,7 @@ node_params! {
     /// `SyntheticScene`) seen through a thin lens (as `Refocus`).
     pub struct SyntheticThinLensParams {
         /// Which analytic scene (see `SyntheticScene`).
-        pub preset: String = "tabletop", ParamKind::Choice(PRESETS);
+        pub preset: ScenePreset = ScenePreset::Tabletop, ParamKind::Choice(ScenePreset::NAMES);
         /// Image width in pixels.
         pub width: usize = 640usize, ParamKind::Int { min: 1, max: 8192 };
         /// Image height in pixels.
@@ -1132,7 +1146,7 @@ node_params! {
         /// Sensor width in millimetres, spanning the image width.
         pub sensor_width_mm: f64 = 36.0, ParamKind::Float { min: 0.1, max: 1000.0 };
         /// Aperture shape (disc, polygon, triangle; a mask needs the Refocus node).
-        pub aperture: String = "disc", ParamKind::Choice(&["disc", "polygon", "triangle"]);
+        pub aperture: ApertureShape = ApertureShape::Disc, ParamKind::Choice(&["disc", "polygon", "triangle"]);
         /// Blades of the polygonal aperture.
         pub blades: u32 = 6u32, ParamKind::Int { min: 3, max: 64 };
         /// Rotation of the polygon in degrees.
@@ -1150,7 +1164,7 @@ fn eval_thin_lens(
     p: &SyntheticThinLensParams,
 ) -> Result<Outputs, NodeError> {
     let scene = scene_from_params(&SyntheticSceneParams {
-        preset: p.preset.clone(),
+        preset: p.preset,
         width: p.width,
         height: p.height,
         supersample: 1,
@@ -1166,7 +1180,7 @@ fn eval_thin_lens(
             focus_m: p.focus_m,
             sensor_width_mm: p.sensor_width_mm,
         },
-        aperture: Aperture::from_params(&p.aperture, p.blades, p.rotation_deg, None)?,
+        aperture: Aperture::from_params(p.aperture, p.blades, p.rotation_deg, None)?,
         samples: p.lens_samples,
         seed: p.seed,
     };
@@ -1182,7 +1196,7 @@ node_params! {
     pub struct SyntheticSceneParams {
         /// Which analytic scene: "tabletop" (0.85-2.8 m, objects on a table),
         /// "corridor" (1.4-25 m), "thin" (poles, bars and slabs of 2-15 mm).
-        pub preset: String = "tabletop", ParamKind::Choice(PRESETS);
+        pub preset: ScenePreset = ScenePreset::Tabletop, ParamKind::Choice(ScenePreset::NAMES);
         /// Image width in pixels (fx = fy = 525 * width / 640).
         pub width: usize = 640usize, ParamKind::Int { min: 1, max: 8192 };
         /// Image height in pixels.
@@ -1214,8 +1228,7 @@ node_params! {
 /// assert_eq!(scene.camera.fx, 52.5);
 /// ```
 pub fn scene_from_params(p: &SyntheticSceneParams) -> Result<Scene, NodeError> {
-    let mut scene = Scene::preset(&p.preset, p.width, p.height)
-        .ok_or_else(|| NodeError::param("preset", format!("unknown preset `{}`", p.preset)))?;
+    let mut scene = Scene::of(p.preset, p.width, p.height);
     scene.light.sun_direction = sun_direction(p.sun_elevation_deg, p.sun_azimuth_deg);
     // Guard: DEFAULT_EMITTER_RADIANCE is a non-zero constant.
     scene.scale_emission(p.emitter_radiance / DEFAULT_EMITTER_RADIANCE);
@@ -1344,7 +1357,7 @@ mod tests {
 
     #[test]
     fn ground_truth_lies_on_the_labelled_surface_for_every_preset() {
-        for name in PRESETS {
+        for name in ScenePreset::NAMES {
             let scene = Scene::preset(name, 64, 48).unwrap();
             let out = render(&scene, &RenderOptions::default());
             let (worst, hits) = gt_residual(&scene, &out);
@@ -1654,14 +1667,10 @@ mod tests {
             node.eval(&ctx, &Inputs::new(), &params),
             Err(NodeError::Cancelled)
         ));
-        let bad = SyntheticSceneParams {
-            preset: "nope".into(),
-            ..Default::default()
-        };
-        assert!(matches!(
-            scene_from_params(&bad),
-            Err(NodeError::Param { .. })
-        ));
+        let mut bad = SyntheticSceneParams::default().to_values();
+        bad.insert("preset".into(), ParamValue::Text("nope".into()));
+        assert!(SyntheticSceneParams::from_values(&bad).is_err());
+        assert!(Scene::preset("nope", 8, 8).is_none());
     }
 
     #[test]
