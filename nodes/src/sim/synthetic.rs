@@ -515,7 +515,7 @@ fn emitter(id: u32, center: [f64; 3], radius: f64, tint: Rgb) -> Object {
 }
 
 impl Scene {
-    /// A named preset (see [`PRESETS`]) seen with [`kinect_like_intrinsics`]
+    /// A named preset (see [`ScenePreset`]) seen with [`kinect_like_intrinsics`]
     /// at `width` x `height`; `None` for an unknown name.
     ///
     /// - `"tabletop"`: table plane 0.4 m below the camera, back wall at
