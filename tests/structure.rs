@@ -198,7 +198,8 @@ fn the_circle_finder_finds_circles() {
     );
 }
 
-/// Every `TypedNode::new("Kind", ..)` in the node sources is registered
+/// Every `TypedNode::new("Kind", ..)` and `PortedNode::new("Kind", ..)`
+/// in the node sources is registered
 /// by `nodes::registry()`, and the registry holds no kind the sources do
 /// not define.
 #[test]
@@ -208,14 +209,16 @@ fn every_node_kind_is_registered() {
     let mut written = BTreeSet::new();
     for f in files {
         let code = code_without_tests(&std::fs::read_to_string(f).unwrap());
-        let mut rest = code.as_str();
-        while let Some(i) = rest.find("TypedNode::new(") {
-            let after = rest[i + "TypedNode::new(".len()..].trim_start();
-            if let Some(body) = after.strip_prefix('"') {
-                let end = body.find('"').unwrap();
-                written.insert(body[..end].to_string());
+        for ctor in ["TypedNode::new(", "PortedNode::new("] {
+            let mut rest = code.as_str();
+            while let Some(i) = rest.find(ctor) {
+                let after = rest[i + ctor.len()..].trim_start();
+                if let Some(body) = after.strip_prefix('"') {
+                    let end = body.find('"').unwrap();
+                    written.insert(body[..end].to_string());
+                }
+                rest = &rest[i + 1..];
             }
-            rest = &rest[i + 1..];
         }
     }
     let reg = depthgraph::nodes::registry().unwrap();

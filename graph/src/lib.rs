@@ -9,6 +9,7 @@
 //! - [`registry`]: node kinds by name, with backends;
 //! - [`document`] and [`ron_text`]: the RON pipeline format with positions;
 //! - [`pipeline`]: checking a document into a runnable [`Pipeline`](pipeline::Pipeline);
+//! - [`ports`]: input and output ports declared once, as struct fields ([`ports!`]);
 //! - [`key`], [`cache`], [`codec`], [`scheduler`], [`trace`]: Merkle keys,
 //!   memory and disk caches, the demand-driven parallel scheduler and its
 //!   record of what ran.
@@ -49,6 +50,7 @@ pub mod key;
 pub mod node;
 pub mod params;
 pub mod pipeline;
+pub mod ports;
 pub mod registry;
 pub mod ron_text;
 pub mod scheduler;
@@ -65,6 +67,7 @@ pub mod prelude {
     };
     pub use crate::params::{NodeParams, ParamKind, ParamMap, ParamValue};
     pub use crate::pipeline::Pipeline;
+    pub use crate::ports::{NoInputs, PortedNode, Produced};
     pub use crate::registry::Registry;
     pub use crate::scheduler::{Engine, EngineOptions, RunOptions, RunResult};
     pub use crate::trace::{Status, Trace};

@@ -1,6 +1,8 @@
 //! Small image operations: exposure, depth visualisation.
 
 use crate::kit::colormap::{colormap_depth, depth_range};
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -24,14 +26,37 @@ node_params! {
     }
 }
 
-fn exposure_eval(_: &EvalCtx, inputs: &Inputs, p: &ExposureParams) -> Result<Outputs, NodeError> {
-    let img = inputs.color("color")?;
-    if p.stops == 0.0 {
-        return Ok(Outputs::new()
-            .with("color", Value::Color(img.clone()))
-            .passthrough("exposure change is 0 stops"));
+depthgraph_graph::ports! {
+    /// The input and output of `Exposure`.
+    inputs struct ExposureIn {
+        /// linear RGB
+        color: Arc<ColorImage>,
     }
-    Ok(Outputs::new().with("color", exposure(img, p.stops)))
+}
+
+depthgraph_graph::ports! {
+    /// The output of `Exposure`.
+    outputs struct ExposureOut {
+        /// linear RGB
+        color: Arc<ColorImage>,
+    }
+}
+
+fn exposure_eval(
+    _: &EvalCtx,
+    i: ExposureIn,
+    p: &ExposureParams,
+) -> Result<Produced<ExposureOut>, NodeError> {
+    if p.stops == 0.0 {
+        return Ok(Produced::passthrough(
+            ExposureOut { color: i.color },
+            "exposure change is 0 stops",
+        ));
+    }
+    Ok(ExposureOut {
+        color: Arc::new(exposure(&i.color, p.stops)),
+    }
+    .into())
 }
 
 node_params! {
@@ -44,43 +69,56 @@ node_params! {
     }
 }
 
+depthgraph_graph::ports! {
+    /// Inputs of `DepthPreview`.
+    inputs struct PreviewIn {
+        /// metres
+        depth: Arc<DepthMap>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `DepthPreview`.
+    outputs struct PreviewOut {
+        /// colormapped depth
+        color: ColorImage,
+        /// depth of the first color
+        min_m: f64,
+        /// depth of the last color
+        max_m: f64,
+    }
+}
+
 fn preview_eval(
     _: &EvalCtx,
-    inputs: &Inputs,
+    i: PreviewIn,
     p: &DepthPreviewParams,
-) -> Result<Outputs, NodeError> {
-    let d = inputs.depth("depth")?;
+) -> Result<Produced<PreviewOut>, NodeError> {
     let (lo, hi) = if p.max_m > p.min_m {
         (p.min_m as f32, p.max_m as f32)
     } else {
-        depth_range(d, 0.02, 0.98)
+        depth_range(&i.depth, 0.02, 0.98)
     };
-    Ok(Outputs::new()
-        .with("color", colormap_depth(d, lo, hi))
-        .with("min_m", lo as f64)
-        .with("max_m", hi as f64))
+    Ok(PreviewOut {
+        color: colormap_depth(&i.depth, lo, hi),
+        min_m: lo as f64,
+        max_m: hi as f64,
+    }
+    .into())
 }
 
 /// Registers `Exposure` and `DepthPreview`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Exposure",
         1,
         "Scales linear color by 2^stops.",
-        vec![PortSpec::required("color", ValueType::Color, "linear RGB")],
-        vec![PortSpec::output("color", ValueType::Color, "linear RGB")],
         exposure_eval,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "DepthPreview",
         1,
         "Colormaps depth for viewing (near blue, far red, holes black).",
-        vec![PortSpec::required("depth", ValueType::Depth, "metres")],
-        vec![
-            PortSpec::output("color", ValueType::Color, "colormapped depth"),
-            PortSpec::output("min_m", ValueType::Scalar, "depth of the first color"),
-            PortSpec::output("max_m", ValueType::Scalar, "depth of the last color"),
-        ],
         preview_eval,
     ))
 }

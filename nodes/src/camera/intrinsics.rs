@@ -86,22 +86,27 @@ pub fn camera_intrinsics(p: &CameraParams) -> Result<Intrinsics, NodeError> {
     })
 }
 
-fn eval(_: &EvalCtx, _: &Inputs, p: &CameraParams) -> Result<Outputs, NodeError> {
-    Ok(Outputs::new().with("intrinsics", camera_intrinsics(p)?))
+depthgraph_graph::ports! {
+    /// Outputs of `Camera`.
+    outputs struct CameraOut {
+        /// fx, fy, cx, cy in pixels
+        intrinsics: Intrinsics,
+    }
+}
+
+fn eval(_: &EvalCtx, _: NoInputs, p: &CameraParams) -> Result<Produced<CameraOut>, NodeError> {
+    Ok(CameraOut {
+        intrinsics: camera_intrinsics(p)?,
+    }
+    .into())
 }
 
 /// Registers `Camera`.
 pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Camera",
         1,
         "Pinhole intrinsics of a known RGB-D camera (Kinect v1, TUM fr1-3, NYU) or custom values.",
-        vec![],
-        vec![PortSpec::output(
-            "intrinsics",
-            ValueType::Intrinsics,
-            "fx, fy, cx, cy in pixels",
-        )],
         eval,
     ))
 }

@@ -16,6 +16,8 @@
 //! Holes stay holes: the filter smooths, it does not fill (filling is the
 //! pull-push stage's job, Sec. III.B eqs. 2-4).
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -355,34 +357,47 @@ fn accumulate_offset(
     }
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &BilateralParams) -> Result<Outputs, NodeError> {
-    let d = inputs.depth("depth")?;
-    let c = inputs.color("color")?;
-    if d.hole_count() == d.len() {
-        check_color(d, c)?;
-        return Ok(Outputs::new()
-            .with("depth", Value::Depth(d.clone()))
-            .passthrough("the depth map has no valid pixel: nothing to smooth"));
+depthgraph_graph::ports! {
+    /// Inputs of `JointBilateral`.
+    inputs struct BilateralIn {
+        /// metres, 0 = no measurement
+        depth: Arc<DepthMap>,
+        /// linear RGB guide, same size as depth
+        color: Arc<ColorImage>,
     }
-    Ok(Outputs::new().with("depth", joint_bilateral(d, c, p)?))
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `JointBilateral`.
+    outputs struct BilateralOut {
+        /// smoothed metres, holes where the input has holes
+        depth: Arc<DepthMap>,
+    }
+}
+
+fn eval(
+    _: &EvalCtx,
+    i: BilateralIn,
+    p: &BilateralParams,
+) -> Result<Produced<BilateralOut>, NodeError> {
+    if i.depth.hole_count() == i.depth.len() {
+        check_color(&i.depth, &i.color)?;
+        return Ok(Produced::passthrough(
+            BilateralOut { depth: i.depth },
+            "the depth map has no valid pixel: nothing to smooth",
+        ));
+    }
+    let depth = Arc::new(joint_bilateral(&i.depth, &i.color, p)?);
+    Ok(BilateralOut { depth }.into())
 }
 
 /// Registers `JointBilateral`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "JointBilateral",
         1,
         "Edge-preserving depth smoothing guided by color (3d-editing Sec. III.B): spatial x color x depth-range weights.\n\
          Holes stay holes; the depth range scales with the distance (sigma_depth_rel * z).",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "metres, 0 = no measurement"),
-            PortSpec::required("color", ValueType::Color, "linear RGB guide, same size as depth"),
-        ],
-        vec![PortSpec::output(
-            "depth",
-            ValueType::Depth,
-            "smoothed metres, holes where the input has holes",
-        )],
         eval,
     ))
 }
@@ -663,7 +678,8 @@ mod tests {
         let p = BilateralParams::default();
         let test_ctx = crate::test_support::TestCtx::new("jb");
         let ctx = test_ctx.ctx();
-        let out = eval(&ctx, &inputs, &p).unwrap();
+        let node = reg.get("JointBilateral").unwrap();
+        let out = node.eval(&ctx, &inputs, &p.to_values()).unwrap();
         assert!(out.passthrough.is_some());
         assert_eq!(out.values["depth"], Value::Depth(d));
     }

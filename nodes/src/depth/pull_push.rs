@@ -21,6 +21,8 @@
 //! convex combinations of valid input depths, so it lies within their
 //! `[min, max]`. Sums are accumulated in f64.
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
@@ -352,71 +354,99 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
-fn eval_with(inputs: &Inputs, p: &PullPushParams, dual: bool) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
+depthgraph_graph::ports! {
+    /// Inputs of `PullPush`.
+    inputs struct PullPushIn {
+        /// metres, 0 = hole
+        depth: Arc<DepthMap>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Inputs of `DualPullPush`.
+    inputs struct DualPullPushIn {
+        /// metres, 0 = hole
+        depth: Arc<DepthMap>,
+        /// guide, same size as the depth
+        color: Arc<ColorImage>,
+        /// of the depth image
+        intrinsics: Intrinsics,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `PullPush` and `DualPullPush`.
+    outputs struct PullPushOut {
+        /// holes filled; measured pixels unchanged
+        depth: Arc<DepthMap>,
+        /// 1 where a value was filled
+        filled: Mask,
+    }
+}
+
+/// The pass-through of a map with nothing to fill, or nothing to fill from.
+fn nothing_to_fill(depth: &Arc<DepthMap>) -> Option<Produced<PullPushOut>> {
     let holes = depth.hole_count();
-    if holes == 0 {
-        return Ok(Outputs::new()
-            .with("depth", Value::Depth(depth.clone()))
-            .with("filled", Mask::filled(depth.width(), depth.height(), 0.0))
-            .passthrough("no holes to fill"));
-    }
-    if holes == depth.len() {
-        return Ok(Outputs::new()
-            .with("depth", Value::Depth(depth.clone()))
-            .with("filled", Mask::filled(depth.width(), depth.height(), 0.0))
-            .passthrough("no valid depth to fill from"));
-    }
-    let r = if dual {
-        let color = inputs.color("color")?;
-        let k = inputs.intrinsics("intrinsics")?;
-        pull_push(depth, p, Weights::Dual { color, k: &k })?
+    let reason = if holes == 0 {
+        "no holes to fill"
+    } else if holes == depth.len() {
+        "no valid depth to fill from"
     } else {
-        pull_push(depth, p, Weights::Bilinear)?
+        return None;
     };
-    Ok(Outputs::new()
-        .with("depth", r.depth)
-        .with("filled", r.filled))
+    let out = PullPushOut {
+        depth: depth.clone(),
+        filled: Mask::filled(depth.width(), depth.height(), 0.0),
+    };
+    Some(Produced::passthrough(out, reason))
 }
 
-fn eval_plain(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs, NodeError> {
-    eval_with(inputs, p, false)
+fn filled(r: Filled) -> Produced<PullPushOut> {
+    PullPushOut {
+        depth: Arc::new(r.depth),
+        filled: r.filled,
+    }
+    .into()
 }
 
-fn eval_dual(_: &EvalCtx, inputs: &Inputs, p: &PullPushParams) -> Result<Outputs, NodeError> {
-    eval_with(inputs, p, true)
+fn eval_plain(
+    _: &EvalCtx,
+    i: PullPushIn,
+    p: &PullPushParams,
+) -> Result<Produced<PullPushOut>, NodeError> {
+    if let Some(out) = nothing_to_fill(&i.depth) {
+        return Ok(out);
+    }
+    Ok(filled(pull_push(&i.depth, p, Weights::Bilinear)?))
+}
+
+fn eval_dual(
+    _: &EvalCtx,
+    i: DualPullPushIn,
+    p: &PullPushParams,
+) -> Result<Produced<PullPushOut>, NodeError> {
+    if let Some(out) = nothing_to_fill(&i.depth) {
+        return Ok(out);
+    }
+    let w = Weights::Dual {
+        color: &i.color,
+        k: &i.intrinsics,
+    };
+    Ok(filled(pull_push(&i.depth, p, w)?))
 }
 
 /// Registers `PullPush` and `DualPullPush`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    let outputs = || {
-        vec![
-            PortSpec::output(
-                "depth",
-                ValueType::Depth,
-                "holes filled; measured pixels unchanged",
-            ),
-            PortSpec::output("filled", ValueType::Mask, "1 where a value was filled"),
-        ]
-    };
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "PullPush",
         1,
         "Fills depth holes by pull-push with bilinear weights (the baseline of 3d-editing Fig. 4c).",
-        vec![PortSpec::required("depth", ValueType::Depth, "metres, 0 = hole")],
-        outputs(),
         eval_plain,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "DualPullPush",
         1,
         "Fills depth holes by pull-push with 3D-distance x color-similarity weights (3d-editing eq. 2-4).",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "metres, 0 = hole"),
-            PortSpec::required("color", ValueType::Color, "guide, same size as the depth"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the depth image"),
-        ],
-        outputs(),
         eval_dual,
     ))
 }

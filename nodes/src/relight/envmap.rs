@@ -236,25 +236,30 @@ pub fn environment_map(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
     Ok(rotate_and_expose(&base, p.yaw_deg, p.exposure_ev))
 }
 
-fn eval(_: &EvalCtx, _: &Inputs, p: &EnvMapParams) -> Result<Outputs, NodeError> {
-    Ok(Outputs::new().with("map", environment_map(p)?))
+depthgraph_graph::ports! {
+    /// Outputs of `EnvironmentMap`.
+    outputs struct EnvMapOut {
+        /// equirectangular linear radiance (see the envmap module docs for directions)
+        map: ColorImage,
+    }
+}
+
+fn eval(_: &EvalCtx, _: NoInputs, p: &EnvMapParams) -> Result<Produced<EnvMapOut>, NodeError> {
+    Ok(EnvMapOut {
+        map: environment_map(p)?,
+    }
+    .into())
 }
 
 /// Registers `EnvironmentMap`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "EnvironmentMap",
             1,
             "An equirectangular environment map in linear radiance: loaded (EXR/HDR) or the generated sample sky \
              with a sun (3d-editing §IV.A, the light source of the VPLs).\nRow 0 is the zenith; the centre column \
              looks behind the camera (-z), azimuth grows towards +x (the SyntheticScene sun convention).",
-            vec![],
-            vec![PortSpec::output(
-                "map",
-                ValueType::Color,
-                "equirectangular linear radiance (see the envmap module docs for directions)",
-            )],
             eval,
         )
         .reads(|p: &EnvMapParams| {

@@ -2,6 +2,8 @@
 //! scheme ([`crate::relight::paired`], [`crate::relight::scene_cached`] or
 //! [`crate::relight::reference`]).
 
+use std::sync::Arc;
+
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
@@ -12,22 +14,54 @@ use crate::relight::vpl::checked_vpls;
 use crate::relight::paired::relight;
 use crate::relight::shading::{RelightInputs, RelightParams, Visibility};
 
-fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, NodeError> {
-    let photo = inputs.color("photo")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let vpls = checked_vpls(inputs.vpls("vpls")?, "vpls")?;
-    let normals = inputs.normals_opt("normals")?;
+depthgraph_graph::ports! {
+    /// Inputs of `Relight`.
+    inputs struct RelightIn {
+        /// the target photo P, linear RGB
+        photo: Arc<ColorImage>,
+        /// target depth, metres
+        depth: Arc<DepthMap>,
+        /// target normals (else from the depth)
+        normals: Option<Arc<NormalMap>>,
+        /// target albedo (else photo / shading)
+        albedo: Option<Arc<ColorImage>>,
+        /// Paste.color
+        pasted_color: Arc<ColorImage>,
+        /// Paste.depth
+        pasted_depth: Arc<DepthMap>,
+        /// OcclusionComposite.alpha (after the depth test)
+        alpha: Arc<Mask>,
+        /// of the target
+        intrinsics: Intrinsics,
+        /// VplSample.vpls
+        vpls: Arc<VplSet>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `Relight`.
+    outputs struct RelightOut {
+        /// the composite I_m of eq. 5, linear RGB
+        color: Arc<ColorImage>,
+        /// 1 where rendered, 0 where the photo was kept
+        region: Mask,
+        /// I_{s+t} - I_t on the target surface
+        difference: ColorImage,
+    }
+}
+
+fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<RelightOut>, NodeError> {
+    let vpls = checked_vpls(&i.vpls, "vpls")?;
     let inp = RelightInputs {
-        photo,
-        depth: inputs.depth("depth")?,
-        normals: normals.map(|n| n.as_ref()),
-        albedo: inputs.color_opt("albedo")?.map(|a| a.as_ref()),
-        pasted_color: inputs.color("pasted_color")?,
-        pasted_depth: inputs.depth("pasted_depth")?,
-        alpha: inputs.mask("alpha")?,
-        k: &k,
+        photo: &i.photo,
+        depth: &i.depth,
+        normals: i.normals.as_deref(),
+        albedo: i.albedo.as_deref(),
+        pasted_color: &i.pasted_color,
+        pasted_depth: &i.pasted_depth,
+        alpha: &i.alpha,
+        k: &i.intrinsics,
     };
-    ctx.check_cancelled()?;
     let result = match p.visibility {
         Visibility::Paired => relight(&inp, &vpls, p)?,
         Visibility::Raycast => crate::relight::reference::relight_reference_image(&inp, &vpls, p)?,
@@ -42,29 +76,32 @@ fn eval(ctx: &EvalCtx, inputs: &Inputs, p: &RelightParams) -> Result<Outputs, No
         }
     };
     match result {
-        Some(r) => Ok(Outputs::new()
-            .with("color", r.color)
-            .with("region", r.region)
-            .with("difference", r.difference)),
+        Some(r) => Ok(RelightOut {
+            color: Arc::new(r.color),
+            region: r.region,
+            difference: r.difference,
+        }
+        .into()),
         None => {
-            let (w, h) = photo.dims();
+            let (w, h) = i.photo.dims();
             let reason = if vpls.iter().all(|v| luminance_clamped(v.power) <= 0.0) {
                 "no VPL carries energy (black environment map): nothing to relight"
             } else {
                 "nothing pasted: the alpha is 0 everywhere"
             };
-            Ok(Outputs::new()
-                .with("color", Value::Color(photo.clone()))
-                .with("region", Mask::filled(w, h, 0.0))
-                .with("difference", ColorImage::filled(w, h, [0.0f32; 3]))
-                .passthrough(reason))
+            let out = RelightOut {
+                color: i.photo.clone(),
+                region: Mask::filled(w, h, 0.0),
+                difference: ColorImage::filled(w, h, [0.0f32; 3]),
+            };
+            Ok(Produced::passthrough(out, reason))
         }
     }
 }
 
 /// Registers `Relight`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Relight",
         3,
         "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
@@ -74,22 +111,6 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
          visibility: scene_cached keeps the scene's shadow maps while only the object changes (fast moves); \
          paired rebuilds scene+object maps with near-object importance (eq. 6) every run; raycast traces \
          exact shadow rays through the meshes (the reference, slow).",
-        vec![
-            PortSpec::required("photo", ValueType::Color, "the target photo P, linear RGB"),
-            PortSpec::required("depth", ValueType::Depth, "target depth, metres"),
-            PortSpec::optional("normals", ValueType::Normals, "target normals (else from the depth)"),
-            PortSpec::optional("albedo", ValueType::Color, "target albedo (else photo / shading)"),
-            PortSpec::required("pasted_color", ValueType::Color, "Paste.color"),
-            PortSpec::required("pasted_depth", ValueType::Depth, "Paste.depth"),
-            PortSpec::required("alpha", ValueType::Mask, "OcclusionComposite.alpha (after the depth test)"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the target"),
-            PortSpec::required("vpls", ValueType::Vpls, "VplSample.vpls"),
-        ],
-        vec![
-            PortSpec::output("color", ValueType::Color, "the composite I_m of eq. 5, linear RGB"),
-            PortSpec::output("region", ValueType::Mask, "1 where rendered, 0 where the photo was kept"),
-            PortSpec::output("difference", ValueType::Color, "I_{s+t} - I_t on the target surface"),
-        ],
         eval,
     ))
 }

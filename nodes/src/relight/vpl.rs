@@ -39,6 +39,8 @@
 //! (irradiance at normal incidence, linear RGB), so a point cloud cannot be
 //! wired where lights are expected.
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -176,33 +178,40 @@ pub fn checked_vpls(vpls: &[Vpl], port: &str) -> Result<Vec<Vpl>, NodeError> {
     Ok(out)
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &VplParams) -> Result<Outputs, NodeError> {
-    let map = inputs.color("map")?;
-    let vpls = sample_vpls(map, p);
-    let out = Outputs::new().with("vpls", vpls.clone());
-    if vpls.is_empty() {
-        return Ok(out.passthrough("the environment map carries no energy: no VPLs"));
+depthgraph_graph::ports! {
+    /// Inputs of `VplSample`.
+    inputs struct VplIn {
+        /// EnvironmentMap.map (equirectangular linear radiance)
+        map: Arc<ColorImage>,
     }
-    Ok(out)
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `VplSample`.
+    outputs struct VplOut {
+        /// unit direction towards each light and its power (irradiance at normal incidence)
+        vpls: VplSet,
+    }
+}
+
+fn eval(_: &EvalCtx, i: VplIn, p: &VplParams) -> Result<Produced<VplOut>, NodeError> {
+    let vpls = sample_vpls(&i.map, p);
+    if vpls.is_empty() {
+        return Ok(Produced::passthrough(
+            VplOut { vpls },
+            "the environment map carries no energy: no VPLs",
+        ));
+    }
+    Ok(VplOut { vpls }.into())
 }
 
 /// Registers `VplSample`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "VplSample",
         1,
         "Importance-samples N directional virtual point lights from an equirectangular environment map by \
          luminance x solid angle, stratified, seeded (3d-editing §IV.A, instant radiosity).",
-        vec![PortSpec::required(
-            "map",
-            ValueType::Color,
-            "EnvironmentMap.map (equirectangular linear radiance)",
-        )],
-        vec![PortSpec::output(
-            "vpls",
-            ValueType::Vpls,
-            "unit direction towards each light and its power (irradiance at normal incidence)",
-        )],
         eval,
     ))
 }

@@ -135,51 +135,70 @@ pub fn occlusion_composite(
     })
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &CompositeParams) -> Result<Outputs, NodeError> {
-    let tc = inputs.color("target_color")?;
-    let td = inputs.depth("target_depth")?;
-    let pc = inputs.color("pasted_color")?;
-    let pd = inputs.depth("pasted_depth")?;
-    let pa = inputs.mask("pasted_alpha")?;
+depthgraph_graph::ports! {
+    /// Inputs of `OcclusionComposite`.
+    inputs struct CompositeIn {
+        /// linear RGB of the target
+        target_color: Arc<ColorImage>,
+        /// metres; holes hide nothing
+        target_depth: Arc<DepthMap>,
+        /// Paste.color
+        pasted_color: Arc<ColorImage>,
+        /// Paste.depth (0 where nothing was pasted)
+        pasted_depth: Arc<DepthMap>,
+        /// Paste.mask, usually feathered
+        pasted_alpha: Arc<Mask>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `OcclusionComposite`.
+    outputs struct CompositeOut {
+        /// the composite, linear RGB
+        color: Arc<ColorImage>,
+        /// the composite depth, metres
+        depth: Arc<DepthMap>,
+        /// pasted alpha after the depth test
+        alpha: Mask,
+    }
+}
+
+fn eval(
+    _: &EvalCtx,
+    i: CompositeIn,
+    p: &CompositeParams,
+) -> Result<Produced<CompositeOut>, NodeError> {
+    let (tc, td, pa) = (&i.target_color, &i.target_depth, &i.pasted_alpha);
     if pa.as_slice().iter().all(|a| a.is_nan() || *a <= 0.0) {
         same("target_depth", td.dims(), tc.dims())?;
         same("pasted_alpha", pa.dims(), tc.dims())?;
-        return Ok(Outputs::new()
-            .with("color", Value::Color(tc.clone()))
-            .with("depth", Value::Depth(td.clone()))
-            .with(
-                "alpha",
-                Value::Mask(Arc::new(Image::filled(tc.width(), tc.height(), 0.0))),
-            )
-            .passthrough("nothing pasted: the pasted alpha is 0 everywhere"));
+        let out = CompositeOut {
+            color: tc.clone(),
+            depth: td.clone(),
+            alpha: Mask::filled(tc.width(), tc.height(), 0.0),
+        };
+        return Ok(Produced::passthrough(
+            out,
+            "nothing pasted: the pasted alpha is 0 everywhere",
+        ));
     }
-    let r = occlusion_composite(tc, td, pc, pd, pa, p)?;
-    Ok(Outputs::new()
-        .with("color", r.color)
-        .with("depth", r.depth)
-        .with("alpha", Value::Mask(Arc::new(r.alpha))))
+    let r = occlusion_composite(tc, td, &i.pasted_color, &i.pasted_depth, pa, p)?;
+    Ok(CompositeOut {
+        color: Arc::new(r.color),
+        depth: Arc::new(r.depth),
+        alpha: r.alpha,
+    }
+    .into())
 }
 
 /// Registers `OcclusionComposite`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "OcclusionComposite",
         1,
         "Blends a pasted layer into the target by alpha in color and depth, after a per-pixel depth test \
          (3d-editing §IV): pasted pixels behind the target surface keep the target.\nOutputs the alpha after the \
          test for the relighting stage.",
-        vec![
-            PortSpec::required("target_color", ValueType::Color, "linear RGB of the target"),
-            PortSpec::required("target_depth", ValueType::Depth, "metres; holes hide nothing"),
-            PortSpec::required("pasted_color", ValueType::Color, "Paste.color"),
-            PortSpec::required("pasted_depth", ValueType::Depth, "Paste.depth (0 where nothing was pasted)"),
-            PortSpec::required("pasted_alpha", ValueType::Mask, "Paste.mask, usually feathered"),
-        ],
-        vec![
-            PortSpec::output("color", ValueType::Color, "the composite, linear RGB"),
-            PortSpec::output("depth", ValueType::Depth, "the composite depth, metres"),
-            PortSpec::output("alpha", ValueType::Mask, "pasted alpha after the depth test"),
-        ],
         eval,
     ))
 }

@@ -25,6 +25,8 @@
 //!
 //! Inputs outside `[0, 1]` are clamped and NaN is 0; the output is in `[0, 1]`.
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -189,30 +191,43 @@ pub fn feather(mask: &Mask, p: &FeatherParams) -> Result<(Mask, bool), NodeError
     Ok((Image::from_vec(w, h, out)?, true))
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &FeatherParams) -> Result<Outputs, NodeError> {
-    let m = inputs.mask("mask")?;
-    let (out, changed) = feather(m, p)?;
-    let outputs = Outputs::new().with("mask", Value::Mask(std::sync::Arc::new(out)));
+depthgraph_graph::ports! {
+    /// Inputs of `Feather`.
+    inputs struct FeatherIn {
+        /// alpha in [0, 1]
+        mask: Arc<Mask>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `Feather`.
+    outputs struct FeatherOut {
+        /// feathered alpha in [0, 1]
+        mask: Mask,
+    }
+}
+
+fn eval(_: &EvalCtx, i: FeatherIn, p: &FeatherParams) -> Result<Produced<FeatherOut>, NodeError> {
+    let (mask, changed) = feather(&i.mask, p)?;
+    let out = FeatherOut { mask };
     if !changed {
         let why = if p.sigma_px == 0.0 {
             "sigma_px is 0"
         } else {
             "the mask has no boundary to feather"
         };
-        return Ok(outputs.passthrough(why));
+        return Ok(Produced::passthrough(out, why));
     }
-    Ok(outputs)
+    Ok(out.into())
 }
 
 /// Registers `Feather`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Feather",
         1,
         "Gaussian feathering of a mask's boundary (3d-editing §III.C); interior stays exactly 1, far exterior 0.\n\
          \"inside\" fades inwards only (nothing outside the object shows), \"centered\" is the plain blur.",
-        vec![PortSpec::required("mask", ValueType::Mask, "alpha in [0, 1]")],
-        vec![PortSpec::output("mask", ValueType::Mask, "feathered alpha in [0, 1]")],
         eval,
     ))
 }
