@@ -22,6 +22,7 @@ pub struct MemoryCache {
 }
 
 impl MemoryCache {
+    /// An empty cache holding at most `budget_bytes`.
     pub fn new(budget_bytes: usize) -> Self {
         Self {
             budget_bytes,
@@ -31,6 +32,7 @@ impl MemoryCache {
             by_age: BTreeMap::new(),
         }
     }
+    /// The budget in bytes.
     pub fn budget_bytes(&self) -> usize {
         self.budget_bytes
     }
@@ -38,9 +40,11 @@ impl MemoryCache {
     pub fn used_bytes(&self) -> usize {
         self.used
     }
+    /// Number of results held.
     pub fn len(&self) -> usize {
         self.entries.len()
     }
+    /// True when nothing is held.
     pub fn is_empty(&self) -> bool {
         self.entries.is_empty()
     }
@@ -77,6 +81,7 @@ impl MemoryCache {
         self.by_age.insert(self.tick, key);
         self.used += size;
     }
+    /// Drops every entry.
     pub fn clear(&mut self) {
         self.entries.clear();
         self.by_age.clear();
@@ -97,12 +102,15 @@ pub struct DiskCache {
 }
 
 impl DiskCache {
+    /// A store in `dir` of at most `budget_bytes` in all; its directories are
+    /// created when entries are written.
     pub fn new(dir: impl Into<PathBuf>, budget_bytes: u64) -> Self {
         Self {
             dir: dir.into(),
             budget_bytes,
         }
     }
+    /// The store's directory.
     pub fn dir(&self) -> &Path {
         &self.dir
     }

@@ -30,6 +30,7 @@ pub const FORMAT_VERSION: u32 = 1;
 pub struct Document {
     /// Name used in messages (usually the path).
     pub file: String,
+    /// Format version the file declares, or [`FORMAT_VERSION`] when it declares none.
     pub version: u32,
     /// Nodes in file order.
     pub nodes: Vec<NodeDecl>,
@@ -45,7 +46,9 @@ pub struct Document {
 /// One node of a document.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NodeDecl {
+    /// The node's name (its key in `nodes`), with its position.
     pub name: Spanned<String>,
+    /// The kind as written, with its position.
     pub kind: Spanned<String>,
     /// Parameter values as written, converted when checked against the schema.
     pub params: Vec<(Spanned<String>, Spanned<RonValue>)>,
@@ -56,6 +59,7 @@ pub struct NodeDecl {
 }
 
 impl NodeDecl {
+    /// A node `name` of kind `kind`, with no parameters or inputs, at `Pos::default()`.
     pub fn new(name: &str, kind: &str) -> Self {
         Self {
             name: Spanned {
@@ -238,6 +242,7 @@ impl Document {
     pub fn node(&self, name: &str) -> Option<&NodeDecl> {
         self.nodes.iter().find(|n| n.name.value == name)
     }
+    /// Finds a node by name, for editing.
     pub fn node_mut(&mut self, name: &str) -> Option<&mut NodeDecl> {
         self.nodes.iter_mut().find(|n| n.name.value == name)
     }

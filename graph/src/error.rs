@@ -12,11 +12,14 @@ use crate::value::ValueType;
 pub struct Location {
     /// A path, or `--set node.param=value` for an override.
     pub file: String,
+    /// Line, from 1.
     pub line: usize,
+    /// Column, from 1, counted in chars.
     pub col: usize,
 }
 
 impl Location {
+    /// The location of `pos` in `file`.
     pub fn new(file: &str, pos: Pos) -> Self {
         Self {
             file: file.to_string(),
@@ -41,79 +44,139 @@ fn did_you_mean(s: &Option<String>) -> String {
 /// A problem found while reading or checking a pipeline.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CheckError {
+    /// The text is not valid RON.
     #[error("{loc}: syntax error: {message}")]
-    Syntax { loc: Location, message: String },
+    Syntax {
+        /// Where the error is.
+        loc: Location,
+        /// The parser's message.
+        message: String,
+    },
+    /// Valid RON that is not a pipeline document (wrong shape, unknown field,
+    /// unsupported version, malformed reference...).
     #[error("{loc}: {message}")]
-    Format { loc: Location, message: String },
+    Format {
+        /// Where the offending value is written.
+        loc: Location,
+        /// What is wrong.
+        message: String,
+    },
+    /// A node's kind is not registered.
     #[error(
         "{loc}: node `{node}`: unknown node kind `{kind}`{}",
         did_you_mean(suggestion)
     )]
     UnknownKind {
+        /// Where the kind is written.
         loc: Location,
+        /// The node's name.
         node: String,
+        /// The unknown kind.
         kind: String,
+        /// The closest registered kind, if one is close.
         suggestion: Option<String>,
     },
+    /// A reference names a node the document does not have.
     #[error("{loc}: no node named `{name}`{}", did_you_mean(suggestion))]
     UnknownNode {
+        /// Where the reference is written.
         loc: Location,
+        /// The node name referenced.
         name: String,
+        /// The closest node name, if one is close.
         suggestion: Option<String>,
     },
+    /// A wire or input names a port the node does not have.
     #[error("{loc}: node `{node}` ({kind}) has no {direction} port `{port}`{}; it has: {}", did_you_mean(suggestion), available.join(", "))]
     UnknownPort {
+        /// Where the port is referenced.
         loc: Location,
+        /// The node that lacks the port.
         node: String,
+        /// Its kind.
         kind: String,
         /// "input" or "output".
         direction: &'static str,
+        /// The port name given.
         port: String,
+        /// The closest port in that direction, if one is close.
         suggestion: Option<String>,
+        /// Every port the node has in that direction.
         available: Vec<String>,
     },
+    /// A node is given a parameter its kind does not declare.
     #[error(
         "{loc}: node `{node}` ({kind}) has no parameter `{param}`{}",
         did_you_mean(suggestion)
     )]
     UnknownParam {
+        /// Where the parameter name is written.
         loc: Location,
+        /// The node's name.
         node: String,
+        /// Its kind.
         kind: String,
+        /// The parameter name given.
         param: String,
+        /// The closest declared parameter, if one is close.
         suggestion: Option<String>,
     },
+    /// A parameter value of the wrong type or out of range.
     #[error("{loc}: node `{node}` parameter `{param}`: {message}")]
     BadParam {
+        /// Where the value is written.
         loc: Location,
+        /// The node's name.
         node: String,
+        /// The parameter.
         param: String,
+        /// What is wrong with the value.
         message: String,
     },
+    /// A wire whose source type cannot feed the input it is connected to.
     #[error(
         "{loc}: node `{node}` input `{port}` expects {expected}, but `{source_ref}` is {found}"
     )]
     TypeMismatch {
+        /// Where the source reference is written.
         loc: Location,
+        /// The consuming node.
         node: String,
+        /// Its input port.
         port: String,
+        /// The type the input takes.
         expected: ValueType,
+        /// The type the source output produces.
         found: ValueType,
+        /// The source as written (`"node.port"`).
         source_ref: String,
     },
+    /// A required input is not connected.
     #[error("{loc}: node `{node}` ({kind}) needs input `{port}` ({ty}), which is not connected")]
     MissingInput {
+        /// Where the node's name is written.
         loc: Location,
+        /// The node's name.
         node: String,
+        /// Its kind.
         kind: String,
+        /// The unconnected input port.
         port: String,
+        /// The type it takes.
         ty: ValueType,
     },
+    /// The wires form a cycle.
     #[error("{loc}: cycle: {}", path.join(" -> "))]
-    Cycle { loc: Location, path: Vec<String> },
+    Cycle {
+        /// Where the cycle's first node (in file order) is declared.
+        loc: Location,
+        /// Names of the nodes along the cycle.
+        path: Vec<String>,
+    },
 }
 
 impl CheckError {
+    /// Where the problem is written.
     pub fn location(&self) -> &Location {
         match self {
             CheckError::Syntax { loc, .. }
@@ -175,22 +238,34 @@ pub enum RunError {
         /// What went wrong.
         error: NodeError,
     },
+    /// A node returned without a value on one of its declared outputs.
     #[error("node `{node}` ({kind}) did not produce its declared output `{port}`")]
     MissingOutput {
+        /// The node's name in the pipeline.
         node: String,
+        /// Its kind.
         kind: String,
+        /// The missing output port.
         port: String,
     },
+    /// A node produced a value of another type than its output declares.
     #[error("node `{node}` ({kind}) produced {found} on output `{port}`, declared {expected}")]
     WrongOutputType {
+        /// The node's name in the pipeline.
         node: String,
+        /// Its kind.
         kind: String,
+        /// The output port.
         port: String,
+        /// The declared type.
         expected: ValueType,
+        /// The type produced.
         found: ValueType,
     },
+    /// The run was cancelled through its [`CancelToken`](crate::node::CancelToken).
     #[error("run cancelled")]
     Cancelled,
+    /// The worker thread pool could not be built; the message is the pool's error.
     #[error("cannot start worker threads: {0}")]
     Threads(String),
 }

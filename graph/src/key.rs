@@ -18,12 +18,15 @@ use crate::params::ParamMap;
 pub struct Key([u8; 32]);
 
 impl Key {
+    /// The key made of these 32 bytes.
     pub fn from_bytes(b: [u8; 32]) -> Self {
         Key(b)
     }
+    /// The key's 32 bytes.
     pub fn as_bytes(&self) -> &[u8; 32] {
         &self.0
     }
+    /// The key as 64 lowercase hex digits.
     pub fn to_hex(&self) -> String {
         self.0.iter().map(|b| format!("{b:02x}")).collect()
     }

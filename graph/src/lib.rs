@@ -41,6 +41,7 @@
 // Check errors carry their location and suggestions by value: they are built
 // on the cold path, reported in bulk, and boxing them would only add noise.
 #![allow(clippy::result_large_err)]
+#![warn(missing_docs)]
 
 pub mod cache;
 pub mod codec;

@@ -23,14 +23,18 @@ use crate::value::{
 /// A declared input or output.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PortSpec {
+    /// Port name, unique among the node's inputs (or outputs).
     pub name: &'static str,
+    /// Type of the values it carries.
     pub ty: ValueType,
     /// Inputs only: whether the node can run without it.
     pub optional: bool,
+    /// One-line description.
     pub doc: &'static str,
 }
 
 impl PortSpec {
+    /// A required input.
     pub const fn required(name: &'static str, ty: ValueType, doc: &'static str) -> Self {
         Self {
             name,
@@ -39,6 +43,7 @@ impl PortSpec {
             doc,
         }
     }
+    /// An optional input: the node runs without it.
     pub const fn optional(name: &'static str, ty: ValueType, doc: &'static str) -> Self {
         Self {
             name,
@@ -63,20 +68,26 @@ pub struct NodeSchema {
     pub version: u32,
     /// One-line description (first line) and more.
     pub doc: &'static str,
+    /// Declared input ports.
     pub inputs: Vec<PortSpec>,
+    /// Declared output ports.
     pub outputs: Vec<PortSpec>,
+    /// Declared parameters, in declaration order.
     pub params: Vec<ParamSpec>,
     /// Sinks write files: they run every time they are requested and are never cached.
     pub sink: bool,
 }
 
 impl NodeSchema {
+    /// The input port named `name`.
     pub fn input(&self, name: &str) -> Option<&PortSpec> {
         self.inputs.iter().find(|p| p.name == name)
     }
+    /// The output port named `name`.
     pub fn output(&self, name: &str) -> Option<&PortSpec> {
         self.outputs.iter().find(|p| p.name == name)
     }
+    /// The parameter named `name`.
     pub fn param(&self, name: &str) -> Option<&ParamSpec> {
         self.params.iter().find(|p| p.name == name)
     }
@@ -87,12 +98,15 @@ impl NodeSchema {
 pub struct CancelToken(Arc<AtomicBool>);
 
 impl CancelToken {
+    /// A token that is not cancelled.
     pub fn new() -> Self {
         Self::default()
     }
+    /// Asks every holder of a clone to stop; cannot be undone.
     pub fn cancel(&self) {
         self.0.store(true, Ordering::Relaxed);
     }
+    /// True once [`cancel`](Self::cancel) was called on any clone.
     pub fn is_cancelled(&self) -> bool {
         self.0.load(Ordering::Relaxed)
     }
@@ -129,7 +143,9 @@ pub struct Derivations<'a> {
 pub struct EvalCtx<'a> {
     /// The node's name in the pipeline.
     pub node: &'a str,
+    /// Set when the run is cancelled; see [`EvalCtx::check_cancelled`].
     pub cancel: &'a CancelToken,
+    /// Where [`EvalCtx::progress()`] reports go; `None` when nobody listens.
     pub progress: Option<&'a ProgressFn>,
     /// Directory that relative output paths are resolved against.
     pub out_dir: &'a std::path::Path,
@@ -272,12 +288,15 @@ macro_rules! typed_getter {
 }
 
 impl Inputs {
+    /// No inputs.
     pub fn new() -> Self {
         Self::default()
     }
+    /// Sets the value on input `port`, replacing any.
     pub fn insert(&mut self, port: impl Into<String>, v: Value) {
         self.values.insert(port.into(), v);
     }
+    /// The value on input `port`, whatever its type.
     pub fn get(&self, port: &str) -> Option<&Value> {
         self.values.get(port)
     }
@@ -343,6 +362,7 @@ impl Inputs {
 /// What an evaluation returns.
 #[derive(Debug, Clone, Default)]
 pub struct Outputs {
+    /// Output values by port name.
     pub values: BTreeMap<String, Value>,
     /// Set when the node passed its input through unchanged, with the reason
     /// (e.g. "no holes to fill"); `explain` shows it.
@@ -350,6 +370,7 @@ pub struct Outputs {
 }
 
 impl Outputs {
+    /// No outputs and no pass-through.
     pub fn new() -> Self {
         Self::default()
     }
@@ -377,6 +398,7 @@ impl Outputs {
 /// cache key is identical; the registry chooses between them at run time
 /// (see [`Registry::register_backend`](crate::registry::Registry::register_backend)).
 pub trait Node: Send + Sync {
+    /// The kind's schema: name, version, ports and parameters.
     fn schema(&self) -> &NodeSchema;
     /// Evaluates the node. `params` have been checked against the schema.
     fn eval(&self, ctx: &EvalCtx, inputs: &Inputs, params: &ParamMap)

@@ -10,14 +10,19 @@ use std::fmt;
 pub enum ParamKind {
     /// A real number in `[min, max]` (inclusive).
     Float {
+        /// Smallest value admitted.
         min: f64,
+        /// Largest value admitted.
         max: f64,
     },
     /// An integer in `[min, max]` (inclusive).
     Int {
+        /// Smallest value admitted.
         min: i64,
+        /// Largest value admitted.
         max: i64,
     },
+    /// `true` or `false`.
     Bool,
     /// Free text.
     Text,
@@ -31,12 +36,16 @@ pub enum ParamKind {
     Points,
     /// A list of real numbers, each in `[min, max]`.
     Floats {
+        /// Smallest value admitted.
         min: f64,
+        /// Largest value admitted.
         max: f64,
     },
     /// Three real numbers, each in `[min, max]`.
     Vec3 {
+        /// Smallest value admitted.
         min: f64,
+        /// Largest value admitted.
         max: f64,
     },
 }
@@ -142,16 +151,25 @@ impl ParamKind {
 /// Why a parameter value was refused.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ParamCheck {
+    /// The value has another type than the parameter.
     Type {
+        /// Type name the parameter takes.
         expected: &'static str,
+        /// Type name of the value given.
         found: &'static str,
     },
+    /// A number outside the parameter's range (for lists, the first such element).
     Range {
+        /// The offending number (integers converted to `f64`).
         value: f64,
+        /// The range, as [`ParamKind::range_text`] writes it.
         range: String,
     },
+    /// Text that is not one of the allowed names.
     Choice {
+        /// The text given.
         found: String,
+        /// The allowed names.
         choices: &'static [&'static str],
     },
 }
@@ -172,17 +190,24 @@ impl fmt::Display for ParamCheck {
 /// A parameter value as written in a pipeline.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ParamValue {
+    /// A real number.
     Float(f64),
+    /// An integer.
     Int(i64),
+    /// A boolean.
     Bool(bool),
     /// Text, paths and choices.
     Text(String),
+    /// A list of `(x, y)` pixel positions.
     Points(Vec<[f64; 2]>),
+    /// A list of real numbers.
     Floats(Vec<f64>),
+    /// Three real numbers `(x, y, z)`.
     Vec3([f64; 3]),
 }
 
 impl ParamValue {
+    /// Short type name for messages, e.g. `"float"`.
     pub fn type_name(&self) -> &'static str {
         match self {
             ParamValue::Float(_) => "float",
@@ -296,9 +321,13 @@ pub type ParamMap = BTreeMap<String, ParamValue>;
 /// One parameter of a node kind.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ParamSpec {
+    /// Field name, as written in pipelines.
     pub name: &'static str,
+    /// Type and range of the values it takes.
     pub kind: ParamKind,
+    /// Value used when the pipeline gives none.
     pub default: ParamValue,
+    /// One-line description.
     pub doc: &'static str,
 }
 
@@ -315,6 +344,7 @@ pub trait NodeParams: Sized + Default + Clone + Send + Sync + 'static {
 /// Turns a default written in [`node_params!`] into the field's type: the
 /// value itself, or a `&str` for a `String` field.
 pub trait ParamDefault<T> {
+    /// The default as a value of the field's type.
     fn into_default(self) -> T;
 }
 impl<T> ParamDefault<T> for T {
@@ -330,10 +360,12 @@ impl ParamDefault<String> for &str {
 
 /// Conversion of a Rust field to a [`ParamValue`].
 pub trait ToParam {
+    /// The field as a parameter value.
     fn to_param(&self) -> ParamValue;
 }
 /// Conversion of a checked [`ParamValue`] to a Rust field.
 pub trait FromParam: Sized {
+    /// The field from a checked value; `Err` with a message when the value has another type.
     fn from_param(v: &ParamValue) -> Result<Self, String>;
 }
 

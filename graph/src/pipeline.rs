@@ -23,14 +23,18 @@ use crate::ron_text::RonValue;
 pub struct Source {
     /// Index of the producing node in [`Pipeline::nodes`].
     pub node: usize,
+    /// Output port of that node.
     pub port: String,
 }
 
 /// One node of a checked pipeline.
 #[derive(Clone)]
 pub struct PipelineNode {
+    /// The node's name in the document.
     pub name: String,
+    /// Its kind.
     pub kind: String,
+    /// The implementation the registry chose (its preferred backend).
     pub node: Arc<dyn Node>,
     /// Every declared parameter, defaults filled in.
     pub params: ParamMap,
@@ -41,19 +45,25 @@ pub struct PipelineNode {
 /// A requested output: all ports of a node, or one.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct OutputRef {
+    /// Index of the node in [`Pipeline::nodes`].
     pub node: usize,
+    /// One output port, or `None` for all of them.
     pub port: Option<String>,
 }
 
 /// A pipeline ready to run.
 #[derive(Clone)]
 pub struct Pipeline {
+    /// Name of the document, for messages (usually its path).
     pub file: String,
+    /// The nodes, in document order.
     pub nodes: Vec<PipelineNode>,
     /// Edges point from producer to consumer; weights are node indices.
     pub graph: DiGraph<usize, ()>,
     /// Node indices in a topological order.
     pub order: Vec<usize>,
+    /// Requested outputs; when the document names none, every sink, or if
+    /// there is none every node nothing consumes.
     pub outputs: Vec<OutputRef>,
     /// How the disk cache reads extension values back (from the registry).
     pub decoders: Arc<Decoders>,

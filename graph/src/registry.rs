@@ -21,18 +21,24 @@ pub struct Registry {
 /// Registering a kind twice, or a backend whose schema differs.
 #[derive(Debug, thiserror::Error)]
 pub enum RegistryError {
+    /// [`Registry::register`] was given a kind that is already registered.
     #[error("node kind `{0}` is registered twice")]
     Duplicate(&'static str),
+    /// [`Registry::register_backend`] was given a backend whose schema
+    /// differs from the kind's first one.
     #[error(
         "backend `{backend}` of `{kind}` has a schema that differs from the first registered one"
     )]
     SchemaMismatch {
+        /// The node kind.
         kind: &'static str,
+        /// The new backend's name.
         backend: &'static str,
     },
 }
 
 impl Registry {
+    /// An empty registry that prefers the "cpu" backend.
     pub fn new() -> Self {
         Self {
             kinds: BTreeMap::new(),

@@ -12,7 +12,9 @@ use std::fmt;
 /// A position in the text, 1-based line and column (columns count chars).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Pos {
+    /// Line, from 1.
     pub line: usize,
+    /// Column, from 1, counted in chars.
     pub col: usize,
 }
 
@@ -25,29 +27,41 @@ impl fmt::Display for Pos {
 /// A value with its starting position.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Spanned<T> {
+    /// Where the value starts.
     pub pos: Pos,
+    /// The value.
     pub value: T,
 }
 
 /// A parsed RON value.
 #[derive(Debug, Clone, PartialEq)]
 pub enum RonValue {
+    /// A string, escapes resolved.
     Str(String),
+    /// An integer.
     Int(i64),
+    /// A float (also `inf`, `-inf` and `NaN`).
     Float(f64),
+    /// `true` or `false`.
     Bool(bool),
     /// A bare identifier such as `None` or an enum variant.
     Ident(String),
+    /// `[a, b, ...]`.
     List(Vec<Spanned<RonValue>>),
+    /// `{key: value, ...}`, entries in written order.
     Map(Vec<(Spanned<RonValue>, Spanned<RonValue>)>),
     /// `Name(field: value, ...)` or `(field: value, ...)`.
     Struct {
+        /// The name before the parenthesis, if any.
         name: Option<String>,
+        /// Fields in written order, each name with its position.
         fields: Vec<(Spanned<String>, Spanned<RonValue>)>,
     },
     /// `Name(a, b)` or `(a, b)`; `Some(x)` is a tuple named `Some`.
     Tuple {
+        /// The name before the parenthesis, if any.
         name: Option<String>,
+        /// Items in written order.
         items: Vec<Spanned<RonValue>>,
     },
 }
@@ -72,7 +86,9 @@ impl RonValue {
 /// A syntax error at a position.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SyntaxError {
+    /// Where the error is.
     pub pos: Pos,
+    /// What is wrong.
     pub message: String,
 }
 

@@ -52,7 +52,9 @@ impl Default for EngineOptions {
 /// Options of one run.
 #[derive(Clone, Default)]
 pub struct RunOptions {
+    /// Cancels the run when triggered.
     pub cancel: CancelToken,
+    /// Receives the nodes' progress reports, if set.
     pub progress: Option<ProgressFn>,
     /// Where relative output paths of sinks go.
     pub out_dir: PathBuf,
@@ -70,6 +72,7 @@ pub struct RunOptions {
 pub struct RunResult {
     /// Requested values by `"node.port"`.
     pub outputs: BTreeMap<String, Value>,
+    /// What each node did.
     pub trace: Trace,
 }
 
@@ -91,6 +94,8 @@ enum State {
 }
 
 impl Engine {
+    /// An engine with an empty memory cache and its own thread pool; fails
+    /// when the threads cannot be started.
     pub fn new(options: EngineOptions) -> Result<Self, RunError> {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(options.threads)

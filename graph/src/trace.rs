@@ -19,6 +19,7 @@ pub enum Status {
 }
 
 impl Status {
+    /// The status's snake_case name, as serialized.
     pub fn as_str(self) -> &'static str {
         match self {
             Status::Ran => "ran",
@@ -32,8 +33,11 @@ impl Status {
 /// One node's line of the trace.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct NodeRecord {
+    /// The node's name in the pipeline.
     pub node: String,
+    /// Its kind.
     pub kind: String,
+    /// What happened to it.
     pub status: Status,
     /// Why the node passed through (also kept when the result came from the cache).
     pub reason: Option<String>,
@@ -41,6 +45,7 @@ pub struct NodeRecord {
     pub ms: f64,
     /// Bytes of the node's outputs.
     pub bytes: usize,
+    /// Backend that evaluated it ("cpu", "wgpu").
     pub backend: String,
     /// Hex cache key.
     pub key: String,
@@ -65,11 +70,14 @@ pub struct DerivedRecord {
 /// The whole run.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Trace {
+    /// One record per node, in pipeline order.
     pub nodes: Vec<NodeRecord>,
+    /// Worker threads of the engine.
     pub threads: usize,
 }
 
 impl Trace {
+    /// The record of the node named `node`.
     pub fn get(&self, node: &str) -> Option<&NodeRecord> {
         self.nodes.iter().find(|r| r.node == node)
     }

@@ -82,9 +82,13 @@ impl<T, K> fmt::Debug for Image<T, K> {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("image buffer holds {found} pixels, expected {width}x{height} = {expected}")]
 pub struct ShapeError {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// Pixels needed, `width * height`.
     pub expected: usize,
+    /// Pixels the buffer holds.
     pub found: usize,
 }
 
@@ -263,11 +267,17 @@ impl DepthMap {
 /// with pixel centres at integer + 0.5 when `cx = width / 2`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
+    /// Focal length along `x`, in pixels.
     pub fx: f64,
+    /// Focal length along `y`, in pixels.
     pub fy: f64,
+    /// Principal point `x`, in pixels.
     pub cx: f64,
+    /// Principal point `y`, in pixels.
     pub cy: f64,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
 }
 
@@ -317,6 +327,7 @@ impl Intrinsics {
 /// A set of camera-space points (metres) with optional colors and normals.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct PointCloud {
+    /// Point positions in camera space, metres.
     pub positions: Vec<[f32; 3]>,
     /// Empty, or one linear RGB color per point.
     pub colors: Vec<Rgb>,
@@ -327,6 +338,7 @@ pub struct PointCloud {
 /// An indexed triangle mesh in camera space (metres).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Mesh {
+    /// Vertex positions in camera space, metres.
     pub positions: Vec<[f32; 3]>,
     /// Empty, or one linear RGB color per vertex.
     pub colors: Vec<Rgb>,

@@ -10,6 +10,8 @@
 //! `node_params!` struct and a `register` function, then add one line to
 //! [`registry`].
 
+#![warn(missing_docs)]
+
 pub mod camera;
 pub mod depth;
 pub mod imageops;

@@ -1,5 +1,7 @@
 //! Depth to 3D points and back (3d-editing eq. 1).
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -87,18 +89,62 @@ node_params! {
     pub struct UnprojectParams {}
 }
 
-fn unproject_eval(_: &EvalCtx, inputs: &Inputs, _: &UnprojectParams) -> Result<Outputs, NodeError> {
-    let d = inputs.depth("depth")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let c = inputs.color_opt("color")?;
-    Ok(Outputs::new().with("points", unproject(d, &k, c.map(|c| c.as_ref()))?))
+depthgraph_graph::ports! {
+    /// Inputs of `Unproject`.
+    inputs struct UnprojectIn {
+        /// metres
+        depth: Arc<DepthMap>,
+        /// of the depth image
+        intrinsics: Intrinsics,
+        /// colors for the points, same size as depth
+        color: Option<Arc<ColorImage>>,
+    }
 }
 
-fn project_eval(_: &EvalCtx, inputs: &Inputs, _: &UnprojectParams) -> Result<Outputs, NodeError> {
-    let pc = inputs.point_cloud("points")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let (d, c) = project(pc, &k)?;
-    Ok(Outputs::new().with("depth", d).with("color", c))
+depthgraph_graph::ports! {
+    /// Outputs of `Unproject`.
+    outputs struct UnprojectOut {
+        /// one point per valid pixel
+        points: PointCloud,
+    }
+}
+
+fn unproject_eval(
+    _: &EvalCtx,
+    i: UnprojectIn,
+    _: &UnprojectParams,
+) -> Result<Produced<UnprojectOut>, NodeError> {
+    let points = unproject(&i.depth, &i.intrinsics, i.color.as_deref())?;
+    Ok(UnprojectOut { points }.into())
+}
+
+depthgraph_graph::ports! {
+    /// Inputs of `Project`.
+    inputs struct ProjectIn {
+        /// camera-space points
+        points: Arc<PointCloud>,
+        /// of the target image
+        intrinsics: Intrinsics,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `Project`.
+    outputs struct ProjectOut {
+        /// metres, 0 where no point lands
+        depth: DepthMap,
+        /// point colors, black where none
+        color: ColorImage,
+    }
+}
+
+fn project_eval(
+    _: &EvalCtx,
+    i: ProjectIn,
+    _: &UnprojectParams,
+) -> Result<Produced<ProjectOut>, NodeError> {
+    let (depth, color) = project(&i.points, &i.intrinsics)?;
+    Ok(ProjectOut { depth, color }.into())
 }
 
 node_params! {
@@ -165,11 +211,13 @@ pub fn reproject_depth(
             if !DepthMap::is_valid(z) {
                 continue;
             }
-            let q = rot * k_depth.unproject(x as f64, y as f64, z as f64) + t;
+            // pixel centres at integer + 0.5 (the convention of `unproject`);
+            // the target pixel is the one whose square holds the projection
+            let q = rot * k_depth.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64) + t;
             let Some(uv) = k_target.project(q) else {
                 continue;
             };
-            let (u, v) = (uv.x.round(), uv.y.round());
+            let (u, v) = (uv.x.floor(), uv.y.floor());
             if !(u >= 0.0 && v >= 0.0 && u < tw as f64 && v < th as f64) {
                 continue;
             }
@@ -194,61 +242,64 @@ pub fn output_camera(k_target: &Intrinsics, p: &ReprojectParams) -> Intrinsics {
     }
 }
 
-fn reproject_eval(_: &EvalCtx, inputs: &Inputs, p: &ReprojectParams) -> Result<Outputs, NodeError> {
-    let d = inputs.depth("depth")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let kt = inputs.intrinsics("target")?;
-    let (out, conf) = reproject_depth(d, &k, &kt, p)?;
-    Ok(Outputs::new()
-        .with("depth", out)
-        .with("confidence", Value::Confidence(std::sync::Arc::new(conf)))
-        .with("intrinsics", output_camera(&kt, p)))
+depthgraph_graph::ports! {
+    /// Inputs of `ReprojectDepth`.
+    inputs struct ReprojectIn {
+        /// metres, as the depth camera saw them
+        depth: Arc<DepthMap>,
+        /// of the depth camera
+        intrinsics: Intrinsics,
+        /// of the target (color) camera, any size
+        target: Intrinsics,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `ReprojectDepth`.
+    outputs struct ReprojectOut {
+        /// metres in the target frame, 0 where nothing lands
+        depth: DepthMap,
+        /// 1 where a reading landed, else 0
+        confidence: Confidence,
+        /// of the result (the target, rescaled)
+        intrinsics: Intrinsics,
+    }
+}
+
+fn reproject_eval(
+    _: &EvalCtx,
+    i: ReprojectIn,
+    p: &ReprojectParams,
+) -> Result<Produced<ReprojectOut>, NodeError> {
+    let (depth, confidence) = reproject_depth(&i.depth, &i.intrinsics, &i.target, p)?;
+    Ok(ReprojectOut {
+        depth,
+        confidence,
+        intrinsics: output_camera(&i.target, p),
+    }
+    .into())
 }
 
 /// Registers `Unproject`, `Project` and `ReprojectDepth`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Unproject",
         1,
         "Depth + intrinsics to a camera-space point cloud (3d-editing eq. 1), with optional colors.",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "metres"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the depth image"),
-            PortSpec::optional("color", ValueType::Color, "colors for the points, same size as depth"),
-        ],
-        vec![PortSpec::output("points", ValueType::PointCloud, "one point per valid pixel")],
         unproject_eval,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Project",
         1,
         "Point cloud to depth and color images through intrinsics, nearest point wins.",
-        vec![
-            PortSpec::required("points", ValueType::PointCloud, "camera-space points"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the target image"),
-        ],
-        vec![
-            PortSpec::output("depth", ValueType::Depth, "metres, 0 where no point lands"),
-            PortSpec::output("color", ValueType::Color, "point colors, black where none"),
-        ],
         project_eval,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "ReprojectDepth",
-        1,
+        2,
         "Depth from a second camera (its intrinsics, its pose in the target frame) moved into the target \
          camera's image with a z-buffer (realistic-depth-blur Sec. 2.1): occlusions and holes appear, to be \
          filled by NLMeansUpsample / NLMeansInpaint.",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "metres, as the depth camera saw them"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the depth camera"),
-            PortSpec::required("target", ValueType::Intrinsics, "of the target (color) camera, any size"),
-        ],
-        vec![
-            PortSpec::output("depth", ValueType::Depth, "metres in the target frame, 0 where nothing lands"),
-            PortSpec::output("confidence", ValueType::Confidence, "1 where a reading landed, else 0"),
-            PortSpec::output("intrinsics", ValueType::Intrinsics, "of the result (the target, rescaled)"),
-        ],
         reproject_eval,
     ))
 }
@@ -256,6 +307,46 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two cameras with the same field of view, the target 4x finer: each
+    /// depth pixel lands inside its own footprint on the target (target
+    /// pixels 4x..4x+3), on one of the two pixels whose centres are nearest
+    /// its own centre, and no point is shifted towards the top-left.
+    #[test]
+    fn reprojection_uses_pixel_centres_across_scales() {
+        let kd = Intrinsics {
+            fx: 4.0,
+            fy: 4.0,
+            cx: 2.0,
+            cy: 2.0,
+            width: 4,
+            height: 4,
+        };
+        let kt = kd.scaled_to(16, 16);
+        let d = DepthMap::filled(4, 4, 2.0);
+        let (out, _) = reproject_depth(&d, &kd, &kt, &ReprojectParams::default()).unwrap();
+        let landed: Vec<(usize, usize)> = (0..16 * 16)
+            .filter(|&i| out.as_slice()[i] > 0.0)
+            .map(|i| (i % 16, i / 16))
+            .collect();
+        assert_eq!(landed.len(), 16);
+        for (u, v) in landed {
+            let (x, y) = (u / 4, v / 4);
+            // the centre of depth pixel x is target coordinate 4x + 2
+            for (t, s) in [(u, x), (v, y)] {
+                let off = t as f64 + 0.5 - (4 * s) as f64 - 2.0;
+                assert!(off.abs() <= 0.5, "target pixel {t} for depth pixel {s}");
+            }
+        }
+        // same scale: a one-pixel shift stays exactly one pixel
+        let p = ReprojectParams {
+            translation_m: [0.5, 0.0, 0.0],
+            ..Default::default()
+        };
+        let (out, _) = reproject_depth(&d, &kd, &kd, &p).unwrap();
+        assert_eq!(*out.get(0, 1), 0.0);
+        assert_eq!(*out.get(1, 1), 2.0);
+    }
 
     #[test]
     fn project_inverts_unproject() {
