@@ -106,7 +106,7 @@ pub struct ResponseCurve {
 }
 
 impl ResponseCurve {
-    /// A known gamma camera: the inverse of [`crate::sim::sensor::response`]
+    /// A known gamma camera: the inverse of [`crate::camera::response::response`]
     /// (the curve `SimulateBracket` applies), `g(z) = ln f^-1(z / 255)`, so
     /// `g(255) = 0`. A value 0 only says that the exposure was below half a
     /// level, so `g(0) = ln f^-1(0.5 / 255)` (finite, instead of `ln 0`).
@@ -114,7 +114,7 @@ impl ResponseCurve {
     pub fn gamma(gamma: f64) -> Self {
         let g: [f64; LEVELS] = std::array::from_fn(|z| {
             let v = if z == 0 { 0.5 } else { z as f64 } / Z_MAX;
-            let x = crate::sim::sensor::inverse_response(v as f32, gamma as f32) as f64;
+            let x = crate::camera::response::inverse_response(v as f32, gamma as f32) as f64;
             // guard: the inverse of a positive value is positive; the floor only
             // protects the logarithm against a future change of the curve
             x.max(1e-30).ln()
@@ -1119,7 +1119,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::sensor::{BracketParams, inverse_response, simulate_bracket};
+    use crate::camera::response::inverse_response;
+    use crate::sim::sensor::{BracketParams, simulate_bracket};
     use crate::sim::synthetic::{RenderOptions, Scene, render};
 
     /// Radiance 1e-3..1e2: a log ramp (different per channel) above the

@@ -164,7 +164,14 @@ pub enum Aperture {
     Disc,
     /// A regular polygon of `blades` sides (3 = triangle), rotated by
     /// `rotation_deg` (0: one vertex straight up).
-    Polygon { blades: u32, rotation_deg: f64 },
+    Polygon {
+        /// Number of blades, i.e. sides of the polygon (3 to 64 from
+        /// [`Aperture::from_params`]).
+        blades: u32,
+        /// Rotation in degrees, clockwise in the image (`y` down); 0 puts a
+        /// vertex straight up.
+        rotation_deg: f64,
+    },
     /// A custom diaphragm: each pixel's value is its transmittance in
     /// `[0, 1]` (values outside are clamped, NaN is 0).
     Mask(Mask),

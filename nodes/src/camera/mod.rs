@@ -5,6 +5,7 @@ pub mod hdr;
 pub mod intrinsics;
 pub mod lens;
 pub mod refocus;
+pub mod response;
 
 use depthgraph_graph::registry::{Registry, RegistryError};
 

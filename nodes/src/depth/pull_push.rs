@@ -60,6 +60,8 @@ node_params! {
 /// Result of a fill.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Filled {
+    /// The input depth (metres) with its holes filled; measured pixels are
+    /// unchanged and pixels that could not be filled stay 0.
     pub depth: DepthMap,
     /// 1 where the value was filled, 0 where it was measured or stayed a hole.
     pub filled: Mask,

@@ -103,7 +103,9 @@ fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
 /// A binary PNM file (`P5` grey or `P6` RGB, 8 or 16 bit).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pnm {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
     /// 1 (P5) or 3 (P6).
     pub channels: usize,
@@ -373,8 +375,12 @@ node_params! {
 /// Samples of a single-channel file, row-major, top row first.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Samples {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// The `width * height` stored values as read, before any scale or unit
+    /// conversion.
     pub values: Vec<f32>,
 }
 

@@ -141,6 +141,8 @@ pub fn pixel_area(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (f64,
 /// The surface elements of the scene, with their sampling CDF.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct PointSet {
+    /// Per element: its unprojected pixel centre (camera frame, metres),
+    /// layer by layer in scan order.
     pub positions: Vec<DVec3>,
     /// Whether each element belongs to the pasted object.
     pub object: Vec<bool>,
@@ -150,7 +152,10 @@ pub struct PointSet {
     pub min_radius: Vec<f64>,
     /// `W = Σ a_i I_i`.
     pub total: f64,
+    /// The object centres `o_j` of eq. 6 (camera frame, metres); empty =
+    /// uniform importance `I = 1`.
     pub centres: Vec<DVec3>,
+    /// Floor of the distance in eq. 6, metres.
     pub min_distance_m: f64,
     /// Per element, packed for the splatting (one cache line per drawn sample).
     elems: Vec<Elem>,
@@ -305,6 +310,7 @@ pub struct ShadowMap {
     pub texel_m: f64,
     /// `1 / texel_m` (texel lookups multiply instead of divide).
     inv_texel: f64,
+    /// Texels per side; `t` holds `res * res` texels, row by row.
     pub res: usize,
     /// Largest `t = p·d` per texel; `-inf` = nothing there.
     pub t: Vec<f32>,
@@ -468,6 +474,8 @@ pub fn build_pair(
 /// direction, its basis and the bounding box `[umin, umax] x [vmin, vmax]`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Window {
+    /// Unit direction towards the light (the maps built in this window
+    /// take it as [`ShadowMap::dir`]).
     pub dir: DVec3,
     eu: DVec3,
     ev: DVec3,
@@ -638,10 +646,12 @@ pub fn build_single_in(
 /// (the sky) must stay open; splats twice the ISM radius close the gaps.
 #[derive(Debug, Clone)]
 pub struct ParaboloidMap {
+    /// Position `q` of the light (camera frame, metres).
     pub centre: DVec3,
     e1: DVec3,
     e2: DVec3,
     n: DVec3,
+    /// Texels per side (at least 2) of the square map of the unit disc.
     pub res: usize,
     t: Vec<f32>,
 }
@@ -650,6 +660,7 @@ pub struct ParaboloidMap {
 /// their splat radius scale.
 #[derive(Debug, Clone, Copy)]
 pub struct ParaboloidSamples<'a> {
+    /// The elements the samples are drawn from.
     pub set: &'a PointSet,
     /// Samples drawn per map.
     pub m: usize,

@@ -82,15 +82,23 @@ depthgraph_graph::param_choice! {
 /// The inputs of [`relight`], all `k.width x k.height`.
 #[derive(Debug, Clone, Copy)]
 pub struct RelightInputs<'a> {
+    /// The target photo `P`, linear RGB.
     pub photo: &'a ColorImage,
+    /// The target's depth in metres (0 = no measurement).
     pub depth: &'a DepthMap,
     /// Target normals; `None` (or zero normals) = estimated from the depth.
     pub normals: Option<&'a NormalMap>,
     /// Target albedo; `None` = estimated as photo / shading.
     pub albedo: Option<&'a ColorImage>,
+    /// The pasted object's colour in the target view, linear RGB.
     pub pasted_color: &'a ColorImage,
+    /// The pasted object's depth in the target view, metres (0 where the
+    /// object is absent).
     pub pasted_depth: &'a DepthMap,
+    /// The composite alpha `α` of eq. 5 (after the depth test); clamped to
+    /// `[0, 1]`, NaN and pasted-depth holes count as 0.
     pub alpha: &'a Mask,
+    /// Intrinsics of the target; every image has their size.
     pub k: &'a Intrinsics,
 }
 
@@ -98,10 +106,15 @@ pub struct RelightInputs<'a> {
 /// ([`crate::relight::scene_cached`]) keeps while the object moves.
 #[derive(Debug, Clone, Copy)]
 pub struct SceneInputs<'a> {
+    /// The target photo `P`, linear RGB.
     pub photo: &'a ColorImage,
+    /// The target's depth in metres (0 = no measurement).
     pub depth: &'a DepthMap,
+    /// Target normals; `None` (or zero normals) = estimated from the depth.
     pub normals: Option<&'a NormalMap>,
+    /// Target albedo; `None` = estimated as photo / shading.
     pub albedo: Option<&'a ColorImage>,
+    /// Intrinsics of the target; every image has their size.
     pub k: &'a Intrinsics,
 }
 

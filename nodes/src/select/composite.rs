@@ -43,7 +43,10 @@ node_params! {
 /// Result of [`occlusion_composite`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Composite {
+    /// Blended colour `a C_p + (1 - a) C_t`, linear RGB.
     pub color: ColorImage,
+    /// Blended depth in metres (module docs); 0 where neither layer has a
+    /// measurement.
     pub depth: DepthMap,
     /// Alpha after the depth test.
     pub alpha: Mask,

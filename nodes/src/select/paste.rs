@@ -105,8 +105,10 @@ pub struct SourceObject {
     pub count: usize,
     /// Centroid `c` (metres, source camera frame).
     pub centroid: DVec3,
-    /// Axis-aligned bounding box `B0` of the object points.
+    /// Axis-aligned bounding box `B0` of the object points: its minimum
+    /// corner (metres, source camera frame).
     pub lo: DVec3,
+    /// Maximum corner of `B0` (metres, source camera frame).
     pub hi: DVec3,
 }
 

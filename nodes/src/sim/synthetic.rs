@@ -65,11 +65,27 @@ pub enum Texture {
     Solid(Rgb),
     /// A 3-D checkerboard of cubes of side `period_m` metres alternating
     /// between `a` and `b`. A non-positive or non-finite period gives `a`.
-    Checker { a: Rgb, b: Rgb, period_m: f64 },
+    Checker {
+        /// Linear RGB albedo of half of the cubes; also the whole texture when
+        /// the period is not positive and finite.
+        a: Rgb,
+        /// Linear RGB albedo of the other half of the cubes.
+        b: Rgb,
+        /// Side of one cube in metres.
+        period_m: f64,
+    },
     /// A smooth pattern `a + (b - a) * s` with
     /// `s = 1/2 + (sin(kx) + sin(ky + 1.3) + sin(kz + 2.1)) / 6`,
     /// `k = 2 pi / period_m`. A non-positive or non-finite period gives `a`.
-    Waves { a: Rgb, b: Rgb, period_m: f64 },
+    Waves {
+        /// Linear RGB albedo at `s = 0`; also the whole texture when the
+        /// period is not positive and finite.
+        a: Rgb,
+        /// Linear RGB albedo at `s = 1`.
+        b: Rgb,
+        /// Period of each sine in metres.
+        period_m: f64,
+    },
 }
 
 impl Texture {
@@ -110,23 +126,41 @@ impl Texture {
 pub enum Primitive {
     /// Infinite plane through `point` with the given `normal` (any length; a
     /// zero normal makes the plane invisible). Planes are two-sided.
-    Plane { point: DVec3, normal: DVec3 },
+    Plane {
+        /// Any point of the plane (metres).
+        point: DVec3,
+        /// Normal of the plane; it is normalised before use.
+        normal: DVec3,
+    },
     /// Box centred at `center` with `half_extents` (absolute values are used),
     /// turned by `yaw_rad` about the vertical (`y`) axis through its centre:
     /// a local point `(x, y, z)` is at `center + (x cos + z sin, y, -x sin + z cos)`.
     Box {
+        /// Centre of the box (metres).
         center: DVec3,
+        /// Half of the box's size along its local `x`, `y` and `z` axes
+        /// (metres).
         half_extents: DVec3,
+        /// Turn about the vertical axis through the centre, in radians.
         yaw_rad: f64,
     },
     /// Sphere; a non-positive radius makes it invisible.
-    Sphere { center: DVec3, radius: f64 },
+    Sphere {
+        /// Centre of the sphere (metres).
+        center: DVec3,
+        /// Radius in metres.
+        radius: f64,
+    },
     /// Closed vertical cylinder standing on `center_base` (the centre of its
     /// bottom disc) and rising `height` metres upwards, i.e. towards `-y`;
     /// non-positive radius or height make it invisible.
     Cylinder {
+        /// Centre of the bottom disc (metres); its `y` is the largest `y` of
+        /// the cylinder.
         center_base: DVec3,
+        /// Radius in metres.
         radius: f64,
+        /// Height in metres, measured from `center_base` towards `-y`.
         height: f64,
     },
 }
@@ -1037,7 +1071,9 @@ pub fn render_with<E>(
 /// model the light transport ... by casting rays from across the lens").
 #[derive(Debug, Clone, PartialEq)]
 pub struct ThinLensRender {
+    /// The lens: focal length, f-number, focus distance and sensor width.
     pub lens: ThinLens,
+    /// Shape of the aperture the rays start from.
     pub aperture: Aperture,
     /// Rays per pixel, spread over the aperture.
     pub samples: usize,
