@@ -359,7 +359,7 @@ pub struct ExposureStack {
 
 /// One directional virtual point light (instant radiosity, 3d-editing
 /// §IV.A): light arriving from `direction` with irradiance `power`.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Vpl {
     /// Unit direction towards the light, camera frame.
     pub direction: [f32; 3],

@@ -8,6 +8,8 @@
 //! a near object is not glued to the wall behind it by long "rubber sheet"
 //! triangles.
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
@@ -388,31 +390,39 @@ pub fn depth_to_mesh(
     Ok(mesh)
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &MeshParams) -> Result<Outputs, NodeError> {
-    let d = inputs.depth("depth")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let c = inputs.color_opt("color")?;
-    Ok(Outputs::new().with("mesh", depth_to_mesh(d, &k, c.map(|c| c.as_ref()), p)?))
+depthgraph_graph::ports! {
+    /// Inputs of `DepthToMesh`.
+    inputs struct MeshIn {
+        /// metres, 0 = no measurement
+        depth: Arc<DepthMap>,
+        /// of the depth image
+        intrinsics: Intrinsics,
+        /// vertex colors, same size as depth
+        color: Option<Arc<ColorImage>>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `DepthToMesh`.
+    outputs struct MeshOut {
+        /// camera-space triangle mesh with normals (and colors when given)
+        mesh: Mesh,
+    }
+}
+
+fn eval(_: &EvalCtx, i: MeshIn, p: &MeshParams) -> Result<Produced<MeshOut>, NodeError> {
+    let mesh = depth_to_mesh(&i.depth, &i.intrinsics, i.color.as_deref(), p)?;
+    Ok(MeshOut { mesh }.into())
 }
 
 /// Registers `DepthToMesh`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "DepthToMesh",
         1,
         "Grid triangulation of a depth map (3d-editing Sec. III.B), dropping triangles across depth edges.\n\
          Vertices are the unprojected pixel centres (eq. 1) with area-weighted normals facing the camera; \
          triangles are counter-clockwise as seen from the camera.",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "metres, 0 = no measurement"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "of the depth image"),
-            PortSpec::optional("color", ValueType::Color, "vertex colors, same size as depth"),
-        ],
-        vec![PortSpec::output(
-            "mesh",
-            ValueType::Mesh,
-            "camera-space triangle mesh with normals (and colors when given)",
-        )],
         eval,
     ))
 }

@@ -57,6 +57,7 @@ use depthgraph_graph::prelude::*;
 use glam::DVec3;
 
 use crate::depth::pull_push::{PullPushParams, Weights, pull_push};
+use crate::kit::bytes::{ByteReader, ByteWriter};
 use crate::kit::rng::SplitMix64;
 
 node_params! {
@@ -139,7 +140,7 @@ pub fn pixel_area(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (f64,
 }
 
 /// The surface elements of the scene, with their sampling CDF.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone)]
 pub struct PointSet {
     /// Per element: its unprojected pixel centre (camera frame, metres),
     /// layer by layer in scan order.
@@ -162,7 +163,7 @@ pub struct PointSet {
 }
 
 /// What splatting needs of one element.
-#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy)]
 struct Elem {
     pos: DVec3,
     min_radius: f64,
@@ -173,6 +174,44 @@ struct Elem {
 }
 
 impl PointSet {
+    /// Appends the set to `w` (the disk cache's encoding of a relight scene).
+    pub(crate) fn write(&self, w: &mut ByteWriter) {
+        w.seq(&self.positions, |w, p| w.vec3(*p));
+        w.seq(&self.object, |w, b| w.bool(*b));
+        w.seq(&self.cdf, |w, x| w.f64(*x));
+        w.seq(&self.min_radius, |w, x| w.f64(*x));
+        w.f64(self.total);
+        w.seq(&self.centres, |w, p| w.vec3(*p));
+        w.f64(self.min_distance_m);
+        w.seq(&self.elems, |w, e| {
+            w.vec3(e.pos);
+            w.f64(e.min_radius);
+            w.f64(e.inv_sqrt_importance);
+            w.bool(e.object);
+        });
+    }
+
+    /// Reads what [`PointSet::write`] wrote.
+    pub(crate) fn read(r: &mut ByteReader) -> Option<Self> {
+        Some(Self {
+            positions: r.seq(24, ByteReader::vec3)?,
+            object: r.seq(1, ByteReader::bool)?,
+            cdf: r.seq(8, ByteReader::f64)?,
+            min_radius: r.seq(8, ByteReader::f64)?,
+            total: r.f64()?,
+            centres: r.seq(24, ByteReader::vec3)?,
+            min_distance_m: r.f64()?,
+            elems: r.seq(41, |r| {
+                Some(Elem {
+                    pos: r.vec3()?,
+                    min_radius: r.f64()?,
+                    inv_sqrt_importance: r.f64()?,
+                    object: r.bool()?,
+                })
+            })?,
+        })
+    }
+
     /// Whether the per-element arrays have one entry per element.
     pub(crate) fn consistent(&self) -> bool {
         let n = self.positions.len();
@@ -298,7 +337,7 @@ impl PointSet {
 }
 
 /// An orthographic depth map along a light direction (module docs).
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone)]
 pub struct ShadowMap {
     /// Unit direction towards the light.
     pub dir: DVec3,
@@ -323,6 +362,37 @@ fn basis(d: DVec3) -> (DVec3, DVec3) {
 }
 
 impl ShadowMap {
+    /// Appends the map to `w` (the disk cache's encoding of a relight scene).
+    pub(crate) fn write(&self, w: &mut ByteWriter) {
+        for v in [self.dir, self.eu, self.ev] {
+            w.vec3(v);
+        }
+        for x in [self.u0, self.v0, self.texel_m, self.inv_texel] {
+            w.f64(x);
+        }
+        w.usize(self.res);
+        w.f32s(&self.t);
+    }
+
+    /// Reads what [`ShadowMap::write`] wrote.
+    pub(crate) fn read(r: &mut ByteReader) -> Option<Self> {
+        let (dir, eu, ev) = (r.vec3()?, r.vec3()?, r.vec3()?);
+        let (u0, v0, texel_m, inv_texel) = (r.f64()?, r.f64()?, r.f64()?, r.f64()?);
+        let res = r.usize()?;
+        let t = r.f32s()?;
+        Some(Self {
+            dir,
+            eu,
+            ev,
+            u0,
+            v0,
+            texel_m,
+            inv_texel,
+            res,
+            t,
+        })
+    }
+
     /// Whether the texel array is `res`² (a decoded map is indexed by it).
     pub(crate) fn consistent(&self) -> bool {
         self.res.checked_mul(self.res) == Some(self.t.len())

@@ -43,6 +43,7 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::kit::bytes::{ByteReader, ByteWriter};
 use crate::kit::checks::fits_intrinsics;
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows,
@@ -58,7 +59,7 @@ use crate::relight::vpl::Vpl;
 /// VPL directions grouped by the cells of an octahedral grid, each group a
 /// cone `(axis, half angle)` holding all its directions: a pixel whose cone
 /// towards the object misses a group's cone skips all its VPLs.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone)]
 struct DirGroups {
     axis: Vec<DVec3>,
     cos_h: Vec<f64>,
@@ -131,7 +132,7 @@ impl DirGroups {
 
 /// What [`relight_moved`] reuses while only the object changes (module
 /// docs). Built by [`RelightScene::new`].
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone)]
 pub struct RelightScene {
     k: Intrinsics,
     vpls: Vec<Vpl>,
@@ -158,7 +159,7 @@ pub struct RelightScene {
 /// holding their surface points. A ray from any of them passes within
 /// `reach` of a point only if the parallel ray from the centre passes
 /// within `reach + radius`, so one cone test culls the whole tile.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone)]
 struct Tile {
     centre: DVec3,
     radius: f64,
@@ -724,9 +725,107 @@ pub const SCENE_PORTS: &[&str] = &["photo", "depth", "normals", "albedo", "vpls"
 
 /// Layout version of an encoded [`RelightScene`]; part of its key, so a
 /// changed layout never meets an old file.
-const SCENE_CODEC: u32 = 1;
+const SCENE_CODEC: u32 = 2;
 
 impl RelightScene {
+    /// Appends the scene to `w` (after the layout version).
+    fn write(&self, w: &mut ByteWriter) {
+        let k = &self.k;
+        for x in [k.fx, k.fy, k.cx, k.cy] {
+            w.f64(x);
+        }
+        w.usize(k.width);
+        w.usize(k.height);
+        w.seq(&self.vpls, |w, v| {
+            w.f32s(&v.direction);
+            w.f32s(&v.power);
+        });
+        w.seq(&self.dirs, |w, d| w.vec3(*d));
+        w.f64(self.e_ref);
+        w.seq(&self.target, |w, s| {
+            w.opt(s, |w, s| {
+                w.vec3(s.pos);
+                w.vec3(s.n);
+            })
+        });
+        w.seq(&self.areas, |w, x| w.f64(*x));
+        w.seq(&self.maps, |w, m| w.opt(m, |w, m| m.write(w)));
+        w.opt(&self.e_t, |w, e| {
+            w.seq(e, |w, c| {
+                for x in c {
+                    w.f64(*x);
+                }
+            })
+        });
+        let g = &self.groups;
+        w.seq(&g.axis, |w, a| w.vec3(*a));
+        w.seq(&g.cos_h, |w, x| w.f64(*x));
+        w.seq(&g.sin_h, |w, x| w.f64(*x));
+        w.seq(&g.members, |w, m| w.seq(m, |w, j| w.usize(*j)));
+        w.seq(&self.bias_t, |w, x| w.f64(*x));
+        w.seq(&self.tiles, |w, t| {
+            w.vec3(t.centre);
+            w.f64(t.radius);
+            w.seq(&t.pixels, |w, i| w.usize(*i));
+        });
+        w.opt(&self.pool, |w, p| p.write(w));
+        w.f64(self.bias_scale);
+        w.bool(self.with_albedo);
+    }
+
+    /// Reads what [`RelightScene::write`] wrote.
+    fn read(r: &mut ByteReader) -> Option<Self> {
+        let (fx, fy, cx, cy) = (r.f64()?, r.f64()?, r.f64()?, r.f64()?);
+        let (width, height) = (r.usize()?, r.usize()?);
+        let three = |r: &mut ByteReader| -> Option<[f32; 3]> { r.f32s()?.try_into().ok() };
+        Some(Self {
+            k: Intrinsics {
+                fx,
+                fy,
+                cx,
+                cy,
+                width,
+                height,
+            },
+            vpls: r.seq(40, |r| {
+                Some(Vpl {
+                    direction: three(r)?,
+                    power: three(r)?,
+                })
+            })?,
+            dirs: r.seq(24, ByteReader::vec3)?,
+            e_ref: r.f64()?,
+            target: r.seq(1, |r| {
+                r.opt(|r| {
+                    Some(Surf {
+                        pos: r.vec3()?,
+                        n: r.vec3()?,
+                    })
+                })
+            })?,
+            areas: r.seq(8, ByteReader::f64)?,
+            maps: r.seq(1, |r| r.opt(ShadowMap::read))?,
+            e_t: r.opt(|r| r.seq(24, |r| Some([r.f64()?, r.f64()?, r.f64()?])))?,
+            groups: DirGroups {
+                axis: r.seq(24, ByteReader::vec3)?,
+                cos_h: r.seq(8, ByteReader::f64)?,
+                sin_h: r.seq(8, ByteReader::f64)?,
+                members: r.seq(8, |r| r.seq(8, ByteReader::usize))?,
+            },
+            bias_t: r.seq(8, ByteReader::f64)?,
+            tiles: r.seq(40, |r| {
+                Some(Tile {
+                    centre: r.vec3()?,
+                    radius: r.f64()?,
+                    pixels: r.seq(8, ByteReader::usize)?,
+                })
+            })?,
+            pool: r.opt(PointSet::read)?,
+            bias_scale: r.f64()?,
+            with_albedo: r.bool()?,
+        })
+    }
+
     /// Whether the parts agree with each other (lengths and indices), so a
     /// decoded scene can be indexed without a panic.
     fn consistent(&self) -> bool {
@@ -756,8 +855,9 @@ pub fn decode_scene(bytes: &[u8]) -> Option<Arc<dyn depthgraph_graph::value::Ext
     if u32::from_le_bytes(*version) != SCENE_CODEC {
         return None;
     }
-    let scene: RelightScene = postcard::from_bytes(rest).ok()?;
-    scene.consistent().then(|| Arc::new(scene) as _)
+    let mut r = ByteReader::new(rest);
+    let scene = RelightScene::read(&mut r)?;
+    (r.is_done() && scene.consistent()).then(|| Arc::new(scene) as _)
 }
 
 impl depthgraph_graph::value::Extension for RelightScene {
@@ -768,7 +868,9 @@ impl depthgraph_graph::value::Extension for RelightScene {
         self.heap_bytes()
     }
     fn encode(&self) -> Option<Vec<u8>> {
-        postcard::to_extend(self, SCENE_CODEC.to_le_bytes().to_vec()).ok()
+        let mut w = ByteWriter(SCENE_CODEC.to_le_bytes().to_vec());
+        self.write(&mut w);
+        Some(w.0)
     }
     fn as_any(&self) -> &dyn std::any::Any {
         self

@@ -262,7 +262,7 @@ impl Cone {
     }
 }
 
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone)]
 pub(crate) struct Surf {
     pub(crate) pos: DVec3,
     pub(crate) n: DVec3,

@@ -58,6 +58,8 @@
 //! by non-maximum suppression to one-pixel-wide lines (for display and as the
 //! paper's "detected edges").
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -367,34 +369,43 @@ pub fn binary_edges(strength: &Confidence, threshold: f32, thin: bool) -> Mask {
     Image::from_vec(w, h, out).unwrap_or_else(|_| Image::filled(w, h, 0.0))
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &EdgeParams) -> Result<Outputs, NodeError> {
-    let color = inputs.color("color")?;
-    let depth = inputs.depth("depth")?;
-    let e = detect_edges(color, depth, p)?;
-    Ok(Outputs::new()
-        .with(
-            "strength",
-            Value::Confidence(std::sync::Arc::new(e.strength)),
-        )
-        .with("edges", Value::Mask(std::sync::Arc::new(e.edges))))
+depthgraph_graph::ports! {
+    /// Inputs of `EdgeDetect`.
+    inputs struct EdgesIn {
+        /// linear RGB
+        color: Arc<ColorImage>,
+        /// metres, hole-filled (holes give no depth term)
+        depth: Arc<DepthMap>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `EdgeDetect`.
+    outputs struct EdgesOut {
+        /// combined edge strength in [0, 1]
+        strength: Confidence,
+        /// 1 where strength >= threshold (thinned when `thin`)
+        edges: Mask,
+    }
+}
+
+fn eval(_: &EvalCtx, i: EdgesIn, p: &EdgeParams) -> Result<Produced<EdgesOut>, NodeError> {
+    let e = detect_edges(&i.color, &i.depth, p)?;
+    Ok(EdgesOut {
+        strength: e.strength,
+        edges: e.edges,
+    }
+    .into())
 }
 
 /// Registers `EdgeDetect`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "EdgeDetect",
         1,
         "Edge strength from a weighted sum of color and relative depth derivatives (3d-editing §III.C).\n\
          strength = (w_c * C + w_d * D) / (w_c + w_d) in [0, 1]; C: gamma-2 color Sobel magnitude / color_scale, \
          D: occluding-side depth discontinuity (or relative gradient) / depth_scale_rel, each clamped to 1.",
-        vec![
-            PortSpec::required("color", ValueType::Color, "linear RGB"),
-            PortSpec::required("depth", ValueType::Depth, "metres, hole-filled (holes give no depth term)"),
-        ],
-        vec![
-            PortSpec::output("strength", ValueType::Confidence, "combined edge strength in [0, 1]"),
-            PortSpec::output("edges", ValueType::Mask, "1 where strength >= threshold (thinned when `thin`)"),
-        ],
         eval,
     ))
 }

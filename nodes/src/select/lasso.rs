@@ -86,6 +86,8 @@
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -880,19 +882,38 @@ pub fn lasso(strength: &Confidence, p: &LassoParams) -> Result<Selection, NodeEr
     })
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &LassoParams) -> Result<Outputs, NodeError> {
-    let strength = inputs.confidence("strength")?;
-    let sel = lasso(strength, p)?;
-    let out = Outputs::new()
-        .with("mask", Value::Mask(std::sync::Arc::new(sel.mask)))
-        .with("path", Value::Mask(std::sync::Arc::new(sel.path_mask)));
+depthgraph_graph::ports! {
+    /// Inputs of `Lasso`.
+    inputs struct LassoIn {
+        /// edge strength in [0, 1] (EdgeDetect.strength)
+        strength: Arc<Confidence>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `Lasso`.
+    outputs struct LassoOut {
+        /// source object alpha: 1 inside and on the path
+        mask: Mask,
+        /// 1 on the closed path's pixels (for display)
+        path: Mask,
+    }
+}
+
+fn eval(_: &EvalCtx, i: LassoIn, p: &LassoParams) -> Result<Produced<LassoOut>, NodeError> {
+    let sel = lasso(&i.strength, p)?;
+    let out = LassoOut {
+        mask: sel.mask,
+        path: sel.path_mask,
+    };
     if p.clicks.len() < 3 {
-        return Ok(out.passthrough(format!(
+        let why = format!(
             "{} click(s): a lasso needs at least 3 to enclose an area; the mask is empty",
             p.clicks.len()
-        )));
+        );
+        return Ok(Produced::passthrough(out, why));
     }
-    Ok(out)
+    Ok(out.into())
 }
 
 /// Intersection over union of two masks of the same size, each thresholded
@@ -911,21 +932,12 @@ pub fn iou(a: &Mask, b: &Mask) -> f64 {
 
 /// Registers `Lasso`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Lasso",
         2,
         "Edge-snapping lasso (3d-editing §III.C): the cheapest closed live-wire path over 1 / (eps + strength) \
          through one anchor near each click (anchors chosen jointly with the path, Mortensen & Barrett 1995 \
          intelligent scissors), filled into the source object mask alpha.\nFewer than 3 clicks give an empty mask (reported as a pass-through).",
-        vec![PortSpec::required(
-            "strength",
-            ValueType::Confidence,
-            "edge strength in [0, 1] (EdgeDetect.strength)",
-        )],
-        vec![
-            PortSpec::output("mask", ValueType::Mask, "source object alpha: 1 inside and on the path"),
-            PortSpec::output("path", ValueType::Mask, "1 on the closed path's pixels (for display)"),
-        ],
         eval,
     ))
 }

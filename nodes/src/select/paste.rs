@@ -52,6 +52,8 @@
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -777,51 +779,73 @@ fn raster_triangle(t: &[[f64; 3]; 3], w: usize, h: usize, mut frag: impl FnMut(u
     }
 }
 
-fn eval(_: &EvalCtx, inputs: &Inputs, p: &PasteParams) -> Result<Outputs, NodeError> {
-    let sc = inputs.color("source_color")?;
-    let sd = inputs.depth("source_depth")?;
-    let sm = inputs.mask("source_mask")?;
-    let ks = inputs.intrinsics("source_intrinsics")?;
-    let td = inputs.depth("target_depth")?;
-    let kt = inputs.intrinsics("target_intrinsics")?;
-    let r = paste(sc, sd, sm, &ks, td, &kt, p)?;
-    let empty = r.object_points == 0;
-    let out = Outputs::new()
-        .with("color", r.color)
-        .with("depth", r.depth)
-        .with("mask", Value::Mask(std::sync::Arc::new(r.alpha)))
-        .with("scale", r.scale);
-    if empty {
-        return Ok(
-            out.passthrough("nothing pasted: the source mask selects no pixel with a valid depth")
-        );
+depthgraph_graph::ports! {
+    /// Inputs of `Paste`.
+    inputs struct PasteIn {
+        /// linear RGB of the source
+        source_color: Arc<ColorImage>,
+        /// metres, hole-filled source depth
+        source_depth: Arc<DepthMap>,
+        /// source object alpha (Lasso.mask)
+        source_mask: Arc<Mask>,
+        /// of the source images
+        source_intrinsics: Intrinsics,
+        /// metres, the target's depth
+        target_depth: Arc<DepthMap>,
+        /// of the target images
+        target_intrinsics: Intrinsics,
     }
-    Ok(out)
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `Paste`.
+    outputs struct PasteOut {
+        /// pasted object color in target pixels, black elsewhere
+        color: ColorImage,
+        /// pasted object depth, 0 elsewhere
+        depth: DepthMap,
+        /// alpha of the pasted object in target pixels
+        mask: Mask,
+        /// the scale used: suggested x user scale
+        scale: f64,
+    }
+}
+
+fn eval(_: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>, NodeError> {
+    let r = paste(
+        &i.source_color,
+        &i.source_depth,
+        &i.source_mask,
+        &i.source_intrinsics,
+        &i.target_depth,
+        &i.target_intrinsics,
+        p,
+    )?;
+    let empty = r.object_points == 0;
+    let out = PasteOut {
+        color: r.color,
+        depth: r.depth,
+        mask: r.alpha,
+        scale: r.scale,
+    };
+    if empty {
+        return Ok(Produced::passthrough(
+            out,
+            "nothing pasted: the source mask selects no pixel with a valid depth",
+        ));
+    }
+    Ok(out.into())
 }
 
 /// Registers `Paste`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Paste",
         1,
         "Places a selected object into a target RGB-D image (3d-editing §III.C): unproject, scale about the \
          centroid, translate (or put on a target pixel's ray), reproject through the target camera as a \
          crack-free z-buffered mesh.\nWith auto_scale, the scale is the largest (at most the physical size) whose \
          bounding box no target surface point lies inside, times the user scale.",
-        vec![
-            PortSpec::required("source_color", ValueType::Color, "linear RGB of the source"),
-            PortSpec::required("source_depth", ValueType::Depth, "metres, hole-filled source depth"),
-            PortSpec::required("source_mask", ValueType::Mask, "source object alpha (Lasso.mask)"),
-            PortSpec::required("source_intrinsics", ValueType::Intrinsics, "of the source images"),
-            PortSpec::required("target_depth", ValueType::Depth, "metres, the target's depth"),
-            PortSpec::required("target_intrinsics", ValueType::Intrinsics, "of the target images"),
-        ],
-        vec![
-            PortSpec::output("color", ValueType::Color, "pasted object color in target pixels, black elsewhere"),
-            PortSpec::output("depth", ValueType::Depth, "pasted object depth, 0 elsewhere"),
-            PortSpec::output("mask", ValueType::Mask, "alpha of the pasted object in target pixels"),
-            PortSpec::output("scale", ValueType::Scalar, "the scale used: suggested x user scale"),
-        ],
         eval,
     ))
 }
