@@ -21,6 +21,8 @@ use crate::camera::response::Curve;
 use crate::kit::checks::fits_intrinsics;
 use crate::kit::color::luminance;
 use crate::kit::rng::SplitMix64;
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use glam::DVec3;
@@ -299,12 +301,33 @@ pub fn simulate_kinect(
     image(w, h, out)
 }
 
-fn eval_kinect(_: &EvalCtx, inputs: &Inputs, p: &KinectParams) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
-    let color = inputs.color_opt("color")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let out = simulate_kinect(depth, color.map(|c| c.as_ref()), &k, p)?;
-    Ok(Outputs::new().with("depth", out))
+depthgraph_graph::ports! {
+    /// Inputs of `SimulateKinect`.
+    inputs struct KinectIn {
+        /// ground-truth depth in metres
+        depth: Arc<DepthMap>,
+        /// linear color for the dark-surface dropouts
+        color: Option<Arc<ColorImage>>,
+        /// intrinsics of the depth map
+        intrinsics: Intrinsics,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `SimulateKinect`.
+    outputs struct KinectOut {
+        /// simulated measurement, 0 = no measurement
+        depth: DepthMap,
+    }
+}
+
+fn eval_kinect(
+    _: &EvalCtx,
+    i: KinectIn,
+    p: &KinectParams,
+) -> Result<Produced<KinectOut>, NodeError> {
+    let depth = simulate_kinect(&i.depth, i.color.as_deref(), &i.intrinsics, p)?;
+    Ok(KinectOut { depth }.into())
 }
 
 // ---------------------------------------------------------------------------
@@ -484,11 +507,29 @@ pub fn simulate_tof(
     Ok((image(lw, lh, out)?, k_lo))
 }
 
-fn eval_tof(_: &EvalCtx, inputs: &Inputs, p: &ToFParams) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let (d, k_lo) = simulate_tof(depth, &k, p)?;
-    Ok(Outputs::new().with("depth", d).with("intrinsics", k_lo))
+depthgraph_graph::ports! {
+    /// Inputs of `SimulateToF`.
+    inputs struct ToFIn {
+        /// ground-truth depth in metres
+        depth: Arc<DepthMap>,
+        /// intrinsics of the depth map
+        intrinsics: Intrinsics,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `SimulateToF`.
+    outputs struct ToFOut {
+        /// low-resolution measurement, 0 = no measurement
+        depth: DepthMap,
+        /// intrinsics of the low-resolution image
+        intrinsics: Intrinsics,
+    }
+}
+
+fn eval_tof(_: &EvalCtx, i: ToFIn, p: &ToFParams) -> Result<Produced<ToFOut>, NodeError> {
+    let (depth, intrinsics) = simulate_tof(&i.depth, &i.intrinsics, p)?;
+    Ok(ToFOut { depth, intrinsics }.into())
 }
 
 // ---------------------------------------------------------------------------
@@ -581,70 +622,56 @@ pub fn simulate_bracket(
     Ok(stack)
 }
 
-fn eval_bracket(_: &EvalCtx, inputs: &Inputs, p: &BracketParams) -> Result<Outputs, NodeError> {
-    let radiance = inputs.color("radiance")?;
-    Ok(Outputs::new().with("exposures", simulate_bracket(radiance, p)?))
+depthgraph_graph::ports! {
+    /// Inputs of `SimulateBracket`.
+    inputs struct BracketIn {
+        /// linear HDR radiance
+        radiance: Arc<ColorImage>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `SimulateBracket`.
+    outputs struct BracketOut {
+        /// the exposures and their times
+        exposures: ExposureStack,
+    }
+}
+
+fn eval_bracket(
+    _: &EvalCtx,
+    i: BracketIn,
+    p: &BracketParams,
+) -> Result<Produced<BracketOut>, NodeError> {
+    Ok(BracketOut {
+        exposures: simulate_bracket(&i.radiance, p)?,
+    }
+    .into())
 }
 
 /// Registers `SimulateKinect`, `SimulateToF` and `SimulateBracket`.
 pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "SimulateKinect",
         1,
         "Structured-light (Kinect v1) defects on a ground-truth depth map.\n\
          Projector shadows beside depth edges, dropouts on dark surfaces and at grazing angles, \
          noise growing with z^2, disparity quantisation and a working range; holes are 0.",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "ground-truth depth in metres"),
-            PortSpec::optional(
-                "color",
-                ValueType::Color,
-                "linear color for the dark-surface dropouts",
-            ),
-            PortSpec::required(
-                "intrinsics",
-                ValueType::Intrinsics,
-                "intrinsics of the depth map",
-            ),
-        ],
-        vec![PortSpec::output(
-            "depth",
-            ValueType::Depth,
-            "simulated measurement, 0 = no measurement",
-        )],
         eval_kinect,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "SimulateToF",
         1,
         "Low-resolution time-of-flight camera with flying pixels, noise and outliers.\n\
          Integrates footprints of the ground-truth depth; footprints mixing surfaces give phasor-mixed \
          flying pixels.",
-        vec![
-            PortSpec::required("depth", ValueType::Depth, "ground-truth depth in metres"),
-            PortSpec::required("intrinsics", ValueType::Intrinsics, "intrinsics of the depth map"),
-        ],
-        vec![
-            PortSpec::output("depth", ValueType::Depth, "low-resolution measurement, 0 = no measurement"),
-            PortSpec::output("intrinsics", ValueType::Intrinsics, "intrinsics of the low-resolution image"),
-        ],
         eval_tof,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "SimulateBracket",
         1,
         "LDR exposure brackets of a linear HDR image through a camera response curve.\n\
          Exposure times base_time_s * 2^stop, clipping at saturation, noise and quantisation.",
-        vec![PortSpec::required(
-            "radiance",
-            ValueType::Color,
-            "linear HDR radiance",
-        )],
-        vec![PortSpec::output(
-            "exposures",
-            ValueType::ExposureStack,
-            "the exposures and their times",
-        )],
         eval_bracket,
     ))
 }

@@ -17,8 +17,6 @@
 //! Everything here is deterministic: the same scene and options give the same
 //! bits whatever the number of threads.
 
-use std::sync::Arc;
-
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::value::Rgb;
@@ -1194,11 +1192,19 @@ node_params! {
     }
 }
 
+depthgraph_graph::ports! {
+    /// Outputs of `SyntheticThinLens`.
+    outputs struct ThinLensOut {
+        /// linear HDR radiance through the lens
+        color: ColorImage,
+    }
+}
+
 fn eval_thin_lens(
     ctx: &EvalCtx,
-    _: &Inputs,
+    _: NoInputs,
     p: &SyntheticThinLensParams,
-) -> Result<Outputs, NodeError> {
+) -> Result<Produced<ThinLensOut>, NodeError> {
     let scene = scene_from_params(&SyntheticSceneParams {
         preset: p.preset,
         width: p.width,
@@ -1224,7 +1230,7 @@ fn eval_thin_lens(
         ctx.progress(f);
         ctx.check_cancelled()
     })?;
-    Ok(Outputs::new().with("color", color))
+    Ok(ThinLensOut { color }.into())
 }
 
 node_params! {
@@ -1272,7 +1278,29 @@ pub fn scene_from_params(p: &SyntheticSceneParams) -> Result<Scene, NodeError> {
     Ok(scene)
 }
 
-fn eval(ctx: &EvalCtx, _: &Inputs, p: &SyntheticSceneParams) -> Result<Outputs, NodeError> {
+depthgraph_graph::ports! {
+    /// Outputs of `SyntheticScene`.
+    outputs struct SceneOut {
+        /// linear HDR radiance
+        color: ColorImage,
+        /// exact camera-space z in metres, 0 where nothing is hit
+        depth: DepthMap,
+        /// unit camera-frame normals facing the camera
+        normals: NormalMap,
+        /// surface albedo
+        albedo: ColorImage,
+        /// object ids, 0 where nothing is hit
+        ids: LabelImage,
+        /// Kinect-like intrinsics of the render
+        intrinsics: Intrinsics,
+    }
+}
+
+fn eval(
+    ctx: &EvalCtx,
+    _: NoInputs,
+    p: &SyntheticSceneParams,
+) -> Result<Produced<SceneOut>, NodeError> {
     let scene = scene_from_params(p)?;
     let opts = RenderOptions {
         supersample: p.supersample,
@@ -1281,48 +1309,33 @@ fn eval(ctx: &EvalCtx, _: &Inputs, p: &SyntheticSceneParams) -> Result<Outputs, 
         ctx.progress(f);
         ctx.check_cancelled()
     })?;
-    // NormalMap and ColorImage are the same Rust type, so the normals are
-    // wrapped explicitly (`From` would make them a Color value).
-    Ok(Outputs::new()
-        .with("color", out.color)
-        .with("depth", out.depth)
-        .with("normals", Value::Normals(Arc::new(out.normals)))
-        .with("albedo", out.albedo)
-        .with("ids", out.ids)
-        .with("intrinsics", out.intrinsics))
+    Ok(SceneOut {
+        color: out.color,
+        depth: out.depth,
+        normals: out.normals,
+        albedo: out.albedo,
+        ids: out.ids,
+        intrinsics: out.intrinsics,
+    }
+    .into())
 }
 
 /// Registers `SyntheticScene` and `SyntheticThinLens`.
 pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "SyntheticScene",
         1,
         "Ray-cast analytic scene (tabletop, corridor, thin structures) with exact depth, normals, albedo and ids.\n\
          One ray per pixel centre, so the ground truth is exact there; the color is linear HDR with a sun, \
          hard shadows, ambient light and small bright emitters.",
-        vec![],
-        vec![
-            PortSpec::output("color", ValueType::Color, "linear HDR radiance"),
-            PortSpec::output("depth", ValueType::Depth, "exact camera-space z in metres, 0 where nothing is hit"),
-            PortSpec::output("normals", ValueType::Normals, "unit camera-frame normals facing the camera"),
-            PortSpec::output("albedo", ValueType::Color, "surface albedo"),
-            PortSpec::output("ids", ValueType::Labels, "object ids, 0 where nothing is hit"),
-            PortSpec::output("intrinsics", ValueType::Intrinsics, "Kinect-like intrinsics of the render"),
-        ],
         eval,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "SyntheticThinLens",
         1,
         "The SyntheticScene presets seen through a thin lens by distributed ray tracing (many rays per pixel \
          across the aperture): the ground truth that Refocus and ReverseMappedDof are measured against.\n\
          Same lens parameters and circle of confusion as Refocus.",
-        vec![],
-        vec![PortSpec::output(
-            "color",
-            ValueType::Color,
-            "linear HDR radiance through the lens",
-        )],
         eval_thin_lens,
     ))
 }
@@ -1330,7 +1343,7 @@ pub fn register(reg: &mut Registry) -> Result<(), depthgraph_graph::registry::Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::Mutex;
+    use std::sync::{Arc, Mutex};
 
     /// Unprojects every pixel's depth at its centre and measures the distance
     /// to the surface of the object named by the id image. Returns the worst
