@@ -9,6 +9,7 @@
 use std::fs;
 use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::OnceLock;
 
 use depthgraph_graph::node_params;
@@ -327,14 +328,32 @@ pub fn load_color(path: &Path, color_space: ColorSpace) -> Result<ColorImage, No
     Image::from_vec(w, h, data).map_err(|e| decode_err(path, e.to_string()))
 }
 
-fn load_color_eval(_: &EvalCtx, _: &Inputs, p: &LoadColorParams) -> Result<Outputs, NodeError> {
-    if p.path.is_empty() {
+depthgraph_graph::ports! {
+    /// Outputs of `LoadColor`.
+    outputs struct LoadColorOut {
+        /// linear RGB
+        color: ColorImage,
+    }
+}
+
+/// The path parameter of a load node, refused when empty.
+fn given(path: &str) -> Result<&Path, NodeError> {
+    if path.is_empty() {
         return Err(NodeError::param(
             "path",
             "no file given; set it with --set <node>.path=FILE",
         ));
     }
-    Ok(Outputs::new().with("color", load_color(Path::new(&p.path), p.color_space)?))
+    Ok(Path::new(path))
+}
+
+fn load_color_eval(
+    _: &EvalCtx,
+    _: NoInputs,
+    p: &LoadColorParams,
+) -> Result<Produced<LoadColorOut>, NodeError> {
+    let color = load_color(given(&p.path)?, p.color_space)?;
+    Ok(LoadColorOut { color }.into())
 }
 
 // ---------------------------------------------------------------- depth
@@ -635,19 +654,29 @@ pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeErro
         .map_err(|e| decode_err(path, e.to_string()))
 }
 
-fn load_depth_eval(_: &EvalCtx, _: &Inputs, p: &LoadDepthParams) -> Result<Outputs, NodeError> {
-    if p.path.is_empty() {
-        return Err(NodeError::param(
-            "path",
-            "no file given; set it with --set <node>.path=FILE",
-        ));
+depthgraph_graph::ports! {
+    /// Outputs of `LoadDepth`.
+    outputs struct LoadDepthOut {
+        /// metres, 0 = no measurement
+        depth: DepthMap,
+        /// fraction of pixels without a measurement
+        hole_fraction: f64,
     }
-    let d = load_depth(Path::new(&p.path), p)?;
+}
+
+fn load_depth_eval(
+    _: &EvalCtx,
+    _: NoInputs,
+    p: &LoadDepthParams,
+) -> Result<Produced<LoadDepthOut>, NodeError> {
+    let depth = load_depth(given(&p.path)?, p)?;
     // guard: images have at least one pixel (check_dims), max(1) for safety
-    let fraction = d.hole_count() as f64 / d.len().max(1) as f64;
-    Ok(Outputs::new()
-        .with("depth", d)
-        .with("hole_fraction", fraction))
+    let hole_fraction = depth.hole_count() as f64 / depth.len().max(1) as f64;
+    Ok(LoadDepthOut {
+        depth,
+        hole_fraction,
+    }
+    .into())
 }
 
 // ---------------------------------------------------------------- writing
@@ -776,15 +805,35 @@ pub fn save_color(
     }
 }
 
+depthgraph_graph::ports! {
+    /// Inputs of `SaveColor`.
+    inputs struct SaveColorIn {
+        /// linear RGB
+        color: Arc<ColorImage>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// The output of every Save node.
+    outputs struct Written {
+        /// the file written
+        file: PathBuf,
+    }
+}
+
 fn save_color_eval(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: SaveColorIn,
     p: &SaveColorParams,
-) -> Result<Outputs, NodeError> {
-    let img = inputs.color("color")?;
+) -> Result<Produced<Written>, NodeError> {
     let path = ctx.output_path(&p.path)?;
-    let written = save_color(img, &path, p.bits == PngBits::Sixteen, p.exposure_stops)?;
-    Ok(Outputs::new().with("file", written))
+    let file = save_color(
+        &i.color,
+        &path,
+        p.bits == PngBits::Sixteen,
+        p.exposure_stops,
+    )?;
+    Ok(Written { file }.into())
 }
 
 depthgraph_graph::param_choice! {
@@ -899,17 +948,36 @@ pub fn save_depth(
     }
 }
 
+depthgraph_graph::ports! {
+    /// Inputs of `SaveDepth`.
+    inputs struct SaveDepthIn {
+        /// metres
+        depth: Arc<DepthMap>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `SaveDepth`.
+    outputs struct SaveDepthOut {
+        /// the file written
+        file: PathBuf,
+        /// png16: pixels beyond 65535 units, stored as 65535
+        clipped: f64,
+    }
+}
+
 fn save_depth_eval(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: SaveDepthIn,
     p: &SaveDepthParams,
-) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
+) -> Result<Produced<SaveDepthOut>, NodeError> {
     let path = ctx.output_path(&p.path)?;
-    let (written, clipped) = save_depth(depth, &path, p)?;
-    Ok(Outputs::new()
-        .with("file", written)
-        .with("clipped", clipped as f64))
+    let (file, clipped) = save_depth(&i.depth, &path, p)?;
+    Ok(SaveDepthOut {
+        file,
+        clipped: clipped as f64,
+    }
+    .into())
 }
 
 // ---------------------------------------------------------------- PLY
@@ -1026,132 +1094,105 @@ pub fn write_ply(
     })
 }
 
-fn save_points_eval(
-    ctx: &EvalCtx,
-    inputs: &Inputs,
-    p: &SavePlyParams,
-) -> Result<Outputs, NodeError> {
-    let pc = inputs.point_cloud("points")?;
-    let path = ctx.output_path(&p.path)?;
-    let written = write_ply(
-        &path,
-        &pc.positions,
-        &pc.colors,
-        &pc.normals,
-        &[],
-        p.format == PlyFormat::Ascii,
-    )?;
-    Ok(Outputs::new().with("file", written))
+depthgraph_graph::ports! {
+    /// Inputs of `SavePointCloud`.
+    inputs struct SavePointsIn {
+        /// camera-space points
+        points: Arc<PointCloud>,
+    }
 }
 
-fn save_mesh_eval(ctx: &EvalCtx, inputs: &Inputs, p: &SavePlyParams) -> Result<Outputs, NodeError> {
-    let m = inputs.mesh("mesh")?;
+fn save_points_eval(
+    ctx: &EvalCtx,
+    i: SavePointsIn,
+    p: &SavePlyParams,
+) -> Result<Produced<Written>, NodeError> {
     let path = ctx.output_path(&p.path)?;
-    let written = write_ply(
+    let pc = &i.points;
+    let ascii = p.format == PlyFormat::Ascii;
+    let file = write_ply(&path, &pc.positions, &pc.colors, &pc.normals, &[], ascii)?;
+    Ok(Written { file }.into())
+}
+
+depthgraph_graph::ports! {
+    /// Inputs of `SaveMesh`.
+    inputs struct SaveMeshIn {
+        /// camera-space triangle mesh
+        mesh: Arc<Mesh>,
+    }
+}
+
+fn save_mesh_eval(
+    ctx: &EvalCtx,
+    i: SaveMeshIn,
+    p: &SavePlyParams,
+) -> Result<Produced<Written>, NodeError> {
+    let path = ctx.output_path(&p.path)?;
+    let m = &i.mesh;
+    let ascii = p.format == PlyFormat::Ascii;
+    let file = write_ply(
         &path,
         &m.positions,
         &m.colors,
         &m.normals,
         &m.triangles,
-        p.format == PlyFormat::Ascii,
+        ascii,
     )?;
-    Ok(Outputs::new().with("file", written))
+    Ok(Written { file }.into())
 }
 
 /// Registers the loaders and writers.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "LoadColor",
             1,
             "Reads a PNG/JPEG/TIFF (8/16-bit, sRGB linearised) or EXR color image as linear RGB.",
-            vec![],
-            vec![PortSpec::output("color", ValueType::Color, "linear RGB")],
             load_color_eval,
         )
         .reads(|p: &LoadColorParams| vec![PathBuf::from(&p.path)]),
     )?;
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "LoadDepth",
             1,
             "Reads depth in metres from a 16-bit PNG (with a scale), Middlebury PFM or 8-bit disparity (with focal length, baseline, doffs), or float EXR.",
-            vec![],
-            vec![
-                PortSpec::output("depth", ValueType::Depth, "metres, 0 = no measurement"),
-                PortSpec::output("hole_fraction", ValueType::Scalar, "fraction of pixels without a measurement"),
-            ],
             load_depth_eval,
         )
         .reads(|p: &LoadDepthParams| vec![PathBuf::from(&p.path)]),
     )?;
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "SaveColor",
             1,
             "Writes a color image: PNG (sRGB, 8 or 16 bit) or EXR (linear float), atomically.",
-            vec![PortSpec::required("color", ValueType::Color, "linear RGB")],
-            vec![PortSpec::output(
-                "file",
-                ValueType::File,
-                "the file written",
-            )],
             save_color_eval,
         )
         .sink(),
     )?;
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "SaveDepth",
             1,
             "Writes depth: 16-bit PNG, float EXR, or a colormapped PNG preview, atomically.",
-            vec![PortSpec::required("depth", ValueType::Depth, "metres")],
-            vec![
-                PortSpec::output("file", ValueType::File, "the file written"),
-                PortSpec::output(
-                    "clipped",
-                    ValueType::Scalar,
-                    "png16: pixels beyond 65535 units, stored as 65535",
-                ),
-            ],
             save_depth_eval,
         )
         .sink(),
     )?;
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "SavePointCloud",
             1,
             "Writes a point cloud (positions, colors, normals) as PLY.",
-            vec![PortSpec::required(
-                "points",
-                ValueType::PointCloud,
-                "camera-space points",
-            )],
-            vec![PortSpec::output(
-                "file",
-                ValueType::File,
-                "the file written",
-            )],
             save_points_eval,
         )
         .sink(),
     )?;
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "SaveMesh",
             1,
             "Writes a triangle mesh as PLY.",
-            vec![PortSpec::required(
-                "mesh",
-                ValueType::Mesh,
-                "camera-space triangle mesh",
-            )],
-            vec![PortSpec::output(
-                "file",
-                ValueType::File,
-                "the file written",
-            )],
             save_mesh_eval,
         )
         .sink(),
