@@ -34,6 +34,8 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use std::sync::Arc;
+
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
@@ -594,90 +596,93 @@ fn kernel(aperture: &Aperture, diameter: f64) -> Vec<(isize, isize)> {
     out
 }
 
-fn aperture_of(inputs: &Inputs, p: &RefocusParams) -> Result<Aperture, NodeError> {
-    let mask = inputs.mask_opt("aperture")?;
-    Aperture::from_params(p.aperture, p.blades, p.rotation_deg, mask.map(|m| &**m))
+depthgraph_graph::ports! {
+    /// Inputs of `Refocus` and `ReverseMappedDof`.
+    inputs struct RefocusIn {
+        /// linear radiance (HDR), all in focus
+        color: Arc<ColorImage>,
+        /// metres per color pixel, complete; 0 = infinitely far
+        depth: Arc<DepthMap>,
+        /// custom aperture shape (transmittance), used with aperture = "mask"
+        aperture: Option<Arc<Mask>>,
+    }
 }
 
-fn eval_refocus(ctx: &EvalCtx, inputs: &Inputs, p: &RefocusParams) -> Result<Outputs, NodeError> {
-    let color = inputs.color("color")?;
-    let depth = inputs.depth("depth")?;
-    let aperture = aperture_of(inputs, p)?;
-    let (out, report) = refocus(color, depth, &aperture, p, |f| {
+depthgraph_graph::ports! {
+    /// Outputs of `Refocus`.
+    outputs struct RefocusOut {
+        /// refocused linear radiance times 2^exposure_stops
+        color: ColorImage,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `ReverseMappedDof`.
+    outputs struct ReverseOut {
+        /// blurred linear radiance times 2^exposure_stops
+        color: ColorImage,
+    }
+}
+
+fn aperture_of(i: &RefocusIn, p: &RefocusParams) -> Result<Aperture, NodeError> {
+    Aperture::from_params(p.aperture, p.blades, p.rotation_deg, i.aperture.as_deref())
+}
+
+fn eval_refocus(
+    ctx: &EvalCtx,
+    i: RefocusIn,
+    p: &RefocusParams,
+) -> Result<Produced<RefocusOut>, NodeError> {
+    let aperture = aperture_of(&i, p)?;
+    let (color, report) = refocus(&i.color, &i.depth, &aperture, p, |f| {
         ctx.progress(f);
         ctx.check_cancelled()
     })?;
-    let outputs = Outputs::new().with("color", out);
+    let out = RefocusOut { color };
     if report.samples == 0 {
         let what = if p.exposure_stops == 0.0 {
             "image passed through".to_string()
         } else {
             format!("only the exposure ({:+} stops) applied", p.exposure_stops)
         };
-        return Ok(outputs.passthrough(format!(
+        let why = format!(
             "circle of confusion below {MIN_COC_PX} px everywhere (largest {:.3} px): {what}",
             report.max_coc_px
-        )));
+        );
+        return Ok(Produced::passthrough(out, why));
     }
-    Ok(outputs)
+    Ok(out.into())
 }
 
-fn eval_reverse(_: &EvalCtx, inputs: &Inputs, p: &RefocusParams) -> Result<Outputs, NodeError> {
-    let color = inputs.color("color")?;
-    let depth = inputs.depth("depth")?;
-    let aperture = aperture_of(inputs, p)?;
-    Ok(Outputs::new().with("color", reverse_mapped_dof(color, depth, &aperture, p)?))
-}
-
-fn ports() -> Vec<PortSpec> {
-    vec![
-        PortSpec::required(
-            "color",
-            ValueType::Color,
-            "linear radiance (HDR), all in focus",
-        ),
-        PortSpec::required(
-            "depth",
-            ValueType::Depth,
-            "metres per color pixel, complete; 0 = infinitely far",
-        ),
-        PortSpec::optional(
-            "aperture",
-            ValueType::Mask,
-            "custom aperture shape (transmittance), used with aperture = \"mask\"",
-        ),
-    ]
+fn eval_reverse(
+    _: &EvalCtx,
+    i: RefocusIn,
+    p: &RefocusParams,
+) -> Result<Produced<ReverseOut>, NodeError> {
+    let aperture = aperture_of(&i, p)?;
+    Ok(ReverseOut {
+        color: reverse_mapped_dof(&i.color, &i.depth, &aperture, p)?,
+    }
+    .into())
 }
 
 /// Registers `Refocus` and `ReverseMappedDof`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "Refocus",
         1,
         "Thin-lens depth of field by sampling the aperture (realistic-depth-blur Sec. 2.3): one sheared \
          pinhole view per aperture sample, forward-warped with a z-buffer, disocclusions inpainted with the \
          far-depth prior, averaged in linear radiance, then the exposure. Any aperture shape gives its bokeh.\n\
          Passes through when every circle of confusion is under 0.5 px; skips tiles nothing blurred can reach.",
-        ports(),
-        vec![PortSpec::output(
-            "color",
-            ValueType::Color,
-            "refocused linear radiance times 2^exposure_stops",
-        )],
         eval_refocus,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "ReverseMappedDof",
         1,
         "The common per-pixel gather blur (reverse-mapped z-buffer DoF) that realistic-depth-blur Fig. 5 \
          compares against: each pixel averages the aperture shape scaled to its own circle of confusion, \
          without a depth test (blurred background leaks over sharp edges). For comparisons; use Refocus.",
-        ports(),
-        vec![PortSpec::output(
-            "color",
-            ValueType::Color,
-            "blurred linear radiance times 2^exposure_stops",
-        )],
         eval_reverse,
     ))
 }
