@@ -907,8 +907,23 @@ pub fn load_bracket(p: &LoadBracketParams) -> Result<ExposureStack, NodeError> {
     Ok(stack)
 }
 
-fn load_bracket_eval(_: &EvalCtx, _: &Inputs, p: &LoadBracketParams) -> Result<Outputs, NodeError> {
-    Ok(Outputs::new().with("exposures", load_bracket(p)?))
+depthgraph_graph::ports! {
+    /// Outputs of `LoadBracket`.
+    outputs struct LoadBracketOut {
+        /// values in [0, 1] after the camera response; NaN = missing
+        exposures: ExposureStack,
+    }
+}
+
+fn load_bracket_eval(
+    _: &EvalCtx,
+    _: NoInputs,
+    p: &LoadBracketParams,
+) -> Result<Produced<LoadBracketOut>, NodeError> {
+    Ok(LoadBracketOut {
+        exposures: load_bracket(p)?,
+    }
+    .into())
 }
 
 fn bracket_files(p: &LoadBracketParams) -> Vec<PathBuf> {
@@ -967,29 +982,53 @@ impl HdrMergeParams {
     }
 }
 
+depthgraph_graph::ports! {
+    /// Inputs of `HdrMerge`.
+    inputs struct HdrMergeIn {
+        /// exposures with their times
+        stack: Arc<ExposureStack>,
+        /// a 256x1 response curve (another HdrMerge's `curve`); overrides `response`
+        curve: Option<Arc<ColorImage>>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `HdrMerge`.
+    outputs struct HdrMergeOut {
+        /// linear radiance
+        color: ColorImage,
+        /// 256x1: exp g(z) per channel, the relative exposure giving level z
+        curve: ColorImage,
+        /// 1 where a channel was saturated, black or missing in every exposure
+        fallback: Mask,
+    }
+}
+
 fn hdr_merge_eval(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: HdrMergeIn,
     p: &HdrMergeParams,
-) -> Result<Outputs, NodeError> {
-    let stack = inputs.exposures("stack")?;
+) -> Result<Produced<HdrMergeOut>, NodeError> {
+    let stack = &i.stack;
     let (w, h) = check_stack(stack)?;
-    let curve = match inputs.color_opt("curve")? {
+    let curve = match &i.curve {
         Some(img) => ResponseCurve::from_image(img, "curve")?,
         None => match p.response {
             ResponseSource::Gamma => ResponseCurve::gamma(p.gamma),
             ResponseSource::Linear => ResponseCurve::linear(),
             ResponseSource::Recover => {
                 if stack.images.len() == 1 {
-                    return Ok(Outputs::new()
-                        .with("color", Value::Color(Arc::new(stack.images[0].clone())))
-                        .with("curve", ResponseCurve::linear().to_image())
-                        .with("fallback", Value::Mask(Arc::new(Image::filled(w, h, 0.0))))
-                        .passthrough(
-                            "a single exposure: no response can be recovered from one image, so it is passed \
-                             through unchanged (not linearised); set response to \"gamma\" or \"linear\", or \
-                             connect a `curve`, to merge it",
-                        ));
+                    let out = HdrMergeOut {
+                        color: stack.images[0].clone(),
+                        curve: ResponseCurve::linear().to_image(),
+                        fallback: Mask::filled(w, h, 0.0),
+                    };
+                    return Ok(Produced::passthrough(
+                        out,
+                        "a single exposure: no response can be recovered from one image, so it is passed \
+                         through unchanged (not linearised); set response to \"gamma\" or \"linear\", or \
+                         connect a `curve`, to merge it",
+                    ));
                 }
                 recover_response_with(stack, &p.response_params(), |f| {
                     ctx.progress(0.5 * f);
@@ -1001,10 +1040,12 @@ fn hdr_merge_eval(
     ctx.check_cancelled()?;
     let merged = merge_hdr(stack, &curve)?;
     ctx.progress(1.0);
-    Ok(Outputs::new()
-        .with("color", merged.color)
-        .with("curve", curve.to_image())
-        .with("fallback", Value::Mask(Arc::new(merged.fallback))))
+    Ok(HdrMergeOut {
+        color: merged.color,
+        curve: curve.to_image(),
+        fallback: merged.fallback,
+    }
+    .into())
 }
 
 node_params! {
@@ -1032,84 +1073,62 @@ pub fn save_response(curve: &ResponseCurve, path: &Path) -> Result<PathBuf, Node
     })
 }
 
+depthgraph_graph::ports! {
+    /// Inputs of `SaveResponse`.
+    inputs struct SaveResponseIn {
+        /// 256x1 response curve
+        curve: Arc<ColorImage>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `SaveResponse`.
+    outputs struct SaveResponseOut {
+        /// the file written
+        file: PathBuf,
+    }
+}
+
 fn save_response_eval(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: SaveResponseIn,
     p: &SaveResponseParams,
-) -> Result<Outputs, NodeError> {
-    let curve = ResponseCurve::from_image(inputs.color("curve")?, "curve")?;
+) -> Result<Produced<SaveResponseOut>, NodeError> {
+    let curve = ResponseCurve::from_image(&i.curve, "curve")?;
     let path = ctx.output_path(&p.path)?;
-    Ok(Outputs::new().with("file", save_response(&curve, &path)?))
+    Ok(SaveResponseOut {
+        file: save_response(&curve, &path)?,
+    }
+    .into())
 }
 
 /// Registers `LoadBracket`, `HdrMerge` and `SaveResponse`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "LoadBracket",
             1,
             "Reads an exposure bracket (images + exposure times) without linearising it.\n\
              From a list file (`filename exposure_time_s` per line, as Debevec's memorial image_list.txt) \
              or from files + times_s; optional pure-blue masking.",
-            vec![],
-            vec![PortSpec::output(
-                "exposures",
-                ValueType::ExposureStack,
-                "values in [0, 1] after the camera response; NaN = missing",
-            )],
             load_bracket_eval,
         )
         .reads(bracket_files),
     )?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "HdrMerge",
         1,
         "Merges an exposure bracket into linear radiance (Debevec & Malik 1997, eq. 5-6).\n\
          Recovers the response curve g by least squares with smoothness (or uses a gamma/linear or \
          connected curve), then averages g(Z) - ln dt with hat weights. A recovered curve gives radiance \
          up to one factor per channel.",
-        vec![
-            PortSpec::required(
-                "stack",
-                ValueType::ExposureStack,
-                "exposures with their times",
-            ),
-            PortSpec::optional(
-                "curve",
-                ValueType::Color,
-                "a 256x1 response curve (another HdrMerge's `curve`); overrides `response`",
-            ),
-        ],
-        vec![
-            PortSpec::output("color", ValueType::Color, "linear radiance"),
-            PortSpec::output(
-                "curve",
-                ValueType::Color,
-                "256x1: exp g(z) per channel, the relative exposure giving level z",
-            ),
-            PortSpec::output(
-                "fallback",
-                ValueType::Mask,
-                "1 where a channel was saturated, black or missing in every exposure",
-            ),
-        ],
         hdr_merge_eval,
     ))?;
     reg.register(
-        TypedNode::new(
+        PortedNode::new(
             "SaveResponse",
             1,
             "Writes a response curve (HdrMerge's `curve`) as CSV: z, g_r, g_g, g_b.",
-            vec![PortSpec::required(
-                "curve",
-                ValueType::Color,
-                "256x1 response curve",
-            )],
-            vec![PortSpec::output(
-                "file",
-                ValueType::File,
-                "the file written",
-            )],
             save_response_eval,
         )
         .sink(),
@@ -1283,7 +1302,10 @@ mod tests {
         if let Some(c) = curve {
             inputs.insert("curve", c.into());
         }
-        hdr_merge_eval(&ctx, &inputs, p)
+        let mut reg = Registry::new();
+        register(&mut reg).expect("registers");
+        let node = reg.get("HdrMerge").expect("registered");
+        node.eval(&ctx, &inputs, &p.to_values())
     }
 
     #[test]
