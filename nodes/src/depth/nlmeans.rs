@@ -1508,168 +1508,155 @@ pub fn nlmeans_upsample_with(
 // Nodes
 // ---------------------------------------------------------------------------
 
+depthgraph_graph::ports! {
+    /// Inputs of `NLMeansDepth` and `NLMeansInpaint`.
+    inputs struct NLMeansIn {
+        /// depth in metres, 0 = hole
+        depth: Arc<DepthMap>,
+        /// linear color guide of the depth map's size
+        color: Arc<ColorImage>,
+        /// per-pixel confidence zeta in [0, 1]; default 1 at valid pixels
+        confidence: Option<Arc<Confidence>>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `NLMeansDepth` and `NLMeansInpaint`.
+    outputs struct NLMeansOut {
+        /// depth in metres, 0 = hole
+        depth: Arc<DepthMap>,
+        /// confidence of each pixel, 0 at holes
+        confidence: Arc<Confidence>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Inputs of `NLMeansUpsample`.
+    inputs struct UpsampleIn {
+        /// low-resolution depth in metres, in the color camera's frame
+        depth: Arc<DepthMap>,
+        /// intrinsics of the low-resolution depth
+        intrinsics: Intrinsics,
+        /// high-resolution linear color guide
+        color: Arc<ColorImage>,
+        /// intrinsics of the color image; default: the depth intrinsics scaled to its size
+        color_intrinsics: Option<Intrinsics>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `NLMeansUpsample`.
+    outputs struct UpsampleOut {
+        /// depth at the color resolution, 0 = hole
+        depth: DepthMap,
+        /// confidence of each pixel, 0 at holes
+        confidence: Confidence,
+        /// intrinsics of the high-resolution depth
+        intrinsics: Intrinsics,
+    }
+}
+
 fn eval_depth(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: NLMeansIn,
     p: &NLMeansDepthParams,
-) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
-    let color = inputs.color("color")?;
-    let conf = inputs.confidence_opt("confidence")?;
-    let (d, c) = nlmeans_denoise_with(depth, conf.map(|c| c.as_ref()), color, p, |f| {
+) -> Result<Produced<NLMeansOut>, NodeError> {
+    let conf = i.confidence.as_deref();
+    let (d, c) = nlmeans_denoise_with(&i.depth, conf, &i.color, p, |f| {
         ctx.progress(f);
         ctx.check_cancelled()
     })?;
-    Ok(Outputs::new()
-        .with("depth", d)
-        .with("confidence", Value::Confidence(Arc::new(c))))
+    Ok(NLMeansOut {
+        depth: Arc::new(d),
+        confidence: Arc::new(c),
+    }
+    .into())
 }
 
 fn eval_upsample(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: UpsampleIn,
     p: &NLMeansUpsampleParams,
-) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
-    let k = inputs.intrinsics("intrinsics")?;
-    let color = inputs.color("color")?;
-    let color_k = inputs.intrinsics_opt("color_intrinsics")?;
-    let (d, c, k_high) = nlmeans_upsample_with(depth, &k, color, color_k.as_ref(), p, |f| {
-        ctx.progress(f);
-        ctx.check_cancelled()
-    })?;
-    Ok(Outputs::new()
-        .with("depth", d)
-        .with("confidence", Value::Confidence(Arc::new(c)))
-        .with("intrinsics", k_high))
+) -> Result<Produced<UpsampleOut>, NodeError> {
+    let color_k = i.color_intrinsics.as_ref();
+    let (depth, confidence, intrinsics) =
+        nlmeans_upsample_with(&i.depth, &i.intrinsics, &i.color, color_k, p, |f| {
+            ctx.progress(f);
+            ctx.check_cancelled()
+        })?;
+    Ok(UpsampleOut {
+        depth,
+        confidence,
+        intrinsics,
+    }
+    .into())
 }
 
 fn eval_inpaint(
     ctx: &EvalCtx,
-    inputs: &Inputs,
+    i: NLMeansIn,
     p: &NLMeansInpaintParams,
-) -> Result<Outputs, NodeError> {
-    let depth = inputs.depth("depth")?;
-    let color = inputs.color("color")?;
-    let conf = inputs.confidence_opt("confidence")?;
+) -> Result<Produced<NLMeansOut>, NodeError> {
+    let depth = &i.depth;
     if depth.hole_count() == 0 {
         // Same checks as a real run, so a wrong wiring is not hidden.
         same_size(
             "color",
             "a guide image",
-            color.as_ref().dims(),
+            i.color.dims(),
             "the depth map",
-            depth.as_ref().dims(),
+            depth.dims(),
         )?;
-        let c = match conf {
-            Some(c) => {
-                same_size(
-                    "confidence",
-                    "a confidence map",
-                    c.as_ref().dims(),
-                    "the depth map",
-                    depth.as_ref().dims(),
-                )?;
-                Arc::clone(c)
-            }
+        check_confidence(i.confidence.as_deref(), depth)?;
+        let confidence = match &i.confidence {
+            Some(c) => Arc::clone(c),
             None => Arc::new(image(
                 depth.width(),
                 depth.height(),
                 sanitize(depth, None).1,
             )?),
         };
-        return Ok(Outputs::new()
-            .with("depth", Value::Depth(Arc::clone(depth)))
-            .with("confidence", Value::Confidence(c))
-            .passthrough("no holes to fill"));
+        let out = NLMeansOut {
+            depth: Arc::clone(depth),
+            confidence,
+        };
+        return Ok(Produced::passthrough(out, "no holes to fill"));
     }
-    let (d, c) = nlmeans_inpaint_with(depth, conf.map(|c| c.as_ref()), color, p, |f| {
+    let (d, c) = nlmeans_inpaint_with(depth, i.confidence.as_deref(), &i.color, p, |f| {
         ctx.progress(f);
         ctx.check_cancelled()
     })?;
-    Ok(Outputs::new()
-        .with("depth", d)
-        .with("confidence", Value::Confidence(Arc::new(c))))
+    Ok(NLMeansOut {
+        depth: Arc::new(d),
+        confidence: Arc::new(c),
+    }
+    .into())
 }
 
 /// Registers `NLMeansDepth`, `NLMeansUpsample` and `NLMeansInpaint`.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
-    let depth_in = || PortSpec::required("depth", ValueType::Depth, "depth in metres, 0 = hole");
-    let color_in = || {
-        PortSpec::required(
-            "color",
-            ValueType::Color,
-            "linear color guide of the depth map's size",
-        )
-    };
-    let conf_in = || {
-        PortSpec::optional(
-            "confidence",
-            ValueType::Confidence,
-            "per-pixel confidence zeta in [0, 1]; default 1 at valid pixels",
-        )
-    };
-    let depth_out = || PortSpec::output("depth", ValueType::Depth, "depth in metres, 0 = hole");
-    let conf_out = || {
-        PortSpec::output(
-            "confidence",
-            ValueType::Confidence,
-            "confidence of each pixel, 0 at holes",
-        )
-    };
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "NLMeansDepth",
         1,
         "NL-means depth denoising guided by color, with outlier pruning (depth blur Sec. 2.2, eq. 1-3).\n\
          Outliers (spikes, flying pixels) are pruned with a normal + uniform mixture model and become holes; \
          the remaining depth is averaged over pixels with similar color and depth patches. Holes stay holes.",
-        vec![depth_in(), color_in(), conf_in()],
-        vec![depth_out(), conf_out()],
         eval_depth,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "NLMeansUpsample",
         1,
         "Joint NL-means upsampling of low-resolution depth guided by high-resolution color (depth blur eq. 4).\n\
          Low-resolution samples are placed on the color grid and averaged with weights blending low-resolution \
          depth similarity and high-resolution color similarity (alpha); remaining holes are inpainted (eq. 5).",
-        vec![
-            PortSpec::required(
-                "depth",
-                ValueType::Depth,
-                "low-resolution depth in metres, in the color camera's frame",
-            ),
-            PortSpec::required(
-                "intrinsics",
-                ValueType::Intrinsics,
-                "intrinsics of the low-resolution depth",
-            ),
-            PortSpec::required("color", ValueType::Color, "high-resolution linear color guide"),
-            PortSpec::optional(
-                "color_intrinsics",
-                ValueType::Intrinsics,
-                "intrinsics of the color image; default: the depth intrinsics scaled to its size",
-            ),
-        ],
-        vec![
-            PortSpec::output("depth", ValueType::Depth, "depth at the color resolution, 0 = hole"),
-            conf_out(),
-            PortSpec::output(
-                "intrinsics",
-                ValueType::Intrinsics,
-                "intrinsics of the high-resolution depth",
-            ),
-        ],
         eval_upsample,
     ))?;
-    reg.register(TypedNode::new(
+    reg.register(PortedNode::new(
         "NLMeansInpaint",
         1,
         "Iterative NL-means depth inpainting with confidence propagation (depth blur eq. 5).\n\
          Fills holes from the outside in, weighting known pixels by patch similarity and confidence; \
          optional far-depth prior for disocclusions. Valid pixels are unchanged.",
-        vec![depth_in(), color_in(), conf_in()],
-        vec![depth_out(), conf_out()],
         eval_inpaint,
     ))
 }
