@@ -7,62 +7,32 @@
 //! over a file the pipeline reads.
 
 use std::fs;
-use std::io::{BufWriter, Read, Write};
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::OnceLock;
 
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use image::{DynamicImage, ImageFormat};
 
-use crate::kit::color::{srgb_to_linear, srgb8, srgb16};
+use crate::kit::color::{srgb8, srgb16};
 use crate::kit::colormap::{colormap_depth, depth_range};
 
-/// Largest accepted image side in pixels.
-pub const MAX_SIDE: usize = 1 << 15;
-/// Largest accepted pixel count (256 MP).
-pub const MAX_PIXELS: usize = 1 << 28;
+mod decode;
+mod pfm;
+mod ply;
+mod pnm;
+mod write;
 
-fn decode_err(path: &Path, message: impl Into<String>) -> NodeError {
-    NodeError::Decode {
-        path: path.to_path_buf(),
-        message: message.into(),
-    }
-}
+pub use decode::{MAX_PIXELS, MAX_SIDE, Samples};
+use decode::{check_dims, decode_err, srgb8_table, srgb16_table};
 
-fn check_dims(path: &Path, w: usize, h: usize) -> Result<(), NodeError> {
-    if w == 0 || h == 0 {
-        return Err(decode_err(
-            path,
-            format!("image is {w}x{h}; expected at least 1x1"),
-        ));
-    }
-    if w > MAX_SIDE || h > MAX_SIDE || w.saturating_mul(h) > MAX_PIXELS {
-        return Err(decode_err(
-            path,
-            format!("image is {w}x{h}; the limit is {MAX_SIDE} per side and {MAX_PIXELS} pixels"),
-        ));
-    }
-    Ok(())
-}
-
-// ---------------------------------------------------------------- sRGB
-
-fn srgb8_table() -> &'static [f32; 256] {
-    static T: OnceLock<[f32; 256]> = OnceLock::new();
-    T.get_or_init(|| std::array::from_fn(|i| srgb_to_linear(i as f32 / 255.0)))
-}
-
-fn srgb16_table() -> &'static [f32] {
-    static T: OnceLock<Vec<f32>> = OnceLock::new();
-    T.get_or_init(|| {
-        (0..65536)
-            .map(|i| srgb_to_linear(i as f32 / 65535.0))
-            .collect()
-    })
-}
+pub use pfm::read_pfm;
+pub use ply::write_ply;
+pub use pnm::{Pnm, read_pnm};
+use pnm::{is_pnm, load_pnm_color};
+pub use write::write_atomic;
 
 // ---------------------------------------------------------------- color
 
@@ -97,157 +67,6 @@ fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
     limits.max_alloc = Some((MAX_PIXELS as u64) * 16);
     reader.limits(limits);
     reader.decode().map_err(|e| decode_err(path, e.to_string()))
-}
-
-// ---------------------------------------------------------------- PNM
-
-/// A binary PNM file (`P5` grey or `P6` RGB, 8 or 16 bit).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Pnm {
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
-    /// 1 (P5) or 3 (P6).
-    pub channels: usize,
-    /// The header's maxval (255 or less: 8-bit samples; above: 16-bit).
-    pub maxval: u32,
-    /// Samples row-major, channels interleaved.
-    pub samples: Vec<u16>,
-}
-
-/// Reads a binary PGM/PPM (`P5`/`P6`). 16-bit samples are big-endian as the
-/// format says, unless `little_endian_16` (the NYU Depth v2 raw dumps store
-/// little-endian samples under a PGM header, see `nyu_raw` in [`LoadDepthParams`]).
-pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
-    let bytes = fs::read(path).map_err(|source| NodeError::Io {
-        path: path.to_path_buf(),
-        error: source,
-    })?;
-    // header: magic, width, height, maxval, separated by whitespace and comments
-    let mut pos = 0usize;
-    let mut tokens: Vec<String> = Vec::new();
-    while tokens.len() < 4 {
-        while pos < bytes.len() && (bytes[pos].is_ascii_whitespace() || bytes[pos] == b'#') {
-            if bytes[pos] == b'#' {
-                while pos < bytes.len() && bytes[pos] != b'\n' {
-                    pos += 1;
-                }
-            } else {
-                pos += 1;
-            }
-        }
-        let start = pos;
-        while pos < bytes.len() && !bytes[pos].is_ascii_whitespace() && bytes[pos] != b'#' {
-            pos += 1;
-        }
-        if start == pos {
-            return Err(decode_err(path, "truncated PNM header"));
-        }
-        tokens.push(String::from_utf8_lossy(&bytes[start..pos]).into_owned());
-    }
-    // exactly one whitespace byte ends the header
-    pos += 1;
-    let channels = match tokens[0].as_str() {
-        "P5" => 1,
-        "P6" => 3,
-        other => {
-            return Err(decode_err(
-                path,
-                format!("PNM type {other} is not supported (binary P5 or P6 only)"),
-            ));
-        }
-    };
-    let num = |i: usize, what: &str| -> Result<usize, NodeError> {
-        tokens[i]
-            .parse::<usize>()
-            .map_err(|_| decode_err(path, format!("bad PNM {what} \"{}\"", tokens[i])))
-    };
-    let (w, h, maxval) = (num(1, "width")?, num(2, "height")?, num(3, "maxval")?);
-    check_dims(path, w, h)?;
-    if maxval == 0 || maxval > 65535 {
-        return Err(decode_err(
-            path,
-            format!("PNM maxval {maxval} is not in 1..=65535"),
-        ));
-    }
-    let bps = if maxval > 255 { 2 } else { 1 };
-    let n = w * h * channels;
-    let data = bytes.get(pos.min(bytes.len())..).unwrap_or(&[]);
-    if data.len() < n * bps {
-        return Err(decode_err(
-            path,
-            format!(
-                "PNM data has {} bytes, {}x{} needs {}",
-                data.len(),
-                w,
-                h,
-                n * bps
-            ),
-        ));
-    }
-    let samples: Vec<u16> = if bps == 1 {
-        data[..n].iter().map(|v| *v as u16).collect()
-    } else {
-        data[..2 * n]
-            .chunks_exact(2)
-            .map(|c| {
-                if little_endian_16 {
-                    u16::from_le_bytes([c[0], c[1]])
-                } else {
-                    u16::from_be_bytes([c[0], c[1]])
-                }
-            })
-            .collect()
-    };
-    Ok(Pnm {
-        width: w,
-        height: h,
-        channels,
-        maxval: maxval as u32,
-        samples,
-    })
-}
-
-fn is_pnm(path: &Path) -> bool {
-    path.extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .is_some_and(|e| matches!(e.as_str(), "pgm" | "ppm" | "pnm"))
-}
-
-/// A PNM color file as linear RGB (grey is replicated).
-fn load_pnm_color(path: &Path, srgb: bool) -> Result<ColorImage, NodeError> {
-    let pnm = read_pnm(path, false)?;
-    // guard: maxval >= 1 (checked in read_pnm)
-    let inv = 1.0 / pnm.maxval as f32;
-    let t8 = srgb8_table();
-    let t16 = srgb16_table();
-    let conv = |v: u16| -> f32 {
-        let v = v.min(pnm.maxval as u16);
-        if !srgb {
-            v as f32 * inv
-        } else if pnm.maxval == 255 {
-            t8[v as usize]
-        } else if pnm.maxval == 65535 {
-            t16[v as usize]
-        } else {
-            srgb_to_linear(v as f32 * inv)
-        }
-    };
-    let data: Vec<[f32; 3]> = pnm
-        .samples
-        .chunks_exact(pnm.channels)
-        .map(|c| {
-            if pnm.channels == 3 {
-                [conv(c[0]), conv(c[1]), conv(c[2])]
-            } else {
-                let g = conv(c[0]);
-                [g, g, g]
-            }
-        })
-        .collect();
-    Image::from_vec(pnm.width, pnm.height, data).map_err(|e| decode_err(path, e.to_string()))
 }
 
 depthgraph_graph::param_choice! {
@@ -391,18 +210,6 @@ node_params! {
     }
 }
 
-/// Samples of a single-channel file, row-major, top row first.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Samples {
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
-    /// The `width * height` stored values as read, before any scale or unit
-    /// conversion.
-    pub values: Vec<f32>,
-}
-
 /// Raw samples and whether the file stored integers.
 struct RawDepth {
     samples: Samples,
@@ -464,80 +271,6 @@ fn read_raw_depth(path: &Path, little_endian_16: bool) -> Result<RawDepth, NodeE
             })
         }
     }
-}
-
-/// Reads a PFM file (grey `Pf`, or `PF` whose first channel is used);
-/// rows are stored bottom-up; a negative scale means little-endian.
-pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
-    let mut bytes = Vec::new();
-    fs::File::open(path)
-        .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?;
-    // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
-    let mut tokens = Vec::new();
-    let mut i = 0;
-    while tokens.len() < 4 {
-        while i < bytes.len() && bytes[i].is_ascii_whitespace() {
-            i += 1;
-        }
-        let start = i;
-        while i < bytes.len() && !bytes[i].is_ascii_whitespace() {
-            i += 1;
-        }
-        if start == i || i - start > 32 {
-            return Err(decode_err(path, "truncated or malformed PFM header"));
-        }
-        tokens.push(String::from_utf8_lossy(&bytes[start..i]).to_string());
-    }
-    i += 1; // the single whitespace after the scale
-    let channels = match tokens[0].as_str() {
-        "Pf" => 1,
-        "PF" => 3,
-        m => return Err(decode_err(path, format!("not a PFM file (magic `{m}`)"))),
-    };
-    let w: usize = tokens[1]
-        .parse()
-        .map_err(|_| decode_err(path, format!("bad PFM width `{}`", tokens[1])))?;
-    let h: usize = tokens[2]
-        .parse()
-        .map_err(|_| decode_err(path, format!("bad PFM height `{}`", tokens[2])))?;
-    let scale: f64 = tokens[3]
-        .parse()
-        .map_err(|_| decode_err(path, format!("bad PFM scale `{}`", tokens[3])))?;
-    check_dims(path, w, h)?;
-    let need = w * h * channels * 4;
-    let data = bytes.get(i..).unwrap_or(&[]);
-    if data.len() < need {
-        return Err(decode_err(
-            path,
-            format!(
-                "PFM data holds {} bytes, expected {need} for {w}x{h}x{channels}",
-                data.len()
-            ),
-        ));
-    }
-    let little = scale < 0.0;
-    let mut values = vec![0.0f32; w * h];
-    for y in 0..h {
-        let src_row = h - 1 - y; // bottom-up
-        for x in 0..w {
-            let o = ((src_row * w + x) * channels) * 4;
-            let b = [data[o], data[o + 1], data[o + 2], data[o + 3]];
-            values[y * w + x] = if little {
-                f32::from_le_bytes(b)
-            } else {
-                f32::from_be_bytes(b)
-            };
-        }
-    }
-    Ok(Samples {
-        width: w,
-        height: h,
-        values,
-    })
 }
 
 fn read_exr_channel(path: &Path) -> Result<RawDepth, NodeError> {
@@ -680,39 +413,6 @@ fn load_depth_eval(
 }
 
 // ---------------------------------------------------------------- writing
-
-/// Writes `bytes` produced by `write` to `path` atomically: a temporary file
-/// in the same directory, flushed, then renamed over the target.
-pub fn write_atomic(
-    path: &Path,
-    write: impl FnOnce(&Path) -> Result<(), String>,
-) -> Result<PathBuf, NodeError> {
-    let parent = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    fs::create_dir_all(&parent).map_err(|source| NodeError::Io {
-        path: parent.clone(),
-        error: source,
-    })?;
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
-    let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
-    if let Err(message) = write(&tmp) {
-        let _ = fs::remove_file(&tmp);
-        return Err(NodeError::Encode {
-            path: path.to_path_buf(),
-            message,
-        });
-    }
-    fs::rename(&tmp, path).map_err(|source| {
-        let _ = fs::remove_file(&tmp);
-        NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        }
-    })?;
-    Ok(path.to_path_buf())
-}
 
 fn write_dynamic(tmp: &Path, img: DynamicImage, fmt: ImageFormat) -> Result<(), String> {
     let f = fs::File::create(tmp).map_err(|e| e.to_string())?;
@@ -1000,98 +700,6 @@ node_params! {
         /// "binary" (little-endian, compact) or "ascii" (readable).
         pub format: PlyFormat = PlyFormat::Binary, ParamKind::Choice(PlyFormat::NAMES);
     }
-}
-
-/// Writes points (with optional colors, sRGB 8-bit, and normals) and optional
-/// triangles as PLY.
-pub fn write_ply(
-    path: &Path,
-    positions: &[[f32; 3]],
-    colors: &[[f32; 3]],
-    normals: &[[f32; 3]],
-    triangles: &[[u32; 3]],
-    ascii: bool,
-) -> Result<PathBuf, NodeError> {
-    let has_c = !colors.is_empty() && colors.len() == positions.len();
-    let has_n = !normals.is_empty() && normals.len() == positions.len();
-    if let Some(t) = triangles
-        .iter()
-        .find(|t| t.iter().any(|i| *i as usize >= positions.len()))
-    {
-        return Err(NodeError::Invalid(format!(
-            "triangle {t:?} refers to a vertex beyond the {} given",
-            positions.len()
-        )));
-    }
-    write_atomic(path, |tmp| {
-        let f = fs::File::create(tmp).map_err(|e| e.to_string())?;
-        let mut w = BufWriter::new(f);
-        let mut header = format!(
-            "ply\nformat {} 1.0\ncomment written by depthgraph (camera frame: x right, y down, z forward; metres)\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
-            if ascii {
-                "ascii"
-            } else {
-                "binary_little_endian"
-            },
-            positions.len()
-        );
-        if has_n {
-            header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
-        }
-        if has_c {
-            header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
-        }
-        if !triangles.is_empty() {
-            header.push_str(&format!(
-                "element face {}\nproperty list uchar uint vertex_indices\n",
-                triangles.len()
-            ));
-        }
-        header.push_str("end_header\n");
-        let io = |e: std::io::Error| e.to_string();
-        w.write_all(header.as_bytes()).map_err(io)?;
-        let c8 = |c: &[f32; 3]| c.map(srgb8);
-        for i in 0..positions.len() {
-            let p = positions[i];
-            if ascii {
-                let mut line = format!("{} {} {}", p[0], p[1], p[2]);
-                if has_n {
-                    let n = normals[i];
-                    line.push_str(&format!(" {} {} {}", n[0], n[1], n[2]));
-                }
-                if has_c {
-                    let c = c8(&colors[i]);
-                    line.push_str(&format!(" {} {} {}", c[0], c[1], c[2]));
-                }
-                line.push('\n');
-                w.write_all(line.as_bytes()).map_err(io)?;
-            } else {
-                for v in p {
-                    w.write_all(&v.to_le_bytes()).map_err(io)?;
-                }
-                if has_n {
-                    for v in normals[i] {
-                        w.write_all(&v.to_le_bytes()).map_err(io)?;
-                    }
-                }
-                if has_c {
-                    w.write_all(&c8(&colors[i])).map_err(io)?;
-                }
-            }
-        }
-        for t in triangles {
-            if ascii {
-                w.write_all(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes())
-                    .map_err(io)?;
-            } else {
-                w.write_all(&[3u8]).map_err(io)?;
-                for i in t {
-                    w.write_all(&i.to_le_bytes()).map_err(io)?;
-                }
-            }
-        }
-        w.flush().map_err(io)
-    })
 }
 
 depthgraph_graph::ports! {

@@ -1,0 +1,83 @@
+//! PFM (portable float map), as Middlebury stores disparity.
+
+use std::fs;
+use std::io::Read;
+use std::path::Path;
+
+use depthgraph_graph::prelude::*;
+
+use super::decode::{Samples, check_dims, decode_err};
+
+/// Reads a PFM file (grey `Pf`, or `PF` whose first channel is used);
+/// rows are stored bottom-up; a negative scale means little-endian.
+pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
+    let mut bytes = Vec::new();
+    fs::File::open(path)
+        .and_then(|mut f| f.read_to_end(&mut bytes))
+        .map_err(|source| NodeError::Io {
+            path: path.to_path_buf(),
+            error: source,
+        })?;
+    // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
+    let mut tokens = Vec::new();
+    let mut i = 0;
+    while tokens.len() < 4 {
+        while i < bytes.len() && bytes[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        let start = i;
+        while i < bytes.len() && !bytes[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        if start == i || i - start > 32 {
+            return Err(decode_err(path, "truncated or malformed PFM header"));
+        }
+        tokens.push(String::from_utf8_lossy(&bytes[start..i]).to_string());
+    }
+    i += 1; // the single whitespace after the scale
+    let channels = match tokens[0].as_str() {
+        "Pf" => 1,
+        "PF" => 3,
+        m => return Err(decode_err(path, format!("not a PFM file (magic `{m}`)"))),
+    };
+    let w: usize = tokens[1]
+        .parse()
+        .map_err(|_| decode_err(path, format!("bad PFM width `{}`", tokens[1])))?;
+    let h: usize = tokens[2]
+        .parse()
+        .map_err(|_| decode_err(path, format!("bad PFM height `{}`", tokens[2])))?;
+    let scale: f64 = tokens[3]
+        .parse()
+        .map_err(|_| decode_err(path, format!("bad PFM scale `{}`", tokens[3])))?;
+    check_dims(path, w, h)?;
+    let need = w * h * channels * 4;
+    let data = bytes.get(i..).unwrap_or(&[]);
+    if data.len() < need {
+        return Err(decode_err(
+            path,
+            format!(
+                "PFM data holds {} bytes, expected {need} for {w}x{h}x{channels}",
+                data.len()
+            ),
+        ));
+    }
+    let little = scale < 0.0;
+    let mut values = vec![0.0f32; w * h];
+    for y in 0..h {
+        let src_row = h - 1 - y; // bottom-up
+        for x in 0..w {
+            let o = ((src_row * w + x) * channels) * 4;
+            let b = [data[o], data[o + 1], data[o + 2], data[o + 3]];
+            values[y * w + x] = if little {
+                f32::from_le_bytes(b)
+            } else {
+                f32::from_be_bytes(b)
+            };
+        }
+    }
+    Ok(Samples {
+        width: w,
+        height: h,
+        values,
+    })
+}
