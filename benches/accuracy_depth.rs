@@ -408,16 +408,9 @@ fn bilinear_up(low: &DepthMap, w: usize, h: usize) -> DepthMap {
 /// Joint upsampling on Park et al.'s benchmark (Middlebury 2005 full size, real
 /// noisy low-resolution inputs, hole-free truth), at x2, x4, x8.
 fn upsampling(data: &Path) -> String {
-    use depthgraph::nodes::io::{LoadDepthParams, load_color, load_depth};
+    use depthgraph::nodes::io::{load_color, load_depth};
     let mut s = String::from("\n## Joint upsampling (Park et al. 2011 benchmark)\n\n");
-    let p = LoadDepthParams {
-        encoding: depthgraph::nodes::io::DepthEncoding::Disparity,
-        scale: 1.0,
-        focal_px: 3740.0,
-        baseline_m: 0.160,
-        doffs_px: 200.0,
-        ..Default::default()
-    };
+    let p = depthgraph::evaluation::middlebury2005_disparity();
     let mut any = false;
     let mut table = String::from(
         "| scene | factor | method | ms | RMSE (mm) | bad % |\n|---|---:|---|---:|---:|---:|\n",

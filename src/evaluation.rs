@@ -77,6 +77,20 @@ pub fn shared_data_dir() -> PathBuf {
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
 }
 
+/// How Middlebury 2005 stores disparity (its SOURCE.txt): 8-bit values of the
+/// full-size disparity, `Z[m] = 0.160 * 3740 / (value + 200)`. Also what
+/// the full-size Park 2011 benchmark (made from the same scenes) uses.
+pub fn middlebury2005_disparity() -> depthgraph_nodes::io::LoadDepthParams {
+    depthgraph_nodes::io::LoadDepthParams {
+        encoding: depthgraph_nodes::io::DepthEncoding::Disparity,
+        scale: 1.0,
+        focal_px: 3740.0,
+        baseline_m: 0.160,
+        doffs_px: 200.0,
+        ..Default::default()
+    }
+}
+
 /// Middlebury scenes with ground-truth disparity converted to metres with the
 /// calibration given in each SOURCE.txt. Returns the scenes found and a note
 /// for each one that is missing.
@@ -87,14 +101,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
     // 2005 third-size: Z[m] = 0.160 * 3740 / (value + 200), value = full-size disparity.
     for name in ["Art", "Books", "Dolls", "Moebius"] {
         let dir = data.join("middlebury2005_thirdsize").join(name);
-        let p = LoadDepthParams {
-            encoding: depthgraph_nodes::io::DepthEncoding::Disparity,
-            scale: 1.0,
-            focal_px: 3740.0,
-            baseline_m: 0.160,
-            doffs_px: 200.0,
-            ..Default::default()
-        };
+        let p = middlebury2005_disparity();
         match (
             load_color(
                 &dir.join("view1.png"),

@@ -220,7 +220,7 @@ pub fn display_luma(img: &ColorImage) -> Vec<f64> {
                     0.0
                 }
             });
-            0.2126 * e[0] + 0.7152 * e[1] + 0.0722 * e[2]
+            depthgraph_nodes::kit::color::luminance_f64(e)
         })
         .collect()
 }

@@ -49,7 +49,7 @@ fn screenshot(dir: &Path, name: &str, args: &[&str]) -> image::RgbaImage {
 }
 
 fn luma(p: &image::Rgba<u8>) -> f64 {
-    0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2])
+    depthgraph_nodes::kit::color::luminance_f64([p[0], p[1], p[2]].map(f64::from))
 }
 
 fn luma_variance(img: &image::RgbaImage) -> f64 {

@@ -42,24 +42,31 @@ pub fn rgb_to_srgb8(c: Rgb) -> [u8; 3] {
     c.map(srgb8)
 }
 
-/// Rec. 709 luminance `0.2126 R + 0.7152 G + 0.0722 B` of linear RGB, in f64.
+/// Rec. 709 luminance weights `0.2126 R + 0.7152 G + 0.0722 B`, in f64:
+/// the one copy of the formula (also for sRGB-encoded or 8-bit values,
+/// where it gives luma).
+#[inline]
+pub fn luminance_f64(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
+/// Rec. 709 luminance of linear RGB, in f64.
 #[inline]
 pub fn luminance(c: Rgb) -> f64 {
-    0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
+    luminance_f64(c.map(f64::from))
 }
 
 /// [`luminance`] of the channels clamped to `>= 0` (NaN and infinities
 /// count as 0): the energy of a light, never negative.
 #[inline]
 pub fn luminance_clamped(c: Rgb) -> f64 {
-    let f = |v: f32| {
+    luminance_f64(c.map(|v| {
         if v > 0.0 && v.is_finite() {
             v as f64
         } else {
             0.0
         }
-    };
-    0.2126 * f(c[0]) + 0.7152 * f(c[1]) + 0.0722 * f(c[2])
+    }))
 }
 
 #[cfg(test)]
