@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use crate::bytes::{ByteReader, ByteWriter};
 use crate::node::Outputs;
 use crate::value::{
     ExposureStack, ExtensionDecoder, Image, Intrinsics, Mesh, PointCloud, Value, Vpl,
@@ -17,16 +18,16 @@ const MAGIC: &[u8; 8] = b"DGCACHE2";
 
 /// Encodes outputs (values and the pass-through reason).
 pub fn encode(out: &Outputs) -> Vec<u8> {
-    let mut w = Vec::with_capacity(out.bytes() + 64);
-    w.extend_from_slice(MAGIC);
-    put_str(&mut w, out.passthrough.as_deref().unwrap_or(""));
-    w.push(out.passthrough.is_some() as u8);
-    put_u64(&mut w, out.values.len() as u64);
+    let mut w = ByteWriter(Vec::with_capacity(out.bytes() + 64));
+    w.0.extend_from_slice(MAGIC);
+    w.str(out.passthrough.as_deref().unwrap_or(""));
+    w.u8(out.passthrough.is_some() as u8);
+    w.usize(out.values.len());
     for (k, v) in &out.values {
-        put_str(&mut w, k);
+        w.str(k);
         put_value(&mut w, v);
     }
-    w
+    w.0
 }
 
 /// Decoders of extension values by type name.
@@ -37,8 +38,7 @@ pub type Decoders = BTreeMap<&'static str, ExtensionDecoder>;
 /// their checksum.
 pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     let mut r = Reader {
-        b: bytes,
-        i: 0,
+        r: ByteReader::new(bytes),
         decoders,
     };
     if r.take(8)? != MAGIC {
@@ -53,7 +53,7 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
         let v = r.value()?;
         values.insert(k, v);
     }
-    if r.i != bytes.len() {
+    if !r.r.is_done() {
         return None;
     }
     Some(Outputs {
@@ -62,114 +62,91 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     })
 }
 
-fn put_u64(w: &mut Vec<u8>, x: u64) {
-    w.extend_from_slice(&x.to_le_bytes());
-}
-fn put_f64(w: &mut Vec<u8>, x: f64) {
-    w.extend_from_slice(&x.to_le_bytes());
-}
-fn put_str(w: &mut Vec<u8>, s: &str) {
-    put_u64(w, s.len() as u64);
-    w.extend_from_slice(s.as_bytes());
-}
-fn put_f32s(w: &mut Vec<u8>, xs: &[f32]) {
-    put_u64(w, xs.len() as u64);
-    w.reserve(xs.len() * 4);
-    for x in xs {
-        w.extend_from_slice(&x.to_le_bytes());
-    }
-}
-fn put_u32s(w: &mut Vec<u8>, xs: &[u32]) {
-    put_u64(w, xs.len() as u64);
-    for x in xs {
-        w.extend_from_slice(&x.to_le_bytes());
-    }
-}
 fn flat3(v: &[[f32; 3]]) -> &[f32] {
     v.as_flattened()
 }
-fn put_image3<K>(w: &mut Vec<u8>, img: &Image<[f32; 3], K>) {
-    put_u64(w, img.width() as u64);
-    put_u64(w, img.height() as u64);
-    put_f32s(w, flat3(img.as_slice()));
+fn put_image3<K>(w: &mut ByteWriter, img: &Image<[f32; 3], K>) {
+    w.u64(img.width() as u64);
+    w.u64(img.height() as u64);
+    w.f32s(flat3(img.as_slice()));
 }
-fn put_image1<K>(w: &mut Vec<u8>, img: &Image<f32, K>) {
-    put_u64(w, img.width() as u64);
-    put_u64(w, img.height() as u64);
-    put_f32s(w, img.as_slice());
+fn put_image1<K>(w: &mut ByteWriter, img: &Image<f32, K>) {
+    w.u64(img.width() as u64);
+    w.u64(img.height() as u64);
+    w.f32s(img.as_slice());
 }
 
-fn put_value(w: &mut Vec<u8>, v: &Value) {
+fn put_value(w: &mut ByteWriter, v: &Value) {
     match v {
         Value::Color(i) => {
-            w.push(0);
+            w.u8(0);
             put_image3(w, i)
         }
         Value::Depth(i) => {
-            w.push(1);
+            w.u8(1);
             put_image1(w, i)
         }
         Value::Mask(i) => {
-            w.push(2);
+            w.u8(2);
             put_image1(w, i)
         }
         Value::Confidence(i) => {
-            w.push(3);
+            w.u8(3);
             put_image1(w, i)
         }
         Value::Normals(i) => {
-            w.push(4);
+            w.u8(4);
             put_image3(w, i)
         }
         Value::Labels(i) => {
-            w.push(5);
-            put_u64(w, i.width() as u64);
-            put_u64(w, i.height() as u64);
-            put_u32s(w, i.as_slice());
+            w.u8(5);
+            w.u64(i.width() as u64);
+            w.u64(i.height() as u64);
+            w.u32s(i.as_slice());
         }
         Value::Intrinsics(k) => {
-            w.push(6);
+            w.u8(6);
             for x in [k.fx, k.fy, k.cx, k.cy] {
-                put_f64(w, x);
+                w.f64(x);
             }
-            put_u64(w, k.width as u64);
-            put_u64(w, k.height as u64);
+            w.u64(k.width as u64);
+            w.u64(k.height as u64);
         }
         Value::PointCloud(p) => {
-            w.push(7);
-            put_f32s(w, flat3(&p.positions));
-            put_f32s(w, flat3(&p.colors));
-            put_f32s(w, flat3(&p.normals));
+            w.u8(7);
+            w.f32s(flat3(&p.positions));
+            w.f32s(flat3(&p.colors));
+            w.f32s(flat3(&p.normals));
         }
         Value::Mesh(m) => {
-            w.push(8);
-            put_f32s(w, flat3(&m.positions));
-            put_f32s(w, flat3(&m.colors));
-            put_f32s(w, flat3(&m.normals));
-            put_u32s(w, m.triangles.as_flattened());
+            w.u8(8);
+            w.f32s(flat3(&m.positions));
+            w.f32s(flat3(&m.colors));
+            w.f32s(flat3(&m.normals));
+            w.u32s(m.triangles.as_flattened());
         }
         Value::ExposureStack(s) => {
-            w.push(9);
-            put_u64(w, s.images.len() as u64);
+            w.u8(9);
+            w.u64(s.images.len() as u64);
             for (img, t) in s.images.iter().zip(&s.times_s) {
-                put_f64(w, *t);
+                w.f64(*t);
                 put_image3(w, img);
             }
         }
         Value::Scalar(x) => {
-            w.push(10);
-            put_f64(w, *x);
+            w.u8(10);
+            w.f64(*x);
         }
         Value::File(p) => {
-            w.push(11);
-            put_str(w, &p.to_string_lossy());
+            w.u8(11);
+            w.str(&p.to_string_lossy());
         }
         Value::Vpls(v) => {
-            w.push(12);
-            put_u64(w, v.len() as u64);
+            w.u8(12);
+            w.u64(v.len() as u64);
             for l in v.iter() {
                 for x in l.direction.iter().chain(&l.power) {
-                    w.extend_from_slice(&x.to_le_bytes());
+                    w.0.extend_from_slice(&x.to_le_bytes());
                 }
             }
         }
@@ -177,11 +154,11 @@ fn put_value(w: &mut Vec<u8>, v: &Value) {
             // `encode` checked `persistable` first; an extension without an
             // encoding never reaches here
             let payload = e.encode().unwrap_or_default();
-            w.push(13);
-            put_str(w, e.type_name());
-            put_u64(w, payload.len() as u64);
-            w.extend_from_slice(blake3::hash(&payload).as_bytes());
-            w.extend_from_slice(&payload);
+            w.u8(13);
+            w.str(e.type_name());
+            w.u64(payload.len() as u64);
+            w.0.extend_from_slice(blake3::hash(&payload).as_bytes());
+            w.0.extend_from_slice(&payload);
         }
     }
 }
@@ -195,54 +172,36 @@ pub fn persistable(out: &Outputs) -> bool {
     })
 }
 
+/// The shared byte reader, with the decoders of extension values.
 struct Reader<'a> {
-    b: &'a [u8],
-    i: usize,
+    r: ByteReader<'a>,
     decoders: &'a Decoders,
 }
 
 impl<'a> Reader<'a> {
     fn take(&mut self, n: usize) -> Option<&'a [u8]> {
-        let end = self.i.checked_add(n)?;
-        let s = self.b.get(self.i..end)?;
-        self.i = end;
-        Some(s)
+        self.r.bytes(n)
     }
     fn u8(&mut self) -> Option<u8> {
-        Some(self.take(1)?[0])
+        self.r.u8()
     }
     fn u64(&mut self) -> Option<u64> {
-        Some(u64::from_le_bytes(self.take(8)?.try_into().ok()?))
+        self.r.u64()
     }
     fn f64(&mut self) -> Option<f64> {
-        Some(f64::from_le_bytes(self.take(8)?.try_into().ok()?))
+        self.r.f64()
     }
     fn usize(&mut self) -> Option<usize> {
-        usize::try_from(self.u64()?).ok()
+        self.r.usize()
     }
     fn string(&mut self) -> Option<String> {
-        let n = self.usize()?;
-        String::from_utf8(self.take(n)?.to_vec()).ok()
+        self.r.string()
     }
     fn f32s(&mut self) -> Option<Vec<f32>> {
-        let n = self.usize()?;
-        let bytes = self.take(n.checked_mul(4)?)?;
-        Some(
-            bytes
-                .chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect(),
-        )
+        self.r.f32s()
     }
     fn u32s(&mut self) -> Option<Vec<u32>> {
-        let n = self.usize()?;
-        let bytes = self.take(n.checked_mul(4)?)?;
-        Some(
-            bytes
-                .chunks_exact(4)
-                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect(),
-        )
+        self.r.u32s()
     }
     fn triples(&mut self) -> Option<Vec<[f32; 3]>> {
         let f = self.f32s()?;

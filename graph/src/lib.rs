@@ -10,6 +10,7 @@
 //! - [`document`] and [`ron_text`]: the RON pipeline format with positions;
 //! - [`pipeline`]: checking a document into a runnable [`Pipeline`](pipeline::Pipeline);
 //! - [`ports`]: input and output ports declared once, as struct fields ([`ports!`]);
+//! - [`bytes`]: the checked little-endian byte writer and reader of the caches;
 //! - [`key`], [`cache`], [`codec`], [`scheduler`], [`trace`]: Merkle keys,
 //!   memory and disk caches, the demand-driven parallel scheduler and its
 //!   record of what ran.
@@ -43,6 +44,7 @@
 #![allow(clippy::result_large_err)]
 #![warn(missing_docs)]
 
+pub mod bytes;
 pub mod cache;
 pub mod codec;
 pub mod document;

@@ -420,6 +420,18 @@ pub fn typed_params<P: NodeParams>(params: &ParamMap) -> Result<P, NodeError> {
     P::from_values(params).map_err(NodeError::Invalid)
 }
 
+/// The files a node with the file list `files` reads under `params`
+/// (none when it declares none or the parameters do not convert).
+pub(crate) fn files_read<P: NodeParams>(
+    files: Option<fn(&P) -> Vec<PathBuf>>,
+    params: &ParamMap,
+) -> Vec<PathBuf> {
+    match (files, P::from_values(params)) {
+        (Some(f), Ok(p)) => f(&p),
+        _ => Vec::new(),
+    }
+}
+
 /// Evaluation function of a [`TypedNode`].
 pub type TypedEval<P> = fn(&EvalCtx, &Inputs, &P) -> Result<Outputs, NodeError>;
 
@@ -489,10 +501,7 @@ impl<P: NodeParams> Node for TypedNode<P> {
         (self.eval)(ctx, inputs, &p)
     }
     fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {
-        match (self.files, P::from_values(params)) {
-            (Some(f), Ok(p)) => f(&p),
-            _ => Vec::new(),
-        }
+        files_read(self.files, params)
     }
     fn backend(&self) -> &'static str {
         self.backend

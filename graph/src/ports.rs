@@ -48,7 +48,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use crate::error::NodeError;
-use crate::node::{EvalCtx, Inputs, Node, NodeSchema, Outputs, PortSpec, typed_params};
+use crate::node::{EvalCtx, Inputs, Node, NodeSchema, Outputs, PortSpec, files_read, typed_params};
 use crate::params::{NodeParams, ParamMap};
 use crate::value::{
     ColorImage, Confidence, DepthMap, ExposureStack, Intrinsics, LabelImage, Mask, Mesh, NormalMap,
@@ -356,9 +356,6 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for PortedNode<I, O, P> 
         Ok(out)
     }
     fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {
-        match (self.files, P::from_values(params)) {
-            (Some(f), Ok(p)) => f(&p),
-            _ => Vec::new(),
-        }
+        files_read(self.files, params)
     }
 }

@@ -3,7 +3,6 @@
 //! colormap ([`colormap`]), and the shape checks of inputs ([`checks`]).
 //! Nothing here is a node; everything is a plain function.
 
-pub mod bytes;
 pub mod checks;
 pub mod color;
 pub mod colormap;

@@ -57,8 +57,8 @@ use depthgraph_graph::prelude::*;
 use glam::DVec3;
 
 use crate::depth::pull_push::{PullPushParams, Weights, pull_push};
-use crate::kit::bytes::{ByteReader, ByteWriter};
 use crate::kit::rng::SplitMix64;
+use depthgraph_graph::bytes::{ByteReader, ByteWriter};
 
 node_params! {
     /// Parameters of the imperfect shadow maps.

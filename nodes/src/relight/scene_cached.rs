@@ -43,7 +43,6 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::kit::bytes::{ByteReader, ByteWriter};
 use crate::kit::checks::fits_intrinsics;
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows,
@@ -55,6 +54,7 @@ use crate::relight::shading::{
     pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
+use depthgraph_graph::bytes::{ByteReader, ByteWriter};
 
 /// VPL directions grouped by the cells of an octahedral grid, each group a
 /// cone `(axis, half angle)` holding all its directions: a pixel whose cone

@@ -5,11 +5,29 @@
 
 use glam::DVec3;
 
-/// Appends values to a byte buffer.
+/// Appends values to a byte buffer (little-endian, lengths as `u64`): the
+/// encoding of the disk cache ([`codec`](crate::codec)) and of extension
+/// values.
 #[derive(Debug, Default)]
 pub struct ByteWriter(pub Vec<u8>);
 
 impl ByteWriter {
+    /// One byte.
+    pub fn u8(&mut self, x: u8) {
+        self.0.push(x);
+    }
+    /// A length, then the UTF-8 bytes.
+    pub fn str(&mut self, s: &str) {
+        self.usize(s.len());
+        self.0.extend_from_slice(s.as_bytes());
+    }
+    /// A length, then the `u32`s.
+    pub fn u32s(&mut self, xs: &[u32]) {
+        self.usize(xs.len());
+        for x in xs {
+            self.0.extend_from_slice(&x.to_le_bytes());
+        }
+    }
     /// A `u64`.
     pub fn u64(&mut self, x: u64) {
         self.0.extend_from_slice(&x.to_le_bytes());
@@ -29,6 +47,7 @@ impl ByteWriter {
     /// A length, then the `f32`s.
     pub fn f32s(&mut self, xs: &[f32]) {
         self.usize(xs.len());
+        self.0.reserve(xs.len() * 4);
         for x in xs {
             self.0.extend_from_slice(&x.to_le_bytes());
         }
@@ -70,6 +89,34 @@ impl<'a> ByteReader<'a> {
     pub fn is_done(&self) -> bool {
         self.bytes.is_empty()
     }
+    /// The next `n` bytes as they are.
+    pub fn bytes(&mut self, n: usize) -> Option<&'a [u8]> {
+        if n > self.bytes.len() {
+            return None;
+        }
+        let (head, rest) = self.bytes.split_at(n);
+        self.bytes = rest;
+        Some(head)
+    }
+    /// One byte.
+    pub fn u8(&mut self) -> Option<u8> {
+        self.take::<1>().map(|[b]| b)
+    }
+    /// A length, then that many UTF-8 bytes.
+    pub fn string(&mut self) -> Option<String> {
+        let n = self.usize()?;
+        String::from_utf8(self.bytes(n)?.to_vec()).ok()
+    }
+    /// A length, then that many `u32`s.
+    pub fn u32s(&mut self) -> Option<Vec<u32>> {
+        let n = self.usize()?;
+        let b = self.bytes(n.checked_mul(4)?)?;
+        Some(
+            b.chunks_exact(4)
+                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        )
+    }
     fn take<const N: usize>(&mut self) -> Option<[u8; N]> {
         let (head, rest) = self.bytes.split_first_chunk::<N>()?;
         self.bytes = rest;
@@ -89,7 +136,7 @@ impl<'a> ByteReader<'a> {
     }
     /// A `bool` (only 0 and 1 are valid).
     pub fn bool(&mut self) -> Option<bool> {
-        match self.take::<1>()?[0] {
+        match self.u8()? {
             0 => Some(false),
             1 => Some(true),
             _ => None,
@@ -98,11 +145,7 @@ impl<'a> ByteReader<'a> {
     /// A length, then that many `f32`s (as [`ByteWriter::f32s`] writes).
     pub fn f32s(&mut self) -> Option<Vec<f32>> {
         let n = self.usize()?;
-        if n.checked_mul(4)? > self.bytes.len() {
-            return None;
-        }
-        let (head, rest) = self.bytes.split_at(n * 4);
-        self.bytes = rest;
+        let head = self.bytes(n.checked_mul(4)?)?;
         Some(
             head.chunks_exact(4)
                 .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
