@@ -80,27 +80,13 @@ impl Print {
 /// name, so it does not depend on how `Value` represents it in memory.
 fn print_value(v: &Value) -> String {
     let mut p = Print::new(v.value_type().name());
+    if let Some(img) = v.samples() {
+        // every image kind of f32 samples alike: dimensions, then the samples
+        p.dims(img.width, img.height);
+        p.f32s(img.samples);
+        return p.line();
+    }
     match v {
-        Value::Color(i) => {
-            p.dims(i.width(), i.height());
-            p.f32s(i.as_slice().as_flattened());
-        }
-        Value::Normals(i) => {
-            p.dims(i.width(), i.height());
-            p.f32s(i.as_slice().as_flattened());
-        }
-        Value::Depth(i) => {
-            p.dims(i.width(), i.height());
-            p.f32s(i.as_slice());
-        }
-        Value::Mask(i) => {
-            p.dims(i.width(), i.height());
-            p.f32s(i.as_slice());
-        }
-        Value::Confidence(i) => {
-            p.dims(i.width(), i.height());
-            p.f32s(i.as_slice());
-        }
         Value::Labels(i) => {
             p.dims(i.width(), i.height());
             for x in i.as_slice() {
@@ -108,7 +94,14 @@ fn print_value(v: &Value) -> String {
             }
         }
         Value::Scalar(x) => p.f64(*x),
-        Value::File(_) | Value::Extension(_) => {}
+        // images were fingerprinted above
+        Value::Color(_)
+        | Value::Normals(_)
+        | Value::Depth(_)
+        | Value::Mask(_)
+        | Value::Confidence(_)
+        | Value::File(_)
+        | Value::Extension(_) => {}
         Value::Intrinsics(k) => {
             for x in [k.fx, k.fy, k.cx, k.cy] {
                 p.f64(x);
