@@ -8,6 +8,7 @@
 pub use depthgraph_graph as graph;
 pub use depthgraph_nodes as nodes;
 
+pub mod backend;
 pub mod evaluation;
 pub mod metrics;
 pub mod sweep;

@@ -8,10 +8,14 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+use depthgraph::backend::{Backend, Chosen};
 use depthgraph::graph::prelude::*;
 use depthgraph::metrics::Metric;
 use depthgraph::sweep::{SweepSpec, plot_svg, run_sweep, to_csv};
 use depthgraph::{LoadError, default_cache_dir, load_pipeline, read_document};
+
+/// Exit code when the requested backend cannot be used (no GPU adapter).
+const EXIT_NO_DEVICE: u8 = 3;
 
 #[derive(Parser)]
 #[command(
@@ -111,10 +115,29 @@ struct RunArgs {
     /// No progress bars.
     #[arg(long, short)]
     quiet: bool,
+    /// Where the device node kinds run: auto (the GPU when a wgpu adapter
+    /// exists), cpu, or gpu (fail when there is none). Default: $DEPTHGRAPH_BACKEND, else auto.
+    #[arg(long, value_enum)]
+    backend: Option<Backend>,
 }
 
 fn registry() -> Result<Registry> {
     depthgraph::nodes::registry().context("building the node registry")
+}
+
+/// The registry with the device kinds `args.backend` calls for; `Err` with
+/// the exit code when the backend cannot be had (the reason printed once).
+fn registry_for(args: &RunArgs) -> Result<std::result::Result<(Registry, Chosen), ExitCode>> {
+    let mut reg = registry()?;
+    let chosen =
+        Backend::resolve(args.backend).and_then(|b| depthgraph::backend::apply(b, &mut reg));
+    match chosen {
+        Ok(c) => Ok(Ok((reg, c))),
+        Err(e) => {
+            eprintln!("error: {e}");
+            Ok(Err(ExitCode::from(EXIT_NO_DEVICE)))
+        }
+    }
 }
 
 /// Prints check errors (one per line) and turns them into a failure.
@@ -186,7 +209,10 @@ fn run_options(args: &RunArgs) -> RunOptions {
 }
 
 fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
-    let reg = registry()?;
+    let (reg, chosen) = match registry_for(args)? {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
     let (_, p) = match load(args, &reg) {
         Ok(x) => x,
         Err(code) => return Ok(code),
@@ -215,7 +241,10 @@ fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
     }
     let ran = result.trace.evaluated().len();
     let cached = result.trace.with_status(Status::Cached).len();
-    eprintln!("{ran} nodes evaluated, {cached} cached, {wall:.0} ms");
+    eprintln!(
+        "{ran} nodes evaluated, {cached} cached, {wall:.0} ms (backend: {})",
+        chosen.used
+    );
     Ok(ExitCode::SUCCESS)
 }
 
@@ -353,7 +382,10 @@ fn schema_json(s: &NodeSchema) -> serde_json::Value {
 }
 
 fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
-    let reg = registry()?;
+    let (reg, chosen) = match registry_for(args)? {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
     let (_, p) = match load(args, &reg) {
         Ok(x) => x,
         Err(code) => return Ok(code),
@@ -369,11 +401,23 @@ fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
                 serde_json::json!({
                     "node": r.node, "kind": r.kind, "status": r.status.as_str(),
                     "reason": r.reason, "ms": r.ms, "bytes": r.bytes, "backend": r.backend,
+                    "adapter": r.adapter, "transfers": r.transfers,
                 })
             })
             .collect();
+        // The rows stay the top-level array; the choice goes to stderr.
+        eprintln!("backend: {} ({})", chosen.used, chosen.reason);
         println!("{}", serde_json::to_string_pretty(&rows)?);
     } else {
+        println!(
+            "backend: {} (requested {}: {})",
+            chosen.used,
+            chosen.requested.name(),
+            chosen.reason
+        );
+        if let Some(a) = &chosen.adapter {
+            println!("adapter: {a}");
+        }
         print!("{}", result.trace.table());
     }
     Ok(ExitCode::SUCCESS)
@@ -391,7 +435,11 @@ fn cmd_sweep(
     csv: Option<PathBuf>,
     plot: Option<PathBuf>,
 ) -> Result<ExitCode> {
-    let reg = registry()?;
+    let (reg, chosen) = match registry_for(args)? {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
+    eprintln!("backend: {} ({})", chosen.used, chosen.reason);
     let doc = match read_document(&args.file, &args.sets) {
         Ok(d) => d,
         Err(e) => {

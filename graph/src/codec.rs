@@ -14,7 +14,7 @@ use crate::value::{
     ExposureStack, ExtensionDecoder, Image, Intrinsics, Mesh, PointCloud, Value, Vpl,
 };
 
-const MAGIC: &[u8; 8] = b"DGCACHE2";
+const MAGIC: &[u8; 8] = b"DGCACHE3";
 
 /// Encodes outputs (values and the pass-through reason).
 pub fn encode(out: &Outputs) -> Vec<u8> {
@@ -22,6 +22,10 @@ pub fn encode(out: &Outputs) -> Vec<u8> {
     w.0.extend_from_slice(MAGIC);
     w.str(out.passthrough.as_deref().unwrap_or(""));
     w.u8(out.passthrough.is_some() as u8);
+    let origin = out.origin.clone().unwrap_or_default();
+    w.str(&origin.backend);
+    w.str(origin.adapter.as_deref().unwrap_or(""));
+    w.u8(origin.adapter.is_some() as u8);
     w.usize(out.values.len());
     for (k, v) in &out.values {
         w.str(k);
@@ -46,6 +50,9 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     }
     let reason = r.string()?;
     let has_reason = r.u8()? != 0;
+    let backend = r.string()?;
+    let adapter = r.string()?;
+    let has_adapter = r.u8()? != 0;
     let n = r.u64()? as usize;
     let mut values = BTreeMap::new();
     for _ in 0..n {
@@ -59,6 +66,11 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     Some(Outputs {
         values,
         passthrough: has_reason.then_some(reason),
+        origin: (!backend.is_empty()).then(|| crate::node::Origin {
+            backend,
+            adapter: has_adapter.then_some(adapter),
+        }),
+        transfers: Default::default(),
     })
 }
 

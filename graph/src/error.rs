@@ -327,6 +327,16 @@ pub enum NodeError {
     /// internal inconsistency, reported instead of a panic).
     #[error("{0}")]
     Shape(#[from] ShapeError),
+    /// The compute device failed (out of device memory, a lost device, a
+    /// kernel the driver rejected); the CPU backend (`--backend cpu`) runs
+    /// the same node without it.
+    #[error("{adapter}: {message}")]
+    Device {
+        /// The adapter that failed.
+        adapter: String,
+        /// What failed.
+        message: String,
+    },
     /// Anything else, with its explanation.
     #[error("{0}")]
     Invalid(String),

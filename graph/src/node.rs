@@ -359,6 +359,8 @@ impl Inputs {
     }
 }
 
+pub use crate::trace::{Origin, Transfers};
+
 /// What an evaluation returns.
 #[derive(Debug, Clone, Default)]
 pub struct Outputs {
@@ -367,6 +369,13 @@ pub struct Outputs {
     /// Set when the node passed its input through unchanged, with the reason
     /// (e.g. "no holes to fill"); `explain` shows it.
     pub passthrough: Option<String>,
+    /// Which backend and device produced the values; the scheduler fills
+    /// it in after evaluation and the disk cache keeps it, so `explain`
+    /// names the producer of a cached result too.
+    pub origin: Option<Origin>,
+    /// Host/device traffic of the evaluation (zero on the CPU and for
+    /// results read from the cache).
+    pub transfers: Transfers,
 }
 
 impl Outputs {
@@ -412,6 +421,11 @@ pub trait Node: Send + Sync {
     /// Name of the backend ("cpu", "wgpu"), shown by `explain`.
     fn backend(&self) -> &'static str {
         "cpu"
+    }
+    /// The device this implementation runs on (adapter name, driver and
+    /// API), for device backends; `explain` shows it.
+    fn adapter(&self) -> Option<String> {
+        None
     }
 }
 

@@ -35,6 +35,9 @@ pub enum RegistryError {
         /// The new backend's name.
         backend: &'static str,
     },
+    /// A second backend was added for a kind that has no first one.
+    #[error("node kind `{0}` has no CPU implementation to add a backend to")]
+    Missing(&'static str),
 }
 
 impl Registry {

@@ -280,6 +280,15 @@ impl Engine {
                         (st, r, timings[i])
                     }
                 };
+                let origin = results[i].as_ref().and_then(|o| o.origin.clone());
+                let (backend, adapter) = match origin {
+                    Some(o) => (o.backend, o.adapter),
+                    None => (node.node.backend().to_string(), node.node.adapter()),
+                };
+                let transfers = match &state[i] {
+                    State::Run => results[i].as_ref().map(|o| o.transfers).unwrap_or_default(),
+                    _ => Default::default(),
+                };
                 NodeRecord {
                     node: node.name.clone(),
                     kind: node.kind.clone(),
@@ -287,7 +296,9 @@ impl Engine {
                     reason,
                     ms,
                     bytes: results[i].as_ref().map(|o| o.bytes()).unwrap_or(0),
-                    backend: node.node.backend().to_string(),
+                    backend,
+                    adapter,
+                    transfers,
                     key: keys[i].to_hex(),
                     derived: std::mem::take(&mut derived[i]),
                 }
@@ -388,6 +399,13 @@ impl Engine {
                 e => fail(e),
             })?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
+        let mut out = out;
+        if out.origin.is_none() {
+            out.origin = Some(crate::node::Origin {
+                backend: node.node.backend().to_string(),
+                adapter: node.node.adapter(),
+            });
+        }
         for spec in &schema.outputs {
             match out.values.get(spec.name) {
                 None => {

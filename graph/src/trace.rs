@@ -45,8 +45,13 @@ pub struct NodeRecord {
     pub ms: f64,
     /// Bytes of the node's outputs.
     pub bytes: usize,
-    /// Backend that evaluated it ("cpu", "wgpu").
+    /// Backend that produced its outputs ("cpu", "wgpu"); for a cached
+    /// result, the backend that produced the cached values.
     pub backend: String,
+    /// The device adapter that produced them, for device backends.
+    pub adapter: Option<String>,
+    /// Host/device traffic of the evaluation (zero when cached).
+    pub transfers: Transfers,
     /// Hex cache key.
     pub key: String,
     /// Values the node derived from its inputs and the engine keeps
@@ -116,27 +121,47 @@ impl Trace {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "{:<w_node$}  {:<w_kind$}  {:<11}  {:>9}  {:>10}  reason",
-            "node", "kind", "status", "ms", "bytes"
+            "{:<w_node$}  {:<w_kind$}  {:<11}  {:<7}  {:>9}  {:>10}  reason",
+            "node", "kind", "status", "backend", "ms", "bytes"
         );
         for r in &self.nodes {
             let _ = writeln!(
                 s,
-                "{:<w_node$}  {:<w_kind$}  {:<11}  {:>9.2}  {:>10}  {}",
+                "{:<w_node$}  {:<w_kind$}  {:<11}  {:<7}  {:>9.2}  {:>10}  {}",
                 r.node,
                 r.kind,
                 r.status.as_str(),
+                r.backend,
                 r.ms,
                 human_bytes(r.bytes),
                 r.reason.as_deref().unwrap_or("")
             );
+            let t = &r.transfers;
+            if !t.is_empty() {
+                let _ = writeln!(
+                    s,
+                    "{:<w_node$}  {:<w_kind$}  device: up {} ({}, {:.2} ms), already on device {}, \
+                     kernels {:.2} ms, down {} ({}, {:.2} ms)",
+                    "",
+                    "",
+                    t.uploads,
+                    human_bytes(t.upload_bytes),
+                    t.upload_ms,
+                    t.resident_hits,
+                    t.kernel_ms,
+                    t.downloads,
+                    human_bytes(t.download_bytes),
+                    t.download_ms
+                );
+            }
             for d in &r.derived {
                 let _ = writeln!(
                     s,
-                    "{:<w_node$}  {:<w_kind$}  {:<11}  {:>9.2}  {:>10}  derived: {}",
+                    "{:<w_node$}  {:<w_kind$}  {:<11}  {:<7}  {:>9.2}  {:>10}  derived: {}",
                     "",
                     "",
                     d.status.as_str(),
+                    "",
                     d.ms,
                     human_bytes(d.bytes),
                     d.name
@@ -162,5 +187,43 @@ pub fn human_bytes(b: usize) -> String {
         format!("{:.1} KiB", b / 1024.0)
     } else {
         format!("{b} B")
+    }
+}
+
+/// The backend and device that produced a node's outputs.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
+pub struct Origin {
+    /// Backend name ("cpu", "wgpu").
+    pub backend: String,
+    /// The device's adapter (name, driver and API), for device backends.
+    pub adapter: Option<String>,
+}
+
+/// Host-to-device and device-to-host traffic of one evaluation.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Transfers {
+    /// Buffers copied to the device.
+    pub uploads: usize,
+    /// Bytes copied to the device.
+    pub upload_bytes: usize,
+    /// Time spent on uploads, milliseconds.
+    pub upload_ms: f64,
+    /// Inputs that were already on the device (handed over by a device node
+    /// upstream), so not uploaded again.
+    pub resident_hits: usize,
+    /// Buffers copied back to the host.
+    pub downloads: usize,
+    /// Bytes copied back.
+    pub download_bytes: usize,
+    /// Time spent on downloads (waiting for the device included), milliseconds.
+    pub download_ms: f64,
+    /// Time from the kernels' submission to their completion, milliseconds.
+    pub kernel_ms: f64,
+}
+
+impl Transfers {
+    /// True when nothing moved.
+    pub fn is_empty(&self) -> bool {
+        self.uploads == 0 && self.downloads == 0 && self.resident_hits == 0
     }
 }

@@ -24,6 +24,9 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
+/// Why the node passes a depth map without a valid pixel through (both backends).
+pub const ALL_HOLES: &str = "the depth map has no valid pixel: nothing to smooth";
+
 /// Largest accepted window radius (the `radius` parameter's maximum).
 pub const MAX_RADIUS: usize = 32;
 
@@ -64,7 +67,7 @@ node_params! {
 
 /// Checks the parameters a caller of the plain function may have set by hand
 /// (the node's are range-checked by the graph already).
-fn check_params(p: &BilateralParams) -> Result<(), NodeError> {
+pub fn check_params(p: &BilateralParams) -> Result<(), NodeError> {
     if p.radius == 0 || p.radius > MAX_RADIUS {
         return Err(NodeError::param(
             "radius",
@@ -87,7 +90,7 @@ fn check_params(p: &BilateralParams) -> Result<(), NodeError> {
 }
 
 /// Checks that the guide image has the depth map's size.
-fn check_color(depth: &DepthMap, color: &ColorImage) -> Result<(), NodeError> {
+pub fn check_color(depth: &DepthMap, color: &ColorImage) -> Result<(), NodeError> {
     if !color.same_dims(depth) {
         return Err(NodeError::input(
             "color",
@@ -384,7 +387,7 @@ fn eval(
         check_color(&i.depth, &i.color)?;
         return Ok(Produced::passthrough(
             BilateralOut { depth: i.depth },
-            "the depth map has no valid pixel: nothing to smooth",
+            ALL_HOLES,
         ));
     }
     let depth = Arc::new(joint_bilateral(&i.depth, &i.color, p)?);

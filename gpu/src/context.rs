@@ -1,0 +1,452 @@
+//! The device: one wgpu instance, adapter, device and queue, with the
+//! compiled pipelines and a pool of buffers.
+//!
+//! A [`GpuContext`] is made once by the program (the CLI or the editor) and
+//! shared by every device node through an `Arc`; nothing here is static or
+//! process-wide. Choosing the adapter never panics: no adapter, or none
+//! matching `WGPU_ADAPTER_NAME`, is a [`GpuError`] that names what was found.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::time::Instant;
+
+/// Why no device could be had, or a device operation failed.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter of the allowed backends exists (no driver installed).
+    #[error(
+        "no {backends} adapter found (install a Vulkan driver, e.g. Mesa's lavapipe: apt install mesa-vulkan-drivers)"
+    )]
+    NoAdapter {
+        /// The backends searched, e.g. "Vulkan".
+        backends: String,
+    },
+    /// `WGPU_ADAPTER_NAME` (or `DEPTHGRAPH_ADAPTER`) matches no adapter.
+    #[error("no adapter name contains `{wanted}` (from {var}); found: {found}")]
+    NoMatchingAdapter {
+        /// The requested name fragment.
+        wanted: String,
+        /// The variable it came from.
+        var: &'static str,
+        /// The adapters that exist.
+        found: String,
+    },
+    /// The adapter refused to open a device.
+    #[error("{adapter}: could not open a device: {message}")]
+    RequestDevice {
+        /// The adapter.
+        adapter: String,
+        /// The driver's reason.
+        message: String,
+    },
+    /// A device operation failed (validation, out of memory, device lost).
+    #[error("{adapter}: {message}")]
+    Device {
+        /// The adapter.
+        adapter: String,
+        /// What failed.
+        message: String,
+    },
+}
+
+/// What the program knows of the adapter in use.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AdapterSummary {
+    /// The adapter's name, e.g. "llvmpipe (LLVM 15.0.6, 256 bits)".
+    pub name: String,
+    /// Driver name and version.
+    pub driver: String,
+    /// The graphics API ("Vulkan").
+    pub api: String,
+    /// Discrete, integrated, virtual or CPU (a software rasteriser such as lavapipe).
+    pub device_type: String,
+}
+
+impl AdapterSummary {
+    fn of(info: &wgpu::AdapterInfo) -> Self {
+        let driver = [info.driver.as_str(), info.driver_info.as_str()]
+            .iter()
+            .filter(|s| !s.is_empty())
+            .copied()
+            .collect::<Vec<_>>()
+            .join(" ");
+        Self {
+            name: info.name.clone(),
+            driver,
+            api: format!("{:?}", info.backend),
+            device_type: format!("{:?}", info.device_type),
+        }
+    }
+    /// True for a software implementation (lavapipe, SwiftShader): its
+    /// timings are for correctness only.
+    pub fn is_software(&self) -> bool {
+        self.device_type == "Cpu"
+    }
+    /// `name (API, driver)`, the form `explain` prints.
+    pub fn label(&self) -> String {
+        format!("{} ({}, {})", self.name, self.api, self.driver)
+    }
+}
+
+/// Where adapters are looked for and which one is taken.
+#[derive(Debug, Clone, Default)]
+pub struct AdapterRequest {
+    /// A fragment of the adapter's name (case-insensitive); `None` reads
+    /// `DEPTHGRAPH_ADAPTER`, then `WGPU_ADAPTER_NAME`.
+    pub name: Option<String>,
+}
+
+/// One device, its queue, the compiled pipelines and the buffer pool.
+pub struct GpuContext {
+    // kept alive for the device's lifetime
+    _instance: wgpu::Instance,
+    adapter: wgpu::Adapter,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    summary: AdapterSummary,
+    pipelines: Mutex<HashMap<&'static str, Arc<wgpu::ComputePipeline>>>,
+    compile_ms: Mutex<f64>,
+    pool: Arc<Mutex<Pool>>,
+    resident: Mutex<Vec<Resident>>,
+    /// Errors nobody captured (reported by the next operation that checks).
+    uncaptured: Arc<Mutex<Option<String>>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuContext")
+            .field("adapter", &self.summary)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The backends searched: `WGPU_BACKEND` when set (e.g. `vulkan`), else
+/// Vulkan, Metal and DX12 (the GL backend has no compute on many drivers).
+fn backends() -> wgpu::Backends {
+    wgpu::Backends::from_env().unwrap_or(wgpu::Backends::PRIMARY)
+}
+
+fn backend_names(b: wgpu::Backends) -> String {
+    let mut names = Vec::new();
+    if b.contains(wgpu::Backends::VULKAN) {
+        names.push("Vulkan");
+    }
+    if b.contains(wgpu::Backends::METAL) {
+        names.push("Metal");
+    }
+    if b.contains(wgpu::Backends::DX12) {
+        names.push("DX12");
+    }
+    if b.contains(wgpu::Backends::GL) {
+        names.push("GL");
+    }
+    if names.is_empty() {
+        "wgpu".to_string()
+    } else {
+        names.join("/")
+    }
+}
+
+/// Preference among adapter kinds: real GPUs first, a software one last.
+fn rank(t: wgpu::DeviceType) -> u8 {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+impl GpuContext {
+    /// Opens the preferred adapter (see [`AdapterRequest`]). Never panics.
+    pub fn new(req: &AdapterRequest) -> Result<Arc<Self>, GpuError> {
+        let backends = backends();
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+            backends,
+            ..wgpu::InstanceDescriptor::new_without_display_handle()
+        });
+        let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+        if adapters.is_empty() {
+            return Err(GpuError::NoAdapter {
+                backends: backend_names(backends),
+            });
+        }
+        let wanted = match &req.name {
+            Some(n) => Some((n.clone(), "the request")),
+            None => std::env::var("DEPTHGRAPH_ADAPTER")
+                .ok()
+                .map(|n| (n, "DEPTHGRAPH_ADAPTER"))
+                .or_else(|| {
+                    std::env::var("WGPU_ADAPTER_NAME")
+                        .ok()
+                        .map(|n| (n, "WGPU_ADAPTER_NAME"))
+                }),
+        };
+        let mut candidates: Vec<wgpu::Adapter> = adapters;
+        if let Some((name, var)) = &wanted {
+            let lower = name.to_lowercase();
+            let found = candidates
+                .iter()
+                .map(|a| a.get_info().name)
+                .collect::<Vec<_>>()
+                .join(", ");
+            candidates.retain(|a| a.get_info().name.to_lowercase().contains(&lower));
+            if candidates.is_empty() {
+                return Err(GpuError::NoMatchingAdapter {
+                    wanted: name.clone(),
+                    var,
+                    found,
+                });
+            }
+        }
+        candidates.sort_by_key(|a| rank(a.get_info().device_type));
+        let adapter = candidates.remove(0);
+        let summary = AdapterSummary::of(&adapter.get_info());
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("depthgraph"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::RequestDevice {
+            adapter: summary.label(),
+            message: e.to_string(),
+        })?;
+        let uncaptured = Arc::new(Mutex::new(None));
+        {
+            let slot = uncaptured.clone();
+            device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+                let mut s = slot.lock().unwrap_or_else(|p| p.into_inner());
+                if s.is_none() {
+                    *s = Some(e.to_string());
+                }
+            }));
+        }
+        Ok(Arc::new(Self {
+            _instance: instance,
+            adapter,
+            device,
+            queue,
+            summary,
+            pipelines: Mutex::new(HashMap::new()),
+            compile_ms: Mutex::new(0.0),
+            pool: Arc::new(Mutex::new(Pool::default())),
+            resident: Mutex::new(Vec::new()),
+            uncaptured,
+        }))
+    }
+
+    /// The adapter in use.
+    pub fn adapter(&self) -> &AdapterSummary {
+        &self.summary
+    }
+
+    /// The adapter's limits (the device was opened with all of them).
+    pub fn limits(&self) -> wgpu::Limits {
+        self.adapter.limits()
+    }
+
+    /// The wgpu device.
+    pub fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+
+    /// The wgpu queue.
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.queue
+    }
+
+    /// A device error in the adapter's name.
+    pub fn error(&self, message: impl Into<String>) -> GpuError {
+        GpuError::Device {
+            adapter: self.summary.label(),
+            message: message.into(),
+        }
+    }
+
+    /// The error an earlier operation raised and nobody captured, if any
+    /// (taken: it is reported once).
+    pub fn take_uncaptured(&self) -> Option<GpuError> {
+        let msg = lock(&self.uncaptured).take()?;
+        Some(self.error(msg))
+    }
+
+    /// The compute pipeline of entry point `entry` in WGSL `source`, compiled
+    /// once per context and kept under `name`. Compile errors are returned.
+    pub fn pipeline(
+        &self,
+        name: &'static str,
+        source: &str,
+        entry: &str,
+    ) -> Result<Arc<wgpu::ComputePipeline>, GpuError> {
+        if let Some(p) = lock(&self.pipelines).get(name) {
+            return Ok(p.clone());
+        }
+        let t = Instant::now();
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(name),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(self.error(format!("compiling `{name}`: {e}")));
+        }
+        *lock(&self.compile_ms) += t.elapsed().as_secs_f64() * 1e3;
+        let p = Arc::new(pipeline);
+        lock(&self.pipelines).insert(name, p.clone());
+        Ok(p)
+    }
+
+    /// Milliseconds spent compiling pipelines so far (the cold cost).
+    pub fn compile_ms(&self) -> f64 {
+        *lock(&self.compile_ms)
+    }
+
+    /// A buffer of at least `size` bytes with `usage`, from the pool when
+    /// one is free; it returns to the pool when dropped.
+    pub fn buffer(&self, size: u64, usage: wgpu::BufferUsages) -> PooledBuffer {
+        // Sizes are rounded up to a power of two (at least 256 B) so that
+        // buffers of similar images are reused.
+        let class = size.max(256).next_power_of_two();
+        if let Some(b) = lock(&self.pool).take(class, usage) {
+            return PooledBuffer {
+                buffer: Some(b),
+                class,
+                usage,
+                pool: Arc::downgrade(&self.pool),
+            };
+        }
+        let b = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: None,
+            size: class,
+            usage,
+            mapped_at_creation: false,
+        });
+        PooledBuffer {
+            buffer: Some(b),
+            class,
+            usage,
+            pool: Arc::downgrade(&self.pool),
+        }
+    }
+
+    /// The device copy of `value`, if a device node left one (see
+    /// [`GpuContext::keep_resident`]).
+    pub(crate) fn resident(
+        &self,
+        value: &Arc<dyn std::any::Any + Send + Sync>,
+    ) -> Option<Arc<PooledBuffer>> {
+        let mut list = lock(&self.resident);
+        list.retain(|r| r.value.strong_count() > 0);
+        let ptr = Arc::as_ptr(value) as *const () as usize;
+        list.iter()
+            .find(|r| r.ptr == ptr && r.value.upgrade().is_some_and(|v| Arc::ptr_eq(&v, value)))
+            .map(|r| r.buffer.clone())
+    }
+
+    /// Remembers that `buffer` holds `value`'s pixels for as long as the
+    /// value lives, so a device node downstream reads it without an upload.
+    /// At most [`RESIDENT_BUDGET`] bytes are kept (oldest dropped first).
+    pub(crate) fn keep_resident(
+        &self,
+        value: &Arc<dyn std::any::Any + Send + Sync>,
+        buffer: Arc<PooledBuffer>,
+        bytes: u64,
+    ) {
+        let mut list = lock(&self.resident);
+        list.retain(|r| r.value.strong_count() > 0);
+        list.push(Resident {
+            value: Arc::downgrade(value),
+            ptr: Arc::as_ptr(value) as *const () as usize,
+            buffer,
+            bytes,
+        });
+        let mut total: u64 = list.iter().map(|r| r.bytes).sum();
+        while total > RESIDENT_BUDGET && !list.is_empty() {
+            total -= list.remove(0).bytes;
+        }
+    }
+}
+
+/// Device bytes kept for values that device nodes hand each other.
+pub const RESIDENT_BUDGET: u64 = 1 << 30;
+
+/// Largest number of bytes the pool keeps idle.
+const POOL_BUDGET: u64 = 512 << 20;
+
+struct Resident {
+    value: Weak<dyn std::any::Any + Send + Sync>,
+    ptr: usize,
+    buffer: Arc<PooledBuffer>,
+    bytes: u64,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+#[derive(Default)]
+struct Pool {
+    free: HashMap<(u64, u32), Vec<wgpu::Buffer>>,
+    bytes: u64,
+}
+
+impl Pool {
+    fn take(&mut self, class: u64, usage: wgpu::BufferUsages) -> Option<wgpu::Buffer> {
+        let b = self.free.get_mut(&(class, usage.bits()))?.pop()?;
+        self.bytes -= class;
+        Some(b)
+    }
+    fn give(&mut self, class: u64, usage: wgpu::BufferUsages, b: wgpu::Buffer) {
+        if self.bytes + class > POOL_BUDGET {
+            return; // dropped: freed by wgpu
+        }
+        self.bytes += class;
+        self.free.entry((class, usage.bits())).or_default().push(b);
+    }
+}
+
+/// A buffer borrowed from the context's pool.
+pub struct PooledBuffer {
+    buffer: Option<wgpu::Buffer>,
+    class: u64,
+    usage: wgpu::BufferUsages,
+    pool: Weak<Mutex<Pool>>,
+}
+
+impl PooledBuffer {
+    /// The wgpu buffer.
+    pub fn get(&self) -> &wgpu::Buffer {
+        // Invariant: `buffer` is Some until drop.
+        self.buffer.as_ref().unwrap_or_else(|| unreachable!())
+    }
+}
+
+impl std::ops::Deref for PooledBuffer {
+    type Target = wgpu::Buffer;
+    fn deref(&self) -> &wgpu::Buffer {
+        self.get()
+    }
+}
+
+impl Drop for PooledBuffer {
+    fn drop(&mut self) {
+        if let (Some(b), Some(pool)) = (self.buffer.take(), self.pool.upgrade()) {
+            lock(&pool).give(self.class, self.usage, b);
+        }
+    }
+}

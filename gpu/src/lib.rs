@@ -1,0 +1,45 @@
+//! # depthgraph-gpu
+//!
+//! The wgpu compute backend. Each device node is a second implementation
+//! ("wgpu") of a CPU node kind with the **same schema**, so a result's cache
+//! key does not depend on the backend that produced it; the discrete
+//! decisions (sample counts, active regions, pass-throughs) are the CPU
+//! code's own functions, so both backends decide alike.
+//!
+//! - [`context`]: instance, adapter, device, queue, pipeline cache, buffer
+//!   pool, and the device copies of values that device nodes hand each other;
+//! - [`session`]: one evaluation's uploads, kernels and downloads, counted;
+//! - [`node`]: the [`Node`](depthgraph_graph::node::Node) adapter;
+//! - [`backend`]: `--backend auto|cpu|gpu`;
+//! - one module per node kind, its WGSL in `src/shaders/`.
+//!
+//! Numerics on the device are f32; each module states its bound against the
+//! CPU's f64 sums and the tolerance its parity test checks.
+
+#![warn(missing_docs)]
+
+pub mod backend;
+pub mod bilateral;
+pub mod context;
+pub mod node;
+pub mod parity;
+pub mod session;
+pub mod shaders;
+
+use std::sync::Arc;
+
+use depthgraph_graph::registry::{Registry, RegistryError};
+
+pub use backend::{BackendChoice, BackendRequest, choose};
+pub use context::{AdapterRequest, AdapterSummary, GpuContext, GpuError};
+
+/// The node kinds that have a device implementation.
+pub const DEVICE_KINDS: &[&str] = &["JointBilateral"];
+
+/// Adds the device implementation of every kind in [`DEVICE_KINDS`] to
+/// `reg` (whose CPU kinds must be registered) and prefers them.
+pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), RegistryError> {
+    node::register_device(reg, ctx, "JointBilateral", bilateral::eval)?;
+    reg.prefer_backends(&["wgpu", "cpu"]);
+    Ok(())
+}

@@ -1,0 +1,91 @@
+//! The adapter between a device function and the graph: a [`DeviceNode`]
+//! has the CPU node's schema (so the cache key is the same whichever
+//! backend runs), the backend name "wgpu", and names its adapter.
+
+use std::marker::PhantomData;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use depthgraph_graph::node::{Origin, typed_params};
+use depthgraph_graph::ports::{InputPorts, OutputPorts, Produced};
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::registry::RegistryError;
+
+use crate::context::GpuContext;
+use crate::session::Session;
+
+/// A device node's function: the session, the typed inputs and parameters.
+pub type DeviceEval<I, O, P> = fn(&mut Session, &EvalCtx, I, &P) -> Result<Produced<O>, NodeError>;
+
+/// A node kind's implementation on the device.
+pub struct DeviceNode<I, O, P: NodeParams> {
+    schema: NodeSchema,
+    ctx: Arc<GpuContext>,
+    cpu: Arc<dyn Node>,
+    eval: DeviceEval<I, O, P>,
+    ports: Marker<I, O, P>,
+}
+
+/// The port and parameter types of a [`DeviceNode`] (no data).
+type Marker<I, O, P> = PhantomData<fn() -> (I, O, P)>;
+
+impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for DeviceNode<I, O, P> {
+    fn schema(&self) -> &NodeSchema {
+        &self.schema
+    }
+    fn eval(
+        &self,
+        ctx: &EvalCtx,
+        inputs: &Inputs,
+        params: &ParamMap,
+    ) -> Result<Outputs, NodeError> {
+        let p: P = typed_params(params)?;
+        ctx.check_cancelled()?;
+        let i = I::take(inputs)?;
+        let mut session = Session::new(&self.ctx);
+        let r = (self.eval)(&mut session, ctx, i, &p)?;
+        let mut out = r.out.into_outputs();
+        out.passthrough = r.passthrough;
+        out.transfers = session.register_outputs(&out);
+        out.origin = Some(Origin {
+            backend: "wgpu".to_string(),
+            adapter: Some(self.ctx.adapter().label()),
+        });
+        Ok(out)
+    }
+    fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {
+        self.cpu.input_files(params)
+    }
+    fn backend(&self) -> &'static str {
+        "wgpu"
+    }
+    fn adapter(&self) -> Option<String> {
+        Some(self.ctx.adapter().label())
+    }
+}
+
+/// Adds the device implementation `eval` of `kind`, whose CPU node must
+/// already be in `reg` (its schema is taken, so the two cannot differ).
+pub fn register_device<I, O, P>(
+    reg: &mut Registry,
+    ctx: &Arc<GpuContext>,
+    kind: &'static str,
+    eval: DeviceEval<I, O, P>,
+) -> Result<(), RegistryError>
+where
+    I: InputPorts + 'static,
+    O: OutputPorts + 'static,
+    P: NodeParams + 'static,
+{
+    let Some(cpu) = reg.get(kind) else {
+        return Err(RegistryError::Missing(kind));
+    };
+    let schema = cpu.schema().clone();
+    reg.register_backend(DeviceNode {
+        schema,
+        ctx: ctx.clone(),
+        cpu,
+        eval,
+        ports: PhantomData,
+    })
+}

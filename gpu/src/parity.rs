@@ -1,0 +1,82 @@
+//! The agreement checks between the CPU and device results, with the
+//! tolerances each device module states. Each returns what it measured, or
+//! an error that says where and by how much the results part.
+
+use depthgraph_graph::prelude::*;
+
+/// What a depth comparison measured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthAgreement {
+    /// Largest `|Δz| / z` over pixels valid on both.
+    pub max_rel: f64,
+    /// Pixels compared.
+    pub pixels: usize,
+}
+
+/// Same size, the same holes, and `|z_gpu - z_cpu| <= rel * z_cpu` at every
+/// valid pixel.
+pub fn depth_within(cpu: &DepthMap, gpu: &DepthMap, rel: f64) -> Result<DepthAgreement, String> {
+    if cpu.dims() != gpu.dims() {
+        return Err(format!(
+            "sizes differ: {:?} vs {:?}",
+            cpu.dims(),
+            gpu.dims()
+        ));
+    }
+    let w = cpu.width().max(1);
+    let mut max_rel = 0.0f64;
+    for (i, (&a, &b)) in cpu.as_slice().iter().zip(gpu.as_slice()).enumerate() {
+        let (va, vb) = (DepthMap::is_valid(a), DepthMap::is_valid(b));
+        if va != vb {
+            return Err(format!(
+                "hole masks differ at ({}, {}): cpu {a}, gpu {b}",
+                i % w,
+                i / w
+            ));
+        }
+        if va {
+            // Guard: a > 0 (valid).
+            let r = (a as f64 - b as f64).abs() / a as f64;
+            if r > rel {
+                return Err(format!(
+                    "at ({}, {}): cpu {a}, gpu {b}: relative difference {r:.3e} > {rel:e}",
+                    i % w,
+                    i / w
+                ));
+            }
+            max_rel = max_rel.max(r);
+        }
+    }
+    Ok(DepthAgreement {
+        max_rel,
+        pixels: cpu.len(),
+    })
+}
+
+/// PSNR in dB of the display images (linear color clamped to [0, 1] and
+/// sRGB-encoded) of `gpu` against `cpu`; infinite when they are equal.
+pub fn display_psnr(cpu: &ColorImage, gpu: &ColorImage) -> Result<f64, String> {
+    if cpu.dims() != gpu.dims() {
+        return Err(format!(
+            "sizes differ: {:?} vs {:?}",
+            cpu.dims(),
+            gpu.dims()
+        ));
+    }
+    let enc = |v: f32| depthgraph_nodes::kit::color::linear_to_srgb(v.clamp(0.0, 1.0)) as f64;
+    let mut se = 0.0f64;
+    for (a, b) in cpu.as_slice().iter().zip(gpu.as_slice()) {
+        for k in 0..3 {
+            let d = enc(a[k]) - enc(b[k]);
+            se += d * d;
+        }
+    }
+    let n = (3 * cpu.len()).max(1) as f64;
+    let mse = se / n;
+    // Guard: mse > 0 in the logarithm.
+    Ok(if mse > 0.0 {
+        -10.0 * mse.log10()
+    } else {
+        f64::INFINITY
+    })
+}

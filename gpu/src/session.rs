@@ -1,0 +1,287 @@
+//! One node's evaluation on the device: uploads (or finds already resident)
+//! its inputs, runs its kernels, downloads its outputs, and counts every
+//! byte and millisecond of it for the trace.
+
+use std::any::Any;
+use std::sync::Arc;
+use std::time::Instant;
+
+use depthgraph_graph::node::Transfers;
+use depthgraph_graph::prelude::*;
+
+use crate::context::{GpuContext, GpuError, PooledBuffer};
+
+/// Storage buffers a kernel reads and writes, and that can be copied.
+pub const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
+/// Uniform buffers.
+pub const UNIFORM: wgpu::BufferUsages =
+    wgpu::BufferUsages::UNIFORM.union(wgpu::BufferUsages::COPY_DST);
+
+/// Host-readable staging buffers.
+const READBACK: wgpu::BufferUsages =
+    wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST);
+
+/// The work of one device node evaluation.
+pub struct Session<'a> {
+    ctx: &'a GpuContext,
+    /// What moved, for the trace.
+    pub stats: Transfers,
+    /// Output buffers to remember as resident once the output values exist.
+    kept: Vec<(String, Arc<PooledBuffer>, u64)>,
+}
+
+/// The shared pointer behind an image value, for residency.
+pub(crate) fn value_arc(v: &Value) -> Option<Arc<dyn Any + Send + Sync>> {
+    Some(match v {
+        Value::Color(a) => a.clone(),
+        Value::Depth(a) => a.clone(),
+        Value::Mask(a) => a.clone(),
+        Value::Confidence(a) => a.clone(),
+        _ => return None,
+    })
+}
+
+impl<'a> Session<'a> {
+    /// A session on `ctx`.
+    pub fn new(ctx: &'a GpuContext) -> Self {
+        Self {
+            ctx,
+            stats: Transfers::default(),
+            kept: Vec::new(),
+        }
+    }
+
+    /// The context.
+    pub fn ctx(&self) -> &'a GpuContext {
+        self.ctx
+    }
+
+    /// The compiled pipeline of `k` (compiled on first use, then cached by
+    /// the context).
+    pub fn kernel(
+        &self,
+        k: &crate::shaders::Kernel,
+    ) -> Result<Arc<wgpu::ComputePipeline>, NodeError> {
+        self.ctx
+            .pipeline(k.name, &k.source(), k.entry)
+            .map_err(|e| self.fail(e))
+    }
+
+    /// A device error as a node error.
+    pub fn fail(&self, e: GpuError) -> NodeError {
+        let (adapter, message) = match e {
+            GpuError::Device { adapter, message } => (adapter, message),
+            other => (self.ctx.adapter().label(), other.to_string()),
+        };
+        NodeError::Device { adapter, message }
+    }
+
+    /// The pixels of an image input on the device: the buffer a device node
+    /// upstream left (no upload), else a fresh upload of `bytes`.
+    pub fn image<T: Send + Sync + 'static>(
+        &mut self,
+        value: &Arc<T>,
+        bytes: &[u8],
+    ) -> Arc<PooledBuffer> {
+        let any: Arc<dyn Any + Send + Sync> = value.clone();
+        if let Some(b) = self.ctx.resident(&any) {
+            self.stats.resident_hits += 1;
+            return b;
+        }
+        Arc::new(self.upload(bytes))
+    }
+
+    /// Copies `bytes` into a new storage buffer.
+    pub fn upload(&mut self, bytes: &[u8]) -> PooledBuffer {
+        let t = Instant::now();
+        let b = self.ctx.buffer(bytes.len().max(4) as u64, STORAGE);
+        if !bytes.is_empty() {
+            self.write(&b, bytes);
+        }
+        self.stats.uploads += 1;
+        self.stats.upload_bytes += bytes.len();
+        self.stats.upload_ms += t.elapsed().as_secs_f64() * 1e3;
+        b
+    }
+
+    /// A uniform buffer holding `bytes` (a parameter block; not counted as
+    /// image traffic).
+    pub fn uniform(&mut self, bytes: &[u8]) -> PooledBuffer {
+        let b = self.ctx.buffer(bytes.len().max(16) as u64, UNIFORM);
+        self.write(&b, bytes);
+        b
+    }
+
+    /// An uninitialised storage buffer of `size` bytes.
+    pub fn scratch(&mut self, size: u64) -> PooledBuffer {
+        self.ctx.buffer(size.max(4), STORAGE)
+    }
+
+    fn write(&self, b: &wgpu::Buffer, bytes: &[u8]) {
+        // write_buffer needs a multiple of 4 bytes
+        if bytes.len() % 4 == 0 {
+            self.ctx.queue().write_buffer(b, 0, bytes);
+        } else {
+            let mut padded = bytes.to_vec();
+            padded.resize(bytes.len().next_multiple_of(4), 0);
+            self.ctx.queue().write_buffer(b, 0, &padded);
+        }
+    }
+
+    /// A bind group of `pipeline`'s group 0 with `buffers` at bindings 0, 1, ...
+    pub fn bind(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        buffers: &[&wgpu::Buffer],
+    ) -> wgpu::BindGroup {
+        let layout = pipeline.get_bind_group_layout(0);
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        self.ctx
+            .device()
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &layout,
+                entries: &entries,
+            })
+    }
+
+    /// A new command encoder.
+    pub fn encoder(&self) -> wgpu::CommandEncoder {
+        self.ctx
+            .device()
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None })
+    }
+
+    /// Submits `encoder`, waits for it, and reads back `reads` (buffer and
+    /// byte count each). Kernel time and download bytes go to the stats.
+    pub fn finish(
+        &mut self,
+        mut encoder: wgpu::CommandEncoder,
+        reads: &[(&wgpu::Buffer, u64)],
+    ) -> Result<Vec<Vec<u8>>, NodeError> {
+        let ctx = self.ctx;
+        let staging: Vec<PooledBuffer> = reads
+            .iter()
+            .map(|(src, n)| {
+                let n4 = n.next_multiple_of(4).max(4);
+                let s = ctx.buffer(n4, READBACK);
+                encoder.copy_buffer_to_buffer(src, 0, &s, 0, n4);
+                s
+            })
+            .collect();
+        let scope = ctx
+            .device()
+            .push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let scope_v = ctx.device().push_error_scope(wgpu::ErrorFilter::Validation);
+        let t = Instant::now();
+        let index = ctx.queue().submit([encoder.finish()]);
+        if let Some(e) = pollster::block_on(scope_v.pop()) {
+            drop(pollster::block_on(scope.pop()));
+            return Err(self.fail(ctx.error(e.to_string())));
+        }
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(self.fail(ctx.error(format!("out of device memory: {e}"))));
+        }
+        self.wait(Some(index))?;
+        self.stats.kernel_ms += t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        let mut out = Vec::with_capacity(reads.len());
+        for (s, (_, n)) in staging.iter().zip(reads) {
+            let slice = s.slice(..n.next_multiple_of(4).max(4));
+            let (tx, rx) = std::sync::mpsc::channel();
+            slice.map_async(wgpu::MapMode::Read, move |r| {
+                let _ = tx.send(r);
+            });
+            self.wait(None)?;
+            match rx.recv() {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => return Err(self.fail(ctx.error(format!("reading back: {e}")))),
+                Err(_) => {
+                    return Err(self.fail(ctx.error("reading back: no answer from the device")));
+                }
+            }
+            let view = slice
+                .get_mapped_range()
+                .map_err(|e| self.fail(ctx.error(format!("reading back: {e}"))))?;
+            out.push(view[..*n as usize].to_vec());
+            drop(view);
+            s.unmap();
+            self.stats.downloads += 1;
+            self.stats.download_bytes += *n as usize;
+        }
+        self.stats.download_ms += t.elapsed().as_secs_f64() * 1e3;
+        if let Some(e) = ctx.take_uncaptured() {
+            return Err(self.fail(e));
+        }
+        Ok(out)
+    }
+
+    /// Submits `encoder` and waits, reading nothing back.
+    pub fn submit(&mut self, encoder: wgpu::CommandEncoder) -> Result<(), NodeError> {
+        self.finish(encoder, &[]).map(|_| ())
+    }
+
+    fn wait(&self, index: Option<wgpu::SubmissionIndex>) -> Result<(), NodeError> {
+        self.ctx
+            .device()
+            .poll(wgpu::PollType::Wait {
+                submission_index: index,
+                timeout: None,
+            })
+            .map(|_| ())
+            .map_err(|e| self.fail(self.ctx.error(format!("waiting for the device: {e}"))))
+    }
+
+    /// Marks `buffer` (holding `bytes` bytes) as the device copy of output
+    /// `port`, so a device node downstream finds it resident.
+    pub fn keep(&mut self, port: &str, buffer: Arc<PooledBuffer>, bytes: u64) {
+        self.kept.push((port.to_string(), buffer, bytes));
+    }
+
+    /// Registers the kept buffers against the output values.
+    pub(crate) fn register_outputs(self, out: &Outputs) -> Transfers {
+        for (port, buffer, bytes) in self.kept {
+            if let Some(arc) = out.values.get(&port).and_then(value_arc) {
+                self.ctx.keep_resident(&arc, buffer, bytes);
+            }
+        }
+        self.stats
+    }
+}
+
+/// `f32` bytes of a slice of `f32`s or `[f32; N]`s.
+pub fn bytes_of<T: bytemuck::Pod>(v: &[T]) -> &[u8] {
+    bytemuck::cast_slice(v)
+}
+
+/// `f32`s from bytes read back (a copy; the length is a multiple of 4 by
+/// construction of [`Session::finish`]).
+pub fn f32s(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// `u32`s from bytes read back.
+pub fn u32s(bytes: &[u8]) -> Vec<u32> {
+    bytes
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Workgroups of `size` invocations covering `n` items.
+pub fn groups(n: usize, size: u32) -> u32 {
+    (n as u32).div_ceil(size).max(1)
+}

@@ -1,0 +1,35 @@
+//! The WGSL sources, each prefixed with `common.wgsl`.
+
+const COMMON: &str = include_str!("shaders/common.wgsl");
+
+/// A kernel's source and entry point.
+#[derive(Debug, Clone, Copy)]
+pub struct Kernel {
+    /// Pipeline-cache name.
+    pub name: &'static str,
+    /// The file's WGSL (without the common prefix).
+    pub body: &'static str,
+    /// Entry point.
+    pub entry: &'static str,
+}
+
+impl Kernel {
+    /// The full source: the common helpers, then the body.
+    pub fn source(&self) -> String {
+        format!("{COMMON}\n{}", self.body)
+    }
+}
+
+macro_rules! kernel {
+    ($name:ident, $file:literal, $entry:literal) => {
+        #[doc = concat!("`", $file, "`, entry `", $entry, "`.")]
+        pub const $name: Kernel = Kernel {
+            name: concat!($file, "::", $entry),
+            body: include_str!(concat!("shaders/", $file)),
+            entry: $entry,
+        };
+    };
+}
+
+kernel!(BILATERAL_ENCODE, "bilateral_encode.wgsl", "main");
+kernel!(BILATERAL, "bilateral.wgsl", "main");
