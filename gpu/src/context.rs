@@ -105,6 +105,7 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     summary: AdapterSummary,
     pipelines: Mutex<HashMap<&'static str, Arc<wgpu::ComputePipeline>>>,
+    layouts: Mutex<HashMap<&'static str, Arc<(wgpu::BindGroupLayout, wgpu::PipelineLayout)>>>,
     compile_ms: Mutex<f64>,
     pool: Arc<Mutex<Pool>>,
     resident: Mutex<Vec<Resident>>,
@@ -231,6 +232,7 @@ impl GpuContext {
             queue,
             summary,
             pipelines: Mutex::new(HashMap::new()),
+            layouts: Mutex::new(HashMap::new()),
             compile_ms: Mutex::new(0.0),
             pool: Arc::new(Mutex::new(Pool::default())),
             resident: Mutex::new(Vec::new()),
@@ -281,6 +283,18 @@ impl GpuContext {
         source: &str,
         entry: &str,
     ) -> Result<Arc<wgpu::ComputePipeline>, GpuError> {
+        self.pipeline_in(name, source, entry, None)
+    }
+
+    /// [`GpuContext::pipeline`] with an explicit layout (one of
+    /// [`GpuContext::layout`]'s, so it is the same object on every call).
+    pub fn pipeline_in(
+        &self,
+        name: &'static str,
+        source: &str,
+        entry: &str,
+        layout: Option<&wgpu::PipelineLayout>,
+    ) -> Result<Arc<wgpu::ComputePipeline>, GpuError> {
         if let Some(p) = lock(&self.pipelines).get(name) {
             return Ok(p.clone());
         }
@@ -296,7 +310,7 @@ impl GpuContext {
             .device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(name),
-                layout: None,
+                layout,
                 module: &module,
                 entry_point: Some(entry),
                 compilation_options: Default::default(),
@@ -309,6 +323,35 @@ impl GpuContext {
         let p = Arc::new(pipeline);
         lock(&self.pipelines).insert(name, p.clone());
         Ok(p)
+    }
+
+    /// The bind group layout `entries` and a pipeline layout of it alone,
+    /// made once per context under `name`.
+    pub fn layout(
+        &self,
+        name: &'static str,
+        entries: &[wgpu::BindGroupLayoutEntry],
+    ) -> Arc<(wgpu::BindGroupLayout, wgpu::PipelineLayout)> {
+        let mut map = lock(&self.layouts);
+        if let Some(l) = map.get(name) {
+            return l.clone();
+        }
+        let bgl = self
+            .device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(name),
+                entries,
+            });
+        let pl = self
+            .device
+            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(name),
+                bind_group_layouts: &[Some(&bgl)],
+                immediate_size: 0,
+            });
+        let l = Arc::new((bgl, pl));
+        map.insert(name, l.clone());
+        l
     }
 
     /// Milliseconds spent compiling pipelines so far (the cold cost).

@@ -23,6 +23,7 @@ pub mod bilateral;
 pub mod context;
 pub mod node;
 pub mod parity;
+pub mod refocus;
 pub mod session;
 pub mod shaders;
 
@@ -34,12 +35,13 @@ pub use backend::{BackendChoice, BackendRequest, choose};
 pub use context::{AdapterRequest, AdapterSummary, GpuContext, GpuError};
 
 /// The node kinds that have a device implementation.
-pub const DEVICE_KINDS: &[&str] = &["JointBilateral"];
+pub const DEVICE_KINDS: &[&str] = &["JointBilateral", "Refocus"];
 
 /// Adds the device implementation of every kind in [`DEVICE_KINDS`] to
 /// `reg` (whose CPU kinds must be registered) and prefers them.
 pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), RegistryError> {
     node::register_device(reg, ctx, "JointBilateral", bilateral::eval)?;
+    node::register_device(reg, ctx, "Refocus", refocus::eval)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

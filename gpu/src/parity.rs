@@ -80,3 +80,42 @@ pub fn display_psnr(cpu: &ColorImage, gpu: &ColorImage) -> Result<f64, String> {
         f64::INFINITY
     })
 }
+
+/// The Refocus check: pixels where `fixed` is true (outside the active
+/// tiles) are bit-identical, and the display PSNR is at least `min_db`.
+/// Returns the PSNR.
+pub fn color_within(
+    cpu: &ColorImage,
+    gpu: &ColorImage,
+    fixed: &[bool],
+    min_db: f64,
+) -> Result<f64, String> {
+    if cpu.dims() != gpu.dims() || fixed.len() != cpu.len() {
+        return Err(format!(
+            "sizes differ: {:?} vs {:?}",
+            cpu.dims(),
+            gpu.dims()
+        ));
+    }
+    let w = cpu.width().max(1);
+    for (t, ((a, b), &f)) in cpu
+        .as_slice()
+        .iter()
+        .zip(gpu.as_slice())
+        .zip(fixed)
+        .enumerate()
+    {
+        if f && a.map(f32::to_bits) != b.map(f32::to_bits) {
+            return Err(format!(
+                "inactive pixel ({}, {}) differs: cpu {a:?}, gpu {b:?}",
+                t % w,
+                t / w
+            ));
+        }
+    }
+    let psnr = display_psnr(cpu, gpu)?;
+    if psnr < min_db {
+        return Err(format!("display PSNR {psnr:.2} dB < {min_db} dB"));
+    }
+    Ok(psnr)
+}

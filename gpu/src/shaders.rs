@@ -33,3 +33,9 @@ macro_rules! kernel {
 
 kernel!(BILATERAL_ENCODE, "bilateral_encode.wgsl", "main");
 kernel!(BILATERAL, "bilateral.wgsl", "main");
+kernel!(REFOCUS_CLEAR, "refocus.wgsl", "clear");
+kernel!(REFOCUS_WARP_DEPTH, "refocus.wgsl", "warp_depth");
+kernel!(REFOCUS_WARP_INDEX, "refocus.wgsl", "warp_index");
+kernel!(REFOCUS_GATHER, "refocus.wgsl", "gather");
+kernel!(REFOCUS_FILL, "refocus.wgsl", "fill_accumulate");
+kernel!(REFOCUS_FINISH, "refocus.wgsl", "finish");

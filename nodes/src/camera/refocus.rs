@@ -202,6 +202,160 @@ struct View {
     conf: Vec<f32>,
 }
 
+/// What [`refocus`] decides before rendering any view: the discrete
+/// decisions (pass-through, sample count and points, active tiles, which
+/// pixels move) that every backend takes from here, so they decide alike.
+#[derive(Debug, Clone)]
+pub enum Plan {
+    /// No circle of confusion reaches half a pixel: the exposed input.
+    Sharp(ColorImage, RefocusReport),
+    /// Views to render and average.
+    Blur(BlurPlan),
+}
+
+/// The views of a blurred [`Plan`].
+#[derive(Debug, Clone)]
+pub struct BlurPlan {
+    /// Image width.
+    pub w: usize,
+    /// Image height.
+    pub h: usize,
+    /// Aperture points (diameter units), one view each.
+    pub points: Vec<[f64; 2]>,
+    /// Pixels some blurred pixel can reach (the others keep the input).
+    pub active: Vec<bool>,
+    /// Number of active pixels (at least 1).
+    pub n_active: usize,
+    /// `C` of `coc = C |1/z - 1/u|`, pixel metres.
+    pub c_scale: f64,
+    /// `1/u`, the focus distance's inverse (0 at infinity).
+    pub inv_u: f64,
+    /// `1/z` per pixel (0: no measurement, infinitely far).
+    pub src_inv_z: Vec<f64>,
+    /// Sanitised linear color per pixel (non-finite as 0, negatives clamped).
+    pub src_color: Vec<Rgb>,
+    /// Active pixels as (index, z-buffer key): the key's high half is the
+    /// depth's f32 bits (+inf for the sky), its low half the index.
+    pub sources: Vec<(u32, u64)>,
+    /// `2^exposure_stops`.
+    pub gain: f64,
+    /// Largest circle of confusion, pixels.
+    pub max_coc: f64,
+}
+
+impl BlurPlan {
+    /// The shift of view `s` in pixels per unit of `1/u - 1/z`.
+    pub fn shift(&self, s: [f64; 2]) -> [f64; 2] {
+        [self.c_scale * s[0], self.c_scale * s[1]]
+    }
+
+    /// The unit march step of the hole fill along a view's shift (the major
+    /// axis has length 1); a zero shift (nothing moved) falls back to x.
+    pub fn fill_step(dir: [f64; 2]) -> [f64; 2] {
+        let m = dir[0].abs().max(dir[1].abs());
+        if m > 0.0 && m.is_finite() {
+            // Guard: m > 0 checked.
+            [dir[0] / m, dir[1] / m]
+        } else {
+            [1.0, 0.0]
+        }
+    }
+
+    /// The report of rendering this plan with `holes_total` hole pixels
+    /// filled over all views.
+    pub fn report(&self, holes_total: usize) -> RefocusReport {
+        let (w, h) = (self.w, self.h);
+        RefocusReport {
+            max_coc_px: self.max_coc,
+            samples: self.points.len(),
+            // Guards: w * h > 0 (empty images are Sharp), n_active > 0
+            // because the pixel with the largest CoC is active.
+            active_fraction: self.n_active as f64 / (w * h).max(1) as f64,
+            hole_fraction: holes_total as f64
+                / (self.n_active.max(1) * self.points.len().max(1)) as f64,
+        }
+    }
+}
+
+/// The decisions of [`refocus`] (see [`Plan`]).
+pub fn plan(
+    color: &ColorImage,
+    depth: &DepthMap,
+    aperture: &Aperture,
+    p: &RefocusParams,
+) -> Result<Plan, NodeError> {
+    check_inputs(color, depth)?;
+    let lens = p.lens();
+    let coc = crate::camera::lens::coc_map(depth, &lens)?;
+    let gain = 2f64.powf(p.exposure_stops);
+    let max_coc = coc.as_slice().iter().fold(0.0f64, |m, &c| m.max(c as f64));
+    let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
+    if max_coc < MIN_COC_PX || color.is_empty() {
+        return Ok(Plan::Sharp(
+            color.map(|&c| exposed(c)),
+            RefocusReport {
+                max_coc_px: max_coc,
+                samples: 0,
+                active_fraction: 0.0,
+                hole_fraction: 0.0,
+            },
+        ));
+    }
+    let n = if p.samples == 0 {
+        auto_samples(max_coc, p.quality)
+    } else {
+        p.samples
+    };
+    let points = aperture.samples(n, p.seed)?;
+    let (w, h) = color.dims();
+    let (active, n_active) = active_pixels(&coc, aperture.extent());
+    let src_inv_z: Vec<f64> = depth.as_slice().iter().map(|&z| inv_depth(z)).collect();
+    let src_color: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
+    // Sources that can move: active pixels only (see active_pixels), with
+    // the high half of their z-buffer key computed once: depth bits (positive
+    // floats order like their bits; +inf for the sky) then the source index.
+    let sources: Vec<(u32, u64)> = (0..w * h)
+        .filter(|&i| active[i])
+        .map(|i| {
+            let z = if src_inv_z[i] > 0.0 {
+                // Guard: src_inv_z[i] > 0.
+                (1.0 / src_inv_z[i]) as f32
+            } else {
+                f32::INFINITY
+            };
+            (i as u32, ((z.to_bits() as u64) << 32) | i as u64)
+        })
+        .collect();
+    Ok(Plan::Blur(BlurPlan {
+        w,
+        h,
+        points,
+        active,
+        n_active,
+        c_scale: lens.coc_scale(w),
+        inv_u: lens.inv_focus(),
+        src_inv_z,
+        src_color,
+        sources,
+        gain,
+        max_coc,
+    }))
+}
+
+/// Why `Refocus` passed its input through (`report.samples == 0`); both
+/// backends say it in these words.
+pub fn sharp_reason(p: &RefocusParams, report: &RefocusReport) -> String {
+    let what = if p.exposure_stops == 0.0 {
+        "image passed through".to_string()
+    } else {
+        format!("only the exposure ({:+} stops) applied", p.exposure_stops)
+    };
+    format!(
+        "circle of confusion below {MIN_COC_PX} px everywhere (largest {:.3} px): {what}",
+        report.max_coc_px
+    )
+}
+
 /// Refocuses `color` (linear radiance) with its per-pixel `depth` through
 /// the thin lens and aperture of `p` (Sec. 2.3; see the module docs).
 ///
@@ -227,50 +381,22 @@ pub fn refocus(
     p: &RefocusParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(ColorImage, RefocusReport), NodeError> {
-    check_inputs(color, depth)?;
-    let lens = p.lens();
-    let coc = crate::camera::lens::coc_map(depth, &lens)?;
-    let gain = 2f64.powf(p.exposure_stops);
-    let max_coc = coc.as_slice().iter().fold(0.0f64, |m, &c| m.max(c as f64));
-    let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
-    if max_coc < MIN_COC_PX || color.is_empty() {
-        return Ok((
-            color.map(|&c| exposed(c)),
-            RefocusReport {
-                max_coc_px: max_coc,
-                samples: 0,
-                active_fraction: 0.0,
-                hole_fraction: 0.0,
-            },
-        ));
-    }
-    let n = if p.samples == 0 {
-        auto_samples(max_coc, p.quality)
-    } else {
-        p.samples
+    let plan = match plan(color, depth, aperture, p)? {
+        Plan::Sharp(out, report) => return Ok((out, report)),
+        Plan::Blur(b) => b,
     };
-    let points = aperture.samples(n, p.seed)?;
-    let (w, h) = color.dims();
-    let (active, n_active) = active_pixels(&coc, aperture.extent());
-    let c_scale = lens.coc_scale(w);
-    let inv_u = lens.inv_focus();
-    let src_inv_z: Vec<f64> = depth.as_slice().iter().map(|&z| inv_depth(z)).collect();
-    let src_color: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
-    // Sources that can move: active pixels only (see active_pixels), with
-    // the high half of their z-buffer key computed once: depth bits (positive
-    // floats order like their bits; +inf for the sky) then the source index.
-    let sources: Vec<(u32, u64)> = (0..w * h)
-        .filter(|&i| active[i])
-        .map(|i| {
-            let z = if src_inv_z[i] > 0.0 {
-                // Guard: src_inv_z[i] > 0.
-                (1.0 / src_inv_z[i]) as f32
-            } else {
-                f32::INFINITY
-            };
-            (i as u32, ((z.to_bits() as u64) << 32) | i as u64)
-        })
-        .collect();
+    let BlurPlan {
+        w,
+        h,
+        ref points,
+        ref active,
+        c_scale,
+        ref src_inv_z,
+        ref src_color,
+        ref sources,
+        ..
+    } = plan;
+    let inv_u = plan.inv_u;
     let mut acc = vec![[0.0f64; 3]; w * h];
     let mut view = View {
         zbuf: (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect(),
@@ -345,28 +471,19 @@ pub fn refocus(
         }
     }
     // Guard: n >= 1 (auto >= 16, explicit >= 1 since 0 means auto).
+    let gain = plan.gain;
     let inv_n = gain / points.len() as f64;
     let data: Vec<Rgb> = (0..w * h)
         .map(|t| {
             if active[t] {
                 acc[t].map(|v| (v * inv_n) as f32)
             } else {
-                exposed(src_color[t])
+                src_color[t].map(|v| (v as f64 * gain) as f32)
             }
         })
         .collect();
     let out = Image::from_vec(w, h, data)?;
-    Ok((
-        out,
-        RefocusReport {
-            max_coc_px: max_coc,
-            samples: points.len(),
-            // Guards: w * h > 0 (empty images returned above), n_active > 0
-            // because the pixel with the largest CoC is active.
-            active_fraction: n_active as f64 / (w * h) as f64,
-            hole_fraction: holes_total as f64 / (n_active.max(1) * points.len()) as f64,
-        },
-    ))
+    Ok((out, plan.report(holes_total)))
 }
 
 /// Fills the holes of one view with the far-depth prior of Sec. 2.3
@@ -399,15 +516,8 @@ fn fill_holes(
     dir: [f64; 2],
     p: &RefocusParams,
 ) {
-    // Unit step along the major axis of the direction (a DDA); a zero
-    // direction (the centre sample: nothing moved) falls back to x.
-    let m = dir[0].abs().max(dir[1].abs());
-    let step = if m > 0.0 && m.is_finite() {
-        // Guard: m > 0 checked.
-        [dir[0] / m, dir[1] / m]
-    } else {
-        [1.0, 0.0]
-    };
+    // Unit step along the major axis of the direction (a DDA).
+    let step = BlurPlan::fill_step(dir);
     let fills: Vec<(Rgb, f32, f32)> = holes
         .par_iter()
         .map(|&t| fill_one(view, w, h, t, step, p))
@@ -640,15 +750,7 @@ fn eval_refocus(
     })?;
     let out = RefocusOut { color };
     if report.samples == 0 {
-        let what = if p.exposure_stops == 0.0 {
-            "image passed through".to_string()
-        } else {
-            format!("only the exposure ({:+} stops) applied", p.exposure_stops)
-        };
-        let why = format!(
-            "circle of confusion below {MIN_COC_PX} px everywhere (largest {:.3} px): {what}",
-            report.max_coc_px
-        );
+        let why = sharp_reason(p, &report);
         return Ok(Produced::passthrough(out, why));
     }
     Ok(out.into())

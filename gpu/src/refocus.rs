@@ -1,0 +1,297 @@
+//! `Refocus` on the device: every aperture view rendered on the device from
+//! one upload of the inputs and one download of the result
+//! (`shaders/refocus.wgsl`). The plan (pass-through, sample count and
+//! points, active tiles, the sources and their z-buffer keys) is the CPU's
+//! [`plan`], so both backends decide alike.
+//!
+//! **Agreement with the CPU** (checked by the parity tests): the display
+//! image's PSNR against the CPU's is at least [`MIN_PSNR_DB`], and pixels
+//! outside the active tiles are bit-identical. The z-buffer is exact (two
+//! 32-bit `atomicMin` passes reproduce the CPU's 64-bit key); the
+//! differences come from f32 warp positions (a target can round the other
+//! way when it lies within ~1e-6 px of a half pixel), f32 fill weights, and
+//! the views' average: f32 with compensated summation here (relative error
+//! about 2 ulps), f64 there.
+
+use std::sync::Arc;
+
+use bytemuck::{Pod, Zeroable};
+use depthgraph_graph::ports::Produced;
+use depthgraph_graph::prelude::*;
+use depthgraph_nodes::camera::lens::Aperture;
+use depthgraph_nodes::camera::refocus::{
+    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, sharp_reason,
+};
+
+use crate::session::{Session, bytes_of, f32s, u32s};
+use crate::shaders::{self, Kernel};
+
+/// The parity check's bound on the display PSNR against the CPU.
+pub const MIN_PSNR_DB: f64 = 60.0;
+
+/// Views per command buffer (bounds a submission's length on slow devices
+/// and lets progress and cancellation be checked between them).
+const VIEWS_PER_SUBMIT: usize = 32;
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Globals {
+    w: u32,
+    h: u32,
+    n_src: u32,
+    row: u32,
+    scale: f32,
+    gain: f32,
+    fill_h: f32,
+    far_prior: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct ViewParams {
+    dx: f32,
+    dy: f32,
+    sx: f32,
+    sy: f32,
+    k: u32,
+    _pad: [u32; 3],
+}
+
+fn entry(binding: u32, ty: wgpu::BufferBindingType, dynamic: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty,
+            has_dynamic_offset: dynamic,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn layout_entries() -> Vec<wgpu::BindGroupLayoutEntry> {
+    use wgpu::BufferBindingType::{Storage, Uniform};
+    let mut e = vec![entry(0, Uniform, false), entry(1, Uniform, true)];
+    for (b, read_only) in [
+        (2, true),
+        (3, true),
+        (4, true),
+        (5, false),
+        (6, false),
+        (7, false),
+        (8, false),
+        (9, false),
+    ] {
+        e.push(entry(b, Storage { read_only }, false));
+    }
+    e
+}
+
+/// A 1-D dispatch of `n` invocations (workgroups of 256) folded into 2-D
+/// when it exceeds the per-dimension limit: (groups x, groups y, row).
+fn fold(n: usize, max_dim: u32) -> (u32, u32, u32) {
+    let groups = (n as u64).div_ceil(256).max(1);
+    let gx = groups.min(max_dim as u64).max(1);
+    let gy = groups.div_ceil(gx);
+    (gx as u32, gy as u32, (gx * 256) as u32)
+}
+
+/// The device evaluation of `Refocus` (same contract as the CPU node).
+pub fn eval(
+    s: &mut Session,
+    ctx: &EvalCtx,
+    i: RefocusIn,
+    p: &RefocusParams,
+) -> Result<Produced<RefocusOut>, NodeError> {
+    let aperture =
+        Aperture::from_params(p.aperture, p.blades, p.rotation_deg, i.aperture.as_deref())?;
+    let (color, report) = match plan(&i.color, &i.depth, &aperture, p)? {
+        Plan::Sharp(out, report) => (out, report),
+        Plan::Blur(b) => render(s, ctx, &i.color, &b, p)?,
+    };
+    let out = RefocusOut { color };
+    if report.samples == 0 {
+        let why = sharp_reason(p, &report);
+        return Ok(Produced::passthrough(out, why));
+    }
+    Ok(out.into())
+}
+
+/// Renders `plan`'s views on the device.
+pub fn render(
+    s: &mut Session,
+    ctx: &EvalCtx,
+    color: &Arc<ColorImage>,
+    plan: &BlurPlan,
+    p: &RefocusParams,
+) -> Result<(ColorImage, RefocusReport), NodeError> {
+    let (w, h) = (plan.w, plan.h);
+    let n = w * h;
+    let views = plan.points.len();
+    let limits = s.ctx().limits();
+    let max_dim = limits.max_compute_workgroups_per_dimension;
+    let (px_x, px_y, px_row) = fold(n, max_dim);
+    let (src_x, src_y, src_row) = fold(plan.sources.len(), max_dim);
+    if px_row != src_row && plan.sources.len() > 256 * max_dim as usize {
+        // Both folds share G.row; they agree unless both exceed the limit
+        // differently, which a w*h <= 2^32 image cannot.
+        return Err(s.fail(s.ctx().error("refocus: image too large for one dispatch")));
+    }
+    let row = px_row.max(src_row);
+    let globals = Globals {
+        w: w as u32,
+        h: h as u32,
+        n_src: plan.sources.len() as u32,
+        row,
+        // Guard: views >= 1 in a blur plan.
+        scale: (plan.gain / views.max(1) as f64) as f32,
+        gain: plan.gain as f32,
+        fill_h: p.fill_h as f32,
+        far_prior: u32::from(p.far_prior),
+    };
+    // Per-view parameters at the uniform offset alignment.
+    let stride = (limits.min_uniform_buffer_offset_alignment as usize)
+        .max(std::mem::size_of::<ViewParams>());
+    let mut view_bytes = vec![0u8; stride * views.max(1)];
+    for (k, pt) in plan.points.iter().enumerate() {
+        let dir = plan.shift(*pt);
+        let step = BlurPlan::fill_step(dir);
+        let v = ViewParams {
+            dx: dir[0] as f32,
+            dy: dir[1] as f32,
+            sx: step[0] as f32,
+            sy: step[1] as f32,
+            k: k as u32,
+            _pad: [0; 3],
+        };
+        view_bytes[k * stride..k * stride + std::mem::size_of::<ViewParams>()]
+            .copy_from_slice(bytemuck::bytes_of(&v));
+    }
+    let src: Vec<[u32; 4]> = plan
+        .sources
+        .iter()
+        .map(|&(i, key)| {
+            let m = (plan.inv_u - plan.src_inv_z[i as usize]) as f32;
+            [i, (key >> 32) as u32, m.to_bits(), 0]
+        })
+        .collect();
+    let pix: Vec<[f32; 2]> = plan
+        .src_inv_z
+        .iter()
+        .zip(&plan.active)
+        .map(|(&v, &a)| [v as f32, if a { 1.0 } else { 0.0 }])
+        .collect();
+
+    let g_buf = s.uniform(bytemuck::bytes_of(&globals));
+    let v_buf = {
+        let b = s
+            .ctx()
+            .buffer(view_bytes.len() as u64, crate::session::UNIFORM);
+        s.ctx().queue().write_buffer(&b, 0, &view_bytes);
+        b
+    };
+    let src_buf = s.upload(bytes_of(&src));
+    let color_buf = s.image(color, bytes_of(color.as_slice()));
+    let pix_buf = s.upload(bytes_of(&pix));
+    let zbuf = s.scratch(8 * n as u64);
+    let view = s.scratch(32 * n as u64);
+    let acc = s.scratch(32 * n as u64);
+    let holes = s.upload(&vec![0u8; 4 * views.max(1)]);
+    let out = Arc::new(s.scratch(12 * n as u64));
+
+    let layout = s.ctx().layout("refocus.wgsl", &layout_entries());
+    let pipe = |k: &Kernel| {
+        s.ctx()
+            .pipeline_in(k.name, &k.source(), k.entry, Some(&layout.1))
+            .map_err(|e| s.fail(e))
+    };
+    let clear = pipe(&shaders::REFOCUS_CLEAR)?;
+    let warp_depth = pipe(&shaders::REFOCUS_WARP_DEPTH)?;
+    let warp_index = pipe(&shaders::REFOCUS_WARP_INDEX)?;
+    let gather = pipe(&shaders::REFOCUS_GATHER)?;
+    let fill = pipe(&shaders::REFOCUS_FILL)?;
+    let finish = pipe(&shaders::REFOCUS_FINISH)?;
+    fn bind(b: u32, buf: &wgpu::Buffer, size: Option<u64>) -> wgpu::BindGroupEntry<'_> {
+        wgpu::BindGroupEntry {
+            binding: b,
+            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer: buf,
+                offset: 0,
+                size: size.and_then(std::num::NonZeroU64::new),
+            }),
+        }
+    }
+    let bg = s
+        .ctx()
+        .device()
+        .create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("refocus"),
+            layout: &layout.0,
+            entries: &[
+                bind(0, &g_buf, None),
+                bind(1, &v_buf, Some(std::mem::size_of::<ViewParams>() as u64)),
+                bind(2, &src_buf, None),
+                bind(3, &color_buf, None),
+                bind(4, &pix_buf, None),
+                bind(5, &zbuf, None),
+                bind(6, &view, None),
+                bind(7, &acc, None),
+                bind(8, &holes, None),
+                bind(9, &out, None),
+            ],
+        });
+
+    let mut k0 = 0;
+    let mut first = true;
+    while k0 < views || first {
+        let k1 = (k0 + VIEWS_PER_SUBMIT).min(views);
+        let mut encoder = s.encoder();
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            if first {
+                pass.set_pipeline(&clear);
+                pass.set_bind_group(0, &bg, &[0]);
+                pass.dispatch_workgroups(px_x, px_y, 1);
+            }
+            for k in k0..k1 {
+                let off = [(k * stride) as u32];
+                pass.set_bind_group(0, &bg, &off);
+                if !src.is_empty() {
+                    pass.set_pipeline(&warp_depth);
+                    pass.dispatch_workgroups(src_x, src_y, 1);
+                    pass.set_pipeline(&warp_index);
+                    pass.dispatch_workgroups(src_x, src_y, 1);
+                }
+                pass.set_pipeline(&gather);
+                pass.dispatch_workgroups(px_x, px_y, 1);
+                pass.set_pipeline(&fill);
+                pass.dispatch_workgroups(px_x, px_y, 1);
+            }
+            if k1 == views {
+                pass.set_bind_group(0, &bg, &[0]);
+                pass.set_pipeline(&finish);
+                pass.dispatch_workgroups(px_x, px_y, 1);
+            }
+        }
+        first = false;
+        if k1 == views {
+            let back = s.finish(
+                encoder,
+                &[(&out, 12 * n as u64), (&holes, 4 * views as u64)],
+            )?;
+            let rgb = f32s(&back[0]);
+            let holes_total: usize = u32s(&back[1]).iter().map(|&c| c as usize).sum();
+            let data: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let img = Image::from_vec(w, h, data)?;
+            s.keep("color", out.clone(), 12 * n as u64);
+            return Ok((img, plan.report(holes_total)));
+        }
+        s.submit(encoder)?;
+        // Guard: views >= 1 here.
+        ctx.progress(k1 as f32 / views as f32);
+        ctx.check_cancelled()?;
+        k0 = k1;
+    }
+    Err(s.fail(s.ctx().error("refocus: no views rendered")))
+}

@@ -1,0 +1,143 @@
+//! Refocus: device against CPU.
+
+mod common;
+
+use std::sync::Arc;
+
+use common::*;
+use depthgraph_gpu::parity::color_within;
+use depthgraph_gpu::refocus::MIN_PSNR_DB;
+use depthgraph_graph::prelude::*;
+use depthgraph_nodes::camera::lens::{Aperture, ApertureShape};
+use depthgraph_nodes::camera::refocus::{Plan, RefocusParams, plan};
+
+/// A textured background at 4 m, a foreground card at 1 m with a hot
+/// highlight, a strip of sky (no depth) and a few broken color samples.
+fn scene(w: usize, h: usize) -> (ColorImage, DepthMap) {
+    let mut c = ColorImage::from_fn(w, h, |x, y| {
+        let t = ((x / 3 + y / 5) % 7) as f32 / 7.0;
+        [0.1 + 0.5 * t, 0.3, 0.6 - 0.4 * t]
+    });
+    let d = DepthMap::from_fn(w, h, |x, y| {
+        if y < 4 {
+            0.0
+        } else if (w / 3..w / 2).contains(&x) && (h / 4..3 * h / 4).contains(&y) {
+            1.0
+        } else {
+            4.0 + 0.002 * x as f32
+        }
+    });
+    *c.get_mut(w / 3 + 2, h / 2) = [80.0, 60.0, 40.0];
+    *c.get_mut(5, 9) = [f32::NAN, -3.0, f32::INFINITY];
+    (c, d)
+}
+
+fn inputs(c: ColorImage, d: DepthMap) -> Inputs {
+    let mut i = Inputs::new();
+    i.insert("color", Value::Color(Arc::new(c)));
+    i.insert("depth", Value::Depth(Arc::new(d)));
+    i
+}
+
+fn fixed_pixels(c: &ColorImage, d: &DepthMap, p: &RefocusParams) -> Vec<bool> {
+    let a = Aperture::from_params(p.aperture, p.blades, p.rotation_deg, None).unwrap();
+    match plan(c, d, &a, p).unwrap() {
+        Plan::Sharp(..) => vec![true; c.len()],
+        Plan::Blur(b) => b.active.iter().map(|a| !a).collect(),
+    }
+}
+
+fn cases() -> Vec<RefocusParams> {
+    let base = RefocusParams {
+        focus_m: 1.0,
+        f_number: 2.0,
+        sensor_width_mm: 6.0,
+        samples: 64,
+        ..Default::default()
+    };
+    vec![
+        base.clone(),
+        RefocusParams {
+            focus_m: 4.0,
+            aperture: ApertureShape::Polygon,
+            blades: 6,
+            samples: 96,
+            ..base.clone()
+        },
+        RefocusParams {
+            far_prior: false,
+            exposure_stops: 1.5,
+            samples: 0,
+            quality: 0.5,
+            ..base.clone()
+        },
+        RefocusParams {
+            focus_m: f64::INFINITY,
+            f_number: 1.4,
+            samples: 33,
+            seed: 5,
+            ..base.clone()
+        },
+    ]
+}
+
+#[test]
+fn refocus_agrees_with_the_cpu_within_its_stated_bound() {
+    // 300 px wide: the fold of the 1-D dispatches and partial tiles are exercised
+    let (c, d) = scene(300, 170);
+    for p in cases() {
+        let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+        assert_eq!(cpu.passthrough, dev.passthrough);
+        let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+        let fixed = fixed_pixels(&c, &d, &p);
+        assert!(fixed.iter().any(|f| !f), "the case blurs something");
+        let psnr =
+            color_within(&a, &b, &fixed, MIN_PSNR_DB).unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        eprintln!(
+            "focus {} aperture {:?}: PSNR {psnr:.1} dB",
+            p.focus_m, p.aperture
+        );
+        assert_eq!(dev.transfers.downloads, 2, "one result and the hole counts");
+    }
+}
+
+#[test]
+fn the_refocus_check_fails_on_a_perturbed_result() {
+    let (c, d) = scene(120, 90);
+    let p = cases().remove(0);
+    let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+    let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+    let fixed = fixed_pixels(&c, &d, &p);
+    assert!(color_within(&a, &b, &fixed, MIN_PSNR_DB).is_ok());
+    // a faint veil over the active pixels: about 1/255 on the display
+    let mut veil = (*b).clone();
+    for (px, f) in veil.as_mut_slice().iter_mut().zip(&fixed) {
+        if !f {
+            px[1] += 0.004;
+        }
+    }
+    assert!(color_within(&a, &veil, &fixed, MIN_PSNR_DB).is_err());
+    // one inactive pixel off by one ulp
+    if let Some(t) = fixed.iter().position(|f| *f) {
+        let mut ulp = (*b).clone();
+        let v = &mut ulp.as_mut_slice()[t][0];
+        *v = f32::from_bits(v.to_bits() + 1);
+        let e = color_within(&a, &ulp, &fixed, MIN_PSNR_DB).unwrap_err();
+        assert!(e.contains("inactive"), "{e}");
+    }
+}
+
+#[test]
+fn a_sharp_scene_passes_through_alike() {
+    let c = ColorImage::filled(16, 16, [0.5; 3]);
+    let d = DepthMap::filled(16, 16, 2.0);
+    let p = RefocusParams {
+        focus_m: 2.0,
+        exposure_stops: 1.0,
+        ..Default::default()
+    };
+    let (cpu, dev) = both("Refocus", &inputs(c, d), &p.to_values());
+    assert_eq!(cpu.passthrough, dev.passthrough);
+    assert!(dev.passthrough.is_some());
+    assert_eq!(*color_of(&cpu, "color"), *color_of(&dev, "color"));
+}
