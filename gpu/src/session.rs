@@ -91,7 +91,12 @@ impl<'a> Session<'a> {
             self.stats.resident_hits += 1;
             return b;
         }
-        Arc::new(self.upload(bytes))
+        // Kept too: the next device node that reads the same value (the
+        // guide image of a chain, say) finds it there. Kernels never write
+        // their inputs, so the copy stays equal to the value.
+        let b = Arc::new(self.upload(bytes));
+        self.ctx.keep_resident(&any, b.clone(), bytes.len() as u64);
+        b
     }
 
     /// Copies `bytes` into a new storage buffer.

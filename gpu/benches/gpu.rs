@@ -1,0 +1,271 @@
+//! CPU against GPU on the same inputs in one run: `cargo bench -p
+//! depthgraph-gpu --bench gpu`. Per node (JointBilateral r = 7, Refocus at
+//! 256 and, with `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at 576 samples) and
+//! per pipeline (`depth_fill.ron`, `refocus.ron`, no cache): cold (first
+//! evaluation, pipeline compilation included) and warm medians, and the
+//! device's upload / kernel / download split. The adapter and driver are
+//! named; on a software adapter (lavapipe) the GPU numbers are labelled
+//! correctness-only. `DEPTHGRAPH_REPEATS` (default 5) timed repeats.
+//!
+//! `gpu/scripts/device-bench.sh` builds this here and runs it on a GPU
+//! machine without network.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use depthgraph_gpu::{AdapterRequest, GpuContext};
+use depthgraph_graph::node::{CancelToken, Transfers};
+use depthgraph_graph::pipeline::OutputRef;
+use depthgraph_graph::prelude::*;
+use depthgraph_nodes::camera::refocus::RefocusParams;
+use depthgraph_nodes::depth::bilateral::BilateralParams;
+use depthgraph_nodes::sim::synthetic::{RenderOptions, Scene, render};
+
+fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v[v.len() / 2]
+    }
+}
+
+struct Row {
+    what: String,
+    cpu_ms: f64,
+    gpu_cold_ms: f64,
+    gpu_ms: f64,
+    split: Transfers,
+}
+
+fn eval(reg: &Registry, kind: &str, inputs: &Inputs, params: &ParamMap) -> (f64, Outputs) {
+    let node = reg.get(kind).expect("kind registered");
+    let cancel = CancelToken::new();
+    let dir = std::env::temp_dir();
+    let ctx = EvalCtx {
+        node: kind,
+        cancel: &cancel,
+        progress: None,
+        out_dir: &dir,
+        input_files: &[],
+        derivations: None,
+    };
+    let t = Instant::now();
+    let out = node
+        .eval(&ctx, inputs, params)
+        .unwrap_or_else(|e| panic!("{kind}: {e}"));
+    (t.elapsed().as_secs_f64() * 1e3, out)
+}
+
+fn node_row(
+    what: &str,
+    regs: &(Registry, Registry),
+    kind: &str,
+    inputs: &Inputs,
+    params: &ParamMap,
+    repeats: usize,
+) -> Row {
+    let cpu: Vec<f64> = (0..repeats.min(3).max(1))
+        .map(|_| eval(&regs.0, kind, inputs, params).0)
+        .collect();
+    let (cold, _) = eval(&regs.1, kind, inputs, params);
+    let mut warm = Vec::new();
+    let mut splits = Vec::new();
+    for _ in 0..repeats {
+        let (ms, out) = eval(&regs.1, kind, inputs, params);
+        warm.push(ms);
+        splits.push(out.transfers);
+    }
+    let mid = splits.get(splits.len() / 2).copied().unwrap_or_default();
+    Row {
+        what: what.to_string(),
+        cpu_ms: median(cpu),
+        gpu_cold_ms: cold,
+        gpu_ms: median(warm),
+        split: mid,
+    }
+}
+
+fn pipeline_row(file: &str, regs: &(Registry, Registry), repeats: usize) -> Row {
+    // DEPTHGRAPH_ROOT: the repository on a machine the binary was carried to
+    let root = std::env::var_os("DEPTHGRAPH_ROOT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(".."));
+    std::env::set_current_dir(&root).expect("repository root");
+    let text = std::fs::read_to_string(root.join("graphs").join(file)).expect("pipeline file");
+    let doc = Document::parse(&text, file).expect("pipeline parses");
+    let run = |reg: &Registry| -> (f64, Transfers) {
+        let mut p = Pipeline::check(&doc, reg).expect("pipeline checks");
+        p.outputs = (0..p.nodes.len())
+            .filter(|&i| !p.nodes[i].node.schema().sink)
+            .map(|node| OutputRef { node, port: None })
+            .collect();
+        let engine = Engine::new(EngineOptions::default()).expect("engine");
+        let opts = RunOptions {
+            out_dir: std::env::temp_dir().join("depthgraph-gpu-bench"),
+            ..RunOptions::default()
+        };
+        let t = Instant::now();
+        let r = engine.run(&p, &opts).expect("pipeline runs");
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        let mut sum = Transfers::default();
+        for n in &r.trace.nodes {
+            let t = n.transfers;
+            sum.uploads += t.uploads;
+            sum.upload_bytes += t.upload_bytes;
+            sum.upload_ms += t.upload_ms;
+            sum.resident_hits += t.resident_hits;
+            sum.downloads += t.downloads;
+            sum.download_bytes += t.download_bytes;
+            sum.download_ms += t.download_ms;
+            sum.kernel_ms += t.kernel_ms;
+        }
+        (ms, sum)
+    };
+    let cpu: Vec<f64> = (0..repeats.min(3).max(1)).map(|_| run(&regs.0).0).collect();
+    let (cold, _) = run(&regs.1);
+    let warm: Vec<(f64, Transfers)> = (0..repeats.min(3).max(1)).map(|_| run(&regs.1)).collect();
+    let split = warm[warm.len() / 2].1;
+    Row {
+        what: format!("pipeline {file}"),
+        cpu_ms: median(cpu),
+        gpu_cold_ms: cold,
+        gpu_ms: median(warm.iter().map(|w| w.0).collect()),
+        split,
+    }
+}
+
+fn scene_inputs(w: usize, h: usize) -> (Arc<ColorImage>, Arc<DepthMap>) {
+    let scene = Scene::preset("tabletop", w, h).expect("preset");
+    let r = render(&scene, &RenderOptions::default());
+    (Arc::new(r.color), Arc::new(r.depth))
+}
+
+fn main() {
+    if std::env::args().any(|a| a == "--list") {
+        return; // cargo's bench discovery
+    }
+    let repeats = env_usize("DEPTHGRAPH_REPEATS", 5).max(1);
+    let ctx = match GpuContext::new(&AdapterRequest::default()) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("gpu bench: {e}");
+            std::process::exit(3);
+        }
+    };
+    let a = ctx.adapter().clone();
+    let cpu = depthgraph_nodes::registry().expect("registry");
+    let mut dev = depthgraph_nodes::registry().expect("registry");
+    depthgraph_gpu::install(&mut dev, &ctx).expect("device kinds");
+    let regs = (cpu, dev);
+    let threads = rayon::current_num_threads();
+    println!("# GPU bench\n");
+    println!(
+        "adapter: {} ({:?} {}), driver: {}, API: {}; CPU: {threads} threads",
+        a.name,
+        a.device_type,
+        if a.is_software() {
+            "software"
+        } else {
+            "hardware"
+        },
+        a.driver,
+        a.api
+    );
+    if a.is_software() {
+        println!(
+            "\n**{} is a software rasteriser: its GPU timings are for correctness only.**",
+            a.name
+        );
+    }
+    let mut rows = Vec::new();
+
+    let (color, depth) = scene_inputs(640, 480);
+    let mut i = Inputs::new();
+    i.insert("depth", Value::Depth(depth.clone()));
+    i.insert("color", Value::Color(color.clone()));
+    let bp = BilateralParams {
+        radius: 7,
+        ..Default::default()
+    };
+    rows.push(node_row(
+        "JointBilateral 640x480 r=7",
+        &regs,
+        "JointBilateral",
+        &i,
+        &bp.to_values(),
+        repeats,
+    ));
+
+    let rp = |samples: usize, _w: usize| RefocusParams {
+        focal_length_mm: 50.0,
+        f_number: 1.4,
+        focus_m: 0.95,
+        // full frame at any width: the paper's lens
+        sensor_width_mm: 36.0,
+        samples,
+        ..Default::default()
+    };
+    let mut ri = Inputs::new();
+    ri.insert("color", Value::Color(color));
+    ri.insert("depth", Value::Depth(depth));
+    rows.push(node_row(
+        "Refocus 640x480 256 samples",
+        &regs,
+        "Refocus",
+        &ri,
+        &rp(256, 640).to_values(),
+        repeats,
+    ));
+    if std::env::var_os("DEPTHGRAPH_BENCH_FULL").is_some() {
+        let (c, d) = scene_inputs(1600, 1200);
+        let mut bi = Inputs::new();
+        bi.insert("color", Value::Color(c));
+        bi.insert("depth", Value::Depth(d));
+        rows.push(node_row(
+            "Refocus 1600x1200 576 samples",
+            &regs,
+            "Refocus",
+            &bi,
+            &rp(576, 1600).to_values(),
+            repeats.min(3),
+        ));
+    }
+    for f in ["depth_fill.ron", "refocus.ron"] {
+        rows.push(pipeline_row(f, &regs, repeats));
+    }
+
+    println!(
+        "\n| case | CPU ms | GPU cold ms | GPU warm ms | CPU/GPU | up (MiB, ms) | kernels ms | down (MiB, ms) | already on device |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in &rows {
+        let mib = |b: usize| b as f64 / (1024.0 * 1024.0);
+        println!(
+            "| {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}, {:.2} | {:.2} | {:.2}, {:.2} | {} |",
+            r.what,
+            r.cpu_ms,
+            r.gpu_cold_ms,
+            r.gpu_ms,
+            r.cpu_ms / r.gpu_ms,
+            mib(r.split.upload_bytes),
+            r.split.upload_ms,
+            r.split.kernel_ms,
+            mib(r.split.download_bytes),
+            r.split.download_ms,
+            r.split.resident_hits
+        );
+    }
+    println!(
+        "\npipeline compilation (all kernels, cold): {:.1} ms",
+        ctx.compile_ms()
+    );
+}
