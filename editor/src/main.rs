@@ -36,6 +36,43 @@ struct Args {
     /// Screenshot mode gives up after this many seconds.
     #[arg(long, default_value_t = 300.0)]
     timeout_s: f64,
+    /// Where the device node kinds run: auto (the GPU when a wgpu adapter
+    /// exists), cpu, or gpu (fail when there is none). Default:
+    /// $DEPTHGRAPH_BACKEND, else auto.
+    #[arg(long)]
+    backend: Option<String>,
+}
+
+/// The registry with the device kinds `--backend` (or `DEPTHGRAPH_BACKEND`)
+/// asks for, and a line saying what was chosen.
+fn registry(
+    backend: Option<&str>,
+) -> Result<(depthgraph_graph::registry::Registry, String), String> {
+    let mut reg = depthgraph_nodes::registry().map_err(|e| format!("node registry: {e}"))?;
+    let name = backend
+        .map(str::to_string)
+        .or_else(|| std::env::var("DEPTHGRAPH_BACKEND").ok())
+        .unwrap_or_else(|| "auto".to_string());
+    #[cfg(feature = "gpu")]
+    {
+        let req = depthgraph_gpu::BackendRequest::parse(&name)
+            .ok_or_else(|| format!("--backend `{name}`: expected auto, cpu or gpu"))?;
+        let c = depthgraph_gpu::choose(req, &mut reg).map_err(|e| format!("--backend gpu: {e}"))?;
+        Ok((reg, format!("backend: {} ({})", c.used, c.reason)))
+    }
+    #[cfg(not(feature = "gpu"))]
+    {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "auto" | "cpu" => Ok((
+                reg,
+                "backend: cpu (built without the `gpu` feature)".to_string(),
+            )),
+            "gpu" => {
+                Err("--backend gpu: this editor was built without the `gpu` feature".to_string())
+            }
+            _ => Err(format!("--backend `{name}`: expected auto, cpu or gpu")),
+        }
+    }
 }
 
 fn parse_size(s: &str) -> Result<[f32; 2], String> {
@@ -65,8 +102,9 @@ fn run(args: Args) -> Result<(), String> {
     if !(args.timeout_s.is_finite() && args.timeout_s > 0.0) {
         return Err(format!("--timeout-s {}: must be > 0", args.timeout_s));
     }
-    let registry =
-        Arc::new(depthgraph_nodes::registry().map_err(|e| format!("node registry: {e}"))?);
+    let (registry, chosen) = registry(args.backend.as_deref())?;
+    eprintln!("{chosen}");
+    let registry = Arc::new(registry);
     let (model, path) = match &args.file {
         Some(path) => (EditorModel::load(path, registry)?, path.clone()),
         None => {

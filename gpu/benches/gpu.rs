@@ -73,7 +73,7 @@ fn node_row(
     params: &ParamMap,
     repeats: usize,
 ) -> Row {
-    let cpu: Vec<f64> = (0..repeats.min(3).max(1))
+    let cpu: Vec<f64> = (0..repeats.clamp(1, 3))
         .map(|_| eval(&regs.0, kind, inputs, params).0)
         .collect();
     let (cold, _) = eval(&regs.1, kind, inputs, params);
@@ -130,9 +130,9 @@ fn pipeline_row(file: &str, regs: &(Registry, Registry), repeats: usize) -> Row 
         }
         (ms, sum)
     };
-    let cpu: Vec<f64> = (0..repeats.min(3).max(1)).map(|_| run(&regs.0).0).collect();
+    let cpu: Vec<f64> = (0..repeats.clamp(1, 3)).map(|_| run(&regs.0).0).collect();
     let (cold, _) = run(&regs.1);
-    let warm: Vec<(f64, Transfers)> = (0..repeats.min(3).max(1)).map(|_| run(&regs.1)).collect();
+    let warm: Vec<(f64, Transfers)> = (0..repeats.clamp(1, 3)).map(|_| run(&regs.1)).collect();
     let split = warm[warm.len() / 2].1;
     Row {
         what: format!("pipeline {file}"),
