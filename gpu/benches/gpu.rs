@@ -144,9 +144,28 @@ fn pipeline_row(file: &str, regs: &(Registry, Registry), repeats: usize) -> Row 
 }
 
 fn scene_inputs(w: usize, h: usize) -> (Arc<ColorImage>, Arc<DepthMap>) {
+    let (c, d, _) = scene_with_intrinsics(w, h);
+    (c, d)
+}
+
+fn scene_with_intrinsics(w: usize, h: usize) -> (Arc<ColorImage>, Arc<DepthMap>, Intrinsics) {
     let scene = Scene::preset("tabletop", w, h).expect("preset");
     let r = render(&scene, &RenderOptions::default());
-    (Arc::new(r.color), Arc::new(r.depth))
+    (Arc::new(r.color), Arc::new(r.depth), r.intrinsics)
+}
+
+/// `depth` with Kinect-like holes: 20 % scattered and a 60x40 block.
+fn with_holes(depth: &DepthMap) -> DepthMap {
+    let mut rng = depthgraph_nodes::kit::rng::SplitMix64(11);
+    let (w, h) = depth.dims();
+    DepthMap::from_fn(w, h, |x, y| {
+        let block = (w / 3..w / 3 + 60).contains(&x) && (h / 2..h / 2 + 40).contains(&y);
+        if block || rng.next_f64() < 0.2 {
+            0.0
+        } else {
+            *depth.get(x, y)
+        }
+    })
 }
 
 fn main() {
@@ -188,7 +207,29 @@ fn main() {
     }
     let mut rows = Vec::new();
 
-    let (color, depth) = scene_inputs(640, 480);
+    let (color, depth, k) = scene_with_intrinsics(640, 480);
+    let holed = Arc::new(with_holes(&depth));
+    let mut pi = Inputs::new();
+    pi.insert("depth", Value::Depth(holed));
+    let pp = depthgraph_nodes::depth::pull_push::PullPushParams::default();
+    rows.push(node_row(
+        "PullPush 640x480 (20 % holes)",
+        &regs,
+        "PullPush",
+        &pi,
+        &pp.to_values(),
+        repeats,
+    ));
+    pi.insert("color", Value::Color(color.clone()));
+    pi.insert("intrinsics", Value::Intrinsics(k));
+    rows.push(node_row(
+        "DualPullPush 640x480 (20 % holes)",
+        &regs,
+        "DualPullPush",
+        &pi,
+        &pp.to_values(),
+        repeats,
+    ));
     let mut i = Inputs::new();
     i.insert("depth", Value::Depth(depth.clone()));
     i.insert("color", Value::Color(color.clone()));

@@ -105,7 +105,7 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     summary: AdapterSummary,
     pipelines: Mutex<HashMap<&'static str, Arc<wgpu::ComputePipeline>>>,
-    layouts: Mutex<HashMap<&'static str, Arc<(wgpu::BindGroupLayout, wgpu::PipelineLayout)>>>,
+    layouts: Mutex<HashMap<&'static str, Arc<Layout>>>,
     compile_ms: Mutex<f64>,
     pool: Arc<Mutex<Pool>>,
     resident: Mutex<Vec<Resident>>,
@@ -331,7 +331,7 @@ impl GpuContext {
         &self,
         name: &'static str,
         entries: &[wgpu::BindGroupLayoutEntry],
-    ) -> Arc<(wgpu::BindGroupLayout, wgpu::PipelineLayout)> {
+    ) -> Arc<Layout> {
         let mut map = lock(&self.layouts);
         if let Some(l) = map.get(name) {
             return l.clone();
@@ -424,6 +424,9 @@ impl GpuContext {
         }
     }
 }
+
+/// A bind group layout and the pipeline layout made of it alone.
+pub type Layout = (wgpu::BindGroupLayout, wgpu::PipelineLayout);
 
 /// Device bytes kept for values that device nodes hand each other.
 pub const RESIDENT_BUDGET: u64 = 1 << 30;

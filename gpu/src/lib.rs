@@ -23,6 +23,7 @@ pub mod bilateral;
 pub mod context;
 pub mod node;
 pub mod parity;
+pub mod pull_push;
 pub mod refocus;
 pub mod session;
 pub mod shaders;
@@ -35,13 +36,15 @@ pub use backend::{BackendChoice, BackendRequest, choose};
 pub use context::{AdapterRequest, AdapterSummary, GpuContext, GpuError};
 
 /// The node kinds that have a device implementation.
-pub const DEVICE_KINDS: &[&str] = &["JointBilateral", "Refocus"];
+pub const DEVICE_KINDS: &[&str] = &["JointBilateral", "Refocus", "PullPush", "DualPullPush"];
 
 /// Adds the device implementation of every kind in [`DEVICE_KINDS`] to
 /// `reg` (whose CPU kinds must be registered) and prefers them.
 pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), RegistryError> {
     node::register_device(reg, ctx, "JointBilateral", bilateral::eval)?;
     node::register_device(reg, ctx, "Refocus", refocus::eval)?;
+    node::register_device(reg, ctx, "PullPush", pull_push::eval_plain)?;
+    node::register_device(reg, ctx, "DualPullPush", pull_push::eval_dual)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

@@ -23,8 +23,8 @@ use depthgraph_nodes::camera::refocus::{
     BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, sharp_reason,
 };
 
-use crate::session::{Session, bytes_of, f32s, u32s};
-use crate::shaders::{self, Kernel};
+use crate::session::{Bind, Session, bytes_of, entry, f32s, u32s, uniform_blocks};
+use crate::shaders;
 
 /// The parity check's bound on the display PSNR against the CPU.
 pub const MIN_PSNR_DB: f64 = 60.0;
@@ -57,36 +57,18 @@ struct ViewParams {
     _pad: [u32; 3],
 }
 
-fn entry(binding: u32, ty: wgpu::BufferBindingType, dynamic: bool) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty,
-            has_dynamic_offset: dynamic,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
-fn layout_entries() -> Vec<wgpu::BindGroupLayoutEntry> {
-    use wgpu::BufferBindingType::{Storage, Uniform};
-    let mut e = vec![entry(0, Uniform, false), entry(1, Uniform, true)];
-    for (b, read_only) in [
-        (2, true),
-        (3, true),
-        (4, true),
-        (5, false),
-        (6, false),
-        (7, false),
-        (8, false),
-        (9, false),
-    ] {
-        e.push(entry(b, Storage { read_only }, false));
-    }
-    e
-}
+const BINDS: &[Bind] = &[
+    Bind::Uniform,
+    Bind::DynamicUniform,
+    Bind::Read,
+    Bind::Read,
+    Bind::Read,
+    Bind::ReadWrite,
+    Bind::ReadWrite,
+    Bind::ReadWrite,
+    Bind::ReadWrite,
+    Bind::ReadWrite,
+];
 
 /// A 1-D dispatch of `n` invocations (workgroups of 256) folded into 2-D
 /// when it exceeds the per-dimension limit: (groups x, groups y, row).
@@ -151,23 +133,24 @@ pub fn render(
         far_prior: u32::from(p.far_prior),
     };
     // Per-view parameters at the uniform offset alignment.
-    let stride = (limits.min_uniform_buffer_offset_alignment as usize)
-        .max(std::mem::size_of::<ViewParams>());
-    let mut view_bytes = vec![0u8; stride * views.max(1)];
-    for (k, pt) in plan.points.iter().enumerate() {
-        let dir = plan.shift(*pt);
-        let step = BlurPlan::fill_step(dir);
-        let v = ViewParams {
-            dx: dir[0] as f32,
-            dy: dir[1] as f32,
-            sx: step[0] as f32,
-            sy: step[1] as f32,
-            k: k as u32,
-            _pad: [0; 3],
-        };
-        view_bytes[k * stride..k * stride + std::mem::size_of::<ViewParams>()]
-            .copy_from_slice(bytemuck::bytes_of(&v));
-    }
+    let blocks: Vec<ViewParams> = plan
+        .points
+        .iter()
+        .enumerate()
+        .map(|(k, pt)| {
+            let dir = plan.shift(*pt);
+            let step = BlurPlan::fill_step(dir);
+            ViewParams {
+                dx: dir[0] as f32,
+                dy: dir[1] as f32,
+                sx: step[0] as f32,
+                sy: step[1] as f32,
+                k: k as u32,
+                _pad: [0; 3],
+            }
+        })
+        .collect();
+    let (view_bytes, stride) = uniform_blocks(&blocks, limits.min_uniform_buffer_offset_alignment);
     let src: Vec<[u32; 4]> = plan
         .sources
         .iter()
@@ -200,28 +183,22 @@ pub fn render(
     let holes = s.upload(&vec![0u8; 4 * views.max(1)]);
     let out = Arc::new(s.scratch(12 * n as u64));
 
-    let layout = s.ctx().layout("refocus.wgsl", &layout_entries());
-    let pipe = |k: &Kernel| {
-        s.ctx()
-            .pipeline_in(k.name, &k.source(), k.entry, Some(&layout.1))
-            .map_err(|e| s.fail(e))
-    };
-    let clear = pipe(&shaders::REFOCUS_CLEAR)?;
-    let warp_depth = pipe(&shaders::REFOCUS_WARP_DEPTH)?;
-    let warp_index = pipe(&shaders::REFOCUS_WARP_INDEX)?;
-    let gather = pipe(&shaders::REFOCUS_GATHER)?;
-    let fill = pipe(&shaders::REFOCUS_FILL)?;
-    let finish = pipe(&shaders::REFOCUS_FINISH)?;
-    fn bind(b: u32, buf: &wgpu::Buffer, size: Option<u64>) -> wgpu::BindGroupEntry<'_> {
-        wgpu::BindGroupEntry {
-            binding: b,
-            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                buffer: buf,
-                offset: 0,
-                size: size.and_then(std::num::NonZeroU64::new),
-            }),
-        }
-    }
+    let clear = s
+        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_CLEAR)?
+        .0;
+    let warp_depth = s
+        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_WARP_DEPTH)?
+        .0;
+    let warp_index = s
+        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_WARP_INDEX)?
+        .0;
+    let gather = s
+        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_GATHER)?
+        .0;
+    let fill = s
+        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_FILL)?
+        .0;
+    let (finish, layout) = s.kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_FINISH)?;
     let bg = s
         .ctx()
         .device()
@@ -229,16 +206,16 @@ pub fn render(
             label: Some("refocus"),
             layout: &layout.0,
             entries: &[
-                bind(0, &g_buf, None),
-                bind(1, &v_buf, Some(std::mem::size_of::<ViewParams>() as u64)),
-                bind(2, &src_buf, None),
-                bind(3, &color_buf, None),
-                bind(4, &pix_buf, None),
-                bind(5, &zbuf, None),
-                bind(6, &view, None),
-                bind(7, &acc, None),
-                bind(8, &holes, None),
-                bind(9, &out, None),
+                entry(0, &g_buf, None),
+                entry(1, &v_buf, Some(std::mem::size_of::<ViewParams>() as u64)),
+                entry(2, &src_buf, None),
+                entry(3, &color_buf, None),
+                entry(4, &pix_buf, None),
+                entry(5, &zbuf, None),
+                entry(6, &view, None),
+                entry(7, &acc, None),
+                entry(8, &holes, None),
+                entry(9, &out, None),
             ],
         });
 

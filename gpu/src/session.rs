@@ -9,7 +9,7 @@ use std::time::Instant;
 use depthgraph_graph::node::Transfers;
 use depthgraph_graph::prelude::*;
 
-use crate::context::{GpuContext, GpuError, PooledBuffer};
+use crate::context::{GpuContext, GpuError, Layout, PooledBuffer};
 
 /// Storage buffers a kernel reads and writes, and that can be copied.
 pub const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
@@ -112,12 +112,28 @@ impl<'a> Session<'a> {
         b
     }
 
-    /// A uniform buffer holding `bytes` (a parameter block; not counted as
+    /// A uniform buffer holding `bytes` (parameter blocks; not counted as
     /// image traffic).
     pub fn uniform(&mut self, bytes: &[u8]) -> PooledBuffer {
         let b = self.ctx.buffer(bytes.len().max(16) as u64, UNIFORM);
         self.write(&b, bytes);
         b
+    }
+
+    /// The pipeline of `k` in the explicit layout `binds` (cached per
+    /// kernel file under `layout_name`).
+    pub fn kernel_in(
+        &self,
+        layout_name: &'static str,
+        binds: &[Bind],
+        k: &crate::shaders::Kernel,
+    ) -> Result<(Arc<wgpu::ComputePipeline>, Arc<Layout>), NodeError> {
+        let layout = self.ctx.layout(layout_name, &layout_entries(binds));
+        let p = self
+            .ctx
+            .pipeline_in(k.name, &k.source(), k.entry, Some(&layout.1))
+            .map_err(|e| self.fail(e))?;
+        Ok((p, layout))
     }
 
     /// An uninitialised storage buffer of `size` bytes.
@@ -289,4 +305,67 @@ pub fn u32s(bytes: &[u8]) -> Vec<u32> {
 /// Workgroups of `size` invocations covering `n` items.
 pub fn groups(n: usize, size: u32) -> u32 {
     (n as u32).div_ceil(size).max(1)
+}
+
+/// How a kernel binds one buffer (for an explicit layout).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Bind {
+    /// A uniform block.
+    Uniform,
+    /// A uniform block at a per-dispatch offset (one block per level or view).
+    DynamicUniform,
+    /// A read-only storage buffer.
+    Read,
+    /// A read-write storage buffer.
+    ReadWrite,
+}
+
+/// Layout entries for bindings 0, 1, ... of group 0, compute stage.
+pub fn layout_entries(binds: &[Bind]) -> Vec<wgpu::BindGroupLayoutEntry> {
+    binds
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let (ty, dynamic) = match b {
+                Bind::Uniform => (wgpu::BufferBindingType::Uniform, false),
+                Bind::DynamicUniform => (wgpu::BufferBindingType::Uniform, true),
+                Bind::Read => (wgpu::BufferBindingType::Storage { read_only: true }, false),
+                Bind::ReadWrite => (wgpu::BufferBindingType::Storage { read_only: false }, false),
+            };
+            wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty,
+                    has_dynamic_offset: dynamic,
+                    min_binding_size: None,
+                },
+                count: None,
+            }
+        })
+        .collect()
+}
+
+/// A bind group entry for `buf` (its first `size` bytes, or all of it).
+pub fn entry(binding: u32, buf: &wgpu::Buffer, size: Option<u64>) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: buf,
+            offset: 0,
+            size: size.and_then(std::num::NonZeroU64::new),
+        }),
+    }
+}
+
+/// Blocks of `T` at the device's uniform offset alignment, for a
+/// [`Bind::DynamicUniform`]: the bytes and the stride.
+pub fn uniform_blocks<T: bytemuck::Pod>(blocks: &[T], align: u32) -> (Vec<u8>, usize) {
+    let size = std::mem::size_of::<T>();
+    let stride = size.next_multiple_of((align as usize).max(1));
+    let mut bytes = vec![0u8; stride * blocks.len().max(1)];
+    for (k, b) in blocks.iter().enumerate() {
+        bytes[k * stride..k * stride + size].copy_from_slice(bytemuck::bytes_of(b));
+    }
+    (bytes, stride)
 }

@@ -39,3 +39,7 @@ kernel!(REFOCUS_WARP_INDEX, "refocus.wgsl", "warp_index");
 kernel!(REFOCUS_GATHER, "refocus.wgsl", "gather");
 kernel!(REFOCUS_FILL, "refocus.wgsl", "fill_accumulate");
 kernel!(REFOCUS_FINISH, "refocus.wgsl", "finish");
+kernel!(PULL_PUSH_INIT, "pull_push.wgsl", "init");
+kernel!(PULL_PUSH_PULL, "pull_push.wgsl", "pull");
+kernel!(PULL_PUSH_PUSH, "pull_push.wgsl", "push");
+kernel!(PULL_PUSH_FINISH, "pull_push.wgsl", "finish");

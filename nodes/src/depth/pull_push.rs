@@ -120,21 +120,9 @@ fn pull(fine: &Level) -> Level {
     out
 }
 
-/// Fills the holes of `depth` (see the module docs) with the given weights.
-///
-/// ```
-/// use depthgraph_graph::value::{DepthMap, Intrinsics};
-/// use depthgraph_nodes::depth::pull_push::{pull_push, PullPushParams, Weights};
-/// let depth = DepthMap::from_vec(3, 1, vec![1.0f32, 0.0, 3.0]).unwrap();
-/// let out = pull_push(&depth, &PullPushParams::default(), Weights::Bilinear).unwrap();
-/// assert!(out.depth.get(1, 0) > &1.0 && out.depth.get(1, 0) < &3.0);
-/// assert_eq!(out.holes_left, 0);
-/// ```
-pub fn pull_push(
-    depth: &DepthMap,
-    p: &PullPushParams,
-    weights: Weights,
-) -> Result<Filled, NodeError> {
+/// Checks what [`Weights::Dual`] needs: a guide and intrinsics of the
+/// depth's size, and sane intrinsics.
+pub fn check_inputs(depth: &DepthMap, weights: Weights) -> Result<(), NodeError> {
     let (w, h) = depth.dims();
     if let Weights::Dual { color, k } = weights {
         if !color.same_dims(depth) {
@@ -155,6 +143,59 @@ pub fn pull_push(
         }
         sane_intrinsics("intrinsics", k)?;
     }
+    Ok(())
+}
+
+/// The number of levels below the input that [`pull_push`] builds: the
+/// requested count, or (auto) until the coarsest level has no hole. A coarse
+/// pixel is valid exactly when one of its children is, so this depends on
+/// the hole mask alone (both backends use it).
+pub fn level_count(depth: &DepthMap, p: &PullPushParams) -> u32 {
+    let (mut w, mut h) = depth.dims();
+    let mut valid: Vec<bool> = depth
+        .as_slice()
+        .iter()
+        .map(|z| DepthMap::is_valid(*z))
+        .collect();
+    let mut used = 0u32;
+    loop {
+        let has_hole = valid.contains(&false);
+        let done = if p.levels == 0 {
+            !has_hole || (w == 1 && h == 1)
+        } else {
+            used >= p.levels || (w == 1 && h == 1)
+        };
+        if done {
+            return used;
+        }
+        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+        let mut next = vec![false; cw * ch];
+        for (i, v) in valid.iter().enumerate() {
+            if *v {
+                next[(i / w / 2) * cw + (i % w) / 2] = true;
+            }
+        }
+        (valid, w, h, used) = (next, cw, ch, used + 1);
+    }
+}
+
+/// Fills the holes of `depth` (see the module docs) with the given weights.
+///
+/// ```
+/// use depthgraph_graph::value::{DepthMap, Intrinsics};
+/// use depthgraph_nodes::depth::pull_push::{pull_push, PullPushParams, Weights};
+/// let depth = DepthMap::from_vec(3, 1, vec![1.0f32, 0.0, 3.0]).unwrap();
+/// let out = pull_push(&depth, &PullPushParams::default(), Weights::Bilinear).unwrap();
+/// assert!(out.depth.get(1, 0) > &1.0 && out.depth.get(1, 0) < &3.0);
+/// assert_eq!(out.holes_left, 0);
+/// ```
+pub fn pull_push(
+    depth: &DepthMap,
+    p: &PullPushParams,
+    weights: Weights,
+) -> Result<Filled, NodeError> {
+    check_inputs(depth, weights)?;
+    let (w, h) = depth.dims();
     let eps = p.epsilon;
     let mut levels = vec![Level {
         w,
@@ -386,8 +427,9 @@ depthgraph_graph::ports! {
     }
 }
 
-/// The pass-through of a map with nothing to fill, or nothing to fill from.
-fn nothing_to_fill(depth: &Arc<DepthMap>) -> Option<Produced<PullPushOut>> {
+/// The pass-through of a map with nothing to fill, or nothing to fill from
+/// (both backends use it).
+pub fn nothing_to_fill(depth: &Arc<DepthMap>) -> Option<Produced<PullPushOut>> {
     let holes = depth.hole_count();
     let reason = if holes == 0 {
         "no holes to fill"
@@ -457,6 +499,30 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn level_count_is_the_number_of_levels_pull_push_builds() {
+        let mut rng = crate::kit::rng::SplitMix64(5);
+        for (w, h, holes, levels) in [
+            (37, 23, 0.3, 0),
+            (64, 64, 0.97, 0),
+            (9, 1, 0.5, 0),
+            (40, 30, 0.5, 2),
+            (40, 30, 0.0, 3),
+        ] {
+            let d = DepthMap::from_fn(w, h, |_, _| if rng.next_f64() < holes { 0.0 } else { 1.5 });
+            let p = PullPushParams {
+                levels,
+                ..Default::default()
+            };
+            let r = pull_push(&d, &p, Weights::Bilinear).unwrap();
+            assert_eq!(
+                level_count(&d, &p),
+                r.levels,
+                "{w}x{h} holes {holes} levels {levels}"
+            );
+        }
+    }
 
     fn k(w: usize, h: usize) -> Intrinsics {
         Intrinsics {
