@@ -1,5 +1,6 @@
 //! CPU against GPU on the same inputs in one run: `cargo bench -p
-//! depthgraph-gpu --bench gpu`. Per node (JointBilateral r = 7, Refocus at
+//! depthgraph-gpu --bench gpu`. Per node (PullPush, DualPullPush, Feather,
+//! JointBilateral r = 7, Refocus at
 //! 256 and, with `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at 576 samples) and
 //! per pipeline (`depth_fill.ron`, `refocus.ron`, no cache): cold (first
 //! evaluation, pipeline compilation included) and warm medians, and the
@@ -228,6 +229,25 @@ fn main() {
         "DualPullPush",
         &pi,
         &pp.to_values(),
+        repeats,
+    ));
+    let disc = Mask::from_fn(640, 480, |x, y| {
+        let (dx, dy) = (x as f32 - 320.0, y as f32 - 240.0);
+        if dx * dx + dy * dy < 150.0 * 150.0 {
+            1.0
+        } else {
+            0.0
+        }
+    });
+    let mut fi = Inputs::new();
+    fi.insert("mask", Value::Mask(Arc::new(disc)));
+    let fp = depthgraph_nodes::select::feather::FeatherParams::default();
+    rows.push(node_row(
+        "Feather 640x480 sigma 2",
+        &regs,
+        "Feather",
+        &fi,
+        &fp.to_values(),
         repeats,
     ));
     let mut i = Inputs::new();

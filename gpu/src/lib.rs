@@ -21,6 +21,7 @@
 pub mod backend;
 pub mod bilateral;
 pub mod context;
+pub mod feather;
 pub mod node;
 pub mod parity;
 pub mod pull_push;
@@ -36,7 +37,13 @@ pub use backend::{BackendChoice, BackendRequest, choose};
 pub use context::{AdapterRequest, AdapterSummary, GpuContext, GpuError};
 
 /// The node kinds that have a device implementation.
-pub const DEVICE_KINDS: &[&str] = &["JointBilateral", "Refocus", "PullPush", "DualPullPush"];
+pub const DEVICE_KINDS: &[&str] = &[
+    "JointBilateral",
+    "Refocus",
+    "PullPush",
+    "DualPullPush",
+    "Feather",
+];
 
 /// Adds the device implementation of every kind in [`DEVICE_KINDS`] to
 /// `reg` (whose CPU kinds must be registered) and prefers them.
@@ -45,6 +52,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "Refocus", refocus::eval)?;
     node::register_device(reg, ctx, "PullPush", pull_push::eval_plain)?;
     node::register_device(reg, ctx, "DualPullPush", pull_push::eval_dual)?;
+    node::register_device(reg, ctx, "Feather", feather::eval)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

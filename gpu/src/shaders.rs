@@ -43,3 +43,5 @@ kernel!(PULL_PUSH_INIT, "pull_push.wgsl", "init");
 kernel!(PULL_PUSH_PULL, "pull_push.wgsl", "pull");
 kernel!(PULL_PUSH_PUSH, "pull_push.wgsl", "push");
 kernel!(PULL_PUSH_FINISH, "pull_push.wgsl", "finish");
+kernel!(FEATHER_HORIZONTAL, "feather.wgsl", "horizontal");
+kernel!(FEATHER_VERTICAL, "feather.wgsl", "vertical");

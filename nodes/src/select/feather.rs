@@ -115,6 +115,73 @@ fn near_boundary(m: &[f32], w: usize, h: usize, r: usize) -> (Vec<bool>, bool) {
     (near, any)
 }
 
+/// What [`feather`] decides before blurring (both backends use it): the
+/// cleaned mask and, when something is to blur, the normalised kernel and
+/// the pixels near a boundary (the only ones that change).
+#[derive(Debug, Clone)]
+pub enum FeatherPlan {
+    /// Nothing to blur (`sigma_px = 0`, an empty mask, or no boundary): the
+    /// cleaned mask is the result.
+    Unchanged(Mask),
+    /// A blur to compute.
+    Blur {
+        /// The mask clamped to [0, 1], NaN as 0.
+        mask: Mask,
+        /// Gaussian taps `-r..=r`, summing to 1.
+        kernel: Vec<f64>,
+        /// Pixels within `r` of a boundary.
+        near: Vec<bool>,
+        /// Fade inwards only (`inside`) or blur both ways.
+        inside: bool,
+    },
+}
+
+/// The decisions of [`feather`] (see [`FeatherPlan`]).
+pub fn plan(mask: &Mask, p: &FeatherParams) -> Result<FeatherPlan, NodeError> {
+    let inside = p.mode == FeatherMode::Inside;
+    if !(p.sigma_px.is_finite() && p.sigma_px >= 0.0 && p.sigma_px <= 1e4) {
+        return Err(NodeError::param(
+            "sigma_px",
+            format!("{} must be finite and in [0, 10000]", p.sigma_px),
+        ));
+    }
+    let (w, h) = mask.dims();
+    let m: Vec<f32> = mask.as_slice().par_iter().map(|v| clean(*v)).collect();
+    if p.sigma_px == 0.0 || w == 0 || h == 0 {
+        return Ok(FeatherPlan::Unchanged(Image::from_vec(w, h, m)?));
+    }
+    let r = (3.0 * p.sigma_px).ceil() as usize;
+    let (near, any) = near_boundary(&m, w, h, r);
+    if !any {
+        return Ok(FeatherPlan::Unchanged(Image::from_vec(w, h, m)?));
+    }
+    let two_s2 = 2.0 * p.sigma_px * p.sigma_px;
+    let raw: Vec<f64> = (0..=2 * r)
+        .map(|i| {
+            let d = i as f64 - r as f64;
+            (-d * d / two_s2).exp()
+        })
+        .collect();
+    // Guard: the centre tap is exp(0) = 1, so total >= 1.
+    let total: f64 = raw.iter().sum();
+    let kernel: Vec<f64> = raw.iter().map(|v| v / total).collect();
+    Ok(FeatherPlan::Blur {
+        mask: Image::from_vec(w, h, m)?,
+        kernel,
+        near,
+        inside,
+    })
+}
+
+/// Why `Feather` passed its input through, or `None` when it blurred.
+pub fn unchanged_reason(p: &FeatherParams) -> &'static str {
+    if p.sigma_px == 0.0 {
+        "sigma_px is 0"
+    } else {
+        "the mask has no boundary to feather"
+    }
+}
+
 /// Feathers `mask` (3d-editing §III.C); see the module docs. Returns the
 /// feathered mask and whether anything changed (`false`: `sigma_px` is 0 or
 /// the mask has no boundary).
@@ -130,33 +197,18 @@ fn near_boundary(m: &[f32], w: usize, h: usize, r: usize) -> (Vec<bool>, bool) {
 /// assert_eq!(*f.get(20, 0), 0.0); // "inside" mode: nothing outside
 /// ```
 pub fn feather(mask: &Mask, p: &FeatherParams) -> Result<(Mask, bool), NodeError> {
-    let inside = p.mode == FeatherMode::Inside;
-    if !(p.sigma_px.is_finite() && p.sigma_px >= 0.0 && p.sigma_px <= 1e4) {
-        return Err(NodeError::param(
-            "sigma_px",
-            format!("{} must be finite and in [0, 10000]", p.sigma_px),
-        ));
-    }
-    let (w, h) = mask.dims();
-    let m: Vec<f32> = mask.as_slice().par_iter().map(|v| clean(*v)).collect();
-    if p.sigma_px == 0.0 || w == 0 || h == 0 {
-        return Ok((Image::from_vec(w, h, m)?, false));
-    }
-    let r = (3.0 * p.sigma_px).ceil() as usize;
-    let (near, any) = near_boundary(&m, w, h, r);
-    if !any {
-        return Ok((Image::from_vec(w, h, m)?, false));
-    }
-    // Normalised kernel; guard: the centre weight is 1, so the sum is >= 1.
-    let two_s2 = 2.0 * p.sigma_px * p.sigma_px;
-    let raw: Vec<f64> = (0..=2 * r)
-        .map(|i| {
-            let d = i as f64 - r as f64;
-            (-d * d / two_s2).exp()
-        })
-        .collect();
-    let total: f64 = raw.iter().sum();
-    let kernel: Vec<f64> = raw.iter().map(|v| v / total).collect();
+    let (m, kernel, near, inside) = match plan(mask, p)? {
+        FeatherPlan::Unchanged(m) => return Ok((m, false)),
+        FeatherPlan::Blur {
+            mask,
+            kernel,
+            near,
+            inside,
+        } => (mask, kernel, near, inside),
+    };
+    let (w, h) = m.dims();
+    let r = kernel.len() / 2;
+    let m = m.as_slice();
     let clampi = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
     // Horizontal pass (all pixels: the vertical pass reads whole columns).
     let mut horiz = vec![0.0f32; w * h];
@@ -172,7 +224,7 @@ pub fn feather(mask: &Mask, p: &FeatherParams) -> Result<(Mask, bool), NodeError
         }
     });
     // Vertical pass only where the window holds a boundary.
-    let mut out = m.clone();
+    let mut out = m.to_vec();
     out.par_chunks_mut(w).enumerate().for_each(|(y, orow)| {
         for (x, o) in orow.iter_mut().enumerate() {
             let i = y * w + x;
@@ -211,12 +263,7 @@ fn eval(_: &EvalCtx, i: FeatherIn, p: &FeatherParams) -> Result<Produced<Feather
     let (mask, changed) = feather(&i.mask, p)?;
     let out = FeatherOut { mask };
     if !changed {
-        let why = if p.sigma_px == 0.0 {
-            "sigma_px is 0"
-        } else {
-            "the mask has no boundary to feather"
-        };
-        return Ok(Produced::passthrough(out, why));
+        return Ok(Produced::passthrough(out, unchanged_reason(p)));
     }
     Ok(out.into())
 }
