@@ -67,11 +67,11 @@ pub fn eval(
         _pad1: 0.0,
     };
     let n = (w * h) as u64;
-    let uniform = s.uniform(bytemuck::bytes_of(&params));
-    let depth = s.image(&i.depth, bytes_of(i.depth.as_slice()));
-    let color = s.image(&i.color, bytes_of(i.color.as_slice()));
-    let enc = s.scratch(16 * n);
-    let out = Arc::new(s.scratch(4 * n));
+    let uniform = s.uniform(bytemuck::bytes_of(&params))?;
+    let depth = s.image(&i.depth, bytes_of(i.depth.as_slice()))?;
+    let color = s.image(&i.color, bytes_of(i.color.as_slice()))?;
+    let enc = s.scratch(16 * n)?;
+    let out = Arc::new(s.scratch(4 * n)?);
     let bg_enc = s.bind(&encode, &[&uniform, &color, &enc]);
     let bg = s.bind(&filter, &[&uniform, &depth, &enc, &out]);
     let mut encoder = s.encoder();

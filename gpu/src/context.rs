@@ -39,6 +39,19 @@ pub enum GpuError {
         /// The driver's reason.
         message: String,
     },
+    /// A problem needs a buffer larger than the device binds (or than the
+    /// `DEPTHGRAPH_GPU_MAX_BUFFER_MB` cap); device nodes then run on the CPU.
+    #[error(
+        "{adapter}: needs a {needed_mib:.1} MiB buffer, the device binds at most {allowed_mib:.1} MiB"
+    )]
+    TooLarge {
+        /// The adapter.
+        adapter: String,
+        /// The buffer asked for, MiB.
+        needed_mib: f64,
+        /// The largest the device binds, MiB.
+        allowed_mib: f64,
+    },
     /// A device operation failed (validation, out of memory, device lost).
     #[error("{adapter}: {message}")]
     Device {
@@ -94,6 +107,10 @@ pub struct AdapterRequest {
     /// A fragment of the adapter's name (case-insensitive); `None` reads
     /// `DEPTHGRAPH_ADAPTER`, then `WGPU_ADAPTER_NAME`.
     pub name: Option<String>,
+    /// The largest buffer a device node may use, MiB (to leave room on a
+    /// shared device); `None` reads `DEPTHGRAPH_GPU_MAX_BUFFER_MB`, else the
+    /// device's own limit. A node whose problem needs more runs on the CPU.
+    pub max_buffer_mb: Option<u64>,
 }
 
 /// One device, its queue, the compiled pipelines and the buffer pool.
@@ -104,6 +121,8 @@ pub struct GpuContext {
     device: wgpu::Device,
     queue: wgpu::Queue,
     summary: AdapterSummary,
+    /// Largest storage buffer a kernel may bind, bytes.
+    max_storage: u64,
     pipelines: Mutex<HashMap<&'static str, Arc<wgpu::ComputePipeline>>>,
     layouts: Mutex<HashMap<&'static str, Arc<Layout>>>,
     compile_ms: Mutex<f64>,
@@ -208,13 +227,24 @@ impl GpuContext {
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("depthgraph"),
             required_features: wgpu::Features::empty(),
-            required_limits: limits,
+            required_limits: limits.clone(),
             ..Default::default()
         }))
         .map_err(|e| GpuError::RequestDevice {
             adapter: summary.label(),
             message: e.to_string(),
         })?;
+        let cap_mb = req.max_buffer_mb.or_else(|| {
+            std::env::var("DEPTHGRAPH_GPU_MAX_BUFFER_MB")
+                .ok()
+                .and_then(|v| v.trim().parse().ok())
+        });
+        let device_max =
+            (limits.max_storage_buffer_binding_size as u64).min(limits.max_buffer_size);
+        let max_storage = match cap_mb {
+            Some(mb) => device_max.min(mb.saturating_mul(1 << 20)),
+            None => device_max,
+        };
         let uncaptured = Arc::new(Mutex::new(None));
         {
             let slot = uncaptured.clone();
@@ -231,6 +261,7 @@ impl GpuContext {
             device,
             queue,
             summary,
+            max_storage,
             pipelines: Mutex::new(HashMap::new()),
             layouts: Mutex::new(HashMap::new()),
             compile_ms: Mutex::new(0.0),
@@ -359,19 +390,37 @@ impl GpuContext {
         *lock(&self.compile_ms)
     }
 
+    /// The largest buffer a kernel may bind, bytes.
+    pub fn max_buffer(&self) -> u64 {
+        self.max_storage
+    }
+
     /// A buffer of at least `size` bytes with `usage`, from the pool when
-    /// one is free; it returns to the pool when dropped.
-    pub fn buffer(&self, size: u64, usage: wgpu::BufferUsages) -> PooledBuffer {
+    /// one is free; it returns to the pool when dropped. Larger than
+    /// [`GpuContext::max_buffer`] is [`GpuError::TooLarge`].
+    pub fn buffer(&self, size: u64, usage: wgpu::BufferUsages) -> Result<PooledBuffer, GpuError> {
+        if size > self.max_storage {
+            return Err(GpuError::TooLarge {
+                adapter: self.summary.label(),
+                needed_mib: size as f64 / (1u64 << 20) as f64,
+                allowed_mib: self.max_storage as f64 / (1u64 << 20) as f64,
+            });
+        }
         // Sizes are rounded up to a power of two (at least 256 B) so that
-        // buffers of similar images are reused.
-        let class = size.max(256).next_power_of_two();
+        // buffers of similar images are reused; near the limit, to 256 B.
+        let pow2 = size.max(256).next_power_of_two();
+        let class = if pow2 <= self.max_storage {
+            pow2
+        } else {
+            size.next_multiple_of(256)
+        };
         if let Some(b) = lock(&self.pool).take(class, usage) {
-            return PooledBuffer {
+            return Ok(PooledBuffer {
                 buffer: Some(b),
                 class,
                 usage,
                 pool: Arc::downgrade(&self.pool),
-            };
+            });
         }
         let b = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: None,
@@ -379,12 +428,12 @@ impl GpuContext {
             usage,
             mapped_at_creation: false,
         });
-        PooledBuffer {
+        Ok(PooledBuffer {
             buffer: Some(b),
             class,
             usage,
             pool: Arc::downgrade(&self.pool),
-        }
+        })
     }
 
     /// The device copy of `value`, if a device node left one (see

@@ -65,14 +65,14 @@ pub fn eval(
     let near: Vec<u32> = near.iter().map(|&b| u32::from(b)).collect();
     let horizontal = s.kernel(&shaders::FEATHER_HORIZONTAL)?;
     let vertical = s.kernel(&shaders::FEATHER_VERTICAL)?;
-    let uniform = s.uniform(bytemuck::bytes_of(&params));
+    let uniform = s.uniform(bytemuck::bytes_of(&params))?;
     // the cleaned mask is a new value: uploaded (the input's device copy
     // holds the uncleaned one)
-    let mask_buf = s.upload(bytes_of(mask.as_slice()));
-    let taps_buf = s.upload(bytes_of(&taps));
-    let near_buf = s.upload(bytes_of(&near));
-    let horiz = s.scratch(4 * n);
-    let out = Arc::new(s.scratch(4 * n));
+    let mask_buf = s.upload(bytes_of(mask.as_slice()))?;
+    let taps_buf = s.upload(bytes_of(&taps))?;
+    let near_buf = s.upload(bytes_of(&near))?;
+    let horiz = s.scratch(4 * n)?;
+    let out = Arc::new(s.scratch(4 * n)?);
     let bg_h = s.bind_at(
         &horizontal,
         &[(0, &uniform), (1, &mask_buf), (2, &taps_buf), (4, &horiz)],

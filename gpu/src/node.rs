@@ -43,13 +43,29 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for DeviceNode<I, O, P> 
         ctx.check_cancelled()?;
         let i = I::take(inputs)?;
         let mut session = Session::new(&self.ctx);
-        let r = (self.eval)(&mut session, ctx, i, &p)?;
+        let r = match (self.eval)(&mut session, ctx, i, &p) {
+            Ok(r) => r,
+            // A problem larger than the device binds runs on the CPU (the
+            // same kind, schema and result within the stated tolerance);
+            // the trace then names the CPU as its producer.
+            Err(NodeError::Device { message, .. }) if session.too_large => {
+                let mut out = self.cpu.eval(ctx, inputs, params)?;
+                out.origin = Some(Origin {
+                    backend: "cpu".to_string(),
+                    adapter: None,
+                    note: Some(format!("ran on the CPU: {message}")),
+                });
+                return Ok(out);
+            }
+            Err(e) => return Err(e),
+        };
         let mut out = r.out.into_outputs();
         out.passthrough = r.passthrough;
         out.transfers = session.register_outputs(&out);
         out.origin = Some(Origin {
             backend: "wgpu".to_string(),
             adapter: Some(self.ctx.adapter().label()),
+            note: None,
         });
         Ok(out)
     }

@@ -141,18 +141,18 @@ fn fill(
     let blocks: Vec<Level> = (0..=n_levels).map(block).collect();
     let align = s.ctx().limits().min_uniform_buffer_offset_alignment;
     let (bytes, stride) = uniform_blocks(&blocks, align);
-    let uniform = s.uniform(&bytes);
-    let depth_buf = s.image(depth, bytes_of(depth.as_slice()));
+    let uniform = s.uniform(&bytes)?;
+    let depth_buf = s.image(depth, bytes_of(depth.as_slice()))?;
     let color_buf = match dual {
-        Some((c, _)) => s.image(c, bytes_of(c.as_slice())),
-        None => Arc::new(s.scratch(16)),
+        Some((c, _)) => s.image(c, bytes_of(c.as_slice()))?,
+        None => Arc::new(s.scratch(16)?),
     };
-    let lz = s.scratch(4 * total as u64);
-    let lw = s.scratch(4 * total as u64);
-    let lc = s.scratch(16 * total as u64);
+    let lz = s.scratch(4 * total as u64)?;
+    let lw = s.scratch(4 * total as u64)?;
+    let lc = s.scratch(16 * total as u64)?;
     let n = (w * h) as u64;
-    let out_depth = Arc::new(s.scratch(4 * n));
-    let out_filled = Arc::new(s.scratch(4 * n));
+    let out_depth = Arc::new(s.scratch(4 * n)?);
+    let out_filled = Arc::new(s.scratch(4 * n)?);
     let init = s
         .kernel_in("pull_push.wgsl", BINDS, &shaders::PULL_PUSH_INIT)?
         .0;

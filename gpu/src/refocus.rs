@@ -166,22 +166,16 @@ pub fn render(
         .map(|(&v, &a)| [v as f32, if a { 1.0 } else { 0.0 }])
         .collect();
 
-    let g_buf = s.uniform(bytemuck::bytes_of(&globals));
-    let v_buf = {
-        let b = s
-            .ctx()
-            .buffer(view_bytes.len() as u64, crate::session::UNIFORM);
-        s.ctx().queue().write_buffer(&b, 0, &view_bytes);
-        b
-    };
-    let src_buf = s.upload(bytes_of(&src));
-    let color_buf = s.image(color, bytes_of(color.as_slice()));
-    let pix_buf = s.upload(bytes_of(&pix));
-    let zbuf = s.scratch(8 * n as u64);
-    let view = s.scratch(32 * n as u64);
-    let acc = s.scratch(32 * n as u64);
-    let holes = s.upload(&vec![0u8; 4 * views.max(1)]);
-    let out = Arc::new(s.scratch(12 * n as u64));
+    let g_buf = s.uniform(bytemuck::bytes_of(&globals))?;
+    let v_buf = s.uniform(&view_bytes)?;
+    let src_buf = s.upload(bytes_of(&src))?;
+    let color_buf = s.image(color, bytes_of(color.as_slice()))?;
+    let pix_buf = s.upload(bytes_of(&pix))?;
+    let zbuf = s.scratch(8 * n as u64)?;
+    let view = s.scratch(32 * n as u64)?;
+    let acc = s.scratch(32 * n as u64)?;
+    let holes = s.upload(&vec![0u8; 4 * views.max(1)])?;
+    let out = Arc::new(s.scratch(12 * n as u64)?);
 
     let clear = s
         .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_CLEAR)?

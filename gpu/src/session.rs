@@ -31,6 +31,9 @@ pub struct Session<'a> {
     pub stats: Transfers,
     /// Output buffers to remember as resident once the output values exist.
     kept: Vec<(String, Arc<PooledBuffer>, u64)>,
+    /// Set when a buffer was larger than the device binds: the node then
+    /// runs on the CPU instead.
+    pub(crate) too_large: bool,
 }
 
 /// The shared pointer behind an image value, for residency.
@@ -51,6 +54,7 @@ impl<'a> Session<'a> {
             ctx,
             stats: Transfers::default(),
             kept: Vec::new(),
+            too_large: false,
         }
     }
 
@@ -74,6 +78,16 @@ impl<'a> Session<'a> {
     pub fn fail(&self, e: GpuError) -> NodeError {
         let (adapter, message) = match e {
             GpuError::Device { adapter, message } => (adapter, message),
+            GpuError::TooLarge {
+                adapter,
+                needed_mib,
+                allowed_mib,
+            } => (
+                adapter,
+                format!(
+                    "needs a {needed_mib:.1} MiB buffer, the device binds at most {allowed_mib:.1} MiB"
+                ),
+            ),
             other => (self.ctx.adapter().label(), other.to_string()),
         };
         NodeError::Device { adapter, message }
@@ -85,39 +99,50 @@ impl<'a> Session<'a> {
         &mut self,
         value: &Arc<T>,
         bytes: &[u8],
-    ) -> Arc<PooledBuffer> {
+    ) -> Result<Arc<PooledBuffer>, NodeError> {
         let any: Arc<dyn Any + Send + Sync> = value.clone();
         if let Some(b) = self.ctx.resident(&any) {
             self.stats.resident_hits += 1;
-            return b;
+            return Ok(b);
         }
         // Kept too: the next device node that reads the same value (the
         // guide image of a chain, say) finds it there. Kernels never write
         // their inputs, so the copy stays equal to the value.
-        let b = Arc::new(self.upload(bytes));
+        let b = Arc::new(self.upload(bytes)?);
         self.ctx.keep_resident(&any, b.clone(), bytes.len() as u64);
-        b
+        Ok(b)
+    }
+
+    /// A buffer from the context; a too large one marks the session.
+    fn alloc(&mut self, size: u64, usage: wgpu::BufferUsages) -> Result<PooledBuffer, NodeError> {
+        match self.ctx.buffer(size, usage) {
+            Ok(b) => Ok(b),
+            Err(e) => {
+                self.too_large |= matches!(e, GpuError::TooLarge { .. });
+                Err(self.fail(e))
+            }
+        }
     }
 
     /// Copies `bytes` into a new storage buffer.
-    pub fn upload(&mut self, bytes: &[u8]) -> PooledBuffer {
+    pub fn upload(&mut self, bytes: &[u8]) -> Result<PooledBuffer, NodeError> {
         let t = Instant::now();
-        let b = self.ctx.buffer(bytes.len().max(4) as u64, STORAGE);
+        let b = self.alloc(bytes.len().max(4) as u64, STORAGE)?;
         if !bytes.is_empty() {
             self.write(&b, bytes);
         }
         self.stats.uploads += 1;
         self.stats.upload_bytes += bytes.len();
         self.stats.upload_ms += t.elapsed().as_secs_f64() * 1e3;
-        b
+        Ok(b)
     }
 
     /// A uniform buffer holding `bytes` (parameter blocks; not counted as
     /// image traffic).
-    pub fn uniform(&mut self, bytes: &[u8]) -> PooledBuffer {
-        let b = self.ctx.buffer(bytes.len().max(16) as u64, UNIFORM);
+    pub fn uniform(&mut self, bytes: &[u8]) -> Result<PooledBuffer, NodeError> {
+        let b = self.alloc(bytes.len().max(16) as u64, UNIFORM)?;
         self.write(&b, bytes);
-        b
+        Ok(b)
     }
 
     /// The pipeline of `k` in the explicit layout `binds` (cached per
@@ -137,8 +162,8 @@ impl<'a> Session<'a> {
     }
 
     /// An uninitialised storage buffer of `size` bytes.
-    pub fn scratch(&mut self, size: u64) -> PooledBuffer {
-        self.ctx.buffer(size.max(4), STORAGE)
+    pub fn scratch(&mut self, size: u64) -> Result<PooledBuffer, NodeError> {
+        self.alloc(size.max(4), STORAGE)
     }
 
     fn write(&self, b: &wgpu::Buffer, bytes: &[u8]) {
@@ -209,11 +234,12 @@ impl<'a> Session<'a> {
             .iter()
             .map(|(src, n)| {
                 let n4 = n.next_multiple_of(4).max(4);
-                let s = ctx.buffer(n4, READBACK);
+                let s = ctx.buffer(n4, READBACK)?;
                 encoder.copy_buffer_to_buffer(src, 0, &s, 0, n4);
-                s
+                Ok(s)
             })
-            .collect();
+            .collect::<Result<_, GpuError>>()
+            .map_err(|e| self.fail(e))?;
         let scope = ctx
             .device()
             .push_error_scope(wgpu::ErrorFilter::OutOfMemory);

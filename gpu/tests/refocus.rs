@@ -141,3 +141,32 @@ fn a_sharp_scene_passes_through_alike() {
     assert!(dev.passthrough.is_some());
     assert_eq!(*color_of(&cpu, "color"), *color_of(&dev, "color"));
 }
+
+/// A problem larger than the device may bind runs on the CPU: the same
+/// result, and the outputs name the CPU and why.
+#[test]
+fn too_large_for_the_device_runs_on_the_cpu_and_says_so() {
+    let small = depthgraph_gpu::GpuContext::new(&depthgraph_gpu::AdapterRequest {
+        max_buffer_mb: Some(1),
+        ..Default::default()
+    })
+    .unwrap();
+    let cpu_reg = depthgraph_nodes::registry().unwrap();
+    let mut dev = depthgraph_nodes::registry().unwrap();
+    depthgraph_gpu::install(&mut dev, &small).unwrap();
+    // 300x170: the views need 32 B per pixel, over 1 MiB
+    let (c, d) = scene(300, 170);
+    let p = cases().remove(0);
+    let i = inputs(c, d);
+    let a = eval_on(&cpu_reg, "Refocus", &i, &p.to_values()).unwrap();
+    let b = eval_on(&dev, "Refocus", &i, &p.to_values()).unwrap();
+    assert_eq!(*color_of(&a, "color"), *color_of(&b, "color"));
+    let origin = b.origin.unwrap();
+    assert_eq!(origin.backend, "cpu");
+    let note = origin.note.unwrap();
+    assert!(note.contains("MiB") && note.contains("CPU"), "{note}");
+    // a small problem still runs on that device
+    let (c, d) = scene(40, 30);
+    let b = eval_on(&dev, "Refocus", &inputs(c, d), &p.to_values()).unwrap();
+    assert_eq!(b.origin.unwrap().backend, "wgpu");
+}

@@ -26,6 +26,8 @@ pub fn encode(out: &Outputs) -> Vec<u8> {
     w.str(&origin.backend);
     w.str(origin.adapter.as_deref().unwrap_or(""));
     w.u8(origin.adapter.is_some() as u8);
+    w.str(origin.note.as_deref().unwrap_or(""));
+    w.u8(origin.note.is_some() as u8);
     w.usize(out.values.len());
     for (k, v) in &out.values {
         w.str(k);
@@ -53,6 +55,8 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     let backend = r.string()?;
     let adapter = r.string()?;
     let has_adapter = r.u8()? != 0;
+    let note = r.string()?;
+    let has_note = r.u8()? != 0;
     let n = r.u64()? as usize;
     let mut values = BTreeMap::new();
     for _ in 0..n {
@@ -69,6 +73,7 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
         origin: (!backend.is_empty()).then(|| crate::node::Origin {
             backend,
             adapter: has_adapter.then_some(adapter),
+            note: has_note.then_some(note),
         }),
         transfers: Default::default(),
     })

@@ -281,9 +281,9 @@ impl Engine {
                     }
                 };
                 let origin = results[i].as_ref().and_then(|o| o.origin.clone());
-                let (backend, adapter) = match origin {
-                    Some(o) => (o.backend, o.adapter),
-                    None => (node.node.backend().to_string(), node.node.adapter()),
+                let (backend, adapter, backend_note) = match origin {
+                    Some(o) => (o.backend, o.adapter, o.note),
+                    None => (node.node.backend().to_string(), node.node.adapter(), None),
                 };
                 let transfers = match &state[i] {
                     State::Run => results[i].as_ref().map(|o| o.transfers).unwrap_or_default(),
@@ -298,6 +298,7 @@ impl Engine {
                     bytes: results[i].as_ref().map(|o| o.bytes()).unwrap_or(0),
                     backend,
                     adapter,
+                    backend_note,
                     transfers,
                     key: keys[i].to_hex(),
                     derived: std::mem::take(&mut derived[i]),
@@ -404,6 +405,7 @@ impl Engine {
             out.origin = Some(crate::node::Origin {
                 backend: node.node.backend().to_string(),
                 adapter: node.node.adapter(),
+                note: None,
             });
         }
         for spec in &schema.outputs {

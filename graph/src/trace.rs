@@ -50,6 +50,8 @@ pub struct NodeRecord {
     pub backend: String,
     /// The device adapter that produced them, for device backends.
     pub adapter: Option<String>,
+    /// Why that backend, when it was a fallback from the preferred one.
+    pub backend_note: Option<String>,
     /// Host/device traffic of the evaluation (zero when cached).
     pub transfers: Transfers,
     /// Hex cache key.
@@ -136,6 +138,9 @@ impl Trace {
                 human_bytes(r.bytes),
                 r.reason.as_deref().unwrap_or("")
             );
+            if let Some(n) = &r.backend_note {
+                let _ = writeln!(s, "{:<w_node$}  {:<w_kind$}  backend: {n}", "", "");
+            }
             let t = &r.transfers;
             if !t.is_empty() {
                 let _ = writeln!(
@@ -197,6 +202,9 @@ pub struct Origin {
     pub backend: String,
     /// The device's adapter (name, driver and API), for device backends.
     pub adapter: Option<String>,
+    /// Why this backend and not the preferred one (e.g. a problem too
+    /// large for the device), when it was a fallback.
+    pub note: Option<String>,
 }
 
 /// Host-to-device and device-to-host traffic of one evaluation.
