@@ -115,11 +115,9 @@ pub fn render(
     let max_dim = limits.max_compute_workgroups_per_dimension;
     let (px_x, px_y, px_row) = fold(n, max_dim);
     let (src_x, src_y, src_row) = fold(plan.sources.len(), max_dim);
-    if px_row != src_row && plan.sources.len() > 256 * max_dim as usize {
-        // Both folds share G.row; they agree unless both exceed the limit
-        // differently, which a w*h <= 2^32 image cannot.
-        return Err(s.fail(s.ctx().error("refocus: image too large for one dispatch")));
-    }
+    // Both kinds of kernel index with one row length: a fold that needs a
+    // second dimension has the full row (256 max_dim), and the other then
+    // runs with one row of groups, so the larger row serves both.
     let row = px_row.max(src_row);
     let globals = Globals {
         w: w as u32,
@@ -265,4 +263,30 @@ pub fn render(
         k0 = k1;
     }
     Err(s.fail(s.ctx().error("refocus: no views rendered")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fold;
+
+    #[test]
+    fn a_long_dispatch_folds_into_two_dimensions_covering_every_item() {
+        for (n, max_dim) in [
+            (1usize, 65535u32),
+            (256, 65535),
+            (257, 65535),
+            (256 * 70_000, 65535),
+            (1000, 2),
+        ] {
+            let (gx, gy, row) = fold(n, max_dim);
+            assert!(gx <= max_dim && gy <= max_dim, "{n}");
+            assert_eq!(row, gx * 256);
+            // every item has an invocation, and not a whole row too many
+            let total = gx as usize * gy as usize * 256;
+            assert!(
+                total >= n && total < n + row as usize + 256,
+                "{n}: {gx} x {gy}"
+            );
+        }
+    }
 }
