@@ -14,8 +14,9 @@ use depthgraph::metrics::Metric;
 use depthgraph::sweep::{SweepSpec, plot_svg, run_sweep, to_csv};
 use depthgraph::{LoadError, default_cache_dir, load_pipeline, read_document};
 
-/// Exit code when the requested backend cannot be used (no GPU adapter).
-const EXIT_NO_DEVICE: u8 = 3;
+/// Exit code when the requested backend cannot be used (no GPU adapter):
+/// sysexits EX_UNAVAILABLE. A bad DEPTHGRAPH_BACKEND is a usage error (2).
+const EXIT_NO_DEVICE: u8 = 69;
 
 #[derive(Parser)]
 #[command(
@@ -135,7 +136,11 @@ fn registry_for(args: &RunArgs) -> Result<std::result::Result<(Registry, Chosen)
         Ok(c) => Ok(Ok((reg, c))),
         Err(e) => {
             eprintln!("error: {e}");
-            Ok(Err(ExitCode::from(EXIT_NO_DEVICE)))
+            let code = match e {
+                depthgraph::backend::BackendError::BadVariable(_) => 2,
+                depthgraph::backend::BackendError::NoDevice(_) => EXIT_NO_DEVICE,
+            };
+            Ok(Err(ExitCode::from(code)))
         }
     }
 }

@@ -1,6 +1,6 @@
 //! `--backend` on the command line: `gpu` runs the device kinds on the
 //! adapter and `explain --json` names it per node; `gpu` without a matching
-//! adapter fails before running (exit code 3); `auto` falls back to the CPU
+//! adapter fails before running (exit code 69); `auto` falls back to the CPU
 //! and says why; `--backend gpu` and `cpu` write images that agree.
 //! (The GPU parts need the `gpu` feature and a wgpu adapter: lavapipe in CI.)
 
@@ -129,7 +129,7 @@ fn gpu_without_a_matching_adapter_fails_before_running() {
         ],
         &[("WGPU_ADAPTER_NAME", "no-such-adapter-xyz")],
     );
-    assert_eq!(r.status.code(), Some(3));
+    assert_eq!(r.status.code(), Some(69));
     let stderr = String::from_utf8_lossy(&r.stderr);
     assert!(stderr.contains("--backend gpu"), "{stderr}");
     assert_eq!(
@@ -157,7 +157,7 @@ fn gpu_without_a_matching_adapter_fails_before_running() {
         &["run", f.to_str().unwrap(), "--no-cache", "-q"],
         &[("DEPTHGRAPH_BACKEND", "tpu")],
     );
-    assert_eq!(r.status.code(), Some(3));
+    assert_eq!(r.status.code(), Some(2), "a usage error");
     assert!(String::from_utf8_lossy(&r.stderr).contains("expected auto, cpu or gpu"));
 }
 

@@ -178,7 +178,7 @@ fn main() {
         Ok(c) => c,
         Err(e) => {
             eprintln!("gpu bench: {e}");
-            std::process::exit(3);
+            std::process::exit(69);
         }
     };
     let a = ctx.adapter().clone();

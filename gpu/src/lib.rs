@@ -21,6 +21,7 @@
 pub mod backend;
 pub mod bilateral;
 pub mod context;
+pub mod edges;
 pub mod feather;
 pub mod node;
 pub mod parity;
@@ -53,6 +54,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "PullPush", pull_push::eval_plain)?;
     node::register_device(reg, ctx, "DualPullPush", pull_push::eval_dual)?;
     node::register_device(reg, ctx, "Feather", feather::eval)?;
+    node::register_device(reg, ctx, "EdgeDetect", edges::eval)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

@@ -119,3 +119,69 @@ pub fn color_within(
     }
     Ok(psnr)
 }
+
+/// The EdgeDetect check: strengths within `tol`, and binary edges equal
+/// except at pixels the strength leaves ambiguous: within `tol` of the
+/// threshold, or an edge candidate whose thinning compares values (itself
+/// and its 8 neighbours) two of which are within `2 tol`.
+/// Returns the largest strength difference and the number of ambiguous
+/// pixels whose edge bit differs.
+pub fn edges_within(
+    cpu: (&Confidence, &Mask),
+    gpu: (&Confidence, &Mask),
+    threshold: f64,
+    tol: f64,
+) -> Result<(f64, usize), String> {
+    let ((sa, ea), (sb, eb)) = (cpu, gpu);
+    if sa.dims() != sb.dims() || ea.dims() != eb.dims() || sa.dims() != ea.dims() {
+        return Err("sizes differ".into());
+    }
+    let (w, h) = sa.dims();
+    let s = sa.as_slice();
+    let mut worst = 0.0f64;
+    for (t, (a, b)) in s.iter().zip(sb.as_slice()).enumerate() {
+        let d = (*a as f64 - *b as f64).abs();
+        if d.is_nan() || d > tol {
+            return Err(format!(
+                "strength at ({}, {}): cpu {a}, gpu {b}",
+                t % w,
+                t / w
+            ));
+        }
+        worst = worst.max(d);
+    }
+    let mut ambiguous = 0;
+    for (t, (a, b)) in ea.as_slice().iter().zip(eb.as_slice()).enumerate() {
+        if a == b {
+            continue;
+        }
+        let (x, y) = ((t % w) as isize, (t / w) as isize);
+        let v = s[t] as f64;
+        // Below the threshold by more than tol: an edge on neither backend.
+        // Otherwise the thinning compares v with its neighbours and the
+        // neighbours' maxima per axis: ambiguous when two of these nine
+        // values are within 2 tol (a comparison rounding can flip).
+        let mut vals = vec![v];
+        for dy in -1..=1isize {
+            for dx in -1..=1isize {
+                if (dx, dy) != (0, 0) {
+                    let xx = (x + dx).clamp(0, w as isize - 1) as usize;
+                    let yy = (y + dy).clamp(0, h as isize - 1) as usize;
+                    vals.push(s[yy * w + xx] as f64);
+                }
+            }
+        }
+        let close_pair = vals
+            .iter()
+            .enumerate()
+            .any(|(i, a)| vals[i + 1..].iter().any(|b| (a - b).abs() <= 2.0 * tol));
+        let ambiguous_here = (v - threshold).abs() <= tol || (v >= threshold - tol && close_pair);
+        if !ambiguous_here {
+            return Err(format!(
+                "edge bit at ({x}, {y}) differs where the strength {v} is not ambiguous"
+            ));
+        }
+        ambiguous += 1;
+    }
+    Ok((worst, ambiguous))
+}

@@ -124,6 +124,30 @@ fn check(file: &str, expect_device: &[&str]) {
                         "{file} {key}: {psnr} dB"
                     );
                 }
+                (Value::Confidence(x), Value::Confidence(y), true) if n.kind == "EdgeDetect" => {
+                    let (ea, eb) = match (
+                        &a.outputs[&format!("{}.edges", n.name)],
+                        &b.outputs[&format!("{}.edges", n.name)],
+                    ) {
+                        (Value::Mask(ea), Value::Mask(eb)) => (ea.clone(), eb.clone()),
+                        _ => panic!("{file} {key}: no edges"),
+                    };
+                    let threshold = match n.params.get("threshold") {
+                        Some(ParamValue::Float(t)) => *t,
+                        _ => 0.5,
+                    };
+                    let (worst, amb) = depthgraph_gpu::parity::edges_within(
+                        (x, &ea),
+                        (y, &eb),
+                        threshold,
+                        depthgraph_gpu::edges::ABS_TOL,
+                    )
+                    .unwrap_or_else(|e| panic!("{file} {key}: {e}"));
+                    eprintln!(
+                        "{file} {key}: max |ds| {worst:.2e}, {amb} ambiguous edge bits differ"
+                    );
+                }
+                (Value::Mask(_), Value::Mask(_), true) if n.kind == "EdgeDetect" => {} // with the strength
                 (_, _, true) => panic!("{file} {key}: no check for {} output", n.kind),
                 _ if !touched.contains(&i) => {
                     let (sa, sb) = (va.samples(), vb.samples());
@@ -170,7 +194,7 @@ fn depth_fill_pipeline_agrees() {
 
 #[test]
 fn copy_paste_relit_pipeline_agrees() {
-    check("copy_paste_relit.ron", &["Feather"]);
+    check("copy_paste_relit.ron", &["EdgeDetect", "Feather"]);
 }
 
 /// Two device nodes in a row: the second reads the first's output and the

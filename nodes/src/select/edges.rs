@@ -116,7 +116,8 @@ pub struct Edges {
     pub edges: Mask,
 }
 
-fn check_params(p: &EdgeParams) -> Result<DepthTerm, NodeError> {
+/// Checks the parameters (both backends); returns the depth term.
+pub fn check_params(p: &EdgeParams) -> Result<DepthTerm, NodeError> {
     for (name, v) in [
         ("color_weight", p.color_weight),
         ("depth_weight", p.depth_weight),
@@ -155,6 +156,23 @@ fn check_params(p: &EdgeParams) -> Result<DepthTerm, NodeError> {
     Ok(p.depth_term)
 }
 
+/// Checks that the depth has the color's size (both backends).
+pub fn check_dims(color: &ColorImage, depth: &DepthMap) -> Result<(), NodeError> {
+    if !color.same_dims(depth) {
+        return Err(NodeError::input(
+            "depth",
+            format!(
+                "is {}x{} but the color is {}x{}",
+                depth.width(),
+                depth.height(),
+                color.width(),
+                color.height()
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Gamma-2 encoding (see the module docs): finite, in `[0, 1]`, NaN -> 0.
 #[inline]
 fn encode(v: f32) -> f32 {
@@ -181,18 +199,7 @@ pub fn detect_edges(
     p: &EdgeParams,
 ) -> Result<Edges, NodeError> {
     let term = check_params(p)?;
-    if !color.same_dims(depth) {
-        return Err(NodeError::input(
-            "depth",
-            format!(
-                "is {}x{} but the color is {}x{}",
-                depth.width(),
-                depth.height(),
-                color.width(),
-                color.height()
-            ),
-        ));
-    }
+    check_dims(color, depth)?;
     let (w, h) = color.dims();
     if w == 0 || h == 0 {
         return Ok(Edges {
