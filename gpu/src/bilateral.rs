@@ -53,6 +53,7 @@ pub fn eval(
     }
     check_params(p)?;
     let (w, h) = i.depth.dims();
+    s.check_grid(w, h, 8)?;
     let encode = s.kernel(&shaders::BILATERAL_ENCODE)?;
     let filter = s.kernel(&shaders::BILATERAL)?;
     let log2e = std::f64::consts::LOG2_E;

@@ -409,11 +409,14 @@ impl GpuContext {
         // Sizes are rounded up to a power of two (at least 256 B) so that
         // buffers of similar images are reused; near the limit, to 256 B.
         let pow2 = size.max(256).next_power_of_two();
-        let class = if pow2 <= self.max_storage {
-            pow2
-        } else {
-            size.next_multiple_of(256)
-        };
+        let class = [pow2, size.next_multiple_of(256), size.next_multiple_of(4)]
+            .into_iter()
+            .find(|&c| c <= self.max_storage)
+            .ok_or_else(|| GpuError::TooLarge {
+                adapter: self.summary.label(),
+                needed_mib: size as f64 / (1u64 << 20) as f64,
+                allowed_mib: self.max_storage as f64 / (1u64 << 20) as f64,
+            })?;
         if let Some(b) = lock(&self.pool).take(class, usage) {
             return Ok(PooledBuffer {
                 buffer: Some(b),

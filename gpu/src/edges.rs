@@ -58,6 +58,7 @@ pub fn eval(
         }
         .into());
     }
+    s.check_grid(w, h, 8)?;
     // The CPU's constants, in its f64-then-f32 order.
     let wsum = p.color_weight + p.depth_weight;
     let params = Params {

@@ -54,6 +54,7 @@ pub fn eval(
         } => (mask, kernel, near, inside),
     };
     let (w, h) = mask.dims();
+    s.check_grid(w, h, 8)?;
     let n = (w * h) as u64;
     let params = Params {
         w: w as u32,

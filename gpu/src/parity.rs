@@ -65,8 +65,12 @@ pub fn display_psnr(cpu: &ColorImage, gpu: &ColorImage) -> Result<f64, String> {
     }
     let enc = |v: f32| depthgraph_nodes::kit::color::linear_to_srgb(v.clamp(0.0, 1.0)) as f64;
     let mut se = 0.0f64;
-    for (a, b) in cpu.as_slice().iter().zip(gpu.as_slice()) {
+    for (t, (a, b)) in cpu.as_slice().iter().zip(gpu.as_slice()).enumerate() {
         for k in 0..3 {
+            // the display encoding maps NaN to 0: compare NaN-ness first
+            if a[k].is_nan() != b[k].is_nan() {
+                return Err(format!("pixel {t}: cpu {a:?}, gpu {b:?} (NaN on one side)"));
+            }
             let d = enc(a[k]) - enc(b[k]);
             se += d * d;
         }

@@ -105,6 +105,7 @@ fn fill(
     };
     check_inputs(depth, weights)?;
     let (w, h) = depth.dims();
+    s.check_grid(w, h, 8)?;
     let n_levels = level_count(depth, p) as usize;
     // sizes and offsets of levels 0..=n_levels
     let mut dims = vec![(w, h, 0usize)];
@@ -149,7 +150,12 @@ fn fill(
     };
     let lz = s.scratch(4 * total as u64)?;
     let lw = s.scratch(4 * total as u64)?;
-    let lc = s.scratch(16 * total as u64)?;
+    // the color pyramid for the dual weights only (a placeholder otherwise)
+    let lc = s.scratch(if dual.is_some() {
+        16 * total as u64
+    } else {
+        16
+    })?;
     let n = (w * h) as u64;
     let out_depth = Arc::new(s.scratch(4 * n)?);
     let out_filled = Arc::new(s.scratch(4 * n)?);

@@ -6,7 +6,8 @@
 //!
 //! **Agreement with the CPU** (checked by the parity tests): the display
 //! image's PSNR against the CPU's is at least [`MIN_PSNR_DB`], and pixels
-//! outside the active tiles are bit-identical. The z-buffer is exact (two
+//! outside the active tiles are bit-identical (the host applies the CPU's
+//! f64 gain to them after the download). The z-buffer is exact (two
 //! 32-bit `atomicMin` passes reproduce the CPU's 64-bit key); the
 //! differences come from f32 warp positions (a target can round the other
 //! way when it lies within ~1e-6 px of a half pixel), f32 fill weights, and
@@ -251,9 +252,24 @@ pub fn render(
             )?;
             let rgb = f32s(&back[0]);
             let holes_total: usize = u32s(&back[1]).iter().map(|&c| c as usize).sum();
-            let data: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let mut data: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            // Inactive pixels are the input times the gain, which the CPU
+            // rounds once from f64: take its formula here so they are
+            // bit-identical whatever the gain (a fractional stop's f32
+            // product can be an ulp off).
+            let mut changed = false;
+            for ((px, &a), src) in data.iter_mut().zip(&plan.active).zip(&plan.src_color) {
+                if !a {
+                    let exact = src.map(|v| (v as f64 * plan.gain) as f32);
+                    changed |= exact.map(f32::to_bits) != px.map(f32::to_bits);
+                    *px = exact;
+                }
+            }
             let img = Image::from_vec(w, h, data)?;
-            s.keep("color", out.clone(), 12 * n as u64);
+            // The device copy is the value only if nothing was corrected.
+            if !changed {
+                s.keep("color", out.clone(), 12 * n as u64);
+            }
             return Ok((img, plan.report(holes_total)));
         }
         s.submit(encoder)?;

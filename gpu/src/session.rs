@@ -34,6 +34,10 @@ pub struct Session<'a> {
     /// Set when a buffer was larger than the device binds: the node then
     /// runs on the CPU instead.
     pub(crate) too_large: bool,
+    /// The error scopes (out of memory, then validation) that capture
+    /// everything this session does on its thread between two
+    /// submissions, so a device error is this node's and no other's.
+    scopes: Vec<wgpu::ErrorScopeGuard>,
 }
 
 /// The shared pointer behind an image value, for residency.
@@ -50,12 +54,41 @@ pub(crate) fn value_arc(v: &Value) -> Option<Arc<dyn Any + Send + Sync>> {
 impl<'a> Session<'a> {
     /// A session on `ctx`.
     pub fn new(ctx: &'a GpuContext) -> Self {
-        Self {
+        let mut s = Self {
             ctx,
             stats: Transfers::default(),
             kept: Vec::new(),
             too_large: false,
+            scopes: Vec::new(),
+        };
+        s.open_scopes();
+        s
+    }
+
+    fn open_scopes(&mut self) {
+        let d = self.ctx.device();
+        // (called with no scope open: at creation and after close_scopes)
+        self.scopes.push(d.push_error_scope(wgpu::ErrorFilter::OutOfMemory));
+        self.scopes.push(d.push_error_scope(wgpu::ErrorFilter::Validation));
+    }
+
+    /// Pops the scopes (innermost first) and reopens them: the first error
+    /// they caught since they were opened, if any.
+    fn close_scopes(&mut self) -> Option<NodeError> {
+        let mut first = None;
+        while let Some(scope) = self.scopes.pop() {
+            let oom = self.scopes.is_empty();
+            if let Some(e) = pollster::block_on(scope.pop()) {
+                let msg = if oom {
+                    format!("out of device memory: {e}")
+                } else {
+                    e.to_string()
+                };
+                first.get_or_insert_with(|| self.fail(self.ctx.error(msg)));
+            }
         }
+        self.open_scopes();
+        first
     }
 
     /// The context.
@@ -111,6 +144,20 @@ impl<'a> Session<'a> {
         let b = Arc::new(self.upload(bytes)?);
         self.ctx.keep_resident(&any, b.clone(), bytes.len() as u64);
         Ok(b)
+    }
+
+    /// Checks that a `w` x `h` grid of `tile` x `tile` workgroups fits the
+    /// device's dispatch limit; a larger one marks the session too large
+    /// (the node then runs on the CPU).
+    pub fn check_grid(&mut self, w: usize, h: usize, tile: usize) -> Result<(), NodeError> {
+        let max = self.ctx.limits().max_compute_workgroups_per_dimension as usize;
+        if w.div_ceil(tile) > max || h.div_ceil(tile) > max {
+            self.too_large = true;
+            return Err(self.fail(self.ctx.error(format!(
+                "a {w}x{h} image needs more than {max} workgroups along one side"
+            ))));
+        }
+        Ok(())
     }
 
     /// A buffer from the context; a too large one marks the session.
@@ -240,18 +287,12 @@ impl<'a> Session<'a> {
             })
             .collect::<Result<_, GpuError>>()
             .map_err(|e| self.fail(e))?;
-        let scope = ctx
-            .device()
-            .push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let scope_v = ctx.device().push_error_scope(wgpu::ErrorFilter::Validation);
         let t = Instant::now();
         let index = ctx.queue().submit([encoder.finish()]);
-        if let Some(e) = pollster::block_on(scope_v.pop()) {
-            drop(pollster::block_on(scope.pop()));
-            return Err(self.fail(ctx.error(e.to_string())));
-        }
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(self.fail(ctx.error(format!("out of device memory: {e}"))));
+        // Everything since the last submission (buffers, bind groups,
+        // writes, this submission) is checked here.
+        if let Some(e) = self.close_scopes() {
+            return Err(e);
         }
         self.wait(Some(index))?;
         self.stats.kernel_ms += t.elapsed().as_secs_f64() * 1e3;
@@ -271,9 +312,13 @@ impl<'a> Session<'a> {
                     return Err(self.fail(ctx.error("reading back: no answer from the device")));
                 }
             }
-            let view = slice
-                .get_mapped_range()
-                .map_err(|e| self.fail(ctx.error(format!("reading back: {e}"))))?;
+            let view = match slice.get_mapped_range() {
+                Ok(v) => v,
+                Err(e) => {
+                    s.unmap();
+                    return Err(self.fail(ctx.error(format!("reading back: {e}"))));
+                }
+            };
             out.push(view[..*n as usize].to_vec());
             drop(view);
             s.unmap();
@@ -281,8 +326,8 @@ impl<'a> Session<'a> {
             self.stats.download_bytes += *n as usize;
         }
         self.stats.download_ms += t.elapsed().as_secs_f64() * 1e3;
-        if let Some(e) = ctx.take_uncaptured() {
-            return Err(self.fail(e));
+        if let Some(e) = self.close_scopes() {
+            return Err(e);
         }
         Ok(out)
     }
@@ -310,13 +355,23 @@ impl<'a> Session<'a> {
     }
 
     /// Registers the kept buffers against the output values.
-    pub(crate) fn register_outputs(self, out: &Outputs) -> Transfers {
-        for (port, buffer, bytes) in self.kept {
+    pub(crate) fn register_outputs(mut self, out: &Outputs) -> Transfers {
+        for (port, buffer, bytes) in std::mem::take(&mut self.kept) {
             if let Some(arc) = out.values.get(&port).and_then(value_arc) {
                 self.ctx.keep_resident(&arc, buffer, bytes);
             }
         }
         self.stats
+    }
+}
+
+impl Drop for Session<'_> {
+    fn drop(&mut self) {
+        // wgpu requires scopes to be popped innermost first (a Vec drops
+        // its elements first to last).
+        while let Some(scope) = self.scopes.pop() {
+            drop(scope);
+        }
     }
 }
 

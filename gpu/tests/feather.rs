@@ -33,7 +33,7 @@ fn within(cpu: &Mask, gpu: &Mask, near: &[bool], tol: f64) -> Result<f64, String
             return Err(format!("untouched pixel {t} differs: {a} vs {b}"));
         }
         let d = (*a as f64 - *b as f64).abs();
-        if d > tol {
+        if d.is_nan() || d > tol {
             return Err(format!("pixel {t}: {a} vs {b}, |d| = {d:.2e} > {tol:e}"));
         }
         worst = worst.max(d);

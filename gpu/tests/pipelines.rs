@@ -109,7 +109,10 @@ fn check(file: &str, expect_device: &[&str]) {
                         .iter()
                         .zip(y.as_slice())
                         .map(|(a, b)| (*a as f64 - *b as f64).abs())
-                        .fold(0.0, f64::max);
+                        .fold(
+                            0.0,
+                            |m: f64, d| if d.is_nan() { f64::INFINITY } else { m.max(d) },
+                        );
                     eprintln!("{file} {key}: max |d| {worst:.2e}");
                     assert!(
                         worst <= depthgraph_gpu::feather::ABS_TOL,

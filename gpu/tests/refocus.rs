@@ -117,14 +117,42 @@ fn the_refocus_check_fails_on_a_perturbed_result() {
         }
     }
     assert!(color_within(&a, &veil, &fixed, MIN_PSNR_DB).is_err());
-    // one inactive pixel off by one ulp
-    if let Some(t) = fixed.iter().position(|f| *f) {
-        let mut ulp = (*b).clone();
-        let v = &mut ulp.as_mut_slice()[t][0];
-        *v = f32::from_bits(v.to_bits() + 1);
-        let e = color_within(&a, &ulp, &fixed, MIN_PSNR_DB).unwrap_err();
-        assert!(e.contains("inactive"), "{e}");
-    }
+}
+
+/// A scene whose blur reaches only part of the image: a small far card
+/// behind an in-focus wall, exposed by a fractional stop (the inactive
+/// pixels are the input times 2^0.7, which must be the CPU's bits).
+#[test]
+fn inactive_pixels_are_bit_identical_at_a_fractional_exposure() {
+    let (w, h) = (160, 120);
+    let c = ColorImage::from_fn(w, h, |x, y| {
+        [0.013 * (x % 17) as f32, 0.7, 0.001 * y as f32 + 0.3]
+    });
+    let d = DepthMap::from_fn(w, h, |x, y| if x < 24 && y < 24 { 6.0 } else { 2.0 });
+    let p = RefocusParams {
+        focus_m: 2.0,
+        f_number: 2.0,
+        sensor_width_mm: 6.0,
+        samples: 32,
+        exposure_stops: 0.7,
+        ..Default::default()
+    };
+    let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+    let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+    let fixed = fixed_pixels(&c, &d, &p);
+    let n_fixed = fixed.iter().filter(|f| **f).count();
+    assert!(
+        n_fixed > 1000 && n_fixed < c.len(),
+        "{n_fixed} inactive pixels"
+    );
+    color_within(&a, &b, &fixed, MIN_PSNR_DB).unwrap();
+    // and the check sees one inactive pixel off by one ulp
+    let t = fixed.iter().position(|f| *f).unwrap();
+    let mut ulp = (*b).clone();
+    let v = &mut ulp.as_mut_slice()[t][0];
+    *v = f32::from_bits(v.to_bits() + 1);
+    let e = color_within(&a, &ulp, &fixed, MIN_PSNR_DB).unwrap_err();
+    assert!(e.contains("inactive"), "{e}");
 }
 
 #[test]

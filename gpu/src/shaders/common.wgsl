@@ -5,9 +5,11 @@
 
 // A depth sample is a measurement when it is finite and positive
 // (DepthMap::is_valid on the CPU).
+// By the bits: positive, non-zero (subnormals included, which a device may
+// flush to zero in arithmetic) and finite.
 fn is_valid_depth(z: f32) -> bool {
     let b = bitcast<u32>(z);
-    return (b & 0x7f800000u) != 0x7f800000u && z > 0.0;
+    return b != 0u && b < 0x7f800000u;
 }
 
 // True for NaN.

@@ -66,10 +66,9 @@ fn init(@builtin(global_invocation_id) gid: vec3<u32>) {
         lz[i] = 0.0;
         lw[i] = 0.0;
     }
+    // the color pyramid exists for the dual weights only
     if (L.dual != 0u) {
         lc[i] = vec4<f32>(finite_or_zero(color_in[3u * i]), finite_or_zero(color_in[3u * i + 1u]), finite_or_zero(color_in[3u * i + 2u]), 0.0);
-    } else {
-        lc[i] = vec4<f32>(0.0);
     }
 }
 
@@ -93,7 +92,9 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>) {
             let wt = lw[i];
             sw = sw + wt;
             sd = sd + wt * lz[i];
-            sc = sc + lc[i].xyz;
+            if (L.dual != 0u) {
+                sc = sc + lc[i].xyz;
+            }
             n = n + 1.0;
         }
     }
@@ -106,7 +107,9 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>) {
         lz[j] = 0.0;
         lw[j] = 0.0;
     }
-    lc[j] = vec4<f32>(sc / n, 0.0);
+    if (L.dual != 0u) {
+        lc[j] = vec4<f32>(sc / n, 0.0);
+    }
 }
 
 

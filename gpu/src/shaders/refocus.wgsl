@@ -67,9 +67,11 @@ fn src_color(i: u32) -> vec3<f32> {
     return vec3<f32>(sane(color[3u * i]), sane(color[3u * i + 1u]), sane(color[3u * i + 2u]));
 }
 
-// Rust's f64::round: halves away from zero.
+// Rust's f64::round: halves away from zero (v - trunc(v) is exact, so
+// 0.49999997 stays 0 and large integers stay put).
 fn round_away(v: f32) -> f32 {
-    return sign(v) * floor(abs(v) + 0.5);
+    let t = trunc(v);
+    return select(t, t + sign(v), abs(v - t) >= 0.5);
 }
 
 fn n_px() -> u32 {

@@ -63,6 +63,12 @@ pub fn both(kind: &str, inputs: &Inputs, params: &ParamMap) -> (Outputs, Outputs
     );
     let a = eval_on(&cpu, kind, inputs, params).unwrap();
     let b = eval_on(&dev, kind, inputs, params).unwrap();
+    // the device produced it (not a fall-back to the CPU)
+    assert_eq!(
+        b.origin.as_ref().map(|o| o.backend.as_str()),
+        Some("wgpu"),
+        "{kind}"
+    );
     (a, b)
 }
 
