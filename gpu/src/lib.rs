@@ -20,6 +20,7 @@
 
 pub mod backend;
 pub mod bilateral;
+pub mod composite;
 pub mod context;
 pub mod edges;
 pub mod feather;
@@ -55,6 +56,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "DualPullPush", pull_push::eval_dual)?;
     node::register_device(reg, ctx, "Feather", feather::eval)?;
     node::register_device(reg, ctx, "EdgeDetect", edges::eval)?;
+    node::register_device(reg, ctx, "OcclusionComposite", composite::eval)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

@@ -189,3 +189,41 @@ pub fn edges_within(
     }
     Ok((worst, ambiguous))
 }
+
+/// The OcclusionComposite check: the alphas bit-identical; where alpha is
+/// 0 or 1, color and depth bit-identical; elsewhere within
+/// `rel * max(|v|, 1)`.
+pub fn composite_within(
+    cpu: (&ColorImage, &DepthMap, &Mask),
+    gpu: (&ColorImage, &DepthMap, &Mask),
+    rel: f64,
+) -> Result<(), String> {
+    let ((ca, za, aa), (cb, zb, ab)) = (cpu, gpu);
+    if ca.dims() != cb.dims() || za.dims() != zb.dims() || aa.dims() != ab.dims() {
+        return Err("sizes differ".into());
+    }
+    let close = |x: f32, y: f32| {
+        let d = (x as f64 - y as f64).abs();
+        !d.is_nan() && d <= rel * (x.abs() as f64).max(1.0)
+    };
+    for t in 0..aa.len() {
+        let (a, b) = (aa.as_slice()[t], ab.as_slice()[t]);
+        if a.to_bits() != b.to_bits() {
+            return Err(format!("alpha at {t}: cpu {a}, gpu {b}"));
+        }
+        let (c1, c2) = (ca.as_slice()[t], cb.as_slice()[t]);
+        let (z1, z2) = (za.as_slice()[t], zb.as_slice()[t]);
+        let exact = a == 0.0 || a == 1.0;
+        let same = if exact {
+            c1.map(f32::to_bits) == c2.map(f32::to_bits) && z1.to_bits() == z2.to_bits()
+        } else {
+            (0..3).all(|k| close(c1[k], c2[k])) && close(z1, z2)
+        };
+        if !same {
+            return Err(format!(
+                "pixel {t} (alpha {a}): cpu {c1:?} {z1}, gpu {c2:?} {z2}"
+            ));
+        }
+    }
+    Ok(())
+}

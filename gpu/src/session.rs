@@ -68,8 +68,10 @@ impl<'a> Session<'a> {
     fn open_scopes(&mut self) {
         let d = self.ctx.device();
         // (called with no scope open: at creation and after close_scopes)
-        self.scopes.push(d.push_error_scope(wgpu::ErrorFilter::OutOfMemory));
-        self.scopes.push(d.push_error_scope(wgpu::ErrorFilter::Validation));
+        self.scopes
+            .push(d.push_error_scope(wgpu::ErrorFilter::OutOfMemory));
+        self.scopes
+            .push(d.push_error_scope(wgpu::ErrorFilter::Validation));
     }
 
     /// Pops the scopes (innermost first) and reopens them: the first error

@@ -46,3 +46,4 @@ kernel!(PULL_PUSH_FINISH, "pull_push.wgsl", "finish");
 kernel!(FEATHER_HORIZONTAL, "feather.wgsl", "horizontal");
 kernel!(FEATHER_VERTICAL, "feather.wgsl", "vertical");
 kernel!(EDGES, "edges.wgsl", "main");
+kernel!(COMPOSITE, "composite.wgsl", "main");

@@ -52,7 +52,8 @@ pub struct Composite {
     pub alpha: Mask,
 }
 
-fn same(port: &str, dims: (usize, usize), want: (usize, usize)) -> Result<(), NodeError> {
+/// Checks that an input has the target color's size (both backends).
+pub fn same(port: &str, dims: (usize, usize), want: (usize, usize)) -> Result<(), NodeError> {
     if dims != want {
         return Err(NodeError::input(
             port,
@@ -65,9 +66,11 @@ fn same(port: &str, dims: (usize, usize), want: (usize, usize)) -> Result<(), No
     Ok(())
 }
 
-/// One pixel of the composite (see the module docs).
+/// One pixel of the composite (see the module docs): target color and
+/// depth, pasted color, depth and alpha, tolerance; returns color, depth
+/// and the alpha after the depth test.
 #[inline]
-fn pixel(tc: Rgb, tz: f32, pc: Rgb, pz: f32, pa: f32, tol: f64) -> (Rgb, f32, f32) {
+pub fn pixel(tc: Rgb, tz: f32, pc: Rgb, pz: f32, pa: f32, tol: f64) -> (Rgb, f32, f32) {
     let mut a = if pa.is_nan() { 0.0 } else { pa.clamp(0.0, 1.0) };
     if !DepthMap::is_valid(pz) {
         a = 0.0;
@@ -88,16 +91,15 @@ fn pixel(tc: Rgb, tz: f32, pc: Rgb, pz: f32, pa: f32, tol: f64) -> (Rgb, f32, f3
     (color, depth, a)
 }
 
-/// Composites the pasted layer over the target (3d-editing §IV and §III.C);
-/// see the module docs. All five images must have one size.
-pub fn occlusion_composite(
+/// Checks the sizes of the five images and the tolerance (both backends).
+pub fn check_inputs(
     target_color: &ColorImage,
     target_depth: &DepthMap,
     pasted_color: &ColorImage,
     pasted_depth: &DepthMap,
     pasted_alpha: &Mask,
     p: &CompositeParams,
-) -> Result<Composite, NodeError> {
+) -> Result<(), NodeError> {
     let want = target_color.dims();
     same("target_depth", target_depth.dims(), want)?;
     same("pasted_color", pasted_color.dims(), want)?;
@@ -109,7 +111,38 @@ pub fn occlusion_composite(
             format!("{} must be finite and >= 0", p.tolerance_rel),
         ));
     }
-    let (w, h) = want;
+    Ok(())
+}
+
+/// Why `OcclusionComposite` passes the target through, when nothing is
+/// pasted (both backends); `None` when something is.
+pub fn nothing_pasted(alpha: &Mask) -> Option<&'static str> {
+    alpha
+        .as_slice()
+        .iter()
+        .all(|a| a.is_nan() || *a <= 0.0)
+        .then_some("nothing pasted: the pasted alpha is 0 everywhere")
+}
+
+/// Composites the pasted layer over the target (3d-editing §IV and §III.C);
+/// see the module docs. All five images must have one size.
+pub fn occlusion_composite(
+    target_color: &ColorImage,
+    target_depth: &DepthMap,
+    pasted_color: &ColorImage,
+    pasted_depth: &DepthMap,
+    pasted_alpha: &Mask,
+    p: &CompositeParams,
+) -> Result<Composite, NodeError> {
+    check_inputs(
+        target_color,
+        target_depth,
+        pasted_color,
+        pasted_depth,
+        pasted_alpha,
+        p,
+    )?;
+    let (w, h) = target_color.dims();
     let px: Vec<(Rgb, f32, f32)> = (0..w * h)
         .into_par_iter()
         .map(|i| {
@@ -166,24 +199,30 @@ depthgraph_graph::ports! {
     }
 }
 
+/// The target passed through when nothing is pasted (both backends).
+pub fn passthrough(i: &CompositeIn) -> Result<Option<Produced<CompositeOut>>, NodeError> {
+    let (tc, td, pa) = (&i.target_color, &i.target_depth, &i.pasted_alpha);
+    let Some(why) = nothing_pasted(pa) else {
+        return Ok(None);
+    };
+    same("target_depth", td.dims(), tc.dims())?;
+    same("pasted_alpha", pa.dims(), tc.dims())?;
+    let out = CompositeOut {
+        color: tc.clone(),
+        depth: td.clone(),
+        alpha: Mask::filled(tc.width(), tc.height(), 0.0),
+    };
+    Ok(Some(Produced::passthrough(out, why)))
+}
+
 fn eval(
     _: &EvalCtx,
     i: CompositeIn,
     p: &CompositeParams,
 ) -> Result<Produced<CompositeOut>, NodeError> {
     let (tc, td, pa) = (&i.target_color, &i.target_depth, &i.pasted_alpha);
-    if pa.as_slice().iter().all(|a| a.is_nan() || *a <= 0.0) {
-        same("target_depth", td.dims(), tc.dims())?;
-        same("pasted_alpha", pa.dims(), tc.dims())?;
-        let out = CompositeOut {
-            color: tc.clone(),
-            depth: td.clone(),
-            alpha: Mask::filled(tc.width(), tc.height(), 0.0),
-        };
-        return Ok(Produced::passthrough(
-            out,
-            "nothing pasted: the pasted alpha is 0 everywhere",
-        ));
+    if let Some(out) = passthrough(&i)? {
+        return Ok(out);
     }
     let r = occlusion_composite(tc, td, &i.pasted_color, &i.pasted_depth, pa, p)?;
     Ok(CompositeOut {
