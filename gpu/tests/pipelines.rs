@@ -194,6 +194,21 @@ fn check(file: &str, expect_device: &[&str]) {
                         assert!(same, "{file} {key}: differs without a device node upstream");
                     }
                 }
+                (Value::Depth(x), Value::Depth(y), false) if touched.contains(&i) => {
+                    // downstream of a device node: the same holes, depths close
+                    let r = depth_within(x, y, 1e-3)
+                        .unwrap_or_else(|e| panic!("{file} {key} (downstream): {e}"));
+                    eprintln!("{file} {key} (downstream): max |dz|/z {:.2e}", r.max_rel);
+                }
+                (Value::Mask(x), Value::Mask(y), false) if touched.contains(&i) => {
+                    let differ = x
+                        .as_slice()
+                        .iter()
+                        .zip(y.as_slice())
+                        .filter(|(a, b)| a != b)
+                        .count();
+                    eprintln!("{file} {key} (downstream): {differ} mask pixels differ");
+                }
                 (Value::Color(x), Value::Color(y), false) => {
                     // downstream of a device node: the picture still agrees
                     let psnr = display_psnr(x, y).unwrap();
