@@ -24,6 +24,7 @@ pub mod composite;
 pub mod context;
 pub mod edges;
 pub mod feather;
+pub mod nlmeans;
 pub mod node;
 pub mod parity;
 pub mod pull_push;
@@ -57,6 +58,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "Feather", feather::eval)?;
     node::register_device(reg, ctx, "EdgeDetect", edges::eval)?;
     node::register_device(reg, ctx, "OcclusionComposite", composite::eval)?;
+    node::register_device(reg, ctx, "NLMeansInpaint", nlmeans::eval_inpaint)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

@@ -47,3 +47,25 @@ kernel!(FEATHER_HORIZONTAL, "feather.wgsl", "horizontal");
 kernel!(FEATHER_VERTICAL, "feather.wgsl", "vertical");
 kernel!(EDGES, "edges.wgsl", "main");
 kernel!(COMPOSITE, "composite.wgsl", "main");
+kernel!(NLMEANS, "nlmeans.wgsl", "main");
+
+/// Every kernel (the test that compiles them all reads this list).
+pub const ALL: &[Kernel] = &[
+    BILATERAL_ENCODE,
+    BILATERAL,
+    REFOCUS_CLEAR,
+    REFOCUS_WARP_DEPTH,
+    REFOCUS_WARP_INDEX,
+    REFOCUS_GATHER,
+    REFOCUS_FILL,
+    REFOCUS_FINISH,
+    PULL_PUSH_INIT,
+    PULL_PUSH_PULL,
+    PULL_PUSH_PUSH,
+    PULL_PUSH_FINISH,
+    FEATHER_HORIZONTAL,
+    FEATHER_VERTICAL,
+    EDGES,
+    COMPOSITE,
+    NLMEANS,
+];

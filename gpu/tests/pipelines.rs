@@ -39,6 +39,17 @@ fn run_all(file: &str, reg: &Registry) -> (Pipeline, RunResult) {
     (p, r)
 }
 
+/// Largest |a - b| over two sample slices (infinite when one is NaN).
+fn max_abs(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x as f64 - *y as f64).abs())
+        .fold(
+            0.0,
+            |m: f64, d| if d.is_nan() { f64::INFINITY } else { m.max(d) },
+        )
+}
+
 /// Nodes with a device node at or above them.
 fn downstream_of_device(p: &Pipeline) -> BTreeSet<usize> {
     let mut set = BTreeSet::new();
@@ -118,6 +129,7 @@ fn check(file: &str, expect_device: &[&str]) {
                         "JointBilateral" => depthgraph_gpu::bilateral::REL_TOL,
                         "PullPush" => depthgraph_gpu::pull_push::REL_TOL,
                         "DualPullPush" => depthgraph_gpu::pull_push::DUAL_REL_TOL,
+                        "NLMeansInpaint" => depthgraph_gpu::nlmeans::REL_TOL,
                         other => panic!("{file} {key}: no depth check for {other}"),
                     };
                     // a device node upstream adds its bound to the input's
@@ -135,15 +147,7 @@ fn check(file: &str, expect_device: &[&str]) {
                     assert_eq!(x, y, "{file} {key}: filled masks differ");
                 }
                 (Value::Mask(x), Value::Mask(y), true) if n.kind == "Feather" => {
-                    let worst = x
-                        .as_slice()
-                        .iter()
-                        .zip(y.as_slice())
-                        .map(|(a, b)| (*a as f64 - *b as f64).abs())
-                        .fold(
-                            0.0,
-                            |m: f64, d| if d.is_nan() { f64::INFINITY } else { m.max(d) },
-                        );
+                    let worst = max_abs(x.as_slice(), y.as_slice());
                     eprintln!("{file} {key}: max |d| {worst:.2e}");
                     assert!(
                         worst <= depthgraph_gpu::feather::ABS_TOL,
@@ -182,6 +186,15 @@ fn check(file: &str, expect_device: &[&str]) {
                     );
                 }
                 (Value::Mask(_), Value::Mask(_), true) if n.kind == "EdgeDetect" => {} // with the strength
+                (Value::Confidence(x), Value::Confidence(y), true)
+                    if n.kind == "NLMeansInpaint" =>
+                {
+                    let worst = max_abs(x.as_slice(), y.as_slice());
+                    eprintln!("{file} {key}: max |dc| {worst:.2e}");
+                    let upstream = n.inputs.values().any(|s| touched.contains(&s.node));
+                    let tol = depthgraph_gpu::nlmeans::REL_TOL * if upstream { 100.0 } else { 1.0 };
+                    assert!(worst <= tol, "{file} {key}: {worst}");
+                }
                 (_, _, true) => panic!("{file} {key}: no check for {} output", n.kind),
                 _ if !touched.contains(&i) => {
                     let (sa, sb) = (va.samples(), vb.samples());
@@ -230,14 +243,19 @@ fn check(file: &str, expect_device: &[&str]) {
 
 #[test]
 fn refocus_pipeline_agrees() {
-    check("refocus.ron", &["Refocus"]);
+    check("refocus.ron", &["NLMeansInpaint", "Refocus"]);
 }
 
 #[test]
 fn depth_fill_pipeline_agrees() {
     check(
         "depth_fill.ron",
-        &["PullPush", "DualPullPush", "JointBilateral"],
+        &[
+            "PullPush",
+            "DualPullPush",
+            "NLMeansInpaint",
+            "JointBilateral",
+        ],
     );
 }
 

@@ -12,6 +12,47 @@ use super::pass::*;
 // Inpainting
 // ---------------------------------------------------------------------------
 
+/// One NL-means pass of the inpainting, for a backend that runs it
+/// elsewhere (the GPU): every input of eq. 1, 3 and 5 as flat buffers.
+#[derive(Debug, Clone, Copy)]
+pub struct PassJob<'a> {
+    /// Grid width.
+    pub w: usize,
+    /// Grid height.
+    pub h: usize,
+    /// Guide features per pixel (`sqrt(c / (1 + c))` per channel).
+    pub guide: &'a [[f32; 3]],
+    /// Depth, 0 for holes.
+    pub z: &'a [f32],
+    /// Confidence, 0 for holes.
+    pub c: &'a [f32],
+    /// The pixels to estimate.
+    pub targets: &'a [bool],
+    /// Search radius (candidates in a `(2R+1)^2` window inside the image).
+    pub search: usize,
+    /// Patch radius `r` (patch pixels at clamped coordinates).
+    pub patch: usize,
+    /// Radii of the nested boxes of the patch kernel.
+    pub radii: &'a [usize],
+    /// Weight of one pixel of each box.
+    pub coef: &'a [f64],
+    /// Per-pixel distances are capped here.
+    pub cap: f64,
+    /// `1 / h_color^2`.
+    pub inv_hc2: f64,
+    /// `1 / h_depth^2`.
+    pub inv_hd2: f64,
+    /// `1 / z_ref` of the far-depth prior, when on.
+    pub far: Option<f64>,
+}
+
+/// Runs [`PassJob`]s: per pixel, the estimate and confidence of a target
+/// (`None` for non-targets and targets without a source).
+pub trait PassRunner {
+    /// One pass.
+    fn run(&mut self, job: &PassJob) -> Result<Vec<Option<(f32, f32)>>, NodeError>;
+}
+
 /// Holes that have a source (confidence > 0) within `r` pixels (Chebyshev),
 /// from a summed-area table of the sources.
 pub(super) fn reachable_holes(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> Vec<bool> {
@@ -52,6 +93,7 @@ pub(super) fn inpaint_state(
     iterations: usize,
     far_prior: bool,
     progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    mut runner: Option<&mut dyn PassRunner>,
 ) -> Result<usize, NodeError> {
     let z_ref = z
         .iter()
@@ -68,7 +110,34 @@ pub(super) fn inpaint_state(
         }
         let (mut nz, mut nc) = (z.clone(), c.clone());
         let mut filled = 0usize;
-        {
+        if let Some(run) = runner.as_deref_mut() {
+            let pk = PatchKernel::new(core.patch);
+            let job = PassJob {
+                w,
+                h,
+                guide,
+                z,
+                c,
+                targets: &targets,
+                search: core.search,
+                patch: core.patch,
+                radii: &pk.radii,
+                coef: &pk.coef,
+                cap: pk.cap,
+                inv_hc2: core.inv_hc2,
+                inv_hd2: core.inv_hd2,
+                far,
+            };
+            for (i, r) in run.run(&job)?.into_iter().enumerate() {
+                if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
+                    nz[i] = v;
+                    nc[i] = conf;
+                    filled += 1;
+                }
+            }
+            // Guard: iterations >= 1 inside the loop.
+            progress((it + 1) as f32 / iterations as f32)?;
+        } else {
             let pass = Pass {
                 w,
                 h,
@@ -148,7 +217,32 @@ pub fn nlmeans_inpaint_with(
     confidence: Option<&Confidence>,
     guide_color: &ColorImage,
     p: &NLMeansInpaintParams,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+) -> Result<(DepthMap, Confidence), NodeError> {
+    inpaint_impl(depth, confidence, guide_color, p, on_progress, None)
+}
+
+/// [`nlmeans_inpaint_with`] with its passes run by `runner` (another
+/// backend); everything else (the checks, the targets of each iteration,
+/// the stopping rule) is this function's.
+pub fn nlmeans_inpaint_on(
+    depth: &DepthMap,
+    confidence: Option<&Confidence>,
+    guide_color: &ColorImage,
+    p: &NLMeansInpaintParams,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: &mut dyn PassRunner,
+) -> Result<(DepthMap, Confidence), NodeError> {
+    inpaint_impl(depth, confidence, guide_color, p, on_progress, Some(runner))
+}
+
+fn inpaint_impl(
+    depth: &DepthMap,
+    confidence: Option<&Confidence>,
+    guide_color: &ColorImage,
+    p: &NLMeansInpaintParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: Option<&mut dyn PassRunner>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
     if core.search == 0 {
@@ -175,6 +269,7 @@ pub fn nlmeans_inpaint_with(
         p.iterations,
         p.far_prior,
         &mut on_progress,
+        runner,
     )?;
     Ok((image(w, h, z)?, image(w, h, c)?))
 }

@@ -166,11 +166,8 @@ fn eval_upsample(
     .into())
 }
 
-fn eval_inpaint(
-    ctx: &EvalCtx,
-    i: NLMeansIn,
-    p: &NLMeansInpaintParams,
-) -> Result<Produced<NLMeansOut>, NodeError> {
+/// `NLMeansInpaint`'s pass-through of a map without holes (both backends).
+pub fn inpaint_passthrough(i: &NLMeansIn) -> Result<Option<Produced<NLMeansOut>>, NodeError> {
     let depth = &i.depth;
     if depth.hole_count() == 0 {
         // Same checks as a real run, so a wrong wiring is not hidden.
@@ -194,8 +191,20 @@ fn eval_inpaint(
             depth: Arc::clone(depth),
             confidence,
         };
-        return Ok(Produced::passthrough(out, "no holes to fill"));
+        return Ok(Some(Produced::passthrough(out, "no holes to fill")));
     }
+    Ok(None)
+}
+
+fn eval_inpaint(
+    ctx: &EvalCtx,
+    i: NLMeansIn,
+    p: &NLMeansInpaintParams,
+) -> Result<Produced<NLMeansOut>, NodeError> {
+    if let Some(out) = inpaint_passthrough(&i)? {
+        return Ok(out);
+    }
+    let depth = &i.depth;
     let (d, c) = nlmeans_inpaint_with(depth, i.confidence.as_deref(), &i.color, p, |f| {
         ctx.progress(f);
         ctx.check_cancelled()

@@ -1,0 +1,125 @@
+//! NLMeansInpaint: device against CPU.
+
+mod common;
+
+use std::sync::Arc;
+
+use common::*;
+use depthgraph_gpu::nlmeans::REL_TOL;
+use depthgraph_gpu::parity::depth_within;
+use depthgraph_graph::prelude::*;
+use depthgraph_nodes::depth::nlmeans::NLMeansInpaintParams;
+use depthgraph_nodes::kit::rng::SplitMix64;
+
+fn conf_of(o: &Outputs) -> Arc<Confidence> {
+    match o.values.get("confidence") {
+        Some(Value::Confidence(c)) => c.clone(),
+        other => panic!("confidence: {other:?}"),
+    }
+}
+
+/// Largest |Δ| between two confidence maps, or an error on NaN.
+fn conf_diff(a: &Confidence, b: &Confidence) -> f64 {
+    a.as_slice()
+        .iter()
+        .zip(b.as_slice())
+        .map(|(x, y)| (*x as f64 - *y as f64).abs())
+        .fold(
+            0.0,
+            |m: f64, d| if d.is_nan() { f64::INFINITY } else { m.max(d) },
+        )
+}
+
+/// A near card on a far wall, textured, with scattered holes and a hole
+/// block straddling the card's edge.
+fn scene(w: usize, h: usize, seed: u64) -> Inputs {
+    let mut rng = SplitMix64(seed);
+    let mut d = DepthMap::from_fn(w, h, |x, y| {
+        if (w / 4..w / 2).contains(&x) && (h / 4..3 * h / 4).contains(&y) {
+            1.0
+        } else {
+            3.0 + 0.01 * y as f32
+        }
+    });
+    for z in d.as_mut_slice() {
+        if rng.next_f64() < 0.15 {
+            *z = 0.0;
+        }
+    }
+    for y in h / 3..h / 2 {
+        for x in w / 2 - 4..w / 2 + 6 {
+            *d.get_mut(x, y) = 0.0;
+        }
+    }
+    let c = ColorImage::from_fn(w, h, |x, y| {
+        if (w / 4..w / 2).contains(&x) && (h / 4..3 * h / 4).contains(&y) {
+            [0.8, 0.1, 0.1]
+        } else {
+            [0.1, 0.2 + 0.01 * ((x + y) % 5) as f32, 0.6]
+        }
+    });
+    let mut i = Inputs::new();
+    i.insert("depth", Value::Depth(Arc::new(d)));
+    i.insert("color", Value::Color(Arc::new(c)));
+    i
+}
+
+#[test]
+fn inpainting_agrees_with_the_cpu_within_its_stated_bound() {
+    for (seed, p) in [
+        (1, NLMeansInpaintParams::default()),
+        (
+            2,
+            NLMeansInpaintParams {
+                far_prior: true,
+                ..Default::default()
+            },
+        ),
+        (
+            3,
+            NLMeansInpaintParams {
+                search_radius: 3,
+                patch_radius: 1,
+                iterations: 3,
+                ..Default::default()
+            },
+        ),
+        (
+            4,
+            NLMeansInpaintParams {
+                patch_radius: 0,
+                ..Default::default()
+            },
+        ),
+    ] {
+        let i = scene(56, 40, seed);
+        let (cpu, dev) = both("NLMeansInpaint", &i, &p.to_values());
+        let (a, b) = (depth_of(&cpu, "depth"), depth_of(&dev, "depth"));
+        let r = depth_within(&a, &b, REL_TOL).unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        let dc = conf_diff(&conf_of(&cpu), &conf_of(&dev));
+        assert!(dc <= REL_TOL, "{p:?}: confidence differs by {dc}");
+        eprintln!(
+            "seed {seed}: max |dz|/z {:.2e}, max |dc| {dc:.2e}",
+            r.max_rel
+        );
+    }
+}
+
+#[test]
+fn the_inpainting_check_fails_on_a_perturbed_result() {
+    let i = scene(40, 30, 5);
+    let p = NLMeansInpaintParams::default();
+    let (cpu, dev) = both("NLMeansInpaint", &i, &p.to_values());
+    let (a, b) = (depth_of(&cpu, "depth"), depth_of(&dev, "depth"));
+    assert!(depth_within(&a, &b, REL_TOL).is_ok());
+    let Some(Value::Depth(input)) = i.get("depth") else {
+        panic!()
+    };
+    let t = input.as_slice().iter().position(|z| *z == 0.0).unwrap();
+    let mut off = (*b).clone();
+    off.as_mut_slice()[t] *= 1.0 + 3.0 * REL_TOL as f32;
+    assert!(depth_within(&a, &off, REL_TOL).is_err());
+    let mut unfilled = (*b).clone();
+    unfilled.as_mut_slice()[t] = 0.0;
+    assert!(depth_within(&a, &unfilled, REL_TOL).is_err());
+}
