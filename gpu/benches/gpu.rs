@@ -251,6 +251,20 @@ fn main() {
         &pp.to_values(),
         repeats,
     ));
+    // NL-means inpainting of the same holes (its default 64 iterations stop
+    // when nothing is left to fill)
+    let mut ni = Inputs::new();
+    ni.insert("depth", pi.get("depth").cloned().expect("depth"));
+    ni.insert("color", Value::Color(color.clone()));
+    let np = depthgraph_nodes::depth::nlmeans::NLMeansInpaintParams::default();
+    rows.push(node_row(
+        "NLMeansInpaint 640x480 (20 % holes)",
+        &regs,
+        "NLMeansInpaint",
+        &ni,
+        &np.to_values(),
+        repeats.min(3),
+    ));
     let disc = Mask::from_fn(640, 480, |x, y| {
         let (dx, dy) = (x as f32 - 320.0, y as f32 - 240.0);
         if dx * dx + dy * dy < 150.0 * 150.0 {

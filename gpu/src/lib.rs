@@ -59,6 +59,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "EdgeDetect", edges::eval)?;
     node::register_device(reg, ctx, "OcclusionComposite", composite::eval)?;
     node::register_device(reg, ctx, "NLMeansInpaint", nlmeans::eval_inpaint)?;
+    node::register_device(reg, ctx, "NLMeansDepth", nlmeans::eval_depth)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

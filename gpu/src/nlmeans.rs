@@ -1,4 +1,7 @@
-//! `NLMeansInpaint` on the device: each iteration's pass runs on the
+//! `NLMeansInpaint` and `NLMeansDepth` on the device (for NLMeansDepth: the
+//! pruning on the CPU, the filter's one pass on the device, targets the
+//! valid pixels, a pixel without a source keeping its input with
+//! confidence 0, as on the CPU). For the inpainting each iteration's pass runs on the
 //! device (`shaders/nlmeans.wgsl`); the iterations, their targets (the
 //! reachable holes) and the stopping rule are the CPU's
 //! [`nlmeans_inpaint_on`], so both backends fill the same pixels in the
@@ -20,8 +23,8 @@ use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::depth::nlmeans::{
-    NLMeansIn, NLMeansInpaintParams, NLMeansOut, PassJob, PassRunner, inpaint_passthrough,
-    nlmeans_inpaint_on,
+    NLMeansDepthParams, NLMeansIn, NLMeansInpaintParams, NLMeansOut, PassJob, PassRunner,
+    inpaint_passthrough, nlmeans_denoise_on, nlmeans_inpaint_on,
 };
 
 use crate::context::PooledBuffer;
@@ -121,6 +124,29 @@ impl PassRunner for DeviceRunner<'_, '_> {
     }
 }
 
+/// Runs `f` (one of the CPU's `*_on` functions) with the passes on the
+/// device and progress and cancellation through `ctx`.
+fn on_device(
+    s: &mut Session,
+    ctx: &EvalCtx,
+    f: impl FnOnce(
+        &mut dyn PassRunner,
+        &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    ) -> Result<(DepthMap, Confidence), NodeError>,
+) -> Result<Produced<NLMeansOut>, NodeError> {
+    let mut runner = DeviceRunner { s, guide: None };
+    let mut progress = |f: f32| {
+        ctx.progress(f);
+        ctx.check_cancelled()
+    };
+    let (d, c) = f(&mut runner, &mut progress)?;
+    Ok(NLMeansOut {
+        depth: Arc::new(d),
+        confidence: Arc::new(c),
+    }
+    .into())
+}
+
 /// The device evaluation of `NLMeansInpaint`.
 pub fn eval_inpaint(
     s: &mut Session,
@@ -131,21 +157,34 @@ pub fn eval_inpaint(
     if let Some(out) = inpaint_passthrough(&i)? {
         return Ok(out);
     }
-    let mut runner = DeviceRunner { s, guide: None };
-    let (d, c) = nlmeans_inpaint_on(
-        &i.depth,
-        i.confidence.as_deref(),
-        &i.color,
-        p,
-        |f| {
-            ctx.progress(f);
-            ctx.check_cancelled()
-        },
-        &mut runner,
-    )?;
-    Ok(NLMeansOut {
-        depth: Arc::new(d),
-        confidence: Arc::new(c),
-    }
-    .into())
+    on_device(s, ctx, |runner, progress| {
+        nlmeans_inpaint_on(
+            &i.depth,
+            i.confidence.as_deref(),
+            &i.color,
+            p,
+            progress,
+            runner,
+        )
+    })
+}
+
+/// The device evaluation of `NLMeansDepth`: the pruning on the CPU, the
+/// filter's pass on the device.
+pub fn eval_depth(
+    s: &mut Session,
+    ctx: &EvalCtx,
+    i: NLMeansIn,
+    p: &NLMeansDepthParams,
+) -> Result<Produced<NLMeansOut>, NodeError> {
+    on_device(s, ctx, |runner, progress| {
+        nlmeans_denoise_on(
+            &i.depth,
+            i.confidence.as_deref(),
+            &i.color,
+            p,
+            progress,
+            runner,
+        )
+    })
 }

@@ -8,7 +8,7 @@ use common::*;
 use depthgraph_gpu::nlmeans::REL_TOL;
 use depthgraph_gpu::parity::depth_within;
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::depth::nlmeans::NLMeansInpaintParams;
+use depthgraph_nodes::depth::nlmeans::{NLMeansDepthParams, NLMeansInpaintParams};
 use depthgraph_nodes::kit::rng::SplitMix64;
 
 fn conf_of(o: &Outputs) -> Arc<Confidence> {
@@ -122,4 +122,46 @@ fn the_inpainting_check_fails_on_a_perturbed_result() {
     let mut unfilled = (*b).clone();
     unfilled.as_mut_slice()[t] = 0.0;
     assert!(depth_within(&a, &unfilled, REL_TOL).is_err());
+}
+
+/// A noisy map with outliers: the filter, pruned and not, on both backends.
+#[test]
+fn denoising_agrees_with_the_cpu_within_its_stated_bound() {
+    let mut i = scene(50, 38, 7);
+    let mut rng = SplitMix64(8);
+    let Some(Value::Depth(d)) = i.get("depth").cloned() else {
+        panic!()
+    };
+    let mut noisy = (*d).clone();
+    for z in noisy.as_mut_slice() {
+        if *z > 0.0 {
+            *z *= 1.0 + 0.01 * rng.gaussian() as f32;
+        }
+        if rng.next_f64() < 0.01 {
+            *z *= 2.0; // an outlier for the pruning
+        }
+    }
+    i.insert("depth", Value::Depth(Arc::new(noisy)));
+    for p in [
+        NLMeansDepthParams::default(),
+        NLMeansDepthParams {
+            prune: false,
+            ..Default::default()
+        },
+    ] {
+        let (cpu, dev) = both("NLMeansDepth", &i, &p.to_values());
+        let (a, b) = (depth_of(&cpu, "depth"), depth_of(&dev, "depth"));
+        let r = depth_within(&a, &b, REL_TOL).unwrap_or_else(|e| panic!("prune {}: {e}", p.prune));
+        let dc = conf_diff(&conf_of(&cpu), &conf_of(&dev));
+        assert!(dc <= REL_TOL, "confidence differs by {dc}");
+        eprintln!(
+            "denoise prune {}: max |dz|/z {:.2e}, |dc| {dc:.2e}",
+            p.prune, r.max_rel
+        );
+        // and the check sees a filtered pixel moved by 3x the bound
+        let t = a.as_slice().iter().position(|z| *z > 0.0).unwrap();
+        let mut off = (*b).clone();
+        off.as_mut_slice()[t] *= 1.0 + 3.0 * REL_TOL as f32;
+        assert!(depth_within(&a, &off, REL_TOL).is_err());
+    }
 }

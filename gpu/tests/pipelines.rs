@@ -129,7 +129,7 @@ fn check(file: &str, expect_device: &[&str]) {
                         "JointBilateral" => depthgraph_gpu::bilateral::REL_TOL,
                         "PullPush" => depthgraph_gpu::pull_push::REL_TOL,
                         "DualPullPush" => depthgraph_gpu::pull_push::DUAL_REL_TOL,
-                        "NLMeansInpaint" => depthgraph_gpu::nlmeans::REL_TOL,
+                        "NLMeansInpaint" | "NLMeansDepth" => depthgraph_gpu::nlmeans::REL_TOL,
                         other => panic!("{file} {key}: no depth check for {other}"),
                     };
                     // a device node upstream adds its bound to the input's
@@ -187,7 +187,7 @@ fn check(file: &str, expect_device: &[&str]) {
                 }
                 (Value::Mask(_), Value::Mask(_), true) if n.kind == "EdgeDetect" => {} // with the strength
                 (Value::Confidence(x), Value::Confidence(y), true)
-                    if n.kind == "NLMeansInpaint" =>
+                    if n.kind.starts_with("NLMeans") =>
                 {
                     let worst = max_abs(x.as_slice(), y.as_slice());
                     eprintln!("{file} {key}: max |dc| {worst:.2e}");

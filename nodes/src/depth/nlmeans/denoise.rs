@@ -4,6 +4,7 @@ use crate::kit::checks::same_size;
 use depthgraph_graph::prelude::*;
 
 use super::common::*;
+use super::inpaint::{PassJob, PassRunner};
 use super::inputs::*;
 use super::params::*;
 use super::pass::*;
@@ -64,7 +65,18 @@ pub fn nlmeans_filter_with(
     confidence: Option<&Confidence>,
     guide_color: &ColorImage,
     p: &NLMeansDepthParams,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+) -> Result<(DepthMap, Confidence), NodeError> {
+    filter_impl(depth, confidence, guide_color, p, on_progress, None)
+}
+
+fn filter_impl(
+    depth: &DepthMap,
+    confidence: Option<&Confidence>,
+    guide_color: &ColorImage,
+    p: &NLMeansDepthParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: Option<&mut dyn PassRunner>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
     same_size(
@@ -81,6 +93,19 @@ pub fn nlmeans_filter_with(
     let targets: Vec<bool> = z.iter().map(|z| *z > 0.0).collect();
     let mut out_z = z.clone();
     let mut out_c = vec![0.0f32; w * h];
+    if let Some(run) = runner {
+        let pk = PatchKernel::new(core.patch);
+        let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, None);
+        for (i, r) in run.run(&job)?.into_iter().enumerate() {
+            // Fallback without any source: input value, confidence 0.
+            if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
+                out_z[i] = v;
+                out_c[i] = conf;
+            }
+        }
+        on_progress(1.0)?;
+        return Ok((image(w, h, out_z)?, image(w, h, out_c)?));
+    }
     let pass = Pass {
         w,
         h,
@@ -134,8 +159,32 @@ pub fn nlmeans_denoise_with(
     p: &NLMeansDepthParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
+    denoise_impl(depth, confidence, guide_color, p, on_progress, None)
+}
+
+/// [`nlmeans_denoise_with`] with its pass run by `runner` (another
+/// backend); the checks and the pruning stay this function's.
+pub fn nlmeans_denoise_on(
+    depth: &DepthMap,
+    confidence: Option<&Confidence>,
+    guide_color: &ColorImage,
+    p: &NLMeansDepthParams,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: &mut dyn PassRunner,
+) -> Result<(DepthMap, Confidence), NodeError> {
+    denoise_impl(depth, confidence, guide_color, p, on_progress, Some(runner))
+}
+
+fn denoise_impl(
+    depth: &DepthMap,
+    confidence: Option<&Confidence>,
+    guide_color: &ColorImage,
+    p: &NLMeansDepthParams,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: Option<&mut dyn PassRunner>,
+) -> Result<(DepthMap, Confidence), NodeError> {
     if !p.prune {
-        return nlmeans_filter_with(depth, confidence, guide_color, p, on_progress);
+        return filter_impl(depth, confidence, guide_color, p, on_progress, runner);
     }
     // Check the filter's inputs before the pruning's work.
     Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
@@ -147,5 +196,5 @@ pub fn nlmeans_denoise_with(
         depth.dims(),
     )?;
     let (d, c) = prune_outliers(depth, confidence, &p.prune_params())?;
-    nlmeans_filter_with(&d, Some(&c), guide_color, p, on_progress)
+    filter_impl(&d, Some(&c), guide_color, p, on_progress, runner)
 }

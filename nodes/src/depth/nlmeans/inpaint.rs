@@ -46,6 +46,36 @@ pub struct PassJob<'a> {
     pub far: Option<f64>,
 }
 
+impl<'a> PassJob<'a> {
+    /// The job of a pass over the `(w, h)` grid.
+    pub(super) fn new(
+        (w, h): (usize, usize),
+        guide: &'a [[f32; 3]],
+        (z, c): (&'a [f32], &'a [f32]),
+        targets: &'a [bool],
+        core: Core,
+        pk: &'a PatchKernel,
+        far: Option<f64>,
+    ) -> Self {
+        Self {
+            w,
+            h,
+            guide,
+            z,
+            c,
+            targets,
+            search: core.search,
+            patch: core.patch,
+            radii: &pk.radii,
+            coef: &pk.coef,
+            cap: pk.cap,
+            inv_hc2: core.inv_hc2,
+            inv_hd2: core.inv_hd2,
+            far,
+        }
+    }
+}
+
 /// Runs [`PassJob`]s: per pixel, the estimate and confidence of a target
 /// (`None` for non-targets and targets without a source).
 pub trait PassRunner {
@@ -112,22 +142,7 @@ pub(super) fn inpaint_state(
         let mut filled = 0usize;
         if let Some(run) = runner.as_deref_mut() {
             let pk = PatchKernel::new(core.patch);
-            let job = PassJob {
-                w,
-                h,
-                guide,
-                z,
-                c,
-                targets: &targets,
-                search: core.search,
-                patch: core.patch,
-                radii: &pk.radii,
-                coef: &pk.coef,
-                cap: pk.cap,
-                inv_hc2: core.inv_hc2,
-                inv_hd2: core.inv_hd2,
-                far,
-            };
+            let job = PassJob::new((w, h), guide, (z, c), &targets, core, &pk, far);
             for (i, r) in run.run(&job)?.into_iter().enumerate() {
                 if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
                     nz[i] = v;
