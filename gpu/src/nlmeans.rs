@@ -31,6 +31,11 @@ use crate::context::PooledBuffer;
 use crate::session::{Session, bytes_of, f32s};
 use crate::shaders;
 
+/// Patch-pixel comparisons one pass may ask of the device (beyond it a
+/// driver's watchdog may reset the device mid-dispatch): about a second on
+/// a current GPU.
+const MAX_WORK: f64 = 2e11;
+
 /// The parity check's bound: filled depths `|Δz| <= REL_TOL z`,
 /// confidences `|Δc| <= REL_TOL`.
 pub const REL_TOL: f64 = 1e-5;
@@ -74,6 +79,25 @@ impl PassRunner for DeviceRunner<'_, '_> {
                 job.radii.len()
             )));
         }
+        // What f32 on the device cannot hold as the CPU does: subnormal
+        // depths or confidences (a device may flush them to 0, which would
+        // change which pixels are sources) and depths beyond 1e18 m (their
+        // squares overflow). Such a job, and one too costly for a single
+        // dispatch, runs on the CPU (the node falls back as a whole).
+        let odd = |v: &f32| *v != 0.0 && (v.abs() < f32::MIN_POSITIVE || v.abs() > 1e18);
+        if job.z.iter().any(odd) || job.c.iter().any(odd) {
+            return Err(s.too_large(
+                "depths or confidences outside the device's f32 range (subnormal, or above 1e18)",
+            ));
+        }
+        let window = (2 * job.search + 1).pow(2) as f64 * (2 * job.patch + 1).pow(2) as f64;
+        let targets = job.targets.iter().filter(|t| **t).count() as f64;
+        if window * targets > MAX_WORK {
+            return Err(s.too_large(&format!(
+                "{:.1e} patch-pixel comparisons exceed one dispatch's budget ({MAX_WORK:.0e})",
+                window * targets
+            )));
+        }
         let r = |k: usize| job.radii.get(k).copied().unwrap_or(0) as u32;
         let c = |k: usize| job.coef.get(k).copied().unwrap_or(0.0) as f32;
         let params = Params {
@@ -103,6 +127,11 @@ impl PassRunner for DeviceRunner<'_, '_> {
         };
         let zc: Vec<[f32; 2]> = job.z.iter().zip(job.c).map(|(&z, &c)| [z, c]).collect();
         let targets: Vec<u32> = job.targets.iter().map(|&t| u32::from(t)).collect();
+        if job.z.len() != n || job.c.len() != n || job.guide.len() != n || targets.len() != n {
+            return Err(NodeError::Invalid(
+                "NL-means pass buffers of another size than the grid".into(),
+            ));
+        }
         let kernel = s.kernel(&shaders::NLMEANS)?;
         let uniform = s.uniform(bytemuck::bytes_of(&params))?;
         let zc_buf = s.upload(bytes_of(&zc))?;

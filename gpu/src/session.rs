@@ -162,6 +162,13 @@ impl<'a> Session<'a> {
         Ok(())
     }
 
+    /// Marks the problem as one the device should not run (the node then
+    /// runs on the CPU), with the reason.
+    pub fn too_large(&mut self, why: &str) -> NodeError {
+        self.too_large = true;
+        self.fail(self.ctx.error(why))
+    }
+
     /// A buffer from the context; a too large one marks the session.
     fn alloc(&mut self, size: u64, usage: wgpu::BufferUsages) -> Result<PooledBuffer, NodeError> {
         match self.ctx.buffer(size, usage) {

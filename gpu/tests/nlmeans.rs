@@ -165,3 +165,25 @@ fn denoising_agrees_with_the_cpu_within_its_stated_bound() {
         assert!(depth_within(&a, &off, REL_TOL).is_err());
     }
 }
+
+/// Values f32 on the device cannot hold as the CPU does (a subnormal
+/// confidence) send the node to the CPU: the CPU's result, and the origin
+/// says why.
+#[test]
+fn subnormal_confidences_run_on_the_cpu() {
+    let mut i = scene(30, 20, 9);
+    let Some(Value::Depth(d)) = i.get("depth").cloned() else {
+        panic!()
+    };
+    let conf = Confidence::from_fn(30, 20, |x, y| if (x + y) % 7 == 0 { 1e-40 } else { 0.9 });
+    i.insert("confidence", Value::Confidence(Arc::new(conf)));
+    i.insert("depth", Value::Depth(d));
+    let (cpu_reg, dev_reg) = registries();
+    let p = NLMeansInpaintParams::default().to_values();
+    let a = eval_on(&cpu_reg, "NLMeansInpaint", &i, &p).unwrap();
+    let b = eval_on(&dev_reg, "NLMeansInpaint", &i, &p).unwrap();
+    assert_eq!(*depth_of(&a, "depth"), *depth_of(&b, "depth"));
+    let origin = b.origin.unwrap();
+    assert_eq!(origin.backend, "cpu");
+    assert!(origin.note.unwrap().contains("f32 range"));
+}

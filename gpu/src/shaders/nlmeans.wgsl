@@ -140,8 +140,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     var d = dot(dg, dg) * P.inv_hc2;
                     let cc = zc[p].y * zc[q].y;
                     if (cc > 0.0) {
+                        // cc dz^2 / h^2 as the square of a capped root, so
+                        // no product overflows (the cap leaves it unchanged)
                         let dz = zc[p].x - zc[q].x;
-                        d = d + cc * dz * dz * P.inv_hd2;
+                        let t = min(abs(dz) * sqrt(cc * P.inv_hd2), sqrt(P.cap));
+                        d = d + t * t;
                     }
                     d = min(d, P.cap);
                     let m = u32(max(abs(u), abs(v)));
@@ -173,8 +176,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let zj = zc[j].x;
             var xi = 0.0;
             if (zi.y > 0.0) {
-                let dz = zi.x - zj;
-                xi = dz * dz * P.inv_hd2;
+                // bounded (1e36) instead of overflowing: its weight is 0 either way
+                let t = min(abs(zi.x - zj) * sqrt(P.inv_hd2), 1e18);
+                xi = t * t;
             }
             var prior = 1.0;
             if (P.far != 0u) {

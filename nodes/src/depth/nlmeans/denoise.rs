@@ -4,7 +4,7 @@ use crate::kit::checks::same_size;
 use depthgraph_graph::prelude::*;
 
 use super::common::*;
-use super::inpaint::{PassJob, PassRunner};
+use super::inpaint::{PassJob, PassRunner, checked_run};
 use super::inputs::*;
 use super::params::*;
 use super::pass::*;
@@ -96,7 +96,7 @@ fn filter_impl(
     if let Some(run) = runner {
         let pk = PatchKernel::new(core.patch);
         let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, None);
-        for (i, r) in run.run(&job)?.into_iter().enumerate() {
+        for (i, r) in checked_run(run, &job)?.into_iter().enumerate() {
             // Fallback without any source: input value, confidence 0.
             if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
                 out_z[i] = v;

@@ -76,6 +76,22 @@ impl<'a> PassJob<'a> {
     }
 }
 
+/// `runner`'s results for `job`, one per pixel of the grid.
+pub(super) fn checked_run(
+    runner: &mut dyn PassRunner,
+    job: &PassJob,
+) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+    let out = runner.run(job)?;
+    if out.len() != job.w * job.h {
+        return Err(NodeError::Invalid(format!(
+            "an NL-means pass returned {} results for {} pixels",
+            out.len(),
+            job.w * job.h
+        )));
+    }
+    Ok(out)
+}
+
 /// Runs [`PassJob`]s: per pixel, the estimate and confidence of a target
 /// (`None` for non-targets and targets without a source).
 pub trait PassRunner {
@@ -143,7 +159,7 @@ pub(super) fn inpaint_state(
         if let Some(run) = runner.as_deref_mut() {
             let pk = PatchKernel::new(core.patch);
             let job = PassJob::new((w, h), guide, (z, c), &targets, core, &pk, far);
-            for (i, r) in run.run(&job)?.into_iter().enumerate() {
+            for (i, r) in checked_run(run, &job)?.into_iter().enumerate() {
                 if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
                     nz[i] = v;
                     nc[i] = conf;
