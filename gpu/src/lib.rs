@@ -11,7 +11,13 @@
 //! - [`session`]: one evaluation's uploads, kernels and downloads, counted;
 //! - [`node`]: the [`Node`](depthgraph_graph::node::Node) adapter;
 //! - [`backend`]: `--backend auto|cpu|gpu`;
-//! - one module per node kind, its WGSL in `src/shaders/`.
+//! - [`parity`]: the agreement checks the tests apply (also usable to
+//!   compare two runs of a pipeline);
+//! - [`shaders`]: the WGSL sources (`src/shaders/`), one file per kind;
+//! - one module per device kind: [`pull_push`] (PullPush, DualPullPush),
+//!   [`bilateral`] (JointBilateral), [`nlmeans`] (NLMeansDepth,
+//!   NLMeansInpaint), [`edges`] (EdgeDetect), [`feather`] (Feather),
+//!   [`composite`] (OcclusionComposite), [`refocus`] (Refocus).
 //!
 //! Numerics on the device are f32; each module states its bound against the
 //! CPU's f64 sums and the tolerance its parity test checks.
