@@ -229,32 +229,12 @@ pub fn display_luma(img: &ColorImage) -> Vec<f64> {
 /// of two linear color images, all channels, peak 1. Identical images give
 /// `f64::INFINITY`.
 pub fn display_psnr(a: &ColorImage, b: &ColorImage) -> Result<f64, MetricError> {
-    use depthgraph_nodes::kit::color::linear_to_srgb;
+    use depthgraph_nodes::kit::color::{display_mse, psnr_of_mse};
     dims(a.dims(), b.dims())?;
     if a.is_empty() {
         return Err(MetricError::Empty);
     }
-    let enc = |v: f32| {
-        if v.is_finite() {
-            linear_to_srgb(v) as f64
-        } else {
-            0.0
-        }
-    };
-    let se: f64 = a
-        .as_slice()
-        .iter()
-        .flatten()
-        .zip(b.as_slice().iter().flatten())
-        .map(|(x, y)| (enc(*x) - enc(*y)).powi(2))
-        .sum();
-    // Guard: a is not empty.
-    let mse = se / (a.len() * 3) as f64;
-    Ok(if mse > 0.0 {
-        -10.0 * mse.log10()
-    } else {
-        f64::INFINITY
-    })
+    Ok(psnr_of_mse(display_mse(a.as_slice(), b.as_slice())))
 }
 
 /// Mean SSIM (Wang et al. 2004: 11x11 Gaussian window, sigma 1.5,

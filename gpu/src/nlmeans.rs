@@ -68,7 +68,11 @@ struct DeviceRunner<'s, 'c> {
 }
 
 impl PassRunner for DeviceRunner<'_, '_> {
-    fn run(&mut self, job: &PassJob) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+    fn run(
+        &mut self,
+        job: &PassJob,
+        progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
         let s = &mut *self.s;
         let (w, h) = (job.w, job.h);
         s.check_grid(w, h, 8)?;
@@ -146,6 +150,7 @@ impl PassRunner for DeviceRunner<'_, '_> {
             pass.dispatch_workgroups((w as u32).div_ceil(8), (h as u32).div_ceil(8), 1);
         }
         let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
+        progress(1.0)?;
         Ok(f32s(&back[0])
             .chunks_exact(4)
             .map(|r| (r[2] > 0.0).then_some((r[0], r[1])))

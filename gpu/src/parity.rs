@@ -3,6 +3,7 @@
 //! an error that says where and by how much the results part.
 
 use depthgraph_graph::prelude::*;
+use depthgraph_nodes::kit::color::{display_mse, psnr_of_mse};
 
 /// What a depth comparison measured.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -53,8 +54,8 @@ pub fn depth_within(cpu: &DepthMap, gpu: &DepthMap, rel: f64) -> Result<DepthAgr
     })
 }
 
-/// PSNR in dB of the display images (linear color clamped to [0, 1] and
-/// sRGB-encoded) of `gpu` against `cpu`; infinite when they are equal.
+/// PSNR in dB of the display images of `gpu` against `cpu`
+/// ([`display_mse`]); infinite when they are equal.
 pub fn display_psnr(cpu: &ColorImage, gpu: &ColorImage) -> Result<f64, String> {
     if cpu.dims() != gpu.dims() {
         return Err(format!(
@@ -63,26 +64,13 @@ pub fn display_psnr(cpu: &ColorImage, gpu: &ColorImage) -> Result<f64, String> {
             gpu.dims()
         ));
     }
-    let enc = |v: f32| depthgraph_nodes::kit::color::linear_to_srgb(v.clamp(0.0, 1.0)) as f64;
-    let mut se = 0.0f64;
+    // the display encoding maps NaN to 0: compare NaN-ness first
     for (t, (a, b)) in cpu.as_slice().iter().zip(gpu.as_slice()).enumerate() {
-        for k in 0..3 {
-            // the display encoding maps NaN to 0: compare NaN-ness first
-            if a[k].is_nan() != b[k].is_nan() {
-                return Err(format!("pixel {t}: cpu {a:?}, gpu {b:?} (NaN on one side)"));
-            }
-            let d = enc(a[k]) - enc(b[k]);
-            se += d * d;
+        if (0..3).any(|k| a[k].is_nan() != b[k].is_nan()) {
+            return Err(format!("pixel {t}: cpu {a:?}, gpu {b:?} (NaN on one side)"));
         }
     }
-    let n = (3 * cpu.len()).max(1) as f64;
-    let mse = se / n;
-    // Guard: mse > 0 in the logarithm.
-    Ok(if mse > 0.0 {
-        -10.0 * mse.log10()
-    } else {
-        f64::INFINITY
-    })
+    Ok(psnr_of_mse(display_mse(cpu.as_slice(), gpu.as_slice())))
 }
 
 /// The Refocus check: pixels where `fixed` is true (outside the active

@@ -69,6 +69,42 @@ pub fn luminance_clamped(c: Rgb) -> f64 {
     }))
 }
 
+/// Mean squared difference of the display values (linear clamped to
+/// [0, 1], sRGB-encoded, non-finite as 0) of two equally long pixel lists,
+/// over all channels; 0 for empty lists. The one display error measure of
+/// the metrics and of the backend parity checks.
+pub fn display_mse(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
+    let enc = |v: f32| {
+        if v.is_finite() {
+            linear_to_srgb(v) as f64
+        } else {
+            0.0
+        }
+    };
+    let se: f64 = a
+        .iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| (enc(*x) - enc(*y)).powi(2))
+        .sum();
+    // Guard: an empty list has no error.
+    if a.is_empty() {
+        0.0
+    } else {
+        se / (a.len() * 3) as f64
+    }
+}
+
+/// PSNR in dB (peak 1) of a mean squared error; infinite for 0.
+pub fn psnr_of_mse(mse: f64) -> f64 {
+    // Guard: mse > 0 in the logarithm.
+    if mse > 0.0 {
+        -10.0 * mse.log10()
+    } else {
+        f64::INFINITY
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

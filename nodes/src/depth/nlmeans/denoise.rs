@@ -4,7 +4,7 @@ use crate::kit::checks::same_size;
 use depthgraph_graph::prelude::*;
 
 use super::common::*;
-use super::inpaint::{PassJob, PassRunner, checked_run};
+use super::inpaint::{CpuPass, PassJob, PassRunner, checked_run};
 use super::inputs::*;
 use super::params::*;
 use super::pass::*;
@@ -67,16 +67,16 @@ pub fn nlmeans_filter_with(
     p: &NLMeansDepthParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    filter_impl(depth, confidence, guide_color, p, on_progress, None)
+    filter_on(depth, confidence, guide_color, p, on_progress, &mut CpuPass)
 }
 
-fn filter_impl(
+fn filter_on(
     depth: &DepthMap,
     confidence: Option<&Confidence>,
     guide_color: &ColorImage,
     p: &NLMeansDepthParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
-    runner: Option<&mut dyn PassRunner>,
+    runner: &mut dyn PassRunner,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
     same_size(
@@ -93,39 +93,18 @@ fn filter_impl(
     let targets: Vec<bool> = z.iter().map(|z| *z > 0.0).collect();
     let mut out_z = z.clone();
     let mut out_c = vec![0.0f32; w * h];
-    if let Some(run) = runner {
-        let pk = PatchKernel::new(core.patch);
-        let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, None);
-        for (i, r) in checked_run(run, &job)?.into_iter().enumerate() {
-            // Fallback without any source: input value, confidence 0.
-            if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
-                out_z[i] = v;
-                out_c[i] = conf;
-            }
-        }
-        on_progress(1.0)?;
-        return Ok((image(w, h, out_z)?, image(w, h, out_c)?));
-    }
-    let pass = Pass {
-        w,
-        h,
-        guide: &guide,
-        depth: Some((&z, &c)),
-        core,
-    };
-    let kernel = DepthKernel {
-        z: &z,
-        c: &c,
-        inv_hd2: core.inv_hd2,
-        far: None,
-    };
-    run_pass(&pass, &targets, &kernel, &mut on_progress, |i, acc| {
+    let pk = PatchKernel::new(core.patch);
+    let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, None);
+    for (i, r) in checked_run(runner, &job, &mut on_progress)?
+        .into_iter()
+        .enumerate()
+    {
         // Fallback without any source: input value, confidence 0.
-        if let Some((v, conf)) = acc.finish() {
+        if let (true, Some((v, conf))) = (targets[i], r) {
             out_z[i] = v;
             out_c[i] = conf;
         }
-    })?;
+    }
     Ok((image(w, h, out_z)?, image(w, h, out_c)?))
 }
 
@@ -159,7 +138,7 @@ pub fn nlmeans_denoise_with(
     p: &NLMeansDepthParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    denoise_impl(depth, confidence, guide_color, p, on_progress, None)
+    nlmeans_denoise_on(depth, confidence, guide_color, p, on_progress, &mut CpuPass)
 }
 
 /// [`nlmeans_denoise_with`] with its pass run by `runner` (another
@@ -172,19 +151,8 @@ pub fn nlmeans_denoise_on(
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
     runner: &mut dyn PassRunner,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    denoise_impl(depth, confidence, guide_color, p, on_progress, Some(runner))
-}
-
-fn denoise_impl(
-    depth: &DepthMap,
-    confidence: Option<&Confidence>,
-    guide_color: &ColorImage,
-    p: &NLMeansDepthParams,
-    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
-    runner: Option<&mut dyn PassRunner>,
-) -> Result<(DepthMap, Confidence), NodeError> {
     if !p.prune {
-        return filter_impl(depth, confidence, guide_color, p, on_progress, runner);
+        return filter_on(depth, confidence, guide_color, p, on_progress, runner);
     }
     // Check the filter's inputs before the pruning's work.
     Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
@@ -196,5 +164,5 @@ fn denoise_impl(
         depth.dims(),
     )?;
     let (d, c) = prune_outliers(depth, confidence, &p.prune_params())?;
-    filter_impl(&d, Some(&c), guide_color, p, on_progress, runner)
+    filter_on(&d, Some(&c), guide_color, p, on_progress, runner)
 }

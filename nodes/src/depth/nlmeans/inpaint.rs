@@ -80,8 +80,9 @@ impl<'a> PassJob<'a> {
 pub(super) fn checked_run(
     runner: &mut dyn PassRunner,
     job: &PassJob,
+    progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
-    let out = runner.run(job)?;
+    let out = runner.run(job, progress)?;
     if out.len() != job.w * job.h {
         return Err(NodeError::Invalid(format!(
             "an NL-means pass returned {} results for {} pixels",
@@ -93,10 +94,52 @@ pub(super) fn checked_run(
 }
 
 /// Runs [`PassJob`]s: per pixel, the estimate and confidence of a target
-/// (`None` for non-targets and targets without a source).
+/// (`None` for non-targets and targets without a source), reporting
+/// progress in `[0, 1]`. [`CpuPass`] is the CPU's; the GPU backend has its own.
 pub trait PassRunner {
     /// One pass.
-    fn run(&mut self, job: &PassJob) -> Result<Vec<Option<(f32, f32)>>, NodeError>;
+    fn run(
+        &mut self,
+        job: &PassJob,
+        progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    ) -> Result<Vec<Option<(f32, f32)>>, NodeError>;
+}
+
+/// The NL-means pass on the CPU (bands of rows in parallel, box sums).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CpuPass;
+
+impl PassRunner for CpuPass {
+    fn run(
+        &mut self,
+        job: &PassJob,
+        progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+        let core = Core {
+            search: job.search,
+            patch: job.patch,
+            inv_hc2: job.inv_hc2,
+            inv_hd2: job.inv_hd2,
+        };
+        let pass = Pass {
+            w: job.w,
+            h: job.h,
+            guide: job.guide,
+            depth: Some((job.z, job.c)),
+            core,
+        };
+        let kernel = DepthKernel {
+            z: job.z,
+            c: job.c,
+            inv_hd2: job.inv_hd2,
+            far: job.far,
+        };
+        let mut out = vec![None; job.w * job.h];
+        run_pass(&pass, job.targets, &kernel, progress, |i, acc| {
+            out[i] = acc.finish();
+        })?;
+        Ok(out)
+    }
 }
 
 /// Holes that have a source (confidence > 0) within `r` pixels (Chebyshev),
@@ -139,7 +182,7 @@ pub(super) fn inpaint_state(
     iterations: usize,
     far_prior: bool,
     progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
-    mut runner: Option<&mut dyn PassRunner>,
+    runner: &mut dyn PassRunner,
 ) -> Result<usize, NodeError> {
     let z_ref = z
         .iter()
@@ -156,42 +199,17 @@ pub(super) fn inpaint_state(
         }
         let (mut nz, mut nc) = (z.clone(), c.clone());
         let mut filled = 0usize;
-        if let Some(run) = runner.as_deref_mut() {
-            let pk = PatchKernel::new(core.patch);
-            let job = PassJob::new((w, h), guide, (z, c), &targets, core, &pk, far);
-            for (i, r) in checked_run(run, &job)?.into_iter().enumerate() {
-                if let (true, Some((v, conf))) = (targets.get(i).copied().unwrap_or(false), r) {
-                    nz[i] = v;
-                    nc[i] = conf;
-                    filled += 1;
-                }
+        let pk = PatchKernel::new(core.patch);
+        let job = PassJob::new((w, h), guide, (z, c), &targets, core, &pk, far);
+        // Guard: iterations >= 1 inside the loop.
+        let scale = 1.0 / iterations as f32;
+        let mut sub = |f: f32| progress((it as f32 + f) * scale);
+        for (i, r) in checked_run(runner, &job, &mut sub)?.into_iter().enumerate() {
+            if let (true, Some((v, conf))) = (targets[i], r) {
+                nz[i] = v;
+                nc[i] = conf;
+                filled += 1;
             }
-            // Guard: iterations >= 1 inside the loop.
-            progress((it + 1) as f32 / iterations as f32)?;
-        } else {
-            let pass = Pass {
-                w,
-                h,
-                guide,
-                depth: Some((z, c)),
-                core,
-            };
-            let kernel = DepthKernel {
-                z,
-                c,
-                inv_hd2: core.inv_hd2,
-                far,
-            };
-            // Guard: iterations >= 1 inside the loop.
-            let scale = 1.0 / iterations as f32;
-            let mut sub = |f: f32| progress((it as f32 + f) * scale);
-            run_pass(&pass, &targets, &kernel, &mut sub, |i, acc| {
-                if let Some((v, conf)) = acc.finish() {
-                    nz[i] = v;
-                    nc[i] = conf;
-                    filled += 1;
-                }
-            })?;
         }
         *z = nz;
         *c = nc;
@@ -250,7 +268,7 @@ pub fn nlmeans_inpaint_with(
     p: &NLMeansInpaintParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    inpaint_impl(depth, confidence, guide_color, p, on_progress, None)
+    nlmeans_inpaint_on(depth, confidence, guide_color, p, on_progress, &mut CpuPass)
 }
 
 /// [`nlmeans_inpaint_with`] with its passes run by `runner` (another
@@ -261,19 +279,8 @@ pub fn nlmeans_inpaint_on(
     confidence: Option<&Confidence>,
     guide_color: &ColorImage,
     p: &NLMeansInpaintParams,
-    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
-    runner: &mut dyn PassRunner,
-) -> Result<(DepthMap, Confidence), NodeError> {
-    inpaint_impl(depth, confidence, guide_color, p, on_progress, Some(runner))
-}
-
-fn inpaint_impl(
-    depth: &DepthMap,
-    confidence: Option<&Confidence>,
-    guide_color: &ColorImage,
-    p: &NLMeansInpaintParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
-    runner: Option<&mut dyn PassRunner>,
+    runner: &mut dyn PassRunner,
 ) -> Result<(DepthMap, Confidence), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
     if core.search == 0 {

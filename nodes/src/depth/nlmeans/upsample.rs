@@ -285,7 +285,7 @@ pub fn nlmeans_upsample_with(
             p.iterations,
             false,
             &mut |f| on_progress(0.5 + 0.5 * f),
-            None,
+            &mut CpuPass,
         )?;
     }
     Ok((image(w, h, z)?, image(w, h, c)?, high_k))
