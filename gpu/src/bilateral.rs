@@ -75,17 +75,7 @@ pub fn eval(
     let out = Arc::new(s.scratch(4 * n)?);
     let bg_enc = s.bind(&encode, &[&uniform, &color, &enc]);
     let bg = s.bind(&filter, &[&uniform, &depth, &enc, &out]);
-    let mut encoder = s.encoder();
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        let groups = ((w as u32).div_ceil(8), (h as u32).div_ceil(8));
-        pass.set_pipeline(&encode);
-        pass.set_bind_group(0, &bg_enc, &[]);
-        pass.dispatch_workgroups(groups.0, groups.1, 1);
-        pass.set_pipeline(&filter);
-        pass.set_bind_group(0, &bg, &[]);
-        pass.dispatch_workgroups(groups.0, groups.1, 1);
-    }
+    let encoder = s.image_passes(&[(&encode, &bg_enc), (&filter, &bg)], (w, h));
     let back = s.finish(encoder, &[(&out, 4 * n)])?;
     let depth = Arc::new(Image::from_vec(w, h, f32s(&back[0]))?);
     s.keep("depth", out, 4 * n);

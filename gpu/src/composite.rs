@@ -68,13 +68,7 @@ pub fn eval(
         &kernel,
         &[&uniform, &b_tc, &b_td, &b_pc, &b_pz, &b_pa, &out],
     );
-    let mut encoder = s.encoder();
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&kernel);
-        pass.set_bind_group(0, &bg, &[]);
-        pass.dispatch_workgroups((w as u32).div_ceil(8), (h as u32).div_ceil(8), 1);
-    }
+    let encoder = s.image_passes(&[(&kernel, &bg)], (w, h));
     let back = s.finish(encoder, &[(&out, 20 * n as u64)])?;
     let all = f32s(&back[0]);
     let (rgb, rest) = all.split_at(3 * n);

@@ -84,17 +84,7 @@ pub fn eval(
     let out = Arc::new(s.scratch(4 * n)?);
     let bg_enc = s.bind(&encode, &[&uniform, &color, &enc]);
     let bg = s.bind(&main, &[&uniform, &depth, &enc, &out]);
-    let mut encoder = s.encoder();
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        let g = ((w as u32).div_ceil(8), (h as u32).div_ceil(8));
-        pass.set_pipeline(&encode);
-        pass.set_bind_group(0, &bg_enc, &[]);
-        pass.dispatch_workgroups(g.0, g.1, 1);
-        pass.set_pipeline(&main);
-        pass.set_bind_group(0, &bg, &[]);
-        pass.dispatch_workgroups(g.0, g.1, 1);
-    }
+    let encoder = s.image_passes(&[(&encode, &bg_enc), (&main, &bg)], (w, h));
     let back = s.finish(encoder, &[(&out, 4 * n)])?;
     let strength: Confidence = Image::from_vec(w, h, f32s(&back[0]))?;
     let edges = binary_edges(&strength, p.threshold as f32, p.thin);

@@ -82,17 +82,7 @@ pub fn eval(
         &vertical,
         &[&uniform, &mask_buf, &taps_buf, &near_buf, &horiz, &out],
     );
-    let mut encoder = s.encoder();
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        let g = ((w as u32).div_ceil(8), (h as u32).div_ceil(8));
-        pass.set_pipeline(&horizontal);
-        pass.set_bind_group(0, &bg_h, &[]);
-        pass.dispatch_workgroups(g.0, g.1, 1);
-        pass.set_pipeline(&vertical);
-        pass.set_bind_group(0, &bg_v, &[]);
-        pass.dispatch_workgroups(g.0, g.1, 1);
-    }
+    let encoder = s.image_passes(&[(&horizontal, &bg_h), (&vertical, &bg_v)], (w, h));
     let back = s.finish(encoder, &[(&out, 4 * n)])?;
     let mask: Mask = Image::from_vec(w, h, f32s(&back[0]))?;
     s.keep("mask", out, 4 * n);

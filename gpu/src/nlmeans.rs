@@ -142,13 +142,7 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let t_buf = s.upload(bytes_of(&targets))?;
         let out = s.scratch(16 * n as u64)?;
         let bg = s.bind(&kernel, &[&uniform, guide, &zc_buf, &t_buf, &out]);
-        let mut encoder = s.encoder();
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&kernel);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups((w as u32).div_ceil(8), (h as u32).div_ceil(8), 1);
-        }
+        let encoder = s.image_passes(&[(&kernel, &bg)], (w, h));
         let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
         progress(1.0)?;
         Ok(f32s(&back[0])

@@ -271,6 +271,26 @@ impl<'a> Session<'a> {
             })
     }
 
+    /// A command encoder holding one compute pass that runs `steps` in
+    /// order, each kernel over a `w` x `h` grid of 8 x 8 workgroups.
+    pub fn image_passes(
+        &self,
+        steps: &[(&wgpu::ComputePipeline, &wgpu::BindGroup)],
+        (w, h): (usize, usize),
+    ) -> wgpu::CommandEncoder {
+        let mut encoder = self.encoder();
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            let groups = ((w as u32).div_ceil(8), (h as u32).div_ceil(8));
+            for (pipeline, bind_group) in steps {
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(0, *bind_group, &[]);
+                pass.dispatch_workgroups(groups.0, groups.1, 1);
+            }
+        }
+        encoder
+    }
+
     /// A new command encoder.
     pub fn encoder(&self) -> wgpu::CommandEncoder {
         self.ctx
