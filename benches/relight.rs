@@ -126,6 +126,7 @@ fn inputs(s: &Scene) -> RelightInputs<'_> {
         pasted_depth: &s.pasted_depth,
         alpha: &s.alpha,
         k: &s.k,
+        capture_vpls: None,
     }
 }
 

@@ -20,6 +20,7 @@ use crate::kit::color::{srgb8, srgb16};
 use crate::kit::colormap::{colormap_depth, depth_range};
 
 mod decode;
+pub mod mask;
 mod pfm;
 mod ply;
 mod pnm;
@@ -751,6 +752,7 @@ fn save_mesh_eval(
 
 /// Registers the loaders and writers.
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    mask::register(reg)?;
     reg.register(
         PortedNode::new(
             "LoadColor",

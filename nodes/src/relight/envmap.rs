@@ -41,6 +41,15 @@
 //! Then `yaw_deg` turns the map about the vertical axis (a light at azimuth
 //! `a` moves to `a + yaw`, linear interpolation across columns) and the
 //! radiance is multiplied by `2^exposure_ev`.
+//!
+//! # A tilted camera
+//!
+//! The map is captured level (row 0 against gravity); a photo's camera is
+//! often pitched and rolled. `pitch_deg` and `roll_deg` give its
+//! orientation (e.g. from the camera's gravity reading) and the map is
+//! resampled into the camera's frame ([`orient`]), so a level map lights a
+//! tilted photo correctly: a sun at elevation `e` behind a camera looking
+//! up by `p` sits at elevation `e + p` in the camera's frame.
 
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
@@ -49,7 +58,7 @@ use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 
 pub use crate::sim::synthetic::sun_direction;
 
@@ -76,6 +85,10 @@ node_params! {
         pub ground_color: [f64; 3] = [0.03, 0.025, 0.02], ParamKind::Vec3 { min: 0.0, max: 1e6 };
         /// Turn the map about the vertical axis, degrees (a light at azimuth a moves to a + yaw).
         pub yaw_deg: f64 = 0.0, ParamKind::Float { min: -360.0, max: 360.0 };
+        /// The photo's camera pitch, degrees (positive = looking up): the level map is turned into the camera's frame.
+        pub pitch_deg: f64 = 0.0, ParamKind::Float { min: -90.0, max: 90.0 };
+        /// The photo's camera roll about its view axis, degrees (positive = its right side down).
+        pub roll_deg: f64 = 0.0, ParamKind::Float { min: -180.0, max: 180.0 };
         /// Multiply the radiance by 2^exposure_ev.
         pub exposure_ev: f64 = 0.0, ParamKind::Float { min: -30.0, max: 30.0 };
     }
@@ -225,15 +238,120 @@ pub fn rotate_and_expose(map: &ColorImage, yaw_deg: f64, exposure_ev: f64) -> Co
     })
 }
 
+/// The camera-to-world rotation of a camera pitched by `pitch_deg`
+/// (positive = looking up) and rolled by `roll_deg` about its view axis
+/// (positive = its right side down), in the frame of the module docs
+/// (`y` down): roll first, then pitch, `R = R_x(pitch) R_z(roll)`.
+pub fn camera_to_world(pitch_deg: f64, roll_deg: f64) -> DMat3 {
+    let (sp, cp) = pitch_deg.to_radians().sin_cos();
+    let (sr, cr) = roll_deg.to_radians().sin_cos();
+    let rx = DMat3::from_cols(
+        DVec3::new(1.0, 0.0, 0.0),
+        DVec3::new(0.0, cp, sp),
+        DVec3::new(0.0, -sp, cp),
+    );
+    let rz = DMat3::from_cols(
+        DVec3::new(cr, sr, 0.0),
+        DVec3::new(-sr, cr, 0.0),
+        DVec3::new(0.0, 0.0, 1.0),
+    );
+    rx * rz
+}
+
+/// A level map (world frame: `-y` against gravity) seen from a camera
+/// with the rotation `r` (camera to world): pixel `d` of the result holds
+/// the map's radiance from `r d`, bilinear from 3x3 sub-samples per pixel,
+/// then scaled per channel so that `Σ L ΔΩ` is the map's (the resampling
+/// spreads a small sun over its neighbours but keeps its energy).
+pub fn orient(map: &ColorImage, r: DMat3) -> ColorImage {
+    let (w, h) = map.dims();
+    if w == 0 || h == 0 {
+        return map.clone();
+    }
+    let bilinear = |u: f64, v: f64| -> [f64; 3] {
+        let (x, y) = (u - 0.5, (v - 0.5).clamp(0.0, (h - 1) as f64));
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let xi = |k: f64| ((x0 + k).rem_euclid(w as f64) as usize).min(w - 1);
+        let yi = |k: f64| ((y0 + k) as usize).min(h - 1);
+        let at = |xx: usize, yy: usize| map.get(xx, yy).map(f64::from);
+        let (a, b, c, d) = (
+            at(xi(0.0), yi(0.0)),
+            at(xi(1.0), yi(0.0)),
+            at(xi(0.0), yi(1.0)),
+            at(xi(1.0), yi(1.0)),
+        );
+        std::array::from_fn(|ch| {
+            (1.0 - fy) * ((1.0 - fx) * a[ch] + fx * b[ch]) + fy * ((1.0 - fx) * c[ch] + fx * d[ch])
+        })
+    };
+    const SS: usize = 3;
+    let out: Vec<[f64; 3]> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let mut acc = [0.0f64; 3];
+            for j in 0..SS {
+                for k in 0..SS {
+                    let u = x as f64 + (k as f64 + 0.5) / SS as f64;
+                    let v = y as f64 + (j as f64 + 0.5) / SS as f64;
+                    let d = r * pixel_direction(u, v, w, h);
+                    let (su, sv) = direction_to_pixel(d, w, h);
+                    let l = bilinear(su, sv);
+                    for ch in 0..3 {
+                        acc[ch] += l[ch];
+                    }
+                }
+            }
+            acc.map(|a| a / (SS * SS) as f64)
+        })
+        .collect();
+    let energy = |px: &mut dyn Iterator<Item = (usize, [f64; 3])>| {
+        let mut e = [0.0f64; 3];
+        for (i, l) in px {
+            let d_omega = pixel_solid_angle(i / w, w, h);
+            for ch in 0..3 {
+                e[ch] += l[ch] * d_omega;
+            }
+        }
+        e
+    };
+    let before = energy(
+        &mut map
+            .as_slice()
+            .iter()
+            .enumerate()
+            .map(|(i, l)| (i, l.map(f64::from))),
+    );
+    let after = energy(&mut out.iter().copied().enumerate());
+    // guard: scale only a channel that carries energy after resampling
+    let scale: [f64; 3] = std::array::from_fn(|ch| {
+        if after[ch] > 0.0 {
+            before[ch] / after[ch]
+        } else {
+            1.0
+        }
+    });
+    let px = out
+        .iter()
+        .map(|l| std::array::from_fn(|ch| (l[ch] * scale[ch]) as f32))
+        .collect();
+    Image::from_vec(w, h, px).unwrap_or_else(|_| map.clone())
+}
+
 /// The environment map the parameters describe: the file (linear) or the
-/// generated sky, then yaw and exposure.
+/// generated sky, then yaw and exposure, then turned into the frame of a
+/// pitched or rolled camera ([`orient`]).
 pub fn environment_map(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
     let base = if p.path.is_empty() {
         sample_sky(p)?
     } else {
         crate::io::load_color(Path::new(&p.path), crate::io::ColorSpace::Linear)?
     };
-    Ok(rotate_and_expose(&base, p.yaw_deg, p.exposure_ev))
+    let map = rotate_and_expose(&base, p.yaw_deg, p.exposure_ev);
+    if p.pitch_deg == 0.0 && p.roll_deg == 0.0 {
+        return Ok(map);
+    }
+    Ok(orient(&map, camera_to_world(p.pitch_deg, p.roll_deg)))
 }
 
 depthgraph_graph::ports! {
@@ -356,6 +474,59 @@ mod tests {
             rotate_and_expose(&bad, 0.0, 0.0).get(0, 0),
             &[0.0, 0.0, 2.0]
         );
+    }
+
+    /// A level map seen from a camera looking up by 20°: the sun behind
+    /// it at elevation 30° sits at 50° in the camera's frame (within a
+    /// pixel); a roll of 90° puts a sun straight above onto the camera's
+    /// left; the energy is kept.
+    #[test]
+    fn a_pitched_camera_sees_the_sun_where_it_is() {
+        let base = EnvMapParams {
+            width: 360,
+            height: 180,
+            sun_size_deg: 1.0,
+            sun_elevation_deg: 30.0,
+            sun_azimuth_deg: 0.0,
+            ..Default::default()
+        };
+        let argmax_dir = |img: &ColorImage| {
+            let (w, h) = img.dims();
+            let i = (0..w * h)
+                .max_by(|&a, &b| img.as_slice()[a][0].total_cmp(&img.as_slice()[b][0]))
+                .unwrap_or(0);
+            pixel_direction((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, w, h)
+        };
+        let energy = |img: &ColorImage| {
+            let (w, h) = img.dims();
+            (0..w * h)
+                .map(|i| f64::from(img.as_slice()[i][0]) * pixel_solid_angle(i / w, w, h))
+                .sum::<f64>()
+        };
+        let level = environment_map(&base).unwrap();
+        let pitched = environment_map(&EnvMapParams {
+            pitch_deg: 20.0,
+            ..base.clone()
+        })
+        .unwrap();
+        let want = sun_direction(50.0, 0.0);
+        let got = argmax_dir(&pitched);
+        let err = got.dot(want).clamp(-1.0, 1.0).acos().to_degrees();
+        assert!(err < 1.5, "sun at {got}, want {want} ({err:.2}°)");
+        // the level map is untouched by zero angles; not so the pitched one
+        assert!(argmax_dir(&level).dot(sun_direction(30.0, 0.0)) > 0.9995);
+        assert!(got.dot(sun_direction(30.0, 0.0)) < 0.99);
+        let (e0, e1) = (energy(&level), energy(&pitched));
+        assert!((e1 - e0).abs() < 1e-4 * e0, "{e0} vs {e1}");
+        // roll 90° (right side down): the zenith goes to the camera's left (-x)
+        let rolled = environment_map(&EnvMapParams {
+            sun_elevation_deg: 90.0,
+            roll_deg: 90.0,
+            ..base.clone()
+        })
+        .unwrap();
+        let d = argmax_dir(&rolled);
+        assert!(d.x < -0.99, "{d}");
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! (3d-editing §III.E): the environment map, VPL sampling, imperfect shadow
 //! maps, the paired and scene-cached schemes, and the ray-cast reference
 //! with its BVH.
+pub mod closure;
 pub mod envmap;
 pub mod ism;
 pub mod node;

@@ -35,6 +35,8 @@ depthgraph_graph::ports! {
         intrinsics: Intrinsics,
         /// VplSample.vpls
         vpls: Arc<VplSet>,
+        /// VplSample.vpls of the map the object was captured under (else the target's)
+        capture_vpls: Option<Arc<VplSet>>,
     }
 }
 
@@ -52,6 +54,10 @@ depthgraph_graph::ports! {
 
 fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<RelightOut>, NodeError> {
     let vpls = checked_vpls(&i.vpls, "vpls")?;
+    let capture = match &i.capture_vpls {
+        Some(c) => Some(checked_vpls(c, "capture_vpls")?),
+        None => None,
+    };
     let inp = RelightInputs {
         photo: &i.photo,
         depth: &i.depth,
@@ -61,6 +67,7 @@ fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<Relig
         pasted_depth: &i.pasted_depth,
         alpha: &i.alpha,
         k: &i.intrinsics,
+        capture_vpls: capture.as_deref(),
     };
     let result = match p.visibility {
         Visibility::Paired => relight(&inp, &vpls, p)?,

@@ -443,6 +443,7 @@ mod tests {
             pasted_depth: &slab,
             alpha: &alpha,
             k: &k,
+            capture_vpls: None,
         };
         let up = DVec3::new(0.0, -1.0, 0.0);
         let target: Vec<Option<Surf>> = (0..w * h)
@@ -574,6 +575,7 @@ mod tests {
             pasted_depth: &slab,
             alpha: &alpha,
             k: &k,
+            capture_vpls: None,
         };
         let vpls: Vec<Vpl> = (0..24)
             .map(|j| {

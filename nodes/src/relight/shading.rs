@@ -54,6 +54,10 @@ node_params! {
         pub object_ism_resolution: usize = 64usize, ParamKind::Int { min: 4, max: 2048 };
         /// Object samples splatted into each of its maps (scene_cached).
         pub object_ism_points: usize = 2048usize, ParamKind::Int { min: 16, max: 1 << 22 };
+        /// Close the object's unseen back (its front mirrored about the silhouette plane) for its shadows.
+        pub close_back: bool = true, ParamKind::Bool;
+        /// Keep the scene's bounce in the object's shadow: remove only the light the object blocks, direct and bounced.
+        pub fill_light: bool = true, ParamKind::Bool;
     }
 }
 
@@ -100,6 +104,9 @@ pub struct RelightInputs<'a> {
     pub alpha: &'a Mask,
     /// Intrinsics of the target; every image has their size.
     pub k: &'a Intrinsics,
+    /// The VPLs of the map the object was captured under; `None` = the
+    /// target's (module docs of [`crate::relight::paired`]).
+    pub capture_vpls: Option<&'a [Vpl]>,
 }
 
 /// The scene's part of [`RelightInputs`]: what the scene-cached path
@@ -162,6 +169,13 @@ impl<'a> RelightInputs<'a> {
             self.pasted_depth.dims(),
         )?;
         fits_intrinsics("intrinsics", self.k, "alpha", self.alpha.dims())
+    }
+
+    /// The object's mirrored back ([`crate::relight::closure`]) when
+    /// `close_back` is on.
+    pub(crate) fn back_depth(&self, p: &RelightParams) -> Option<DepthMap> {
+        p.close_back
+            .then(|| crate::relight::closure::back_depth(self.pasted_depth, self.k))
     }
 
     /// The object's surface at pixel `i` (a valid pasted depth): its
@@ -361,25 +375,62 @@ pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {
     (c, radius)
 }
 
-/// The object's shaded colour (module docs, "Bounce from the scene"):
-/// `ρ_o (E^{s+t} + B_s)` with `ρ_o = P_o / max(E_free + B_s, e_floor)`.
+/// The object's shaded colour (module docs of [`crate::relight::paired`],
+/// "The object's own shading"): its pasted radiance times the ratio of the
+/// irradiance it receives in the target scene to the irradiance it
+/// received where it was captured,
+/// `P_o (E^{s+t} + B_s) / max(E_cap, e_floor)`: `E^{s+t}` the target's
+/// direct light with the scene's and the object's own shadows, `B_s` the
+/// scene's bounce, `E_cap` the capture map's direct light with the
+/// object's own shadows (its capture surroundings are unknown: nothing
+/// bounced there). With the same map on both sides and an empty target
+/// the ratio is 1 up to the visibility estimates.
 pub(crate) fn object_radiance(
     pc: Rgb,
     est: [f64; 3],
-    efree: [f64; 3],
+    ecap: [f64; 3],
     bs: [f64; 3],
     e_floor: f64,
 ) -> Rgb {
     std::array::from_fn(|ch| {
-        // The pasted colour was lit directly and by bounced light alike:
-        // ρ_o = P / (E_free + B_s), so the shaded object is
-        // P (E^{s+t} + B_s) / (E_free + B_s) <= P (no firefly where the
-        // direct light is weak).
-        let free = (efree[ch] + bs[ch]).max(e_floor);
-        // guard: free >= e_floor > 0
-        let rho = (pc[ch].max(0.0) as f64) / free;
-        (rho * (est[ch] + bs[ch])) as f32
+        let cap = ecap[ch].max(e_floor);
+        // guard: cap >= e_floor > 0
+        let ratio = (est[ch] + bs[ch]) / cap;
+        (f64::from(pc[ch].max(0.0)) * ratio) as f32
     })
+}
+
+/// The scene's own bounce at a target surface `(x, n)` from the secondary
+/// VPLs read off the photo ([`scene_bounce_vpls`]), and the part of it the
+/// object's closed volume blocks (module docs of
+/// [`crate::relight::paired`], "Shadows with their fill light"): both with
+/// the clamped `1 / max(r², r2_min)` of [`bounce_at`].
+pub(crate) fn scene_fill(
+    x: DVec3,
+    n: DVec3,
+    vpls: &[(DVec3, DVec3, [f64; 3])],
+    r2_min: f64,
+    volume: &crate::relight::closure::ObjectVolume,
+) -> ([f64; 3], [f64; 3]) {
+    let (mut all, mut blocked) = ([0.0f64; 3], [0.0f64; 3]);
+    for (q, nq, l) in vpls {
+        let v = *q - x;
+        let r2 = v.length_squared();
+        let (cr, cq) = (n.dot(v), -nq.dot(v));
+        if r2 < 1e-18 || cr <= 0.0 || cq <= 0.0 {
+            continue;
+        }
+        // guard: r2 >= 1e-18 > 0 and r2_min >= 0
+        let g = cr * cq / (r2 * r2.max(r2_min));
+        let hidden = volume.blocks(x, *q);
+        for ch in 0..3 {
+            all[ch] += l[ch] * g;
+            if hidden {
+                blocked[ch] += l[ch] * g;
+            }
+        }
+    }
+    (all, blocked)
 }
 
 /// Up to `count` object pixels (a stratified subset of `obj_idx`) as

@@ -484,7 +484,7 @@ pub fn kinect_like_intrinsics(width: usize, height: usize) -> Intrinsics {
     }
 }
 
-fn solid(id: u32, primitive: Primitive, albedo: Texture) -> Object {
+pub(crate) fn solid(id: u32, primitive: Primitive, albedo: Texture) -> Object {
     Object {
         id,
         primitive,
@@ -502,7 +502,7 @@ fn enclosing(id: u32, primitive: Primitive, albedo: Texture) -> Object {
     }
 }
 
-fn plane(point: [f64; 3], normal: [f64; 3]) -> Primitive {
+pub(crate) fn plane(point: [f64; 3], normal: [f64; 3]) -> Primitive {
     Primitive::Plane {
         point: DVec3::from_array(point),
         normal: DVec3::from_array(normal),

@@ -81,6 +81,7 @@ impl SlabScene {
             pasted_depth: &self.slab,
             alpha: &self.alpha,
             k: &self.k,
+            capture_vpls: None,
         }
     }
 }
@@ -112,6 +113,7 @@ pub(crate) fn slab_shadow_is_analytic(
         pasted_depth: &slab,
         alpha: &alpha,
         k: &k,
+        capture_vpls: None,
     };
     let p = RelightParams {
         ism_points: 20000,
@@ -130,8 +132,18 @@ pub(crate) fn slab_shadow_is_analytic(
                 r.region.as_slice()[i],
             );
             assert!(c.iter().all(|v| v.is_finite() && *v >= 0.0));
-            if alpha.as_slice()[i] >= 1.0 {
-                // the object is never brighter than its pasted colour
+            let inside = x > 0
+                && y > 0
+                && x + 1 < w
+                && y + 1 < h
+                && [i - 1, i + 1, i - w, i + w]
+                    .iter()
+                    .all(|&j| alpha.as_slice()[j] >= 1.0);
+            if inside {
+                // the slab's top, lit as where it was captured (the same
+                // light, nothing bounced onto a face looking up): never
+                // brighter than its pasted colour (its rim, whose normals
+                // the depth cannot give, may see the floor's bounce)
                 let pc = pasted_color.as_slice()[i];
                 assert!(
                     (0..3).all(|ch| c[ch] <= pc[ch] * (1.0 + 1e-5)),
