@@ -6,8 +6,9 @@
 //! desired target location").
 //!
 //! Both cameras sit at the origin of their own frame looking along `+z`; a
-//! placement is a uniform scale and a translation (no rotation), which is
-//! what the paper's editor offers.
+//! placement is a uniform scale, a rotation about the object's centroid
+//! and a translation (the paper's editor offers scale and translation; its
+//! future work asks for "more degrees of freedom").
 //!
 //! 1. **Object points**: every source pixel with `mask >= mask_threshold` and
 //!    a valid depth is unprojected with the source intrinsics (eq. 1) at its
@@ -16,8 +17,13 @@
 //!    depths differ by at most `max_depth_jump_rel`), which drops the
 //!    background pixels a lasso may catch along the object's outline: they
 //!    would otherwise float behind the pasted object and inflate its box.
-//!    `c` is their centroid, `B0 = [lo, hi]` their axis-aligned bounding box.
-//! 2. **Placement**: the object becomes `X' = P + s (X - c)` with
+//!    `c` is their centroid, `B0 = [lo, hi]` their axis-aligned bounding box;
+//!    with `close_back` (step 5) the box is that of the front and back
+//!    points together (the solid's) and `c_s` their centroid.
+//! 2. **Placement**: the object becomes `X' = P + s (R (X - c_s) + c_s - c)`:
+//!    turned by the rotation `R` of `rotation_deg` ([`rotation`]) about
+//!    the solid's centroid `c_s` (step 5; `c` without `close_back`), then
+//!    scaled about `c` and moved, with
 //!    - `P = c + translation_m` when `target_pixel` is empty, or
 //!    - `P = K_t^-1 (u, v, z_t(u, v) + depth_offset_m) + translation_m` for
 //!      the one `target_pixel` `(u, v)`: the centroid goes onto that pixel's
@@ -48,6 +54,18 @@
 //!    triangle id), computed with an atomic minimum over `(depth bits, id)`,
 //!    so the result is the same for any number of threads. Colors and the
 //!    source alpha are interpolated in a second pass.
+//! 5. **The closed back** (`close_back`): the selection's unseen back is
+//!    its front mirrored about the silhouette plane
+//!    ([`crate::relight::closure`]); it is meshed and drawn like the front,
+//!    so a rotation that turns the back towards the camera shows a solid,
+//!    not a hollow shell. Its colour is unknown: each back fragment takes
+//!    the colour (and alpha) of the front pixel whose view ray it shares,
+//!    interpolated like the front's (the visible colour mirrored through
+//!    the object: exact for objects symmetric about the silhouette plane,
+//!    a plausible fill otherwise), and the `back` output marks those
+//!    pixels for the user or an inpainting node. Without rotation the
+//!    front hides the back entirely and the result is that of the front
+//!    alone.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -95,7 +113,23 @@ node_params! {
         pub max_depth_jump_rel: f64 = 0.1, ParamKind::Float { min: 1e-6, max: 100.0 };
         /// Keep only the largest depth-connected part of the selection.
         pub largest_surface_only: bool = true, ParamKind::Bool;
+        /// Rotation about the object's centroid, degrees: (yaw about the vertical,
+        /// pitch about the camera's x axis, roll about its view axis), applied roll, pitch, yaw.
+        pub rotation_deg: [f64; 3] = [0.0, 0.0, 0.0], ParamKind::Vec3 { min: -360.0, max: 360.0 };
+        /// Close the object's unseen back (its front mirrored about the silhouette plane) so a
+        /// rotation can bring it into view; its pixels are marked in `back`.
+        pub close_back: bool = true, ParamKind::Bool;
     }
+}
+
+/// The rotation of `rotation_deg` (module docs, step 2): `R = R_y(yaw)
+/// R_x(pitch) R_z(roll)` in the camera frame (`y` down), so yaw turns the
+/// object about the vertical through its centroid.
+pub fn rotation(rotation_deg: [f64; 3]) -> glam::DMat3 {
+    let [yaw, pitch, roll] = rotation_deg.map(f64::to_radians);
+    glam::DMat3::from_rotation_y(yaw)
+        * glam::DMat3::from_rotation_x(pitch)
+        * glam::DMat3::from_rotation_z(roll)
 }
 
 /// The selected object in the source camera frame.
@@ -123,6 +157,8 @@ pub struct Pasted {
     pub depth: DepthMap,
     /// Object alpha (the source mask, interpolated), 0 where nothing was pasted.
     pub alpha: Mask,
+    /// 1 where the pixel shows the object's closed back (step 5), else 0.
+    pub back: Mask,
     /// The scale used: suggested x user scale.
     pub scale: f64,
     /// The suggested scale (1 without auto_scale).
@@ -512,7 +548,7 @@ pub fn paste(
         ));
     }
     let n = sw * sh;
-    if n.saturating_mul(3) >= u32::MAX as usize || tw.saturating_mul(th) >= u32::MAX as usize {
+    if n.saturating_mul(6) >= u32::MAX as usize || tw.saturating_mul(th) >= u32::MAX as usize {
         return Err(NodeError::input(
             "source_depth",
             format!("{sw}x{sh} is too large to paste (at most about 1.4e9 pixels)"),
@@ -530,10 +566,43 @@ pub fn paste(
         color: Image::filled(tw, th, [0.0; 3]),
         depth: Image::filled(tw, th, 0.0),
         alpha: Image::filled(tw, th, 0.0),
+        back: Image::filled(tw, th, 0.0),
         scale: p.scale,
         suggested_scale: 1.0,
         anchor,
         object_points: 0,
+    };
+    // The closed back (step 5), and the pivot and box of the solid: its
+    // front's with the back's points.
+    let src_z = src_depth.as_slice();
+    let member = &obj.member;
+    let back_z: Option<Vec<f32>> = p.close_back.then(|| {
+        let front = Image::from_fn(sw, sh, |x, y| {
+            if member[y * sw + x] {
+                src_z[y * sw + x]
+            } else {
+                0.0
+            }
+        });
+        crate::relight::closure::back_depth(&front, k_src)
+            .as_slice()
+            .to_vec()
+    });
+    let (pivot, solid_lo, solid_hi) = match &back_z {
+        Some(bz) if obj.count > 0 => {
+            let (mut sum, mut lo, mut hi) = (DVec3::ZERO, obj.lo, obj.hi);
+            for i in (0..n).filter(|&i| member[i]) {
+                let (x, y) = ((i % sw) as f64 + 0.5, (i / sw) as f64 + 0.5);
+                let f = k_src.unproject(x, y, f64::from(src_z[i]));
+                let b = k_src.unproject(x, y, f64::from(bz[i]));
+                sum += f + b;
+                lo = lo.min(b);
+                hi = hi.max(b);
+            }
+            // guard: count > 0
+            (sum / (2 * obj.count) as f64, lo, hi)
+        }
+        _ => (obj.centroid, obj.lo, obj.hi),
     };
     let t = DVec3::from_array(p.translation_m);
     // Placement (step 2).
@@ -574,7 +643,35 @@ pub fn paste(
     if obj.count == 0 {
         return Ok(empty(anchor));
     }
-    let (lo_rel, hi_rel) = (obj.lo - obj.centroid, obj.hi - obj.centroid);
+    if p.rotation_deg.iter().any(|v| !v.is_finite()) {
+        return Err(NodeError::param("rotation_deg", "angles must be finite"));
+    }
+    let rot = rotation(p.rotation_deg);
+    let c = obj.centroid;
+    // the box of the rotated object: that of its rotated box's corners
+    let (mut lo_rel, mut hi_rel) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for corner in 0..8 {
+        let q = DVec3::new(
+            if corner & 1 == 0 {
+                solid_lo.x
+            } else {
+                solid_hi.x
+            },
+            if corner & 2 == 0 {
+                solid_lo.y
+            } else {
+                solid_hi.y
+            },
+            if corner & 4 == 0 {
+                solid_lo.z
+            } else {
+                solid_hi.z
+            },
+        );
+        let r = rot * (q - pivot) + (pivot - c);
+        lo_rel = lo_rel.min(r);
+        hi_rel = hi_rel.max(r);
+    }
     // Suggested scale (step 3).
     let suggested = if p.auto_scale {
         suggest_scale(tgt_depth, k_tgt, anchor, lo_rel, hi_rel)?
@@ -583,93 +680,108 @@ pub fn paste(
     };
     let s = suggested * p.scale;
 
-    // Step 4: vertices in the target, then the z-buffer.
-    let src_z = src_depth.as_slice();
-    let member = &obj.member;
-    let c = obj.centroid;
-    let verts: Vec<[f64; 3]> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            if !member[i] {
-                return [f64::NAN; 3];
-            }
-            let (x, y) = (i % sw, i / sw);
-            let xs = k_src.unproject(x as f64 + 0.5, y as f64 + 0.5, src_z[i] as f64);
-            let xt = anchor + s * (xs - c);
-            if xt.z <= Z_NEAR {
-                return [f64::NAN; 3];
-            }
-            match k_tgt.project(xt) {
-                Some(uv) if uv.x.is_finite() && uv.y.is_finite() => [uv.x, uv.y, xt.z],
-                _ => [f64::NAN; 3],
-            }
-        })
-        .collect();
-    let usable = |i: usize| !verts[i][2].is_nan();
-    let jump = p.max_depth_jump_rel;
-    // A triangle is drawn when its three vertices project and its source
-    // depths are one surface.
-    let tri_ok = |tri: &[usize; 3]| -> bool {
-        tri.iter().all(|&i| usable(i)) && {
-            let z = tri.map(|i| src_z[i] as f64);
-            let (zmin, zmax) = (z[0].min(z[1]).min(z[2]), z[0].max(z[1]).max(z[2]));
-            // guard: member depths are valid (> 0)
-            zmax / zmin <= 1.0 + jump
-        }
+    // Step 4: vertices in the target, then the z-buffer; step 5: the back
+    // layer, drawn the same way with ids after the front's.
+    let project_layer = |z: &[f32]| -> Vec<[f64; 3]> {
+        (0..n)
+            .into_par_iter()
+            .map(|i| {
+                if !member[i] {
+                    return [f64::NAN; 3];
+                }
+                let (x, y) = (i % sw, i / sw);
+                let xs = k_src.unproject(x as f64 + 0.5, y as f64 + 0.5, z[i] as f64);
+                let xt = anchor + s * (rot * (xs - pivot) + (pivot - c));
+                if xt.z <= Z_NEAR {
+                    return [f64::NAN; 3];
+                }
+                match k_tgt.project(xt) {
+                    Some(uv) if uv.x.is_finite() && uv.y.is_finite() => [uv.x, uv.y, xt.z],
+                    _ => [f64::NAN; 3],
+                }
+            })
+            .collect()
     };
+    let verts = project_layer(src_z);
+    let back_verts: Option<Vec<[f64; 3]>> = back_z.as_ref().map(|z| project_layer(z));
+    let jump = p.max_depth_jump_rel;
     let zbuf: Vec<AtomicU64> = (0..tw * th).map(|_| AtomicU64::new(u64::MAX)).collect();
     let write = |x: usize, y: usize, z: f64, id: u32| {
         let key = ((z as f32).to_bits() as u64) << 32 | id as u64;
         zbuf[y * tw + x].fetch_min(key, Ordering::Relaxed);
     };
-    if sw >= 2 && sh >= 2 {
-        (0..sh - 1).into_par_iter().for_each(|y| {
-            for x in 0..sw - 1 {
-                let i = y * sw + x;
-                for (half, tri) in cell_triangles(member, sw, i).iter().enumerate() {
-                    let Some(tri) = tri else { continue };
-                    if !tri_ok(tri) {
-                        continue;
+    // a layer's triangles get ids base + 2 cell + half, its splats
+    // base + 2n + pixel
+    let draw_layer = |verts: &[[f64; 3]], base: usize| {
+        let usable = |i: usize| !verts[i][2].is_nan();
+        // A triangle is drawn when its three vertices project and its
+        // source depths are one surface.
+        let tri_ok = |tri: &[usize; 3]| -> bool {
+            tri.iter().all(|&i| usable(i)) && {
+                let z = tri.map(|i| src_z[i] as f64);
+                let (zmin, zmax) = (z[0].min(z[1]).min(z[2]), z[0].max(z[1]).max(z[2]));
+                // guard: member depths are valid (> 0)
+                zmax / zmin <= 1.0 + jump
+            }
+        };
+        if sw >= 2 && sh >= 2 {
+            (0..sh - 1).into_par_iter().for_each(|y| {
+                for x in 0..sw - 1 {
+                    let i = y * sw + x;
+                    for (half, tri) in cell_triangles(member, sw, i).iter().enumerate() {
+                        let Some(tri) = tri else { continue };
+                        if !tri_ok(tri) {
+                            continue;
+                        }
+                        let tv = tri.map(|j| verts[j]);
+                        raster_triangle(&tv, tw, th, |px, py, z| {
+                            write(px, py, z, (base + 2 * i + half) as u32)
+                        });
                     }
-                    let tv = tri.map(|j| verts[j]);
-                    raster_triangle(&tv, tw, th, |px, py, z| {
-                        write(px, py, z, (2 * i + half) as u32)
-                    });
                 }
+            });
+        }
+        // Object pixels in no drawn triangle: single-pixel splats.
+        (0..n).into_par_iter().for_each(|i| {
+            if !usable(i) {
+                return;
+            }
+            let (x, y) = (i % sw, i / sw);
+            let mut covered = false;
+            for (cx, cy) in [
+                (x.wrapping_sub(1), y.wrapping_sub(1)),
+                (x, y.wrapping_sub(1)),
+                (x.wrapping_sub(1), y),
+                (x, y),
+            ] {
+                if cx >= sw - 1 || cy >= sh - 1 || sw < 2 || sh < 2 {
+                    continue;
+                }
+                let ci = cy * sw + cx;
+                for tri in cell_triangles(member, sw, ci).iter().flatten() {
+                    if tri.contains(&i) && tri_ok(tri) {
+                        covered = true;
+                    }
+                }
+            }
+            if covered {
+                return;
+            }
+            let v = verts[i];
+            if v[0] >= 0.0 && v[1] >= 0.0 && v[0] < tw as f64 && v[1] < th as f64 {
+                write(
+                    v[0] as usize,
+                    v[1] as usize,
+                    v[2],
+                    (base + 2 * n + i) as u32,
+                );
             }
         });
+    };
+    draw_layer(&verts, 0);
+    if let Some(bv) = &back_verts {
+        draw_layer(bv, 3 * n);
     }
-    // Object pixels in no drawn triangle: single-pixel splats.
-    (0..n).into_par_iter().for_each(|i| {
-        if !usable(i) {
-            return;
-        }
-        let (x, y) = (i % sw, i / sw);
-        let mut covered = false;
-        for (cx, cy) in [
-            (x.wrapping_sub(1), y.wrapping_sub(1)),
-            (x, y.wrapping_sub(1)),
-            (x.wrapping_sub(1), y),
-            (x, y),
-        ] {
-            if cx >= sw - 1 || cy >= sh - 1 || sw < 2 || sh < 2 {
-                continue;
-            }
-            let ci = cy * sw + cx;
-            for tri in cell_triangles(member, sw, ci).iter().flatten() {
-                if tri.contains(&i) && tri_ok(tri) {
-                    covered = true;
-                }
-            }
-        }
-        if covered {
-            return;
-        }
-        let v = verts[i];
-        if v[0] >= 0.0 && v[1] >= 0.0 && v[0] < tw as f64 && v[1] < th as f64 {
-            write(v[0] as usize, v[1] as usize, v[2], (2 * n + i) as u32);
-        }
-    });
 
     // Resolve: interpolate color and alpha of the winning fragment.
     let sc = src_color.as_slice();
@@ -682,30 +794,43 @@ pub fn paste(
             a.clamp(0.0, 1.0) as f64
         }
     };
-    let resolved: Vec<([f32; 3], f32, f32)> = (0..tw * th)
+    // (colour, depth, alpha, back)
+    let resolved: Vec<([f32; 3], f32, f32, bool)> = (0..tw * th)
         .into_par_iter()
         .map(|q| {
             let key = zbuf[q].load(Ordering::Relaxed);
             if key == u64::MAX {
-                return ([0.0; 3], 0.0, 0.0);
+                return ([0.0; 3], 0.0, 0.0, false);
             }
             let z = f32::from_bits((key >> 32) as u32);
             let id = (key & 0xffff_ffff) as usize;
+            // the back layer's ids follow the front's (step 5); it takes
+            // the front's colours at the same source pixels
+            let (back, id) = if id >= 3 * n {
+                (true, id - 3 * n)
+            } else {
+                (false, id)
+            };
+            let layer = if back {
+                back_verts.as_deref().unwrap_or(&verts)
+            } else {
+                &verts
+            };
             if id >= 2 * n {
                 let i = id - 2 * n;
-                return (sc[i], z, alpha_of(i) as f32);
+                return (sc[i], z, alpha_of(i) as f32, back);
             }
             let (cell, half) = (id / 2, id % 2);
             let Some(tri) = cell_triangles(member, sw, cell)[half] else {
-                return ([0.0; 3], 0.0, 0.0);
+                return ([0.0; 3], 0.0, 0.0, false);
             };
-            let tv = tri.map(|j| verts[j]);
+            let tv = tri.map(|j| layer[j]);
             let (px, py) = ((q % tw) as f64 + 0.5, (q / tw) as f64 + 0.5);
             let Some(l) = barycentric(&tv, px, py) else {
-                return (sc[tri[0]], z, alpha_of(tri[0]) as f32);
+                return (sc[tri[0]], z, alpha_of(tri[0]) as f32, back);
             };
             let Some((wts, _)) = perspective(l, tv.map(|v| v[2])) else {
-                return (sc[tri[0]], z, alpha_of(tri[0]) as f32);
+                return (sc[tri[0]], z, alpha_of(tri[0]) as f32, back);
             };
             // clamp the tolerance-admitted pixels just outside the edges back in
             let wts = wts.map(|v| v.clamp(0.0, 1.0));
@@ -721,21 +846,24 @@ pub fn paste(
                 }
                 a += wts[k] * alpha_of(j);
             }
-            (col.map(|v| v as f32), z, a.clamp(0.0, 1.0) as f32)
+            (col.map(|v| v as f32), z, a.clamp(0.0, 1.0) as f32, back)
         })
         .collect();
     let mut color = Vec::with_capacity(tw * th);
     let mut depth = Vec::with_capacity(tw * th);
     let mut alpha = Vec::with_capacity(tw * th);
-    for (c, z, a) in resolved {
+    let mut back = Vec::with_capacity(tw * th);
+    for (c, z, a, b) in resolved {
         color.push(c);
         depth.push(z);
         alpha.push(a);
+        back.push(if b { 1.0f32 } else { 0.0 });
     }
     Ok(Pasted {
         color: Image::from_vec(tw, th, color)?,
         depth: Image::from_vec(tw, th, depth)?,
         alpha: Image::from_vec(tw, th, alpha)?,
+        back: Image::from_vec(tw, th, back)?,
         scale: s,
         suggested_scale: suggested,
         anchor,
@@ -806,6 +934,8 @@ depthgraph_graph::ports! {
         depth: DepthMap,
         /// alpha of the pasted object in target pixels
         mask: Mask,
+        /// 1 where a rotation shows the object's closed back (colour mirrored from its front)
+        back: Mask,
         /// the scale used: suggested x user scale
         scale: f64,
     }
@@ -826,6 +956,7 @@ fn eval(_: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>, 
         color: r.color,
         depth: r.depth,
         mask: r.alpha,
+        back: r.back,
         scale: r.scale,
     };
     if empty {
@@ -910,6 +1041,65 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A sphere turned by 180° about the vertical (through the solid's
+    /// centroid) shows its closed back:
+    /// most of its pixels are marked `back`, its outline stays that of the
+    /// sphere, and its depth there is the back's; unturned, no pixel is
+    /// back; without `close_back` the turned shell shows its inside only
+    /// where the front reaches.
+    #[test]
+    fn a_half_turn_shows_the_closed_back() {
+        let (w, h) = (120, 90);
+        let k = kinect_like_intrinsics(w, h);
+        let (c, r) = (DVec3::new(0.0, 0.0, 1.5), 0.25);
+        let depth = Image::from_fn(w, h, |x, y| {
+            let v = k.unproject(x as f64 + 0.5, y as f64 + 0.5, 1.0);
+            let (a, b, cc) = (v.dot(v), v.dot(c), c.dot(c) - r * r);
+            let disc = b * b - a * cc;
+            if disc < 0.0 {
+                0.0
+            } else {
+                ((b - disc.sqrt()) / a) as f32
+            }
+        });
+        let mask = depth.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
+        let color = Image::from_fn(w, h, |x, _| [x as f32 / w as f32, 0.5, 0.2]);
+        let target = Image::filled(w, h, 5.0f32);
+        let run = |yaw: f64, close: bool| {
+            let p = PasteParams {
+                rotation_deg: [yaw, 0.0, 0.0],
+                close_back: close,
+                ..fixed(false)
+            };
+            paste(&color, &depth, &mask, &k, &target, &k, &p).unwrap()
+        };
+        let count = |m: &Mask| m.as_slice().iter().filter(|v| **v > 0.0).count();
+        let straight = run(0.0, true);
+        assert_eq!(count(&straight.back), 0);
+        let object = count(&straight.alpha);
+        let turned = run(180.0, true);
+        let back = count(&turned.back);
+        assert!(back as f64 > 0.8 * object as f64, "{back} of {object}");
+        let outline = count(&turned.alpha);
+        assert!(
+            (outline as f64 - object as f64).abs() < 0.1 * object as f64,
+            "{outline} vs {object}"
+        );
+        // the nearest point of the turned sphere is its old back: within
+        // a few cm of the sphere's front distance (the back is estimated)
+        let i = (h / 2) * w + w / 2;
+        let z = f64::from(turned.depth.as_slice()[i]);
+        assert!((z - (c.z - r)).abs() < 0.1, "{z}");
+        // the open shell, turned, shows nothing of a back
+        assert_eq!(count(&run(180.0, false).back), 0);
+        let bad = PasteParams {
+            rotation_deg: [f64::NAN, 0.0, 0.0],
+            ..fixed(false)
+        };
+        let err = paste(&color, &depth, &mask, &k, &target, &k, &bad).unwrap_err();
+        assert!(err.to_string().contains("rotation_deg"), "{err}");
     }
 
     #[test]
@@ -999,10 +1189,13 @@ mod tests {
             &RenderOptions::default(),
         );
         let mask = src.ids.map(|v| if *v == 4 { 1.0f32 } else { 0.0 }); // the sphere
-        // on the back wall's ray at (170, 60), 8 cm in front of it
+        // on the back wall's ray at (170, 60), 8 cm in front of it; the
+        // box of the visible surface alone (the marching check below
+        // knows only the front's box)
         let p = PasteParams {
             target_pixel: vec![[170.0, 60.0]],
             depth_offset_m: -0.08,
+            close_back: false,
             ..Default::default()
         };
         let r = paste(
