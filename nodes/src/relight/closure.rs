@@ -269,23 +269,7 @@ impl<'a> ObjectVolume<'a> {
 mod tests {
     use super::*;
     use crate::sim::synthetic::kinect_like_intrinsics;
-
-    fn sphere_depth(k: &Intrinsics, c: DVec3, r: f64, far: bool) -> DepthMap {
-        Image::from_fn(k.width, k.height, |x, y| {
-            let v = k.unproject(x as f64 + 0.5, y as f64 + 0.5, 1.0);
-            let (a, b, cc) = (v.dot(v), v.dot(c), c.dot(c) - r * r);
-            let disc = b * b - a * cc;
-            if disc < 0.0 {
-                return 0.0;
-            }
-            let t = if far {
-                b + disc.sqrt()
-            } else {
-                b - disc.sqrt()
-            } / a;
-            t as f32
-        })
-    }
+    use crate::test_support::relight::sphere_depth;
 
     /// The mirrored front of a sphere approximates its back (module docs,
     /// "Its error": too shallow by 0.43 r on average, bounded here at

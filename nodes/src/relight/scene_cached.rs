@@ -1130,16 +1130,7 @@ mod tests {
                 0.0
             }
         });
-        let sphere = Image::from_fn(w, h, |x, y| {
-            let v = k.unproject(x as f64 + 0.5, y as f64 + 0.5, 1.0);
-            let (a, b, cc) = (v.dot(v), v.dot(c), c.dot(c) - r * r);
-            let disc = b * b - a * cc;
-            if disc < 0.0 {
-                0.0
-            } else {
-                ((b - disc.sqrt()) / a) as f32
-            }
-        });
+        let sphere = crate::test_support::relight::sphere_depth(&k, c, r, false);
         let alpha = sphere.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
         let photo = floor.map(|z| if *z > 0.0 { [0.5f32; 3] } else { [0.0; 3] });
         let albedo = Image::filled(w, h, [0.5f32; 3]);

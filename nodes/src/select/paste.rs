@@ -1054,16 +1054,7 @@ mod tests {
         let (w, h) = (120, 90);
         let k = kinect_like_intrinsics(w, h);
         let (c, r) = (DVec3::new(0.0, 0.0, 1.5), 0.25);
-        let depth = Image::from_fn(w, h, |x, y| {
-            let v = k.unproject(x as f64 + 0.5, y as f64 + 0.5, 1.0);
-            let (a, b, cc) = (v.dot(v), v.dot(c), c.dot(c) - r * r);
-            let disc = b * b - a * cc;
-            if disc < 0.0 {
-                0.0
-            } else {
-                ((b - disc.sqrt()) / a) as f32
-            }
-        });
+        let depth = crate::test_support::relight::sphere_depth(&k, c, r, false);
         let mask = depth.map(|z| if *z > 0.0 { 1.0f32 } else { 0.0 });
         let color = Image::from_fn(w, h, |x, _| [x as f32 / w as f32, 0.5, 0.2]);
         let target = Image::filled(w, h, 5.0f32);

@@ -192,3 +192,23 @@ pub(crate) fn slab_shadow_is_analytic(
     let c = r.color.as_slice()[i];
     assert!((c[1] - 0.6).abs() < 1e-3, "{c:?}");
 }
+
+/// The depth of a sphere `(c, r)` seen by `k` (its near side, or its far
+/// side with `far`), 0 off it.
+pub(crate) fn sphere_depth(k: &Intrinsics, c: glam::DVec3, r: f64, far: bool) -> DepthMap {
+    Image::from_fn(k.width, k.height, |x, y| {
+        let v = k.unproject(x as f64 + 0.5, y as f64 + 0.5, 1.0);
+        let (a, b, cc) = (v.dot(v), v.dot(c), c.dot(c) - r * r);
+        let disc = b * b - a * cc;
+        if disc < 0.0 {
+            return 0.0;
+        }
+        // guard: a = |v|² >= 1 (v.z = 1)
+        let t = if far {
+            b + disc.sqrt()
+        } else {
+            b - disc.sqrt()
+        } / a;
+        t as f32
+    })
+}
