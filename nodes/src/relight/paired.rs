@@ -20,38 +20,77 @@
 //! (after the depth test) and `P` the photo:
 //! `I_m = α I_{s+t} + (1 - α)(P + I_{s+t} - I_t)`, clamped to `>= 0`.
 //!
-//! **Albedo.** `ρ_t` is the `albedo` input when given, else estimated as
-//! `P / E^t` (so `I_t = P` and the scene keeps its look, its shadows scale by
-//! `E^{s+t} / E^t`); where `E^t < min_shading_rel * E_ref`
-//! (`E_ref = Σ_k lum(Φ_k)`, the guard of the division) the albedo is unknown
-//! and taken as 0: the pixel keeps the photo. The object's albedo is its
-//! pasted color divided by its **unshadowed** irradiance
-//! `Σ_k Φ_k max(0, n·ω_k)` (same guard): the object is assumed photographed
-//! under comparable light, and gains the shadows of its new place (the
-//! scene bounce, below, enters both).
+//! **Units.** A pixel value is radiance (what a camera measures, and what
+//! [`crate::sim::pathtrace`] renders); the VPLs carry irradiance
+//! (`Φ_k = L ΔΩ` of the map), so `E` is an irradiance and a Lambertian
+//! surface of reflectance `r` shows `P = r E / π`. The **albedo** of this
+//! module is `ρ = P / E = r / π`, the photo's value per unit irradiance.
+//!
+//! **Albedo of the target.** `ρ_t` is the `albedo` input when given (in
+//! those units: the SyntheticScene's albedo output is, since its shader
+//! writes `albedo × irradiance`), else estimated as
+//! `P / (E^t + E_ind)` with `E_ind` the scene's own bounce (below, "Shadows
+//! with their fill light"); where that is below
+//! `min_shading_rel * E_ref` (`E_ref = Σ_k lum(Φ_k)`, the guard of the
+//! division) the albedo is unknown and taken as 0: the pixel keeps the
+//! photo.
+//!
+//! **The object's own shading.** The object's pasted colour `P_o` is
+//! radiance it sent where it was captured. There it received
+//! `E_cap = Σ_k Φ^cap_k max(0, n·ω_k) V^o_k`: the capture map's VPLs (the
+//! `capture_vpls` input, else the target's) with only its own shadows
+//! (`V^o`; its capture surroundings are unknown, so nothing bounced onto
+//! it there). In the target it receives `E^{s+t} + B_s`: the target's VPLs
+//! with the scene's and its own shadows, and the scene's bounce `B_s`
+//! (below). It shows `P_o (E^{s+t} + B_s) / max(E_cap, e_floor)`: with the
+//! same map on both sides and nothing around it the ratio is 1, and the
+//! object gains only what the target adds or blocks (brighter beside a
+//! sunlit floor or wall, darker in the scene's shadow). In this (`paired`)
+//! scheme `V^o` alone is not at hand: `E_cap` counts a VPL where
+//! `V^{s+t}` holds or the scene blocks it (`V^t = 0`, where the object's
+//! own visibility is unknown and taken as 1).
 //!
 //! **Bounce from the scene (one, scene to object).** Up to `scene_vpls`
 //! target pixels become secondary point VPLs (drawn with probability
 //! `∝ area / distance²` to the object centre, weighted by the inverse
 //! pdf). The scene is Lambertian and its radiance is read off the photo,
-//! `L = P / π`, so no albedo or irradiance of the scene is needed. They add
-//! `B_s` (same clamped formula as below) to the object's irradiance, in the
-//! albedo estimate as in the shading: `ρ_o = P_o / (E_free + B_s)` and the
-//! object shows `ρ_o (E^{s+t} + B_s)`, never brighter than its pasted
-//! colour. The bounce fills the object's own shadows with the scene's
-//! colours. It is shadowed only with `bounce_shadows` (below).
+//! `L = P`, so no albedo or irradiance of the scene is needed; each keeps
+//! the fraction `E^{s+t} / E^t` of its direct light (the floor in the
+//! object's shadow bounces less). **The support plane** (`extend_support`):
+//! the photo shows only part of the floor the object stands on, and a
+//! face looking sideways receives much of its bounce from floor outside
+//! the frame; that plane (fitted to the up-facing target surfaces around
+//! the object, with their mean radiance) is extended to
+//! `support_radius_rel` object radii and sampled where the photo does not
+//! show it ([`crate::relight::shading`]'s `support_vpls`). They add `B_s`
+//! (same clamped formula as below) to the object's irradiance. It is
+//! shadowed only with `bounce_shadows` (below).
 //!
 //! **Bounce (one, object to scene).** Up to `bounce_vpls` object pixels
 //! (stratified) become secondary point VPLs: a surface element of area `a_j`
-//! with outgoing radiance `L_j = ρ_o E^{s+t}_j / π` gives a receiver
+//! with outgoing radiance `L_j` (its shaded colour) gives a receiver
 //! `B(x) = Σ_j L_j a_j max(0, n_j·u) max(0, -n·u) / max(r², r_clamp²)` with
 //! `u` the unit vector from `x` to the VPL and `r = |x_j - x|`. The
 //! **clamp** `r >= clamp_distance_m` bounds every contribution (no fireflies
 //! from a VPL touching a surface) at the price of a **bias**: the bounce is
 //! too dark within about `clamp_distance_m` of the object. A VPL exactly at a
-//! receiver (`r < 1e-9` m) has no direction and contributes 0. The scene's
-//! own interreflections that the object blocks are not rendered (the
-//! object's shadow of the scene's bounce light).
+//! receiver (`r < 1e-9` m) has no direction and contributes 0. Only the
+//! object's visible surface bounces (its back's radiance is unknown).
+//!
+//! **Shadows with their fill light** (`fill_light`). A shadow in a photo
+//! is not black: the scene's bounce still reaches it. The differential
+//! therefore removes only what the object blocks, direct and bounced:
+//! with `E_ind(x)` the scene's bounce at `x` (the same secondary VPLs) and
+//! `B_blk(x)` the part of it whose path to `x` crosses the object's closed
+//! volume ([`crate::relight::closure::ObjectVolume`]),
+//! `I_{s+t} - I_t = ρ_t (E^{s+t} - E^t + B - B_blk)` and `ρ_t` comes from
+//! `P / (E^t + E_ind)`: a shadow keeps the photo's share of bounced light
+//! instead of losing it in proportion to the direct light.
+//!
+//! **The unseen back** (`close_back`): the object's shadow maps and its
+//! blocking volume use its visible surface closed by a mirrored back
+//! ([`crate::relight::closure`]), so a light behind the object (from in
+//! front of the camera) casts the shadow of a solid.
 //!
 //! **Bounce shadows** (`bounce_shadows`, off by default). Each point VPL of
 //! either bounce gets a paraboloid ISM of its hemisphere
@@ -100,13 +139,14 @@ use rayon::prelude::*;
 use crate::relight::ism::{IsmParams, PointSet, ShadowMap, build_pair_in, windows};
 use crate::relight::vpl::Vpl;
 
+use crate::relight::closure::ObjectVolume;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, Importance, PointVplShadows, RelightInputs, RelightParams, Relit,
     Surf, centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
-    pixel_areas, scene_bounce_vpls, target_albedo, target_surfaces,
+    pixel_areas, scene_bounce_vpls, scene_fill, support_vpls, target_albedo, target_surfaces,
 };
 
-/// Irradiance `(E^t, E^{s+t}, unshadowed)` per surface.
+/// Irradiance `(E^t, E^{s+t}, E_cap)` per surface (module docs).
 type Irr = ([f64; 3], [f64; 3], [f64; 3]);
 
 /// What the irradiance of a surface needs.
@@ -168,7 +208,7 @@ impl IrrCtx<'_> {
                 let mut acc: Vec<Irr> = vec![([0.0; 3], [0.0; 3], [0.0; 3]); chunk.len()];
                 for ((v, d), m) in self.vpls.iter().zip(self.dirs).zip(self.maps) {
                     let power = v.power.map(|c| c as f64);
-                    for ((s, r), (et, est, efree)) in chunk.iter().zip(&radii).zip(acc.iter_mut()) {
+                    for ((s, r), (et, est, ecap)) in chunk.iter().zip(&radii).zip(acc.iter_mut()) {
                         let cos = s.n.dot(*d);
                         if cos <= 0.0 {
                             continue;
@@ -180,9 +220,14 @@ impl IrrCtx<'_> {
                             }
                             None => (true, true),
                         };
+                        // the capture side: V^o = V^{s+t} where the scene
+                        // lets the VPL through, unknown (1) where it does not
+                        let vo = vst || !vt;
                         for ch in 0..3 {
                             let e = power[ch] * cos;
-                            efree[ch] += e;
+                            if vo {
+                                ecap[ch] += e;
+                            }
                             if vt {
                                 et[ch] += e;
                             }
@@ -221,9 +266,25 @@ pub fn relight(
     let object: Vec<Option<Surf>> = (0..w * h)
         .map(|i| (alpha[i] > 0.0).then(|| inp.object_surface(i)))
         .collect();
-    let obj_pts: Vec<DVec3> = object.iter().flatten().map(|s| s.pos).collect();
+    let mut obj_pts: Vec<DVec3> = object.iter().flatten().map(|s| s.pos).collect();
+    // the closed object (its back mirrored, `close_back`): shadows only
+    let back = inp.back_depth(p);
+    if let Some(b) = &back {
+        obj_pts.extend((0..w * h).filter(|&i| alpha[i] > 0.0).filter_map(|i| {
+            let z = b.as_slice()[i];
+            DepthMap::is_valid(z)
+                .then(|| k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, f64::from(z)))
+        }));
+    }
     // at least one alpha > 0 pixel, which has a valid pasted depth
     let (c, radius) = centre_and_radius(&obj_pts);
+    let volume = ObjectVolume::new(
+        k,
+        inp.pasted_depth,
+        back.as_ref().unwrap_or(inp.pasted_depth),
+        c,
+        radius * 1.01 + 1e-3,
+    );
 
     // ---- region
     let reach = 2.0 * radius;
@@ -267,12 +328,11 @@ pub fn relight(
         ..Default::default()
     };
     let centres = if near_object { vec![c] } else { Vec::new() };
-    let set = PointSet::new(
-        &[(inp.depth, false), (inp.pasted_depth, true)],
-        k,
-        &centres,
-        p.min_distance_m,
-    );
+    let mut layers = vec![(inp.depth, false), (inp.pasted_depth, true)];
+    if let Some(b) = &back {
+        layers.push((b, true));
+    }
+    let set = PointSet::new(&layers, k, &centres, p.min_distance_m);
     let wins = windows(&dirs, &receivers);
     let maps: Vec<Option<(ShadowMap, ShadowMap)>> = wins
         .par_iter()
@@ -287,7 +347,7 @@ pub fn relight(
         })
         .collect();
 
-    // irradiance at surfaces: (without object, with object, unshadowed)
+    // irradiance at surfaces: (without object, with object, capture side)
     let irr_ctx = IrrCtx {
         vpls: &vpls,
         dirs: &dirs,
@@ -307,10 +367,13 @@ pub fn relight(
     // secondary VPLs on the scene: the light the scene bounces onto the object
     let scene_vpls = if p.scene_vpls > 0 {
         let areas = pixel_areas(inp.depth, k);
-        scene_bounce_vpls(&target, &areas, inp.photo, c, p)
+        let mut v = scene_bounce_vpls(&target, &areas, inp.photo, c, p);
+        v.extend(support_vpls(&target, inp.photo, k, inp.depth, c, radius, p));
+        v
     } else {
         Vec::new()
     };
+    let fill = p.fill_light && !scene_vpls.is_empty();
     let bounce_samples = [crate::relight::ism::ParaboloidSamples {
         set: &set,
         m: p.bounce_ism_points,
@@ -320,7 +383,7 @@ pub fn relight(
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
         .zip(obj_irr.par_iter())
-        .map(|(&i, &(_, est, efree))| {
+        .map(|(&i, &(_, est, ecap))| {
             let pc = inp.pasted_color.as_slice()[i];
             let bs = match &object[i] {
                 Some(s) if !scene_vpls.is_empty() => {
@@ -329,7 +392,7 @@ pub fn relight(
                 }
                 _ => [0.0; 3],
             };
-            object_radiance(pc, est, efree, bs, e_floor)
+            object_radiance(pc, est, ecap, bs, e_floor)
         })
         .collect();
     // bounce VPLs: stratified subset of object pixels
@@ -387,10 +450,17 @@ pub fn relight(
                     let r = BOUNCE_SPLAT_SCALE * set.splat_radius(s.pos, p.bounce_ism_points);
                     b = bounce_shadows.bounce(s.pos, s.n, r, bounce.iter().enumerate(), r2_min);
                 }
+                // the scene's own bounce here, and what of it the object blocks
+                let (e_ind, blocked) = if fill && (s.pos - c).length() <= bounce_reach {
+                    scene_fill(s.pos, s.n, &scene_vpls, r2_min, &volume)
+                } else {
+                    ([0.0; 3], [0.0; 3])
+                };
                 let given = inp.albedo.map(|a| a.as_slice()[i]);
-                let rho = target_albedo(given, pp, et, e_floor);
+                let e_all = std::array::from_fn(|ch| et[ch] + e_ind[ch]);
+                let rho = target_albedo(given, pp, e_all, e_floor);
                 for ch in 0..3 {
-                    diff[ch] = rho[ch] * (est[ch] + b[ch] - et[ch]);
+                    diff[ch] = rho[ch] * (est[ch] + b[ch] - et[ch] - blocked[ch]);
                 }
             }
             let a = alpha[i];
@@ -464,7 +534,7 @@ mod tests {
             .filter_map(|(i, s)| {
                 let s = s.as_ref()?;
                 let (a, _) = pixel_area(&floor, &k, i % w, i / w);
-                let l = photo.as_slice()[i].map(|v| f64::from(v) * a / std::f64::consts::PI);
+                let l = photo.as_slice()[i].map(|v| f64::from(v) * a);
                 Some((s.pos, s.n, l))
             })
             .collect();

@@ -29,11 +29,12 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::depth::mesh::{MeshParams, depth_to_mesh};
+use crate::relight::closure::ObjectVolume;
 use crate::relight::raycast::Bvh;
 use crate::relight::shading::{
     Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, centre_and_radius, clean_alpha,
     composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
-    target_albedo, target_surfaces,
+    scene_fill, support_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 
@@ -65,6 +66,10 @@ pub fn relight_reference(
     }
     let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
     let (vpls, dirs, e_ref) = lit_vpls(vpls);
+    let capture = inp.capture_vpls.map(|cv| {
+        let (v, d, _) = lit_vpls(cv);
+        (v, d)
+    });
     if vpls.is_empty() || !e_ref.is_finite() || alpha.iter().all(|a| *a <= 0.0) {
         return Ok(None);
     }
@@ -73,15 +78,34 @@ pub fn relight_reference(
     let mp = MeshParams { max_edge_rel: 0.1 };
     let scene_bvh = Bvh::new(&depth_to_mesh(inp.depth, k, None, &mp)?);
     let obj_bvh = Bvh::new(&depth_to_mesh(inp.pasted_depth, k, None, &mp)?);
+    // the closed back (`close_back`): its mesh blocks light too
+    let back = inp.back_depth(p);
+    let back_bvh = match &back {
+        Some(b) => Some(Bvh::new(&depth_to_mesh(b, k, None, &mp)?)),
+        None => None,
+    };
     let target = target_surfaces(inp.depth, inp.normals, k);
-    let obj_pts: Vec<DVec3> = (0..w * h)
-        .filter(|&i| DepthMap::is_valid(inp.pasted_depth.as_slice()[i]))
-        .map(|i| {
-            let z = inp.pasted_depth.as_slice()[i] as f64;
-            k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, z)
+    let layers = [Some(inp.pasted_depth), back.as_ref()];
+    let obj_pts: Vec<DVec3> = layers
+        .iter()
+        .flatten()
+        .flat_map(|d| {
+            (0..w * h)
+                .filter(|&i| DepthMap::is_valid(d.as_slice()[i]))
+                .map(|i| {
+                    let z = d.as_slice()[i] as f64;
+                    k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, z)
+                })
         })
         .collect();
     let (c, radius) = centre_and_radius(&obj_pts);
+    let volume = ObjectVolume::new(
+        k,
+        inp.pasted_depth,
+        back.as_ref().unwrap_or(inp.pasted_depth),
+        c,
+        radius * 1.01 + 1e-3,
+    );
     let bounce_reach = p.bounce_radius_rel * radius;
     // a shadow ray from (x, n) towards d
     let ray = |x: DVec3, n: DVec3, d: DVec3| {
@@ -91,6 +115,10 @@ pub fn relight_reference(
     let free = |bvh: &Bvh, x: DVec3, n: DVec3, d: DVec3| {
         let (o, d, eps) = ray(x, n, d);
         !bvh.occluded(o, d, eps, f64::INFINITY)
+    };
+    // the object, closed: its front and its back
+    let obj_free = |x: DVec3, n: DVec3, d: DVec3| {
+        free(&obj_bvh, x, n, d) && back_bvh.as_ref().is_none_or(|b| free(b, x, n, d))
     };
     // the segment from (x, n) to a point VPL at q on a surface (bounce
     // shadows): stops short of q by the same relative offset
@@ -106,36 +134,57 @@ pub fn relight_reference(
         // guard: len > 0
         let (o, d, eps) = ray(x, n, v / len);
         let end = len - RAY_EPS_REL * q.length().max(1e-3);
-        end <= eps || !(scene_bvh.occluded(o, d, eps, end) || obj_bvh.occluded(o, d, eps, end))
+        end <= eps
+            || !(scene_bvh.occluded(o, d, eps, end)
+                || obj_bvh.occluded(o, d, eps, end)
+                || back_bvh
+                    .as_ref()
+                    .is_some_and(|b| b.occluded(o, d, eps, end)))
     };
 
     // ---- the object: exact shading where it is needed (the bounce VPLs
     // and the asked pixels)
     let obj_idx: Vec<usize> = (0..w * h).filter(|&i| alpha[i] > 0.0).collect();
     let areas = pixel_areas(inp.depth, k);
-    let scene_vpls = scene_bounce_vpls(&target, &areas, inp.photo, c, p);
+    let mut scene_vpls = scene_bounce_vpls(&target, &areas, inp.photo, c, p);
+    scene_vpls.extend(support_vpls(&target, inp.photo, k, inp.depth, c, radius, p));
+    let fill = p.fill_light && !scene_vpls.is_empty();
     let pasted = inp.pasted_color.as_slice();
     let shade_object = |i: usize| -> Rgb {
         let Surf { pos, n } = inp.object_surface(i);
-        let (mut est, mut efree) = ([0.0f64; 3], [0.0f64; 3]);
+        let (mut est, mut ecap) = ([0.0f64; 3], [0.0f64; 3]);
         for (v, d) in vpls.iter().zip(&dirs) {
             let cos = n.dot(*d);
             if cos <= 0.0 {
                 continue;
             }
-            let vis = free(&obj_bvh, pos, n, *d) && free(&scene_bvh, pos, n, *d);
+            if !obj_free(pos, n, *d) {
+                continue;
+            }
+            let vis = free(&scene_bvh, pos, n, *d);
             for ch in 0..3 {
                 let e = f64::from(v.power[ch]) * cos;
-                efree[ch] += e;
+                ecap[ch] += e;
                 if vis {
                     est[ch] += e;
+                }
+            }
+        }
+        if let Some(cv) = &capture {
+            ecap = [0.0; 3];
+            for (v, d) in cv.0.iter().zip(&cv.1) {
+                let cos = n.dot(*d);
+                if cos > 0.0 && obj_free(pos, n, *d) {
+                    for (e, pw) in ecap.iter_mut().zip(v.power) {
+                        *e += f64::from(pw) * cos;
+                    }
                 }
             }
         }
         let bs = bounce_sum(pos, n, scene_vpls.iter().enumerate(), r2_min, |j| {
             sees(pos, n, scene_vpls[j].0)
         });
-        object_radiance(pasted[i], est, efree, bs, e_floor)
+        object_radiance(pasted[i], est, ecap, bs, e_floor)
     };
     let bounce = object_bounce_vpls(
         &obj_idx,
@@ -169,14 +218,14 @@ pub fn relight_reference(
                     if cos <= 0.0 || !cone.contains(*d) {
                         continue;
                     }
-                    if !free(&obj_bvh, s.pos, s.n, *d) && free(&scene_bvh, s.pos, s.n, *d) {
+                    if !obj_free(s.pos, s.n, *d) && free(&scene_bvh, s.pos, s.n, *d) {
                         hit = true;
                         for (e, pw) in de.iter_mut().zip(v.power) {
                             *e += f64::from(pw) * cos;
                         }
                     }
                 }
-                let near = !bounce.is_empty() && (s.pos - c).length() <= bounce_reach;
+                let near = (!bounce.is_empty() || fill) && (s.pos - c).length() <= bounce_reach;
                 if hit || near {
                     let b = if near {
                         bounce_sum(s.pos, s.n, bounce.iter().enumerate(), r2_min, |j| {
@@ -185,8 +234,13 @@ pub fn relight_reference(
                     } else {
                         [0.0; 3]
                     };
+                    let (e_ind, blocked) = if fill && near {
+                        scene_fill(s.pos, s.n, &scene_vpls, r2_min, &volume)
+                    } else {
+                        ([0.0; 3], [0.0; 3])
+                    };
                     let given = inp.albedo.map(|al| al.as_slice()[i]);
-                    let mut et = [0.0f64; 3];
+                    let mut et = e_ind;
                     if given.is_none() {
                         for (v, d) in vpls.iter().zip(&dirs) {
                             let cos = s.n.dot(*d);
@@ -198,7 +252,7 @@ pub fn relight_reference(
                         }
                     }
                     let rho = target_albedo(given, photo[i], et, e_floor);
-                    diff = std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch]));
+                    diff = std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch] - blocked[ch]));
                 }
             }
             (composite(photo[i], a, obj, diff), diff.map(|v| v as f32))

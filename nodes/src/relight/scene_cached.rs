@@ -52,7 +52,7 @@ pub use crate::relight::shading::SceneInputs;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
     centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
-    pixel_areas, scene_bounce_vpls, scene_fill, target_albedo, target_surfaces,
+    pixel_areas, scene_bounce_vpls, scene_fill, support_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 use depthgraph_graph::bytes::{ByteReader, ByteWriter};
@@ -487,7 +487,16 @@ pub fn relight_moved(
     let obj_surfs: Vec<Surf> = obj_idx.par_iter().map(|&i| inp.object_surface(i)).collect();
 
     // ---- the object's shading: E^{s+t} = Σ Φ cos V^t V^o, and the scene's bounce
-    let scene_vpls = scene_bounce_vpls(&scene.target, &scene.areas, inp.photo, c, p);
+    let mut scene_vpls = scene_bounce_vpls(&scene.target, &scene.areas, inp.photo, c, p);
+    scene_vpls.extend(support_vpls(
+        &scene.target,
+        inp.photo,
+        k,
+        inp.depth,
+        c,
+        radius,
+        p,
+    ));
     let pasted = inp.pasted_color.as_slice();
     // per VPL: the object maps' bias constants, for the object's own
     // surfaces (its splats) and for the scene's (none of its splats)

@@ -58,6 +58,10 @@ node_params! {
         pub close_back: bool = true, ParamKind::Bool;
         /// Keep the scene's bounce in the object's shadow: remove only the light the object blocks, direct and bounced.
         pub fill_light: bool = true, ParamKind::Bool;
+        /// Extend the plane the object stands on beyond the photo's frame: it bounces light onto the object.
+        pub extend_support: bool = true, ParamKind::Bool;
+        /// How far the support plane is extended, in object radii from the object's foot.
+        pub support_radius_rel: f64 = 15.0, ParamKind::Float { min: 1.0, max: 1000.0 };
     }
 }
 
@@ -435,7 +439,7 @@ pub(crate) fn scene_fill(
 
 /// Up to `count` object pixels (a stratified subset of `obj_idx`) as
 /// bounce VPLs `(position, normal, L a)`: each stands for `step` pixels of
-/// outgoing radiance `ρ E / π`. `surf(j)` and `radiance(j)` give the
+/// outgoing radiance `L` (the shaded colour: a pixel value is radiance). `surf(j)` and `radiance(j)` give the
 /// surface and the shaded colour of the `j`-th pixel of `obj_idx`; they are
 /// asked only of the picked pixels, in parallel.
 pub(crate) fn object_bounce_vpls(
@@ -454,7 +458,7 @@ pub(crate) fn object_bounce_vpls(
             let i = obj_idx[j];
             let (pos, nrm) = surf(j)?;
             let (area, _) = pixel_area(pasted_depth, k, i % w, i / w);
-            let flux = radiance(j).map(|v| v as f64 / std::f64::consts::PI * area * step);
+            let flux = radiance(j).map(|v| v as f64 * area * step);
             Some((pos, nrm, flux))
         })
         .collect()
@@ -565,9 +569,10 @@ pub(crate) fn target_albedo(given: Option<Rgb>, pp: Rgb, et: [f64; 3], e_floor: 
 /// module docs): `m = p.scene_vpls` pixels drawn, stratified, with probability
 /// `∝ a_i / max(d_i, d_min)²` (`d_min = p.clamp_distance_m`, `a_i` the pixel's surface area, `d_i` its
 /// distance to the object centre `c`: the bounce falls off as 1/r², so the
-/// samples go where it is strong). A Lambertian surface seen in the photo
-/// has radiance `L_i = P_i / π` (`P = ρ E` is the pixel value), so a drawn
-/// pixel carries `L_i a_i / (m pdf_i)`. Empty for `m = 0` or no surface.
+/// samples go where it is strong). A pixel value is the radiance the
+/// surface sends to the camera, the same in every direction for a
+/// Lambertian surface, `L_i = P_i`, so a drawn pixel carries
+/// `L_i a_i / (m pdf_i)`. Empty for `m = 0` or no surface.
 pub(crate) fn scene_bounce_vpls(
     target: &[Option<Surf>],
     areas: &[f64],
@@ -612,7 +617,7 @@ pub(crate) fn scene_bounce_vpls(
             // L a / (m pdf) with pdf = a / (d² acc): the area cancels.
             // guard: m >= 1; d >= d_min > 0 as in the weights
             let d = (s.pos - c).length().max(d_min);
-            let scale = d * d * acc / (m as f64 * std::f64::consts::PI);
+            let scale = d * d * acc / m as f64;
             let flux = photo[i].map(|v| {
                 if v.is_finite() {
                     f64::from(v.max(0.0)) * scale
@@ -621,6 +626,101 @@ pub(crate) fn scene_bounce_vpls(
                 }
             });
             Some((s.pos, s.n, flux))
+        })
+        .collect()
+}
+
+/// The plane the object stands on, extended beyond the photo's frame
+/// (module docs of [`crate::relight::paired`], "The support plane"): up to
+/// `p.scene_vpls` point VPLs on the part of the plane the photo does not
+/// show, within `p.support_radius_rel` object radii of the object's foot.
+///
+/// The plane is fitted to the target surfaces within `3 R` of the object's
+/// centre `c` that face up (`n·(-y) > 0.8`, the camera held level; at
+/// least 32 of them): their mean point and mean normal. Its radiance is
+/// their mean photo radiance `P` (the photo has no object, so it is
+/// unshadowed; the object's shadow on them is applied like any scene
+/// VPL's). Points are drawn in the plane around the foot `f` (`c`
+/// projected onto it) with density `∝ 1 / max(d, d_min)²` per area
+/// (`log d` uniform in `[ln d_min, ln (k R)]`, the angle uniform), so
+/// each carries `L a / (m pdf)` with `a / pdf = 2π d² ln(kR/d_min)`; a
+/// drawn point the photo shows (it projects onto a target pixel within 5 %
+/// of its depth) carries nothing: the scene VPLs hold it; nor does one
+/// behind what the photo shows (a wall hides it from the camera and,
+/// the object standing on the camera's side, mostly from the object). Empty when
+/// `extend_support` is off, there is no such plane, or it lies above `c`.
+pub(crate) fn support_vpls(
+    target: &[Option<Surf>],
+    photo: &ColorImage,
+    k: &Intrinsics,
+    depth: &DepthMap,
+    c: DVec3,
+    radius: f64,
+    p: &RelightParams,
+) -> Vec<(DVec3, DVec3, [f64; 3])> {
+    let m = p.scene_vpls;
+    if !p.extend_support || m == 0 || !(radius.is_finite() && radius > 0.0) {
+        return Vec::new();
+    }
+    let up = DVec3::NEG_Y;
+    let (mut n_sum, mut q_sum, mut l_sum, mut count) =
+        (DVec3::ZERO, DVec3::ZERO, [0.0f64; 3], 0usize);
+    for (s, px) in target.iter().zip(photo.as_slice()) {
+        let Some(s) = s else { continue };
+        if s.n.dot(up) <= 0.8 || (s.pos - c).length() > 3.0 * radius {
+            continue;
+        }
+        if !px.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        n_sum += s.n;
+        q_sum += s.pos;
+        for ch in 0..3 {
+            l_sum[ch] += f64::from(px[ch].max(0.0));
+        }
+        count += 1;
+    }
+    if count < 32 {
+        return Vec::new();
+    }
+    // guard: count >= 32
+    let (n, q) = (n_sum.normalize_or_zero(), q_sum / count as f64);
+    let l = l_sum.map(|v| v / count as f64);
+    let height = (c - q).dot(n);
+    if n == DVec3::ZERO || height <= 0.0 {
+        return Vec::new();
+    }
+    let foot = c - n * height;
+    let (e1, e2) = n.any_orthonormal_pair();
+    let d_min = p.clamp_distance_m.max(1e-3);
+    let d_max = (p.support_radius_rel * radius).max(2.0 * d_min);
+    // guard: d_max > d_min > 0
+    let log_span = (d_max / d_min).ln();
+    let mut rng = crate::kit::rng::SplitMix64(p.seed ^ 0x5u64.wrapping_mul(0x51A7_E5EE_D00D));
+    let (w, h) = depth.dims();
+    let phi0 = rng.next_f64();
+    (0..m)
+        .filter_map(|j| {
+            // stratified in log d, the angles a golden-ratio sequence
+            // (a random start): both well spread; guard: m >= 1
+            let u = (j as f64 + rng.next_f64()) / m as f64;
+            let d = d_min * (u * log_span).exp();
+            let phi = std::f64::consts::TAU * (phi0 + j as f64 * 0.618_033_988_749_894_9).fract();
+            let x = foot + (e1 * phi.cos() + e2 * phi.sin()) * d;
+            // shown by the photo (the scene VPLs hold it), or behind what
+            // the photo shows (a wall between it and the camera, and so,
+            // mostly, between it and the object): nothing
+            if let Some(uv) = k.project(x) {
+                if uv.x >= 0.0 && uv.y >= 0.0 && (uv.x as usize) < w && (uv.y as usize) < h {
+                    let z = *depth.get(uv.x as usize, uv.y as usize);
+                    if DepthMap::is_valid(z) && f64::from(z) <= 1.05 * x.z {
+                        return None;
+                    }
+                }
+            }
+            // a / pdf = 2π d² ln(d_max / d_min), over m draws
+            let scale = std::f64::consts::TAU * d * d * log_span / m as f64;
+            Some((x, n, l.map(|v| v * scale)))
         })
         .collect()
 }
@@ -663,4 +763,61 @@ pub fn bounce_sum<'a>(
         }
     }
     b
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A vertical face 0.16 m above a floor the photo does not show: the
+    /// extended support plane gives it `π L F` with the view factor
+    /// `F = (1 - h / sqrt(h² + D²)) / 2` of the floor within `D` (`D` the
+    /// extension's reach), within 3 %.
+    #[test]
+    fn the_support_plane_lights_a_face_above_it() {
+        let (w, h) = (64, 48);
+        let k = crate::sim::synthetic::kinect_like_intrinsics(w, h);
+        // a floor patch 0.5 m below the camera, around the object, in view
+        let c = DVec3::new(0.0, 0.3, 2.0);
+        let target: Vec<Option<Surf>> = (0..w * h)
+            .map(|i| {
+                let dy = ((i / w) as f64 + 0.5 - k.cy) / k.fy;
+                let z = 0.5 / dy.max(1e-9);
+                let pos = k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, z);
+                (dy > 0.0 && (pos - c).length() < 0.6).then_some(Surf {
+                    pos,
+                    n: DVec3::NEG_Y,
+                })
+            })
+            .collect();
+        let photo = ColorImage::filled(w, h, [0.6f32, 0.3, 0.15]);
+        // the depth map shows nothing: every drawn point is off the photo
+        let depth = DepthMap::filled(w, h, 0.0);
+        let p = RelightParams {
+            scene_vpls: 4096,
+            clamp_distance_m: 0.01,
+            ..Default::default()
+        };
+        let radius = 0.2;
+        let vpls = support_vpls(&target, &photo, &k, &depth, c, radius, &p);
+        assert!(vpls.len() > 4000, "{}", vpls.len());
+        let x = DVec3::new(0.0, 0.34, 2.0);
+        let b = bounce_at(x, DVec3::X, &vpls, 1e-6);
+        let (hh, dd) = (0.5 - 0.34, p.support_radius_rel * radius);
+        let f = 0.5 * (1.0 - hh / (hh * hh + dd * dd).sqrt());
+        for (ch, l) in [0.6, 0.3, 0.15].iter().enumerate() {
+            let want = std::f64::consts::PI * l * f;
+            assert!(
+                (b[ch] - want).abs() < 0.03 * want,
+                "channel {ch}: {} vs {want}",
+                b[ch]
+            );
+        }
+        // off: nothing
+        let off = RelightParams {
+            extend_support: false,
+            ..p.clone()
+        };
+        assert!(support_vpls(&target, &photo, &k, &depth, c, radius, &off).is_empty());
+    }
 }
