@@ -754,6 +754,26 @@ pub fn relight_moved(
                     }
                 }
             }
+            // the fill is smooth: one evaluation per 2x2 block of the
+            // tile serves the block's pixels on the same surface (normals
+            // within 18°, positions within 5 % of their depth)
+            type Fill = (DVec3, DVec3, ([f64; 3], [f64; 3]));
+            let mut fills: [Option<Fill>; Tile::SIDE * Tile::SIDE / 4] =
+                [None; Tile::SIDE * Tile::SIDE / 4];
+            let mut fill_at = |i: usize, s: &Surf| {
+                let (x, y) = (i % w, i / w);
+                let slot = ((y % Tile::SIDE) / 2) * (Tile::SIDE / 2) + (x % Tile::SIDE) / 2;
+                if let Some((n0, p0, f)) = fills[slot] {
+                    if n0.dot(s.n) > 0.95 && (p0 - s.pos).length() <= 0.05 * s.pos.z.abs() {
+                        return f;
+                    }
+                }
+                let f = scene_fill(s.pos, s.n, &scene_vpls, r2_min, &volume);
+                if fills[slot].is_none() {
+                    fills[slot] = Some((s.n, s.pos, f));
+                }
+                f
+            };
             for ((&(i, s, _), de), hit) in pix.iter().zip(&de).zip(&hit) {
                 let near = tile_near && (s.pos - c).length() <= bounce_reach;
                 if !hit && !near && alpha[i] <= 0.0 {
@@ -767,7 +787,7 @@ pub fn relight_moved(
                 };
                 // the scene's own bounce here, and what of it the object blocks
                 let (e_ind, blocked) = if fill {
-                    scene_fill(s.pos, s.n, &scene_vpls, r2_min, &volume)
+                    fill_at(i, s)
                 } else {
                     ([0.0; 3], [0.0; 3])
                 };
