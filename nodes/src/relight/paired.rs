@@ -42,7 +42,10 @@
 //! (`V^o`; its capture surroundings are unknown, so nothing bounced onto
 //! it there). In the target it receives `E^{s+t} + B_s`: the target's VPLs
 //! with the scene's and its own shadows, and the scene's bounce `B_s`
-//! (below). It shows `P_o (E^{s+t} + B_s) / max(E_cap, e_floor)`: with the
+//! (below). It shows `P_o (E^{s+t} + B_s) / max(E_cap, c_floor)`, with
+//! `c_floor = min_capture_rel * E_ref` (a face the capture map barely lit
+//! carries little but noise of its colour, which an unbounded ratio would
+//! amplify; with few VPLs some normals get none at all): with the
 //! same map on both sides and nothing around it the ratio is 1, and the
 //! object gains only what the target adds or blocks (brighter beside a
 //! sunlit floor or wall, darker in the scene's shadow). In this (`paired`)
@@ -260,6 +263,8 @@ pub fn relight(
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * e_ref;
+    // the capture side's floor (module docs of `paired`)
+    let cap_floor = p.min_capture_rel * e_ref;
 
     // ---- surfaces: target and object, per pixel
     let target = target_surfaces(inp.depth, inp.normals, k);
@@ -392,7 +397,7 @@ pub fn relight(
                 }
                 _ => [0.0; 3],
             };
-            object_radiance(pc, est, ecap, bs, e_floor)
+            object_radiance(pc, est, ecap, bs, cap_floor)
         })
         .collect();
     // bounce VPLs: stratified subset of object pixels

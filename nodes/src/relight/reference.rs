@@ -74,6 +74,8 @@ pub fn relight_reference(
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * e_ref;
+    // the capture side's floor (module docs of `paired`)
+    let cap_floor = p.min_capture_rel * e_ref;
     let r2_min = p.clamp_distance_m * p.clamp_distance_m;
     let mp = MeshParams { max_edge_rel: 0.1 };
     let scene_bvh = Bvh::new(&depth_to_mesh(inp.depth, k, None, &mp)?);
@@ -116,7 +118,9 @@ pub fn relight_reference(
         let (o, d, eps) = ray(x, n, d);
         !bvh.occluded(o, d, eps, f64::INFINITY)
     };
-    // the object, closed: its front and its back
+    // the object, closed: its front and its back (for the scene's
+    // receivers; the object's own surfaces are shadowed by its front
+    // alone: near the rim the estimated back may stand in front of them)
     let obj_free = |x: DVec3, n: DVec3, d: DVec3| {
         free(&obj_bvh, x, n, d) && back_bvh.as_ref().is_none_or(|b| free(b, x, n, d))
     };
@@ -158,7 +162,7 @@ pub fn relight_reference(
             if cos <= 0.0 {
                 continue;
             }
-            if !obj_free(pos, n, *d) {
+            if !free(&obj_bvh, pos, n, *d) {
                 continue;
             }
             let vis = free(&scene_bvh, pos, n, *d);
@@ -174,7 +178,7 @@ pub fn relight_reference(
             ecap = [0.0; 3];
             for (v, d) in cv.0.iter().zip(&cv.1) {
                 let cos = n.dot(*d);
-                if cos > 0.0 && obj_free(pos, n, *d) {
+                if cos > 0.0 && free(&obj_bvh, pos, n, *d) {
                     for (e, pw) in ecap.iter_mut().zip(v.power) {
                         *e += f64::from(pw) * cos;
                     }
@@ -184,7 +188,7 @@ pub fn relight_reference(
         let bs = bounce_sum(pos, n, scene_vpls.iter().enumerate(), r2_min, |j| {
             sees(pos, n, scene_vpls[j].0)
         });
-        object_radiance(pasted[i], est, ecap, bs, e_floor)
+        object_radiance(pasted[i], est, ecap, bs, cap_floor)
     };
     let bounce = object_bounce_vpls(
         &obj_idx,

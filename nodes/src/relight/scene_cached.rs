@@ -464,6 +464,8 @@ pub fn relight_moved(
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * scene.e_ref;
+    // the capture side's floor (module docs of `paired`)
+    let cap_floor = p.min_capture_rel * scene.e_ref;
     let r2_min = p.clamp_distance_m * p.clamp_distance_m;
 
     // ---- the object: its samples (every pasted pixel, hidden ones too:
@@ -660,7 +662,7 @@ pub fn relight_moved(
             } else {
                 scene_shadows.bounce(s.pos, s.n, r_obj, scene_lit.iter().enumerate(), r2_min)
             };
-            object_radiance(pasted[i], est, ecap, bs, e_floor)
+            object_radiance(pasted[i], est, ecap, bs, cap_floor)
         })
         .collect();
     let bounce = object_bounce_vpls(

@@ -58,6 +58,8 @@ node_params! {
         pub close_back: bool = true, ParamKind::Bool;
         /// Keep the scene's bounce in the object's shadow: remove only the light the object blocks, direct and bounced.
         pub fill_light: bool = true, ParamKind::Bool;
+        /// The object's capture irradiance is at least this fraction of the VPLs' total: a face the capture map barely lit is not brightened without bound.
+        pub min_capture_rel: f64 = 0.02, ParamKind::Float { min: 1e-9, max: 1.0 };
         /// Extend the plane the object stands on beyond the photo's frame: it bounces light onto the object.
         pub extend_support: bool = true, ParamKind::Bool;
         /// How far the support plane is extended, in object radii from the object's foot.
@@ -383,7 +385,7 @@ pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {
 /// "The object's own shading"): its pasted radiance times the ratio of the
 /// irradiance it receives in the target scene to the irradiance it
 /// received where it was captured,
-/// `P_o (E^{s+t} + B_s) / max(E_cap, e_floor)`: `E^{s+t}` the target's
+/// `P_o (E^{s+t} + B_s) / max(E_cap, cap_floor)`: `E^{s+t}` the target's
 /// direct light with the scene's and the object's own shadows, `B_s` the
 /// scene's bounce, `E_cap` the capture map's direct light with the
 /// object's own shadows (its capture surroundings are unknown: nothing
@@ -394,11 +396,11 @@ pub(crate) fn object_radiance(
     est: [f64; 3],
     ecap: [f64; 3],
     bs: [f64; 3],
-    e_floor: f64,
+    cap_floor: f64,
 ) -> Rgb {
     std::array::from_fn(|ch| {
-        let cap = ecap[ch].max(e_floor);
-        // guard: cap >= e_floor > 0
+        let cap = ecap[ch].max(cap_floor);
+        // guard: cap >= cap_floor > 0
         let ratio = (est[ch] + bs[ch]) / cap;
         (f64::from(pc[ch].max(0.0)) * ratio) as f32
     })
