@@ -973,10 +973,12 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Paste",
         1,
-        "Places a selected object into a target RGB-D image (3d-editing §III.C): unproject, scale about the \
-         centroid, translate (or put on a target pixel's ray), reproject through the target camera as a \
-         crack-free z-buffered mesh.\nWith auto_scale, the scale is the largest (at most the physical size) whose \
-         bounding box no target surface point lies inside, times the user scale.",
+        "Places a selected object into a target RGB-D image (3d-editing §III.C): unproject, turn about the \
+         solid's centroid (rotation_deg), scale about the centroid, translate (or put on a target pixel's ray), \
+         reproject through the target camera as a crack-free z-buffered mesh. With close_back its unseen back \
+         (the front mirrored about the silhouette plane) is drawn too and marked in `back`.\nWith auto_scale, \
+         the scale is the largest (at most the physical size) whose bounding box no target surface point lies \
+         inside, times the user scale.",
         eval,
     ))
 }
