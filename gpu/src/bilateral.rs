@@ -54,7 +54,6 @@ pub fn eval(
     check_params(p)?;
     let (w, h) = i.depth.dims();
     s.check_grid(w, h, 8)?;
-    let encode = s.kernel(&shaders::BILATERAL_ENCODE)?;
     let filter = s.kernel(&shaders::BILATERAL)?;
     let log2e = std::f64::consts::LOG2_E;
     let params = Params {
@@ -67,17 +66,34 @@ pub fn eval(
         depth_scale: (log2e / (2.0 * p.sigma_depth_rel * p.sigma_depth_rel)) as f32,
         _pad1: 0.0,
     };
+    let (depth, out) = guided_pass(s, &filter, bytemuck::bytes_of(&params), &i.depth, &i.color)?;
+    let depth = Arc::new(depth);
+    s.keep("depth", out, (4 * w * h) as u64);
+    Ok(BilateralOut { depth }.into())
+}
+
+/// The two passes JointBilateral and EdgeDetect share: the colour
+/// encoded once per pixel ([`shaders::BILATERAL_ENCODE`]), then `main`
+/// over (uniform, depth, encoded colour, out), one f32 per pixel. Returns
+/// the image read back and its device buffer (for [`Session::keep`]).
+pub(crate) fn guided_pass<T>(
+    s: &mut Session,
+    main: &wgpu::ComputePipeline,
+    params: &[u8],
+    depth: &Arc<DepthMap>,
+    color: &Arc<ColorImage>,
+) -> Result<(Image<f32, T>, Arc<crate::context::PooledBuffer>), NodeError> {
+    let (w, h) = depth.dims();
     let n = (w * h) as u64;
-    let uniform = s.uniform(bytemuck::bytes_of(&params))?;
-    let depth = s.image(&i.depth, bytes_of(i.depth.as_slice()))?;
-    let color = s.image(&i.color, bytes_of(i.color.as_slice()))?;
+    let encode = s.kernel(&shaders::BILATERAL_ENCODE)?;
+    let uniform = s.uniform(params)?;
+    let depth_buf = s.image(depth, bytes_of(depth.as_slice()))?;
+    let color_buf = s.image(color, bytes_of(color.as_slice()))?;
     let enc = s.scratch(16 * n)?;
     let out = Arc::new(s.scratch(4 * n)?);
-    let bg_enc = s.bind(&encode, &[&uniform, &color, &enc]);
-    let bg = s.bind(&filter, &[&uniform, &depth, &enc, &out]);
-    let encoder = s.image_passes(&[(&encode, &bg_enc), (&filter, &bg)], (w, h));
+    let bg_enc = s.bind(&encode, &[&uniform, &color_buf, &enc]);
+    let bg = s.bind(main, &[&uniform, &depth_buf, &enc, &out]);
+    let encoder = s.image_passes(&[(&encode, &bg_enc), (main, &bg)], (w, h));
     let back = s.finish(encoder, &[(&out, 4 * n)])?;
-    let depth = Arc::new(Image::from_vec(w, h, f32s(&back[0]))?);
-    s.keep("depth", out, 4 * n);
-    Ok(BilateralOut { depth }.into())
+    Ok((Image::from_vec(w, h, f32s(&back[0]))?, out))
 }

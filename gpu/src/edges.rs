@@ -10,8 +10,6 @@
 //! [`ABS_TOL`] of the threshold, or of a neighbour the thinning compares it
 //! with.
 
-use std::sync::Arc;
-
 use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
@@ -19,7 +17,8 @@ use depthgraph_nodes::select::edges::{
     DepthTerm, EdgeParams, EdgesIn, EdgesOut, binary_edges, check_dims, check_params,
 };
 
-use crate::session::{Session, bytes_of, f32s};
+use crate::bilateral::guided_pass;
+use crate::session::Session;
 use crate::shaders;
 
 /// The parity check's bound on the strength.
@@ -74,20 +73,10 @@ pub fn eval(
         kw: p.crease_weight as f32,
         _pad1: [0.0; 2],
     };
-    let n = (w * h) as u64;
-    let encode = s.kernel(&shaders::BILATERAL_ENCODE)?;
     let main = s.kernel(&shaders::EDGES)?;
-    let uniform = s.uniform(bytemuck::bytes_of(&params))?;
-    let depth = s.image(&i.depth, bytes_of(i.depth.as_slice()))?;
-    let color = s.image(&i.color, bytes_of(i.color.as_slice()))?;
-    let enc = s.scratch(16 * n)?;
-    let out = Arc::new(s.scratch(4 * n)?);
-    let bg_enc = s.bind(&encode, &[&uniform, &color, &enc]);
-    let bg = s.bind(&main, &[&uniform, &depth, &enc, &out]);
-    let encoder = s.image_passes(&[(&encode, &bg_enc), (&main, &bg)], (w, h));
-    let back = s.finish(encoder, &[(&out, 4 * n)])?;
-    let strength: Confidence = Image::from_vec(w, h, f32s(&back[0]))?;
+    let (strength, out): (Confidence, _) =
+        guided_pass(s, &main, bytemuck::bytes_of(&params), &i.depth, &i.color)?;
     let edges = binary_edges(&strength, p.threshold as f32, p.thin);
-    s.keep("strength", out, 4 * n);
+    s.keep("strength", out, (4 * w * h) as u64);
     Ok(EdgesOut { strength, edges }.into())
 }

@@ -142,7 +142,6 @@ use rayon::prelude::*;
 use crate::relight::ism::{IsmParams, PointSet, ShadowMap, build_pair_in, windows};
 use crate::relight::vpl::Vpl;
 
-use crate::relight::closure::ObjectVolume;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, Importance, PointVplShadows, RelightInputs, RelightParams, Relit,
     Surf, centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
@@ -283,13 +282,7 @@ pub fn relight(
     }
     // at least one alpha > 0 pixel, which has a valid pasted depth
     let (c, radius) = centre_and_radius(&obj_pts);
-    let volume = ObjectVolume::new(
-        k,
-        inp.pasted_depth,
-        back.as_ref().unwrap_or(inp.pasted_depth),
-        c,
-        radius * 1.01 + 1e-3,
-    );
+    let volume = inp.volume(back.as_ref(), c, radius);
 
     // ---- region
     let reach = 2.0 * radius;

@@ -29,7 +29,6 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::depth::mesh::{MeshParams, depth_to_mesh};
-use crate::relight::closure::ObjectVolume;
 use crate::relight::raycast::Bvh;
 use crate::relight::shading::{
     Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, centre_and_radius, clean_alpha,
@@ -101,13 +100,7 @@ pub fn relight_reference(
         })
         .collect();
     let (c, radius) = centre_and_radius(&obj_pts);
-    let volume = ObjectVolume::new(
-        k,
-        inp.pasted_depth,
-        back.as_ref().unwrap_or(inp.pasted_depth),
-        c,
-        radius * 1.01 + 1e-3,
-    );
+    let volume = inp.volume(back.as_ref(), c, radius);
     let bounce_reach = p.bounce_radius_rel * radius;
     // a shadow ray from (x, n) towards d
     let ray = |x: DVec3, n: DVec3, d: DVec3| {

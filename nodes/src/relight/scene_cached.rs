@@ -44,7 +44,6 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::kit::checks::fits_intrinsics;
-use crate::relight::closure::ObjectVolume;
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, build_single_in, windows,
 };
@@ -478,8 +477,7 @@ pub fn relight_moved(
     }
     let oset = PointSet::new(&layers, k, &[], p.min_distance_m);
     let (c, radius) = centre_and_radius(&oset.positions);
-    let back_or_front = back.as_ref().unwrap_or(inp.pasted_depth);
-    let volume = ObjectVolume::new(k, inp.pasted_depth, back_or_front, c, radius * 1.01 + 1e-3);
+    let volume = inp.volume(back.as_ref(), c, radius);
     let om = object_maps(&oset, &scene.dirs, p);
     // A ray meets the object's splats only within this distance of c; the
     // texel adds the lookup's quantisation.

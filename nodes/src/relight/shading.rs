@@ -184,6 +184,24 @@ impl<'a> RelightInputs<'a> {
             .then(|| crate::relight::closure::back_depth(self.pasted_depth, self.k))
     }
 
+    /// The object's closed volume: between its pasted depth and `back`
+    /// (the front alone without one), inside the ball `(c, radius)` that
+    /// holds its points, widened by 1 % and 1 mm for rounding.
+    pub(crate) fn volume<'b>(
+        &'b self,
+        back: Option<&'b DepthMap>,
+        c: DVec3,
+        radius: f64,
+    ) -> crate::relight::closure::ObjectVolume<'b> {
+        crate::relight::closure::ObjectVolume::new(
+            self.k,
+            self.pasted_depth,
+            back.unwrap_or(self.pasted_depth),
+            c,
+            radius * 1.01 + 1e-3,
+        )
+    }
+
     /// The object's surface at pixel `i` (a valid pasted depth): its
     /// unprojected centre, and its normal from the pasted depth, else
     /// facing the camera.
