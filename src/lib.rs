@@ -10,6 +10,7 @@ pub use depthgraph_nodes as nodes;
 
 pub mod backend;
 pub mod evaluation;
+pub mod fuzzing;
 pub mod metrics;
 pub mod sweep;
 

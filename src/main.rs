@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::{Arc, Mutex};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use depthgraph::backend::{Backend, Chosen};
 use depthgraph::graph::prelude::*;
@@ -16,13 +16,38 @@ use depthgraph::{LoadError, default_cache_dir, load_pipeline, read_document};
 
 /// Exit code when the requested backend cannot be used (no GPU adapter):
 /// sysexits EX_UNAVAILABLE. A bad DEPTHGRAPH_BACKEND is a usage error (2).
-const EXIT_NO_DEVICE: u8 = 69;
+const EXIT_NO_DEVICE: u8 = FailureKind::Unavailable.exit_code();
+
+/// Writes a line to standard output, returning the error (a closed pipe
+/// ends the program quietly, see [`main`]) instead of panicking as
+/// `println!` does.
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*)?
+    }};
+}
+
+/// A mistake on the command line found after clap parsed it (exit code 2).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct Usage(String);
+
+const EXIT_CODES_HELP: &str = "Exit codes:
+  0   success
+  2   usage error or a pipeline that fails its check (also a parameter a node cannot use)
+  65  bad input data: a missing, unreadable, corrupt or out-of-range input file
+  69  the requested backend (--backend gpu) has no device
+  70  internal error (a bug: please report it)
+  74  I/O error writing outputs (full or read-only disk, bad output directory)
+  75  transient failure (device lost or out of memory, interrupted, cancelled): retrying may succeed";
 
 #[derive(Parser)]
 #[command(
     name = "depthgraph",
     version,
-    about = "Edit color+depth photographs with typed node graphs"
+    about = "Edit color+depth photographs with typed node graphs",
+    after_help = EXIT_CODES_HELP
 )]
 struct Cli {
     #[command(subcommand)]
@@ -113,6 +138,10 @@ struct RunArgs {
     /// Worker threads (0 = one per core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// The most pixels one input file may hold; checked on the file's header
+    /// before its pixels are decoded.
+    #[arg(long, default_value_t = depthgraph::graph::node::DEFAULT_MAX_PIXELS, value_parser = clap::value_parser!(usize))]
+    max_pixels: usize,
     /// No progress bars.
     #[arg(long, short)]
     quiet: bool,
@@ -209,6 +238,7 @@ fn run_options(args: &RunArgs) -> RunOptions {
         progress: progress_bar(args.quiet),
         out_dir: args.out.clone(),
         protected_files: vec![args.file.clone()],
+        max_pixels: Some(args.max_pixels),
         ..RunOptions::default()
     }
 }
@@ -238,10 +268,10 @@ fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
         .collect();
     for (name, v) in &result.outputs {
         match v {
-            Value::File(f) => println!("wrote {}", f.display()),
+            Value::File(f) => outln!("wrote {}", f.display()),
             _ if !named.contains(name) => {}
-            Value::Scalar(x) => println!("{name} = {x}"),
-            other => println!("{name}: {} {}", other.value_type(), dims_text(other)),
+            Value::Scalar(x) => outln!("{name} = {x}"),
+            other => outln!("{name}: {} {}", other.value_type(), dims_text(other)),
         }
     }
     let ran = result.trace.evaluated().len();
@@ -266,7 +296,7 @@ fn cmd_check(file: &Path, sets: &[String]) -> Result<ExitCode> {
             for n in &doc.notices {
                 eprintln!("note: {n}");
             }
-            println!(
+            outln!(
                 "{}: ok ({} nodes, {} requested outputs)",
                 file.display(),
                 p.nodes.len(),
@@ -290,7 +320,7 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
                     .suggest(k)
                     .map(|s| format!(" (did you mean `{s}`?)"))
                     .unwrap_or_default();
-                bail!("unknown node kind `{k}`{hint}");
+                return Err(Usage(format!("unknown node kind `{k}`{hint}")).into());
             }
             vec![k]
         }
@@ -302,13 +332,13 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
             .filter_map(|k| reg.get(k))
             .map(|n| schema_json(n.schema()))
             .collect();
-        println!("{}", serde_json::to_string_pretty(&list)?);
+        outln!("{}", serde_json::to_string_pretty(&list)?);
         return Ok(ExitCode::SUCCESS);
     }
     if kind.is_none() {
         for k in kinds {
             if let Some(n) = reg.get(k) {
-                println!("{:<18} {}", k, n.schema().doc.lines().next().unwrap_or(""));
+                outln!("{:<18} {}", k, n.schema().doc.lines().next().unwrap_or(""));
             }
         }
         return Ok(ExitCode::SUCCESS);
@@ -316,19 +346,19 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
     for k in kinds {
         let Some(n) = reg.get(k) else { continue };
         let s = n.schema();
-        println!(
+        outln!(
             "{} (version {}){}\n  {}\n",
             s.kind,
             s.version,
             if s.sink { ", sink" } else { "" },
             s.doc
         );
-        println!("  inputs:");
+        outln!("  inputs:");
         if s.inputs.is_empty() {
-            println!("    (none)");
+            outln!("    (none)");
         }
         for p in &s.inputs {
-            println!(
+            outln!(
                 "    {:<14} {:<13} {}{}",
                 p.name,
                 p.ty,
@@ -336,17 +366,17 @@ fn cmd_nodes(kind: Option<&str>, json: bool) -> Result<ExitCode> {
                 p.doc
             );
         }
-        println!("  outputs:");
+        outln!("  outputs:");
         for p in &s.outputs {
-            println!("    {:<14} {:<13} {}", p.name, p.ty, p.doc);
+            outln!("    {:<14} {:<13} {}", p.name, p.ty, p.doc);
         }
-        println!("  parameters:");
+        outln!("  parameters:");
         if s.params.is_empty() {
-            println!("    (none)");
+            outln!("    (none)");
         }
         for p in &s.params {
             let range = p.kind.range_text();
-            println!(
+            outln!(
                 "    {:<14} {:<12} default {}{}\n        {}",
                 p.name,
                 p.kind.type_name(),
@@ -412,16 +442,16 @@ fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
             .collect();
         // The rows stay the top-level array; the choice goes to stderr.
         eprintln!("backend: {} ({})", chosen.used, chosen.reason);
-        println!("{}", serde_json::to_string_pretty(&rows)?);
+        outln!("{}", serde_json::to_string_pretty(&rows)?);
     } else {
-        println!(
+        outln!(
             "backend: {} (requested {}: {})",
             chosen.used,
             chosen.requested.name(),
             chosen.reason
         );
         if let Some(a) = &chosen.adapter {
-            println!("adapter: {a}");
+            outln!("adapter: {a}");
         }
         print!("{}", result.trace.table());
     }
@@ -453,7 +483,7 @@ fn cmd_sweep(
         }
     };
     let Some((target, values)) = param.split_once('=') else {
-        bail!("--param must be node.param=v1,v2,...");
+        return Err(Usage("--param must be node.param=v1,v2,...".into()).into());
     };
     let values: Vec<String> = values
         .split(',')
@@ -461,7 +491,7 @@ fn cmd_sweep(
         .filter(|v| !v.is_empty())
         .collect();
     if values.is_empty() {
-        bail!("--param {target}= lists no values");
+        return Err(Usage(format!("--param {target}= lists no values")).into());
     }
     let spec = SweepSpec {
         param: target.to_string(),
@@ -475,7 +505,7 @@ fn cmd_sweep(
     let engine = engine(args)?;
     let mut opts = run_options(args);
     opts.progress = None;
-    println!(
+    outln!(
         "{:>14}  {:>12}  {:>12}  {:>8}",
         "value",
         "ms (median)",
@@ -488,9 +518,15 @@ fn cmd_sweep(
             .map(|e| format!("{:.6}", e.value))
             .unwrap_or_else(|| r.note.clone().unwrap_or_default());
         let miss = r.error.map(|e| e.missing.to_string()).unwrap_or_default();
-        println!(
+        // a closed stdout here shows again at the next line outside
+        use std::io::Write as _;
+        let _ = writeln!(
+            std::io::stdout().lock(),
             "{:>14}  {:>12.2}  {:>12}  {:>8}",
-            r.value, r.ms_median, e, miss
+            r.value,
+            r.ms_median,
+            e,
+            miss
         );
     }) {
         Ok(r) => r,
@@ -504,12 +540,10 @@ fn cmd_sweep(
     let csv = csv.unwrap_or_else(|| args.out.join(format!("{stem}.csv")));
     let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
     let text = to_csv(target, metric, &rows);
-    depthgraph::nodes::io::write_atomic(&csv, |tmp| {
-        std::fs::write(tmp, &text).map_err(|e| e.to_string())
-    })?;
-    println!("wrote {}", csv.display());
+    depthgraph::nodes::io::write_atomic(&csv, |tmp| std::fs::write(tmp, &text))?;
+    outln!("wrote {}", csv.display());
     match depthgraph::nodes::io::write_atomic(&plot, |tmp| plot_svg(tmp, target, metric, &rows)) {
-        Ok(_) => println!("wrote {}", plot.display()),
+        Ok(_) => outln!("wrote {}", plot.display()),
         Err(e) => eprintln!("warning: no plot: {e}"),
     }
     Ok(ExitCode::SUCCESS)
@@ -538,9 +572,48 @@ fn main() -> ExitCode {
     };
     match r {
         Ok(code) => code,
+        // a closed standard output (`depthgraph nodes | head`): nobody is
+        // left to read, which is not a failure
+        Err(e) if is_broken_pipe(&e) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::FAILURE
+            use std::io::Write as _;
+            let _ = writeln!(std::io::stderr(), "error: {e:#}");
+            ExitCode::from(failure_kind(&e).exit_code())
         }
     }
+}
+
+fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+    })
+}
+
+/// The kind of failure of an error the commands returned (`--help` lists
+/// the exit codes); anything not classified is an internal error.
+fn failure_kind(e: &anyhow::Error) -> FailureKind {
+    use depthgraph::sweep::SweepError;
+    for c in e.chain() {
+        if let Some(r) = c.downcast_ref::<RunError>() {
+            return r.kind();
+        }
+        if let Some(n) = c.downcast_ref::<NodeError>() {
+            return n.kind();
+        }
+        if c.downcast_ref::<Usage>().is_some() || c.downcast_ref::<LoadError>().is_some() {
+            return FailureKind::Usage;
+        }
+        if let Some(s) = c.downcast_ref::<SweepError>() {
+            return match s {
+                SweepError::Run(r) => r.kind(),
+                SweepError::NoValue(_) => FailureKind::Internal,
+                _ => FailureKind::Usage,
+            };
+        }
+        if let Some(io) = c.downcast_ref::<std::io::Error>() {
+            return FailureKind::of_io(io);
+        }
+    }
+    FailureKind::Internal
 }

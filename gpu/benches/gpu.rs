@@ -58,6 +58,7 @@ fn eval(reg: &Registry, kind: &str, inputs: &Inputs, params: &ParamMap) -> (f64,
         out_dir: &dir,
         input_files: &[],
         derivations: None,
+        max_pixels: depthgraph_graph::node::DEFAULT_MAX_PIXELS,
     };
     let t = Instant::now();
     let out = node

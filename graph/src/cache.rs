@@ -143,7 +143,15 @@ impl DiskCache {
         let path = self.path(key);
         let parent = path.parent().unwrap_or(&self.dir);
         fs::create_dir_all(parent)?;
-        let tmp = parent.join(format!(".{}.{}.tmp", key.to_hex(), std::process::id()));
+        // process and thread in the name: concurrent writers of one key
+        // (two processes sharing the store, two runs of one engine) never
+        // write into the same temporary file
+        let tmp = parent.join(format!(
+            ".{}.{}.{}.tmp",
+            key.to_hex(),
+            std::process::id(),
+            thread_tag()
+        ));
         {
             let mut f = fs::File::create(&tmp)?;
             f.write_all(&bytes)?;
@@ -157,9 +165,15 @@ impl DiskCache {
         self.entries().iter().map(|(_, s, _)| s).sum()
     }
     fn entries(&self) -> Vec<(PathBuf, u64, SystemTime)> {
-        let mut out = Vec::new();
+        self.files().0
+    }
+    /// The entries (path, size, last use), and the temporary files that
+    /// writers left (path, last modified).
+    #[allow(clippy::type_complexity)]
+    fn files(&self) -> (Vec<(PathBuf, u64, SystemTime)>, Vec<(PathBuf, SystemTime)>) {
+        let (mut out, mut tmps) = (Vec::new(), Vec::new());
         let Ok(dirs) = fs::read_dir(&self.dir) else {
-            return out;
+            return (out, tmps);
         };
         for d in dirs.flatten() {
             let Ok(files) = fs::read_dir(d.path()) else {
@@ -167,18 +181,32 @@ impl DiskCache {
             };
             for f in files.flatten() {
                 let p = f.path();
-                if p.extension().is_some_and(|e| e == "bin") {
-                    if let Ok(m) = f.metadata() {
-                        out.push((p, m.len(), m.modified().unwrap_or(SystemTime::UNIX_EPOCH)));
-                    }
+                let Ok(m) = f.metadata() else {
+                    continue; // removed meanwhile by another process
+                };
+                let t = m.modified().unwrap_or(SystemTime::UNIX_EPOCH);
+                match p.extension().and_then(|e| e.to_str()) {
+                    Some("bin") => out.push((p, m.len(), t)),
+                    Some("tmp") => tmps.push((p, t)),
+                    _ => {}
                 }
             }
         }
-        out
+        (out, tmps)
     }
-    /// Removes least recently used entries until the store fits its budget.
+    /// Removes the temporary files of writers that died before renaming
+    /// them (a process killed mid-write), once they are older than
+    /// [`STALE_TMP`], then the least recently used entries until the store
+    /// fits its budget. Files another process removed meanwhile are not an
+    /// error: several processes may share one store.
     pub fn trim(&self) -> std::io::Result<()> {
-        let mut entries = self.entries();
+        let (mut entries, tmps) = self.files();
+        let now = SystemTime::now();
+        for (p, t) in tmps {
+            if now.duration_since(t).is_ok_and(|age| age >= STALE_TMP) {
+                remove_if_present(&p)?;
+            }
+        }
         let mut total: u64 = entries.iter().map(|(_, s, _)| s).sum();
         if total <= self.budget_bytes {
             return Ok(());
@@ -188,10 +216,31 @@ impl DiskCache {
             if total <= self.budget_bytes {
                 break;
             }
-            fs::remove_file(&p)?;
+            remove_if_present(&p)?;
             total -= s;
         }
         Ok(())
+    }
+}
+
+/// How old a writer's temporary file must be before [`DiskCache::trim`]
+/// takes it for the leftover of a killed process (a live writer renames
+/// its file within the time of one write).
+pub const STALE_TMP: std::time::Duration = std::time::Duration::from_secs(15 * 60);
+
+/// A number for the calling thread, unique among the live threads of the
+/// process.
+fn thread_tag() -> u64 {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    std::thread::current().id().hash(&mut h);
+    h.finish()
+}
+
+fn remove_if_present(p: &Path) -> std::io::Result<()> {
+    match fs::remove_file(p) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
     }
 }
 
@@ -253,5 +302,66 @@ mod tests {
         fs::write(&p, b"garbage").unwrap();
         assert!(c.get(&key(7), &Default::default()).is_none());
         assert!(!p.exists());
+    }
+
+    #[test]
+    fn truncated_entry_is_a_miss_and_is_replaced_by_the_next_put() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = DiskCache::new(dir.path(), 1 << 20);
+        c.put(&key(5), &out(16)).unwrap();
+        let p = c.path(&key(5));
+        let full = fs::read(&p).unwrap();
+        for cut in [0, 8, full.len() / 2, full.len() - 1] {
+            fs::write(&p, &full[..cut]).unwrap();
+            assert!(c.get(&key(5), &Default::default()).is_none(), "cut {cut}");
+            c.put(&key(5), &out(16)).unwrap();
+            assert_eq!(fs::read(&p).unwrap(), full);
+        }
+        // one flipped payload byte fails the decode or its checksum
+        let mut bad = full.clone();
+        let last = bad.len() - 1;
+        bad[last] ^= 0x40;
+        fs::write(&p, &bad).unwrap();
+        let got = c.get(&key(5), &Default::default());
+        assert!(got.is_none_or(|o| o.values != out(16).values));
+    }
+
+    #[test]
+    fn trim_removes_a_killed_writers_stale_temp_file_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = DiskCache::new(dir.path(), 1 << 20);
+        c.put(&key(1), &out(4)).unwrap();
+        let sub = c.path(&key(1)).parent().unwrap().to_path_buf();
+        let stale = sub.join(".dead.123.4.tmp");
+        let fresh = sub.join(".live.123.5.tmp");
+        fs::write(&stale, b"half an entry").unwrap();
+        fs::write(&fresh, b"being written").unwrap();
+        let old = SystemTime::now() - STALE_TMP - std::time::Duration::from_secs(60);
+        fs::File::options()
+            .append(true)
+            .open(&stale)
+            .unwrap()
+            .set_modified(old)
+            .unwrap();
+        c.trim().unwrap();
+        assert!(!stale.exists());
+        assert!(fresh.exists());
+        assert!(c.get(&key(1), &Default::default()).is_some());
+    }
+
+    #[test]
+    fn trim_tolerates_entries_removed_by_another_process() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = codec::encode(&out(50)).len() as u64;
+        let c = DiskCache::new(dir.path(), one * 10);
+        for n in 0..4 {
+            c.put(&key(n), &out(50)).unwrap();
+        }
+        // the listing is taken, then a file vanishes: removing it is not an error
+        assert!(remove_if_present(&c.path(&key(0))).is_ok());
+        assert!(remove_if_present(&c.path(&key(0))).is_ok());
+        let small = DiskCache::new(dir.path(), one);
+        small.trim().unwrap();
+        assert!(small.used_bytes() <= one);
     }
 }

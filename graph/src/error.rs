@@ -382,3 +382,158 @@ impl NodeError {
         }
     }
 }
+
+/// What kind of failure an error is, so a caller can decide what to do next
+/// (a batch runner retries only [`FailureKind::Transient`] ones). Each kind
+/// has one process exit code, from BSD's `sysexits.h`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum FailureKind {
+    /// A bad command line, a pipeline that fails its check, a parameter a
+    /// node cannot use, a sink told to overwrite an input. Exit code 2.
+    Usage,
+    /// Bad input data: a missing, unreadable, corrupt or out-of-range input
+    /// file, or inputs a node cannot use. Permanent: a retry fails alike.
+    /// Exit code 65 (`EX_DATAERR`).
+    Data,
+    /// The requested compute device does not exist. Exit code 69
+    /// (`EX_UNAVAILABLE`).
+    Unavailable,
+    /// An internal inconsistency (a bug to report). Exit code 70
+    /// (`EX_SOFTWARE`).
+    Internal,
+    /// An input/output error that is not the input's fault: a full disk,
+    /// a read-only or missing output directory, a file that cannot be
+    /// encoded. Exit code 74 (`EX_IOERR`).
+    Io,
+    /// A failure a retry may not meet again: a lost or out-of-memory
+    /// device, an interrupted or timed-out operation, a cancelled run, no
+    /// threads to be had. Exit code 75 (`EX_TEMPFAIL`).
+    Transient,
+}
+
+impl FailureKind {
+    /// The process exit code of this kind of failure.
+    pub const fn exit_code(self) -> u8 {
+        match self {
+            FailureKind::Usage => 2,
+            FailureKind::Data => 65,
+            FailureKind::Unavailable => 69,
+            FailureKind::Internal => 70,
+            FailureKind::Io => 74,
+            FailureKind::Transient => 75,
+        }
+    }
+
+    /// The kind of an operating-system error met on a file: missing,
+    /// malformed or truncated contents are the data's fault; interrupted,
+    /// busy or timed-out operations are transient; the rest (permissions,
+    /// a full or read-only disk, a path through a non-directory) is I/O.
+    pub fn of_io(e: &std::io::Error) -> Self {
+        use std::io::ErrorKind as K;
+        match e.kind() {
+            K::NotFound | K::InvalidData | K::UnexpectedEof | K::InvalidInput => FailureKind::Data,
+            K::Interrupted
+            | K::WouldBlock
+            | K::TimedOut
+            | K::ResourceBusy
+            | K::ConnectionReset
+            | K::ConnectionAborted
+            | K::ConnectionRefused
+            | K::NotConnected
+            | K::OutOfMemory => FailureKind::Transient,
+            _ => FailureKind::Io,
+        }
+    }
+}
+
+impl NodeError {
+    /// What kind of failure this is ([`FailureKind`]).
+    pub fn kind(&self) -> FailureKind {
+        match self {
+            NodeError::Input { .. } | NodeError::Decode { .. } | NodeError::Invalid(_) => {
+                FailureKind::Data
+            }
+            NodeError::Param { .. } | NodeError::WouldOverwriteInput { .. } => FailureKind::Usage,
+            NodeError::Io { error, .. } => FailureKind::of_io(error),
+            NodeError::Encode { .. } => FailureKind::Io,
+            NodeError::Shape(_) => FailureKind::Internal,
+            NodeError::Device { .. } | NodeError::Cancelled => FailureKind::Transient,
+        }
+    }
+}
+
+impl RunError {
+    /// What kind of failure this is ([`FailureKind`]).
+    pub fn kind(&self) -> FailureKind {
+        match self {
+            RunError::Node { error, .. } => error.kind(),
+            RunError::MissingOutput { .. } | RunError::WrongOutputType { .. } => {
+                FailureKind::Internal
+            }
+            RunError::Cancelled | RunError::Threads(_) => FailureKind::Transient,
+        }
+    }
+}
+
+#[cfg(test)]
+mod failure_kind_tests {
+    use super::*;
+
+    #[test]
+    fn every_node_error_maps_to_its_documented_code() {
+        let io = |k| NodeError::io("f", std::io::Error::from(k));
+        use std::io::ErrorKind as K;
+        let cases: Vec<(NodeError, u8)> = vec![
+            (NodeError::input("depth", "x"), 65),
+            (NodeError::decode("f", "x"), 65),
+            (NodeError::Invalid("x".into()), 65),
+            (NodeError::param("radius", "x"), 2),
+            (NodeError::WouldOverwriteInput { path: "f".into() }, 2),
+            (io(K::NotFound), 65),
+            (io(K::UnexpectedEof), 65),
+            (io(K::PermissionDenied), 74),
+            (io(K::StorageFull), 74),
+            (io(K::NotADirectory), 74),
+            (io(K::Interrupted), 75),
+            (io(K::TimedOut), 75),
+            (NodeError::encode("f", "x"), 74),
+            (
+                NodeError::Shape(ShapeError {
+                    width: 2,
+                    height: 2,
+                    expected: 4,
+                    found: 3,
+                }),
+                70,
+            ),
+            (
+                NodeError::Device {
+                    adapter: "a".into(),
+                    message: "lost".into(),
+                },
+                75,
+            ),
+            (NodeError::Cancelled, 75),
+        ];
+        for (e, code) in cases {
+            assert_eq!(e.kind().exit_code(), code, "{e}");
+        }
+        let wrapped = RunError::Node {
+            node: "n".into(),
+            kind: "K".into(),
+            error: NodeError::decode("f", "x"),
+        };
+        assert_eq!(wrapped.kind().exit_code(), 65);
+        assert_eq!(RunError::Cancelled.kind().exit_code(), 75);
+        assert_eq!(
+            RunError::MissingOutput {
+                node: "n".into(),
+                kind: "K".into(),
+                port: "p".into()
+            }
+            .kind()
+            .exit_code(),
+            70
+        );
+    }
+}

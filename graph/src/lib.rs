@@ -64,7 +64,7 @@ pub mod value;
 pub mod prelude {
     pub use crate::cache::{DiskCache, MemoryCache};
     pub use crate::document::Document;
-    pub use crate::error::{CheckError, CheckErrors, NodeError, RunError};
+    pub use crate::error::{CheckError, CheckErrors, FailureKind, NodeError, RunError};
     pub use crate::node::{
         CancelToken, EvalCtx, Inputs, Node, NodeSchema, Outputs, PortSpec, TypedNode,
     };

@@ -154,7 +154,15 @@ pub struct EvalCtx<'a> {
     /// The engine's store of derived values; `None` outside an engine (then
     /// [`EvalCtx::derived`] builds every time).
     pub derivations: Option<&'a Derivations<'a>>,
+    /// The most pixels a loader may decode from one file, checked against
+    /// the file's header before anything is allocated for its pixels
+    /// (`--max-pixels`; [`DEFAULT_MAX_PIXELS`] unless the run says otherwise).
+    pub max_pixels: usize,
 }
+
+/// The default pixel budget of one decoded file: 2^28 pixels (256 MP, 3 GiB
+/// as linear RGB f32).
+pub const DEFAULT_MAX_PIXELS: usize = 1 << 28;
 
 impl EvalCtx<'_> {
     /// A value derived from some of the node's inputs (`ports`) and its own

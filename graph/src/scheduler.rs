@@ -65,6 +65,10 @@ pub struct RunOptions {
     /// More files sinks must never overwrite (e.g. the pipeline file itself),
     /// besides those the load nodes read.
     pub protected_files: Vec<PathBuf>,
+    /// The pixel budget of one decoded file (`None`:
+    /// [`DEFAULT_MAX_PIXELS`](crate::node::DEFAULT_MAX_PIXELS)); not part
+    /// of any cache key (a run within the budget computes the same values).
+    pub max_pixels: Option<usize>,
 }
 
 /// Everything a run produced.
@@ -390,6 +394,7 @@ impl Engine {
             out_dir: &opts.out_dir,
             input_files,
             derivations: Some(&derivations),
+            max_pixels: opts.max_pixels.unwrap_or(crate::node::DEFAULT_MAX_PIXELS),
         };
         let t = Instant::now();
         let out = node

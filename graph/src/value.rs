@@ -259,6 +259,21 @@ impl DepthMap {
             .filter(|z| !Self::is_valid(**z))
             .count()
     }
+    /// The map with every hole written as `0` (the one spelling of a hole
+    /// a node outputs): `d` itself when it already is, else a copy whose
+    /// negative, NaN and infinite samples are 0.
+    pub fn canonical_holes(d: &Arc<Self>) -> Arc<Self> {
+        if d.as_slice().iter().all(|z| Self::is_valid(*z) || *z == 0.0) {
+            return Arc::clone(d);
+        }
+        let mut c = (**d).clone();
+        for z in c.as_mut_slice() {
+            if !Self::is_valid(*z) {
+                *z = 0.0;
+            }
+        }
+        Arc::new(c)
+    }
 }
 
 /// Pinhole camera intrinsics in pixels, for an image of `width` x `height`.

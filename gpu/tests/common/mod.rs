@@ -49,6 +49,7 @@ pub fn eval_on(
         out_dir: &dir,
         input_files: &[],
         derivations: None,
+        max_pixels: depthgraph_graph::node::DEFAULT_MAX_PIXELS,
     };
     node.eval(&ctx, inputs, params)
 }

@@ -871,10 +871,19 @@ pub fn bracket_entries(p: &LoadBracketParams) -> Result<Vec<(PathBuf, f64)>, Nod
 /// values after the camera response. Every image must have the size of the
 /// first; pure-blue pixels become NaN when `mask_pure_blue` is set.
 pub fn load_bracket(p: &LoadBracketParams) -> Result<ExposureStack, NodeError> {
+    load_bracket_with(p, &crate::io::Limits::default())
+}
+
+/// [`load_bracket`] with each image's header checked against `lim` before
+/// its pixels are decoded.
+pub fn load_bracket_with(
+    p: &LoadBracketParams,
+    lim: &crate::io::Limits,
+) -> Result<ExposureStack, NodeError> {
     let entries = bracket_entries(p)?;
     let loaded: Vec<Result<ColorImage, NodeError>> = entries
         .par_iter()
-        .map(|(path, _)| crate::io::load_color(path, crate::io::ColorSpace::Linear))
+        .map(|(path, _)| crate::io::load_color_with(path, crate::io::ColorSpace::Linear, lim))
         .collect();
     let mut stack = ExposureStack::default();
     for ((path, t), img) in entries.iter().zip(loaded) {
@@ -916,12 +925,12 @@ depthgraph_graph::ports! {
 }
 
 fn load_bracket_eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     _: NoInputs,
     p: &LoadBracketParams,
 ) -> Result<Produced<LoadBracketOut>, NodeError> {
     Ok(LoadBracketOut {
-        exposures: load_bracket(p)?,
+        exposures: load_bracket_with(p, &crate::io::Limits::of(ctx))?,
     }
     .into())
 }
@@ -1068,9 +1077,7 @@ pub fn save_response(curve: &ResponseCurve, path: &Path) -> Result<PathBuf, Node
             curve.g[0][z], curve.g[1][z], curve.g[2][z]
         );
     }
-    crate::io::write_atomic(path, |tmp| {
-        std::fs::write(tmp, text.as_bytes()).map_err(|e| e.to_string())
-    })
+    crate::io::write_atomic(path, |tmp| std::fs::write(tmp, text.as_bytes()))
 }
 
 depthgraph_graph::ports! {
@@ -1296,6 +1303,7 @@ mod tests {
             out_dir: Path::new("."),
             input_files: &[],
             derivations: None,
+            max_pixels: depthgraph_graph::node::DEFAULT_MAX_PIXELS,
         };
         let mut inputs = Inputs::new();
         inputs.insert("stack", stack.into());

@@ -176,8 +176,12 @@ fn active_pixels(coc: &Image<f32>, extent: f64) -> (Vec<bool>, usize) {
             if c < MIN_COC_PX {
                 continue;
             }
-            // A pixel moves at most extent * coc pixels (plus rounding).
-            let reach = ((extent * c + 1.0) / TILE as f64).ceil() as usize;
+            // A pixel moves at most extent * coc pixels (plus rounding);
+            // no further than the frame (a huge or infinite circle of
+            // confusion reaches every tile, and `ty + reach` cannot overflow)
+            let reach = ((extent * c + 1.0) / TILE as f64)
+                .ceil()
+                .min(tw.max(th) as f64) as usize;
             for y in ty.saturating_sub(reach)..(ty + reach + 1).min(th) {
                 for x in tx.saturating_sub(reach)..(tx + reach + 1).min(tw) {
                     active_tile[y * tw + x] = true;

@@ -386,7 +386,9 @@ fn eval(
     if i.depth.hole_count() == i.depth.len() {
         check_color(&i.depth, &i.color)?;
         return Ok(Produced::passthrough(
-            BilateralOut { depth: i.depth },
+            BilateralOut {
+                depth: DepthMap::canonical_holes(&i.depth),
+            },
             ALL_HOLES,
         ));
     }

@@ -439,7 +439,7 @@ pub fn nothing_to_fill(depth: &Arc<DepthMap>) -> Option<Produced<PullPushOut>> {
         return None;
     };
     let out = PullPushOut {
-        depth: depth.clone(),
+        depth: DepthMap::canonical_holes(depth),
         filled: Mask::filled(depth.width(), depth.height(), 0.0),
     };
     Some(Produced::passthrough(out, reason))

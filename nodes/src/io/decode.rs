@@ -1,6 +1,7 @@
 //! What every reader shares: the size limits checked before decoding, the
 //! decode error, and the sRGB-to-linear tables of 8- and 16-bit codes.
 
+use std::fs;
 use std::path::Path;
 use std::sync::OnceLock;
 
@@ -10,8 +11,43 @@ use crate::kit::color::srgb_to_linear;
 
 /// Largest accepted image side in pixels.
 pub const MAX_SIDE: usize = 1 << 15;
-/// Largest accepted pixel count (256 MP).
-pub const MAX_PIXELS: usize = 1 << 28;
+/// Default largest accepted pixel count (256 MP); a run sets its own with
+/// `--max-pixels` ([`Limits`]).
+pub const MAX_PIXELS: usize = depthgraph_graph::node::DEFAULT_MAX_PIXELS;
+
+/// What a reader accepts, checked against a file's header before anything
+/// is allocated for its pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// The most pixels of one image (width x height; each side is also at
+    /// most [`MAX_SIDE`]).
+    pub max_pixels: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_pixels: MAX_PIXELS,
+        }
+    }
+}
+
+impl Limits {
+    /// The limits of a node's run (`--max-pixels`).
+    pub fn of(ctx: &EvalCtx) -> Self {
+        Self {
+            max_pixels: ctx.max_pixels,
+        }
+    }
+}
+
+/// The bytes of `path`; an error naming the file when it cannot be read.
+pub(super) fn read_file(path: &Path) -> Result<Vec<u8>, NodeError> {
+    fs::read(path).map_err(|error| NodeError::Io {
+        path: path.to_path_buf(),
+        error,
+    })
+}
 
 /// A decoding error of `path`.
 pub(super) fn decode_err(path: &Path, message: impl Into<String>) -> NodeError {
@@ -22,17 +58,20 @@ pub(super) fn decode_err(path: &Path, message: impl Into<String>) -> NodeError {
 }
 
 /// Refuses an empty or oversized image before anything is allocated for it.
-pub(super) fn check_dims(path: &Path, w: usize, h: usize) -> Result<(), NodeError> {
+pub(super) fn check_dims(path: &Path, w: usize, h: usize, lim: &Limits) -> Result<(), NodeError> {
     if w == 0 || h == 0 {
         return Err(decode_err(
             path,
             format!("image is {w}x{h}; expected at least 1x1"),
         ));
     }
-    if w > MAX_SIDE || h > MAX_SIDE || w.saturating_mul(h) > MAX_PIXELS {
+    if w > MAX_SIDE || h > MAX_SIDE || w.saturating_mul(h) > lim.max_pixels {
         return Err(decode_err(
             path,
-            format!("image is {w}x{h}; the limit is {MAX_SIDE} per side and {MAX_PIXELS} pixels"),
+            format!(
+                "image is {w}x{h}; the limit is {MAX_SIDE} per side and {} pixels (--max-pixels)",
+                lim.max_pixels
+            ),
         ));
     }
     Ok(())

@@ -9,7 +9,7 @@
 //! When the optional `like` input is connected (the source photo), the
 //! sizes must agree: the error names both.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use depthgraph_graph::node_params;
@@ -17,7 +17,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::{Registry, RegistryError};
 use image::DynamicImage;
 
-use super::decode::check_dims;
+use super::decode::{Limits, check_dims, read_file};
 
 node_params! {
     /// Parameters of `LoadMask`.
@@ -57,10 +57,27 @@ depthgraph_graph::param_choice! {
 
 /// Reads the mask of `p` (module docs).
 pub fn load_mask(p: &LoadMaskParams) -> Result<Mask, NodeError> {
+    load_mask_with(p, &Limits::default())
+}
+
+/// [`load_mask`] within the pixel budget `lim` (checked on the header,
+/// before the pixels are decoded).
+pub fn load_mask_with(p: &LoadMaskParams, lim: &Limits) -> Result<Mask, NodeError> {
     let path = super::given(&p.path)?;
-    let img = super::open_image(path)?;
+    decode_mask(&read_file(path)?, path, p, lim)
+}
+
+/// [`load_mask`] of a file's bytes (`path` names it in errors; `p.path`
+/// is not read).
+pub fn decode_mask(
+    bytes: &[u8],
+    path: &Path,
+    p: &LoadMaskParams,
+    lim: &Limits,
+) -> Result<Mask, NodeError> {
+    let img = super::decode_image(bytes, path, lim)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
-    check_dims(path, w, h)?;
+    check_dims(path, w, h, lim)?;
     let values: Vec<f32> = match p.channel {
         MaskChannel::Value => {
             let rgb = img.to_rgb32f();
@@ -119,11 +136,11 @@ depthgraph_graph::ports! {
 }
 
 fn eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     i: LoadMaskIn,
     p: &LoadMaskParams,
 ) -> Result<Produced<LoadMaskOut>, NodeError> {
-    let mask = load_mask(p)?;
+    let mask = load_mask_with(p, &Limits::of(ctx))?;
     if let Some(like) = &i.like {
         let (a, b) = (mask.dims(), like.dims());
         if a != b {

@@ -26,46 +26,76 @@ mod ply;
 mod pnm;
 mod write;
 
-pub use decode::{MAX_PIXELS, MAX_SIDE, Samples};
-use decode::{check_dims, decode_err, srgb8_table, srgb16_table};
+pub use decode::{Limits, MAX_PIXELS, MAX_SIDE, Samples};
+use decode::{check_dims, decode_err, read_file, srgb8_table, srgb16_table};
 
-pub use pfm::read_pfm;
+pub use pfm::{decode_pfm, read_pfm};
 pub use ply::write_ply;
-pub use pnm::{Pnm, read_pnm};
-use pnm::{is_pnm, load_pnm_color};
-pub use write::write_atomic;
+pub use pnm::{Pnm, decode_pnm, read_pnm};
+use pnm::{is_pnm, pnm_color};
+pub use write::{WriteFailure, write_atomic};
+
+/// The encoding of every EXR depthgraph writes: RLE-compressed scan lines
+/// in increasing order, so the same image always gives the same bytes
+/// (chunks compressed in parallel are written sorted, never in the order
+/// the workers finish).
+fn exr_encoding() -> exr::prelude::Encoding {
+    use exr::prelude::*;
+    Encoding {
+        compression: Compression::RLE,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    }
+}
+
+/// Writes float channels `(name, samples)` of a `w x h` image as one EXR
+/// layer named `layer` ([`exr_encoding`]).
+fn write_exr(
+    tmp: &Path,
+    (w, h): (usize, usize),
+    layer: &str,
+    channels: Vec<(&str, Vec<f32>)>,
+) -> Result<(), WriteFailure> {
+    use exr::prelude::*;
+    let list: Vec<AnyChannel<FlatSamples>> = channels
+        .into_iter()
+        .map(|(name, v)| AnyChannel::new(name, FlatSamples::F32(v)))
+        .collect();
+    let layer = Layer::new(
+        (w, h),
+        LayerAttributes::named(layer),
+        exr_encoding(),
+        AnyChannels::sort(SmallVec::from_vec(list)),
+    );
+    exr::prelude::Image::from_layer(layer)
+        .write()
+        .to_file(tmp)?;
+    Ok(())
+}
 
 // ---------------------------------------------------------------- color
 
-fn open_image(path: &Path) -> Result<DynamicImage, NodeError> {
-    let reader = image::ImageReader::open(path)
-        .map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?
-        .with_guessed_format()
-        .map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?;
-    let (w, h) = reader
+/// Decodes an image file's bytes with the `image` crate (format guessed
+/// from its magic bytes), its header's dimensions checked against `lim`
+/// before any pixel is decoded.
+fn decode_image(bytes: &[u8], path: &Path, lim: &Limits) -> Result<DynamicImage, NodeError> {
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|error| NodeError::Io {
+                path: path.to_path_buf(),
+                error,
+            })
+    };
+    let (w, h) = reader()?
         .into_dimensions()
         .map_err(|e| decode_err(path, e.to_string()))?;
-    check_dims(path, w as usize, h as usize)?;
-    let mut reader = image::ImageReader::open(path)
-        .map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?
-        .with_guessed_format()
-        .map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?;
+    check_dims(path, w as usize, h as usize, lim)?;
+    let mut reader = reader()?;
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(MAX_SIDE as u32);
     limits.max_image_height = Some(MAX_SIDE as u32);
-    limits.max_alloc = Some((MAX_PIXELS as u64) * 16);
+    limits.max_alloc = Some((lim.max_pixels as u64).saturating_mul(16));
     reader.limits(limits);
     reader.decode().map_err(|e| decode_err(path, e.to_string()))
 }
@@ -98,10 +128,32 @@ node_params! {
 /// println!("{}x{}", img.width(), img.height());
 /// ```
 pub fn load_color(path: &Path, color_space: ColorSpace) -> Result<ColorImage, NodeError> {
+    load_color_with(path, color_space, &Limits::default())
+}
+
+/// [`load_color`] within the pixel budget `lim`.
+pub fn load_color_with(
+    path: &Path,
+    color_space: ColorSpace,
+    lim: &Limits,
+) -> Result<ColorImage, NodeError> {
+    decode_color(&read_file(path)?, path, color_space, lim)
+}
+
+/// [`load_color`] of a file's bytes: `path` names the file in errors and
+/// its extension picks PNM (`.pgm`/`.ppm`/`.pnm`); other formats are told
+/// by their magic bytes. The header is checked against `lim` first.
+pub fn decode_color(
+    bytes: &[u8],
+    path: &Path,
+    color_space: ColorSpace,
+    lim: &Limits,
+) -> Result<ColorImage, NodeError> {
     if is_pnm(path) {
-        return load_pnm_color(path, color_space == ColorSpace::Srgb);
+        let pnm = decode_pnm(bytes, path, false, lim)?;
+        return pnm_color(pnm, path, color_space == ColorSpace::Srgb);
     }
-    let img = open_image(path)?;
+    let img = decode_image(bytes, path, lim)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let srgb = color_space == ColorSpace::Srgb;
     let data: Vec<[f32; 3]> = match &img {
@@ -168,11 +220,11 @@ fn given(path: &str) -> Result<&Path, NodeError> {
 }
 
 fn load_color_eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     _: NoInputs,
     p: &LoadColorParams,
 ) -> Result<Produced<LoadColorOut>, NodeError> {
-    let color = load_color(given(&p.path)?, p.color_space)?;
+    let color = load_color_with(given(&p.path)?, p.color_space, &Limits::of(ctx))?;
     Ok(LoadColorOut { color }.into())
 }
 
@@ -217,9 +269,14 @@ struct RawDepth {
     integer: bool,
 }
 
-fn read_raw_depth(path: &Path, little_endian_16: bool) -> Result<RawDepth, NodeError> {
+fn read_raw_depth(
+    bytes: &[u8],
+    path: &Path,
+    little_endian_16: bool,
+    lim: &Limits,
+) -> Result<RawDepth, NodeError> {
     if is_pnm(path) {
-        let pnm = read_pnm(path, little_endian_16)?;
+        let pnm = decode_pnm(bytes, path, little_endian_16, lim)?;
         if pnm.channels != 1 {
             return Err(decode_err(
                 path,
@@ -241,13 +298,13 @@ fn read_raw_depth(path: &Path, little_endian_16: bool) -> Result<RawDepth, NodeE
         .map(str::to_ascii_lowercase)
         .unwrap_or_default();
     match ext.as_str() {
-        "pfm" => read_pfm(path).map(|s| RawDepth {
+        "pfm" => decode_pfm(bytes, path, lim).map(|s| RawDepth {
             samples: s,
             integer: false,
         }),
-        "exr" => read_exr_channel(path),
+        "exr" => read_exr_channel(bytes, path, lim),
         _ => {
-            let img = open_image(path)?;
+            let img = decode_image(bytes, path, lim)?;
             let (w, h) = (img.width() as usize, img.height() as usize);
             let values: Vec<f32> = match &img {
                 DynamicImage::ImageLuma8(b) => b.as_raw().iter().map(|v| *v as f32).collect(),
@@ -274,13 +331,28 @@ fn read_raw_depth(path: &Path, little_endian_16: bool) -> Result<RawDepth, NodeE
     }
 }
 
-fn read_exr_channel(path: &Path) -> Result<RawDepth, NodeError> {
+fn read_exr_channel(bytes: &[u8], path: &Path, lim: &Limits) -> Result<RawDepth, NodeError> {
     use exr::prelude::*;
-    let image =
-        read_first_flat_layer_from_file(path).map_err(|e| decode_err(path, e.to_string()))?;
+    // the header first: every layer's size against the budget, before the
+    // pixels are read
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)
+        .map_err(|e| decode_err(path, e.to_string()))?;
+    for header in &meta.headers {
+        let size = header.layer_size;
+        check_dims(path, size.width(), size.height(), lim)?;
+    }
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .non_parallel()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .map_err(|e| decode_err(path, e.to_string()))?;
     let layer = image.layer_data;
     let (w, h) = (layer.size.width(), layer.size.height());
-    check_dims(path, w, h)?;
+    check_dims(path, w, h, lim)?;
     let channels = &layer.channel_data.list;
     let pick = ["Z", "Y", "R", "depth", "Z.Z"]
         .iter()
@@ -322,6 +394,21 @@ const NYU_RAW_INVALID: f64 = 1093.0;
 /// with little-endian PGM samples. Raw zeros in integer files, non-finite
 /// values, and non-positive results are holes. Binary PGM (P5) is read as well.
 pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeError> {
+    load_depth_with(path, p, &Limits::default())
+}
+
+/// [`load_depth`] within the pixel budget `lim`.
+pub fn load_depth_with(
+    path: &Path,
+    p: &LoadDepthParams,
+    lim: &Limits,
+) -> Result<DepthMap, NodeError> {
+    // the parameters are checked before the file is read
+    check_depth_params(path, p)?;
+    decode_depth(&read_file(path)?, path, p, lim)
+}
+
+fn check_depth_params(path: &Path, p: &LoadDepthParams) -> Result<(), NodeError> {
     let nyu = p.encoding == DepthEncoding::NyuRaw;
     if nyu && !is_pnm(path) {
         return Err(NodeError::param(
@@ -332,7 +419,21 @@ pub fn load_depth(path: &Path, p: &LoadDepthParams) -> Result<DepthMap, NodeErro
             ),
         ));
     }
-    let raw = read_raw_depth(path, nyu)?;
+    Ok(())
+}
+
+/// [`load_depth`] of a file's bytes: `path` names the file in errors and
+/// its extension picks the format (`.pgm`, `.pfm`, `.exr`, else by magic
+/// bytes). The header is checked against `lim` before pixels are decoded.
+pub fn decode_depth(
+    bytes: &[u8],
+    path: &Path,
+    p: &LoadDepthParams,
+    lim: &Limits,
+) -> Result<DepthMap, NodeError> {
+    check_depth_params(path, p)?;
+    let nyu = p.encoding == DepthEncoding::NyuRaw;
+    let raw = read_raw_depth(bytes, path, nyu, lim)?;
     let scale = if p.scale > 0.0 {
         p.scale
     } else if raw.integer {
@@ -399,11 +500,11 @@ depthgraph_graph::ports! {
 }
 
 fn load_depth_eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     _: NoInputs,
     p: &LoadDepthParams,
 ) -> Result<Produced<LoadDepthOut>, NodeError> {
-    let depth = load_depth(given(&p.path)?, p)?;
+    let depth = load_depth_with(given(&p.path)?, p, &Limits::of(ctx))?;
     // guard: images have at least one pixel (check_dims), max(1) for safety
     let hole_fraction = depth.hole_count() as f64 / depth.len().max(1) as f64;
     Ok(LoadDepthOut {
@@ -415,11 +516,11 @@ fn load_depth_eval(
 
 // ---------------------------------------------------------------- writing
 
-fn write_dynamic(tmp: &Path, img: DynamicImage, fmt: ImageFormat) -> Result<(), String> {
-    let f = fs::File::create(tmp).map_err(|e| e.to_string())?;
+fn write_dynamic(tmp: &Path, img: DynamicImage, fmt: ImageFormat) -> Result<(), WriteFailure> {
+    let f = fs::File::create(tmp)?;
     let mut w = BufWriter::new(f);
-    img.write_to(&mut w, fmt).map_err(|e| e.to_string())?;
-    w.flush().map_err(|e| e.to_string())
+    img.write_to(&mut w, fmt)?;
+    Ok(w.flush()?)
 }
 
 fn extension(path: &Path) -> String {
@@ -463,16 +564,14 @@ pub fn save_color(
     let gain = 2f32.powf(exposure_stops as f32);
     match extension(path).as_str() {
         "exr" => {
-            let data: Vec<f32> = img
-                .as_slice()
-                .iter()
-                .flat_map(|p| p.map(|v| if v.is_finite() { v * gain } else { 0.0 }))
-                .collect();
-            let buf = image::Rgb32FImage::from_raw(w, h, data)
-                .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
-            write_atomic(path, |tmp| {
-                write_dynamic(tmp, DynamicImage::ImageRgb32F(buf), ImageFormat::OpenExr)
-            })
+            let plane = |ch: usize| -> Vec<f32> {
+                img.as_slice()
+                    .iter()
+                    .map(|p| if p[ch].is_finite() { p[ch] * gain } else { 0.0 })
+                    .collect()
+            };
+            let channels = vec![("R", plane(0)), ("G", plane(1)), ("B", plane(2))];
+            write_atomic(path, |tmp| write_exr(tmp, img.dims(), "color", channels))
         }
         "png" => {
             if bits16 {
@@ -584,24 +683,13 @@ pub fn save_depth(
     };
     match format {
         DepthFormat::Exr => {
-            use exr::prelude::*;
             let data: Vec<f32> = depth
                 .as_slice()
                 .iter()
                 .map(|z| if DepthMap::is_valid(*z) { *z } else { 0.0 })
                 .collect();
-            let channel = AnyChannel::new("Z", FlatSamples::F32(data));
-            let layer = Layer::new(
-                (w as usize, h as usize),
-                LayerAttributes::named("depth_m"),
-                Encoding::FAST_LOSSLESS,
-                AnyChannels::sort(SmallVec::from_vec(vec![channel])),
-            );
             let written = write_atomic(path, |tmp| {
-                exr::prelude::Image::from_layer(layer)
-                    .write()
-                    .to_file(tmp)
-                    .map_err(|e| e.to_string())
+                write_exr(tmp, depth.dims(), "depth_m", vec![("Z", data)])
             })?;
             Ok((written, 0))
         }
@@ -963,6 +1051,9 @@ mod tests {
             ("zero.pfm", b"Pf\n0 3\n-1.0\n"),
             ("magic.pfm", b"P5\n1 1\n255\n\x00"),
             ("header.pfm", b"Pf"),
+            ("nan.pfm", b"Pf\n1 1\nnan\n\x00\x00\x00\x00"),
+            ("inf.pfm", b"Pf\n1 1\n-inf\n\x00\x00\x00\x00"),
+            ("zeroscale.pfm", b"Pf\n1 1\n0.0\n\x00\x00\x00\x00"),
             ("bad.exr", b"v/1\x01garbage"),
             ("bad.jpg", b"\xff\xd8\xff\xe0 nonsense"),
         ];
@@ -989,6 +1080,120 @@ mod tests {
     }
 
     #[test]
+    fn the_same_image_is_written_as_the_same_bytes() {
+        let dir = tempfile::tempdir().unwrap();
+        // large enough for many chunks compressed in parallel
+        let (w, h) = (300, 257);
+        let color = ColorImage::from_fn(w, h, |x, y| {
+            let v = ((x * 7 + y * 13) % 97) as f32 / 97.0;
+            [v, 1.0 - v, (x ^ y) as f32 / 512.0]
+        });
+        let depth = DepthMap::from_fn(w, h, |x, y| {
+            if (x + y) % 11 == 0 {
+                0.0
+            } else {
+                0.5 + (x * y) as f32 * 1e-4
+            }
+        });
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(4)
+            .build()
+            .unwrap();
+        let mut seen: Vec<Vec<u8>> = Vec::new();
+        for i in 0..3 {
+            let (c, d) = (
+                dir.path().join(format!("c{i}.exr")),
+                dir.path().join(format!("d{i}.exr")),
+            );
+            pool.install(|| {
+                save_color(&color, &c, false, 0.0).unwrap();
+                save_depth(
+                    &depth,
+                    &d,
+                    &SaveDepthParams {
+                        path: String::new(),
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            });
+            let both = [fs::read(&c).unwrap(), fs::read(&d).unwrap()].concat();
+            if let Some(first) = seen.first() {
+                assert!(*first == both, "run {i} wrote other bytes");
+            }
+            seen.push(both);
+            // and the pixels come back
+            assert_eq!(load_color(&c, ColorSpace::Linear).unwrap(), color);
+            assert_eq!(load_depth(&d, &depth_params()).unwrap(), depth);
+        }
+    }
+
+    #[test]
+    fn headers_are_checked_against_the_budget_before_decoding() {
+        let dir = tempfile::tempdir().unwrap();
+        let exr = dir.path().join("d.exr");
+        let depth = DepthMap::from_fn(8, 6, |x, _| 1.0 + x as f32);
+        save_depth(
+            &depth,
+            &exr,
+            &SaveDepthParams {
+                path: String::new(),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let bytes = fs::read(&exr).unwrap();
+        let tight = Limits { max_pixels: 47 };
+        let e = decode_depth(&bytes, &exr, &depth_params(), &tight).unwrap_err();
+        assert!(
+            e.to_string().contains("8x6") && e.to_string().contains("47 pixels"),
+            "{e}"
+        );
+        assert!(decode_depth(&bytes, &exr, &depth_params(), &Limits { max_pixels: 48 }).is_ok());
+        // PNG, PNM and PFM alike
+        let png = dir.path().join("c.png");
+        save_color(&Image::filled(8, 6, [0.5f32; 3]), &png, false, 0.0).unwrap();
+        let b = fs::read(&png).unwrap();
+        assert!(decode_color(&b, &png, ColorSpace::Srgb, &tight).is_err());
+        assert!(decode_color(&b, &png, ColorSpace::Srgb, &Limits { max_pixels: 48 }).is_ok());
+        let pgm = b"P5\n8 6\n255\n"
+            .iter()
+            .copied()
+            .chain([7u8; 48])
+            .collect::<Vec<u8>>();
+        assert!(decode_pnm(&pgm, Path::new("x.pgm"), false, &tight).is_err());
+        assert!(decode_pnm(&pgm, Path::new("x.pgm"), false, &Limits { max_pixels: 48 }).is_ok());
+        let pfm = b"Pf\n8 6\n-1\n"
+            .iter()
+            .copied()
+            .chain([0u8; 192])
+            .collect::<Vec<u8>>();
+        assert!(decode_pfm(&pfm, Path::new("x.pfm"), &tight).is_err());
+        assert!(decode_pfm(&pfm, Path::new("x.pfm"), &Limits { max_pixels: 48 }).is_ok());
+    }
+
+    #[test]
+    fn a_failed_write_names_the_file_and_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let blocker = dir.path().join("file");
+        fs::write(&blocker, b"x").unwrap();
+        // a directory that cannot exist: its parent is a regular file
+        let target = blocker.join("sub").join("c.exr");
+        let e = save_color(&Image::filled(2, 2, [0.5f32; 3]), &target, false, 0.0).unwrap_err();
+        assert_eq!(e.kind(), FailureKind::Io, "{e}");
+        assert!(e.to_string().contains("sub"), "{e}");
+        // an I/O error inside the writer is an I/O error, not an encoding one
+        let t = dir.path().join("t.png");
+        let e = write_atomic(&t, |_| {
+            Err(std::io::Error::from(std::io::ErrorKind::StorageFull))
+        })
+        .unwrap_err();
+        assert_eq!(e.kind().exit_code(), 74, "{e}");
+        assert!(!t.exists());
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
     fn ply_binary_layout() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("m.ply");
@@ -1009,7 +1214,7 @@ mod tests {
         let target = dir.path().join("x.png");
         let r = write_atomic(&target, |tmp| {
             fs::write(tmp, b"partial").unwrap();
-            Err("boom".into())
+            Err(WriteFailure::Encode("boom".into()))
         });
         assert!(r.is_err());
         assert!(!target.exists());

@@ -1,23 +1,22 @@
 //! PFM (portable float map), as Middlebury stores disparity.
 
-use std::fs;
-use std::io::Read;
 use std::path::Path;
 
 use depthgraph_graph::prelude::*;
 
-use super::decode::{Samples, check_dims, decode_err};
+use super::decode::{Limits, Samples, check_dims, decode_err, read_file};
 
 /// Reads a PFM file (grey `Pf`, or `PF` whose first channel is used);
 /// rows are stored bottom-up; a negative scale means little-endian.
 pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
-    let mut bytes = Vec::new();
-    fs::File::open(path)
-        .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?;
+    decode_pfm(&read_file(path)?, path, &Limits::default())
+}
+
+/// [`read_pfm`] of a file's bytes (`path` names it in errors). The header
+/// is checked against `lim` before the samples are allocated; a scale that
+/// is zero or not finite is an error (its sign is the byte order, its
+/// magnitude a unit nobody could apply).
+pub fn decode_pfm(bytes: &[u8], path: &Path, lim: &Limits) -> Result<Samples, NodeError> {
     // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
     let mut tokens = Vec::new();
     let mut i = 0;
@@ -49,8 +48,21 @@ pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
     let scale: f64 = tokens[3]
         .parse()
         .map_err(|_| decode_err(path, format!("bad PFM scale `{}`", tokens[3])))?;
-    check_dims(path, w, h)?;
-    let need = w * h * channels * 4;
+    if !scale.is_finite() || scale == 0.0 {
+        return Err(decode_err(
+            path,
+            format!(
+                "bad PFM scale `{}`: expected a finite non-zero number (its sign is the byte order)",
+                tokens[3]
+            ),
+        ));
+    }
+    check_dims(path, w, h, lim)?;
+    // no overflow: w * h <= lim.max_pixels and channels * 4 <= 12
+    let need = w
+        .checked_mul(h)
+        .and_then(|n| n.checked_mul(channels * 4))
+        .ok_or_else(|| decode_err(path, "PFM dimensions overflow"))?;
     let data = bytes.get(i..).unwrap_or(&[]);
     if data.len() < need {
         return Err(decode_err(

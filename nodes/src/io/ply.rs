@@ -31,7 +31,7 @@ pub fn write_ply(
         )));
     }
     write_atomic(path, |tmp| {
-        let f = fs::File::create(tmp).map_err(|e| e.to_string())?;
+        let f = fs::File::create(tmp)?;
         let mut w = BufWriter::new(f);
         let mut header = format!(
             "ply\nformat {} 1.0\ncomment written by depthgraph (camera frame: x right, y down, z forward; metres)\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
@@ -55,8 +55,7 @@ pub fn write_ply(
             ));
         }
         header.push_str("end_header\n");
-        let io = |e: std::io::Error| e.to_string();
-        w.write_all(header.as_bytes()).map_err(io)?;
+        w.write_all(header.as_bytes())?;
         let c8 = |c: &[f32; 3]| c.map(srgb8);
         for i in 0..positions.len() {
             let p = positions[i];
@@ -71,32 +70,31 @@ pub fn write_ply(
                     line.push_str(&format!(" {} {} {}", c[0], c[1], c[2]));
                 }
                 line.push('\n');
-                w.write_all(line.as_bytes()).map_err(io)?;
+                w.write_all(line.as_bytes())?;
             } else {
                 for v in p {
-                    w.write_all(&v.to_le_bytes()).map_err(io)?;
+                    w.write_all(&v.to_le_bytes())?;
                 }
                 if has_n {
                     for v in normals[i] {
-                        w.write_all(&v.to_le_bytes()).map_err(io)?;
+                        w.write_all(&v.to_le_bytes())?;
                     }
                 }
                 if has_c {
-                    w.write_all(&c8(&colors[i])).map_err(io)?;
+                    w.write_all(&c8(&colors[i]))?;
                 }
             }
         }
         for t in triangles {
             if ascii {
-                w.write_all(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes())
-                    .map_err(io)?;
+                w.write_all(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes())?;
             } else {
-                w.write_all(&[3u8]).map_err(io)?;
+                w.write_all(&[3u8])?;
                 for i in t {
-                    w.write_all(&i.to_le_bytes()).map_err(io)?;
+                    w.write_all(&i.to_le_bytes())?;
                 }
             }
         }
-        w.flush().map_err(io)
+        w.flush()
     })
 }

@@ -1,12 +1,11 @@
 //! Binary PNM (`P5` grey, `P6` RGB, 8 or 16 bit), as the NYU toolbox
 //! writes its raw frames.
 
-use std::fs;
 use std::path::Path;
 
 use depthgraph_graph::prelude::*;
 
-use super::decode::{check_dims, decode_err, srgb8_table, srgb16_table};
+use super::decode::{Limits, check_dims, decode_err, read_file, srgb8_table, srgb16_table};
 use crate::kit::color::srgb_to_linear;
 
 /// A binary PNM file (`P5` grey or `P6` RGB, 8 or 16 bit).
@@ -28,10 +27,22 @@ pub struct Pnm {
 /// format says, unless `little_endian_16` (the NYU Depth v2 raw dumps store
 /// little-endian samples under a PGM header, see `nyu_raw` in [`LoadDepthParams`]).
 pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
-    let bytes = fs::read(path).map_err(|source| NodeError::Io {
-        path: path.to_path_buf(),
-        error: source,
-    })?;
+    decode_pnm(
+        &read_file(path)?,
+        path,
+        little_endian_16,
+        &Limits::default(),
+    )
+}
+
+/// [`read_pnm`] of a file's bytes (`path` names it in errors), the header
+/// checked against `lim` before the samples are allocated.
+pub fn decode_pnm(
+    bytes: &[u8],
+    path: &Path,
+    little_endian_16: bool,
+    lim: &Limits,
+) -> Result<Pnm, NodeError> {
     // header: magic, width, height, maxval, separated by whitespace and comments
     let mut pos = 0usize;
     let mut tokens: Vec<String> = Vec::new();
@@ -72,7 +83,7 @@ pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
             .map_err(|_| decode_err(path, format!("bad PNM {what} \"{}\"", tokens[i])))
     };
     let (w, h, maxval) = (num(1, "width")?, num(2, "height")?, num(3, "maxval")?);
-    check_dims(path, w, h)?;
+    check_dims(path, w, h, lim)?;
     if maxval == 0 || maxval > 65535 {
         return Err(decode_err(
             path,
@@ -125,8 +136,7 @@ pub(super) fn is_pnm(path: &Path) -> bool {
 }
 
 /// A PNM color file as linear RGB (grey is replicated).
-pub(super) fn load_pnm_color(path: &Path, srgb: bool) -> Result<ColorImage, NodeError> {
-    let pnm = read_pnm(path, false)?;
+pub(super) fn pnm_color(pnm: Pnm, path: &Path, srgb: bool) -> Result<ColorImage, NodeError> {
     // guard: maxval >= 1 (checked in read_pnm)
     let inv = 1.0 / pnm.maxval as f32;
     let t8 = srgb8_table();

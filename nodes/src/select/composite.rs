@@ -209,7 +209,7 @@ pub fn passthrough(i: &CompositeIn) -> Result<Option<Produced<CompositeOut>>, No
     same("pasted_alpha", pa.dims(), tc.dims())?;
     let out = CompositeOut {
         color: tc.clone(),
-        depth: td.clone(),
+        depth: DepthMap::canonical_holes(td),
         alpha: Mask::filled(tc.width(), tc.height(), 0.0),
     };
     Ok(Some(Produced::passthrough(out, why)))
@@ -227,7 +227,7 @@ fn eval(
     let r = occlusion_composite(tc, td, &i.pasted_color, &i.pasted_depth, pa, p)?;
     Ok(CompositeOut {
         color: Arc::new(r.color),
-        depth: Arc::new(r.depth),
+        depth: DepthMap::canonical_holes(&Arc::new(r.depth)),
         alpha: r.alpha,
     }
     .into())

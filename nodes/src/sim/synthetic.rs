@@ -1694,6 +1694,7 @@ mod tests {
             out_dir: std::path::Path::new("."),
             input_files: &[],
             derivations: None,
+            max_pixels: depthgraph_graph::node::DEFAULT_MAX_PIXELS,
         };
         let out = node.eval(&ctx, &Inputs::new(), &params).unwrap();
         for port in &node.schema().outputs {

@@ -35,6 +35,7 @@ impl TestCtx {
             out_dir: std::path::Path::new("."),
             input_files: &[],
             derivations: None,
+            max_pixels: depthgraph_graph::node::DEFAULT_MAX_PIXELS,
         }
     }
 }

@@ -179,12 +179,14 @@ pub fn inpaint_passthrough(i: &NLMeansIn) -> Result<Option<Produced<NLMeansOut>>
             depth.dims(),
         )?;
         check_confidence(i.confidence.as_deref(), depth)?;
+        // the input's confidence as it is when it is one (in [0, 1]),
+        // else sanitised as a real run reads it (NaN as 0, clamped)
         let confidence = match &i.confidence {
-            Some(c) => Arc::clone(c),
-            None => Arc::new(image(
+            Some(c) if c.as_slice().iter().all(|v| (0.0..=1.0).contains(v)) => Arc::clone(c),
+            c => Arc::new(image(
                 depth.width(),
                 depth.height(),
-                sanitize(depth, None).1,
+                sanitize(depth, c.as_deref()).1,
             )?),
         };
         let out = NLMeansOut {
@@ -1040,6 +1042,7 @@ mod tests {
             out_dir: std::path::Path::new("."),
             input_files: &[],
             derivations: None,
+            max_pixels: depthgraph_graph::node::DEFAULT_MAX_PIXELS,
         };
         for kind in ["NLMeansDepth", "NLMeansUpsample", "NLMeansInpaint"] {
             let node = reg.get(kind).unwrap();
