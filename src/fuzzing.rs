@@ -114,11 +114,16 @@ pub fn set_override(data: &[u8]) {
     let Ok(text) = std::str::from_utf8(data) else {
         return;
     };
-    let Ok(reg) = depthgraph_nodes::registry() else {
-        panic!("the registry cannot be built");
-    };
-    let Ok(base) = Document::parse(SET_BASE, "base.ron") else {
-        panic!("the base pipeline does not parse");
+    // built once per fuzzing process (this is the harness, not a node):
+    // the target then runs thousands of times a second
+    static FIXTURE: std::sync::OnceLock<Option<(Registry, Document)>> = std::sync::OnceLock::new();
+    let fixture = FIXTURE.get_or_init(|| {
+        let reg = depthgraph_nodes::registry().ok()?;
+        let base = Document::parse(SET_BASE, "base.ron").ok()?;
+        Some((reg, base))
+    });
+    let Some((reg, base)) = fixture else {
+        panic!("the registry or the base pipeline cannot be built");
     };
     let checked = |set: &str| -> Option<Pipeline> {
         let mut doc = base.clone();
@@ -136,7 +141,7 @@ pub fn set_override(data: &[u8]) {
                 return None;
             }
         }
-        Pipeline::check(&doc, &reg).ok()
+        Pipeline::check(&doc, reg).ok()
     };
     let Some(first) = checked(text) else {
         return;

@@ -54,6 +54,51 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
     };
     io::save_depth(&depth, &p, &params).unwrap();
     out.push(("load_exr", "depth.exr".into(), read(&p)));
+    // EXR as other writers make them: f16, f32 and u32 channels, ZIP,
+    // PIZ and uncompressed, scan lines and tiles
+    {
+        use exr::prelude::*;
+        let (w, h) = (5usize, 3usize);
+        let cases: [(&str, FlatSamples, Encoding); 3] = [
+            (
+                "f16_zip.exr",
+                FlatSamples::F16((0..w * h).map(|i| f16::from_f32(0.1 * i as f32)).collect()),
+                Encoding {
+                    compression: Compression::ZIP16,
+                    blocks: Blocks::ScanLines,
+                    line_order: LineOrder::Increasing,
+                },
+            ),
+            (
+                "u32_piz_tiles.exr",
+                FlatSamples::U32((0..w * h).map(|i| i as u32 * 100).collect()),
+                Encoding {
+                    compression: Compression::PIZ,
+                    blocks: Blocks::Tiles(Vec2(4, 4)),
+                    line_order: LineOrder::Increasing,
+                },
+            ),
+            (
+                "f32_raw.exr",
+                FlatSamples::F32(depth.as_slice().to_vec()),
+                Encoding::UNCOMPRESSED,
+            ),
+        ];
+        for (name, samples, encoding) in cases {
+            let layer = Layer::new(
+                (w, h),
+                LayerAttributes::named("seed"),
+                encoding,
+                AnyChannels::sort(SmallVec::from_vec(vec![AnyChannel::new("Z", samples)])),
+            );
+            let p = d.join(name);
+            exr::prelude::Image::from_layer(layer)
+                .write()
+                .to_file(&p)
+                .unwrap();
+            out.push(("load_exr", name.to_string(), std::fs::read(&p).unwrap()));
+        }
+    }
     // PFM in both byte orders
     for (name, scale, le) in [("le.pfm", "-1.0", true), ("be.pfm", "1.0", false)] {
         let mut b = format!("Pf\n5 3\n{scale}\n").into_bytes();
