@@ -53,7 +53,7 @@ fn explain_json(
 fn explain_names_the_wgpu_backend_and_adapter_of_each_device_node() {
     let out = tempfile::tempdir().unwrap();
     let cases: [(&str, &[&str]); 2] = [
-        ("refocus.ron", &["fill", "refocus"]),
+        ("refocus.ron", &["upsample", "fill", "refocus"]),
         ("depth_fill.ron", &["baseline", "fill", "nlm", "smooth"]),
     ];
     for (file, device) in cases {

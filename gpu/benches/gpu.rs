@@ -266,6 +266,22 @@ fn main() {
         &np.to_values(),
         repeats.min(3),
     ));
+    // NL-means upsampling x4: 160x120 depth (every 4th pixel of the scene's)
+    // onto the 640x480 colour
+    let low = DepthMap::from_fn(160, 120, |x, y| *depth.get(4 * x + 2, 4 * y + 2));
+    let mut ui = Inputs::new();
+    ui.insert("depth", Value::Depth(Arc::new(low)));
+    ui.insert("intrinsics", Value::Intrinsics(k.scaled_to(160, 120)));
+    ui.insert("color", Value::Color(color.clone()));
+    let up = depthgraph_nodes::depth::nlmeans::NLMeansUpsampleParams::default();
+    rows.push(node_row(
+        "NLMeansUpsample 160x120 -> 640x480",
+        &regs,
+        "NLMeansUpsample",
+        &ui,
+        &up.to_values(),
+        repeats.min(3),
+    ));
     let disc = Mask::from_fn(640, 480, |x, y| {
         let (dx, dy) = (x as f32 - 320.0, y as f32 - 240.0);
         if dx * dx + dy * dy < 150.0 * 150.0 {

@@ -16,7 +16,7 @@
 //! - [`shaders`]: the WGSL sources (`src/shaders/`), one file per kind;
 //! - one module per device kind: [`pull_push`] (PullPush, DualPullPush),
 //!   [`bilateral`] (JointBilateral), [`nlmeans`] (NLMeansDepth,
-//!   NLMeansInpaint), [`edges`] (EdgeDetect), [`feather`] (Feather),
+//!   NLMeansInpaint, NLMeansUpsample), [`edges`] (EdgeDetect), [`feather`] (Feather),
 //!   [`composite`] (OcclusionComposite), [`refocus`] (Refocus).
 //!
 //! Numerics on the device are f32; each module states its bound against the
@@ -66,6 +66,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "OcclusionComposite", composite::eval)?;
     node::register_device(reg, ctx, "NLMeansInpaint", nlmeans::eval_inpaint)?;
     node::register_device(reg, ctx, "NLMeansDepth", nlmeans::eval_depth)?;
+    node::register_device(reg, ctx, "NLMeansUpsample", nlmeans::eval_upsample)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

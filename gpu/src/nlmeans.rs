@@ -1,4 +1,7 @@
-//! `NLMeansInpaint` and `NLMeansDepth` on the device (for NLMeansDepth: the
+//! `NLMeansInpaint`, `NLMeansDepth` and `NLMeansUpsample` on the device
+//! (for NLMeansUpsample: the placement of the samples on the CPU, the first
+//! pass of eq. 4 in `shaders/nlmeans_upsample.wgsl`, the inpainting of what
+//! it leaves through the same pass as NLMeansInpaint; for NLMeansDepth: the
 //! pruning on the CPU, the filter's one pass on the device, targets the
 //! valid pixels, a pixel without a source keeping its input with
 //! confidence 0, as on the CPU). For the inpainting each iteration's pass runs on the
@@ -13,7 +16,8 @@
 //! device sums in f32 (the patch distances compensated), the CPU in f64;
 //! weights `exp(-d)` carry the distances' rounding (a few ulps of a
 //! distance of order 10), so an estimate moves by about 1e-6 of the spread
-//! of the depths it averages (measured: at most 8e-7 z, confidences 4e-7). Where a weight underflows f32 but not
+//! of the depths it averages (measured: at most 8e-7 z, confidences 4e-7; the upsampling's log-domain
+//! blend of eq. 4 adds a few ulps: 3.9e-7 z, 3.0e-7). Where a weight underflows f32 but not
 //! f64 (confidences below ~1e-30) the filled sets could differ; the tests'
 //! scenes do not reach that.
 
@@ -23,8 +27,9 @@ use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::depth::nlmeans::{
-    NLMeansDepthParams, NLMeansIn, NLMeansInpaintParams, NLMeansOut, PassJob, PassRunner,
-    inpaint_passthrough, nlmeans_denoise_on, nlmeans_inpaint_on,
+    NLMeansDepthParams, NLMeansIn, NLMeansInpaintParams, NLMeansOut, NLMeansUpsampleParams,
+    PassJob, PassRunner, UpsampleIn, UpsampleJob, UpsampleOut, inpaint_passthrough,
+    nlmeans_denoise_on, nlmeans_inpaint_on, nlmeans_upsample_on,
 };
 
 use crate::context::PooledBuffer;
@@ -61,6 +66,52 @@ struct Params {
     far: u32,
 }
 
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct UpsampleParams {
+    w: u32,
+    h: u32,
+    lw: u32,
+    lh: u32,
+    search: u32,
+    patch: u32,
+    r0: u32,
+    r1: u32,
+    r2: u32,
+    n_boxes: u32,
+    low_patch: u32,
+    has_color: u32,
+    has_depth: u32,
+    pad_u: [u32; 3],
+    coef0: f32,
+    coef1: f32,
+    coef2: f32,
+    cap: f32,
+    inv_hc2: f32,
+    inv_hd2: f32,
+    inv_low_area: f32,
+    ln_alpha: f32,
+    ln_one_minus_alpha: f32,
+    pad_f: [f32; 3],
+}
+
+/// An index of the CPU's (`usize::MAX` for none) as the kernel's `u32`
+/// (`u32::MAX` for none); `None` when it does not fit.
+fn index_u32(i: usize) -> Option<u32> {
+    if i == usize::MAX {
+        Some(u32::MAX)
+    } else {
+        u32::try_from(i).ok().filter(|v| *v != u32::MAX)
+    }
+}
+
+/// What f32 on the device cannot hold as the CPU does: subnormal depths or
+/// confidences (a device may flush them to 0, which would change which
+/// pixels are sources) and depths beyond 1e18 m (their squares overflow).
+fn outside_f32(v: &f32) -> bool {
+    *v != 0.0 && (v.abs() < f32::MIN_POSITIVE || v.abs() > 1e18)
+}
+
 /// The passes on the device; the guide is uploaded once for all of them.
 struct DeviceRunner<'s, 'c> {
     s: &'s mut Session<'c>,
@@ -83,13 +134,9 @@ impl PassRunner for DeviceRunner<'_, '_> {
                 job.radii.len()
             )));
         }
-        // What f32 on the device cannot hold as the CPU does: subnormal
-        // depths or confidences (a device may flush them to 0, which would
-        // change which pixels are sources) and depths beyond 1e18 m (their
-        // squares overflow). Such a job, and one too costly for a single
-        // dispatch, runs on the CPU (the node falls back as a whole).
-        let odd = |v: &f32| *v != 0.0 && (v.abs() < f32::MIN_POSITIVE || v.abs() > 1e18);
-        if job.z.iter().any(odd) || job.c.iter().any(odd) {
+        // Such a job, and one too costly for a single dispatch, runs on the
+        // CPU (the node falls back as a whole).
+        if job.z.iter().any(outside_f32) || job.c.iter().any(outside_f32) {
             return Err(s.too_large(
                 "depths or confidences outside the device's f32 range (subnormal, or above 1e18)",
             ));
@@ -150,6 +197,119 @@ impl PassRunner for DeviceRunner<'_, '_> {
             .map(|r| (r[2] > 0.0).then_some((r[0], r[1])))
             .collect())
     }
+
+    fn run_upsample(
+        &mut self,
+        job: &UpsampleJob,
+        progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+        let s = &mut *self.s;
+        let p = &job.pass;
+        let (w, h) = (p.w, p.h);
+        let (lw, lh) = job.low;
+        s.check_grid(w, h, 8)?;
+        let n = w * h;
+        if p.radii.is_empty() || p.radii.len() > 3 || p.coef.len() != p.radii.len() {
+            return Err(NodeError::Invalid(format!(
+                "NL-means patch kernel with {} boxes: the device kernel takes 1 to 3",
+                p.radii.len()
+            )));
+        }
+        if p.guide.len() != n
+            || job.sample_at.len() != n
+            || job.lo_col.len() != w
+            || job.lo_row.len() != h
+            || job.lz.len() != lw * lh
+            || job.lc.len() != lw * lh
+        {
+            return Err(NodeError::Invalid(
+                "NL-means upsampling buffers of another size than the grids".into(),
+            ));
+        }
+        if job.lz.iter().any(outside_f32) || job.lc.iter().any(outside_f32) {
+            return Err(s.too_large(
+                "depths or confidences outside the device's f32 range (subnormal, or above 1e18)",
+            ));
+        }
+        let low_area = (2 * job.low_patch + 1).pow(2) as f64;
+        let window =
+            (2 * p.search + 1).pow(2) as f64 * ((2 * p.patch + 1).pow(2) as f64 + low_area);
+        if window * n as f64 > MAX_WORK {
+            return Err(s.too_large(&format!(
+                "{:.1e} patch-pixel comparisons exceed one dispatch's budget ({MAX_WORK:.0e})",
+                window * n as f64
+            )));
+        }
+        let indices = |v: &[usize]| -> Result<Vec<u32>, NodeError> {
+            v.iter()
+                .map(|&i| index_u32(i))
+                .collect::<Option<Vec<u32>>>()
+                .ok_or_else(|| NodeError::Invalid("a low-resolution index beyond u32".into()))
+        };
+        let sample_at = indices(job.sample_at)?;
+        let axis = indices(&[job.lo_col, job.lo_row].concat())?;
+        let r = |k: usize| p.radii.get(k).copied().unwrap_or(0) as u32;
+        let c = |k: usize| p.coef.get(k).copied().unwrap_or(0.0) as f32;
+        let n_low = 2 * job.low_patch + 1;
+        let params = UpsampleParams {
+            w: w as u32,
+            h: h as u32,
+            lw: lw as u32,
+            lh: lh as u32,
+            search: p.search as u32,
+            patch: p.patch as u32,
+            r0: r(0),
+            r1: r(1),
+            r2: r(2),
+            n_boxes: p.radii.len() as u32,
+            low_patch: job.low_patch as u32,
+            has_color: u32::from(job.alpha > 0.0),
+            has_depth: u32::from(job.alpha < 1.0),
+            pad_u: [0; 3],
+            coef0: c(0),
+            coef1: c(1),
+            coef2: c(2),
+            cap: p.cap.min(f32::MAX as f64) as f32,
+            inv_hc2: p.inv_hc2 as f32,
+            inv_hd2: p.inv_hd2 as f32,
+            // guard: n_low >= 1
+            inv_low_area: (1.0 / (n_low * n_low) as f64) as f32,
+            // only read where the term exists (alpha > 0, alpha < 1)
+            ln_alpha: if job.alpha > 0.0 {
+                job.alpha.ln() as f32
+            } else {
+                0.0
+            },
+            ln_one_minus_alpha: if job.alpha < 1.0 {
+                (1.0 - job.alpha).ln() as f32
+            } else {
+                0.0
+            },
+            pad_f: [0.0; 3],
+        };
+        let g: Vec<[f32; 4]> = p.guide.iter().map(|g| [g[0], g[1], g[2], 0.0]).collect();
+        let guide = s.upload(bytes_of(&g))?;
+        let low: Vec<[f32; 2]> = job.lz.iter().zip(job.lc).map(|(&z, &c)| [z, c]).collect();
+        let kernel = s.kernel(&shaders::NLMEANS_UPSAMPLE)?;
+        let uniform = s.uniform(bytemuck::bytes_of(&params))?;
+        let low_buf = s.upload(bytes_of(&low))?;
+        let at_buf = s.upload(bytes_of(&sample_at))?;
+        let axis_buf = s.upload(bytes_of(&axis))?;
+        let out = s.scratch(16 * n as u64)?;
+        let bg = s.bind(
+            &kernel,
+            &[&uniform, &guide, &low_buf, &at_buf, &axis_buf, &out],
+        );
+        let encoder = s.image_passes(&[(&kernel, &bg)], (w, h));
+        let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
+        // the inpainting that follows uses the same guide
+        self.guide = Some(guide);
+        progress(1.0)?;
+        Ok(f32s(&back[0])
+            .chunks_exact(4)
+            .map(|r| (r[2] > 0.0).then_some((r[0], r[1])))
+            .collect())
+    }
 }
 
 /// Runs `f` (one of the CPU's `*_on` functions) with the passes on the
@@ -195,6 +355,37 @@ pub fn eval_inpaint(
             runner,
         )
     })
+}
+
+/// The device evaluation of `NLMeansUpsample`: the samples placed on the
+/// CPU, the first pass and the inpainting's passes on the device.
+pub fn eval_upsample(
+    s: &mut Session,
+    ctx: &EvalCtx,
+    i: UpsampleIn,
+    p: &NLMeansUpsampleParams,
+) -> Result<Produced<UpsampleOut>, NodeError> {
+    let mut runner = DeviceRunner { s, guide: None };
+    let progress = |f: f32| {
+        ctx.progress(f);
+        ctx.check_cancelled()
+    };
+    let color_k = i.color_intrinsics.as_ref();
+    let (depth, confidence, intrinsics) = nlmeans_upsample_on(
+        &i.depth,
+        &i.intrinsics,
+        &i.color,
+        color_k,
+        p,
+        progress,
+        &mut runner,
+    )?;
+    Ok(UpsampleOut {
+        depth,
+        confidence,
+        intrinsics,
+    }
+    .into())
 }
 
 /// The device evaluation of `NLMeansDepth`: the pruning on the CPU, the

@@ -1,6 +1,8 @@
-//! The WGSL sources, each prefixed with `common.wgsl`.
+//! The WGSL sources, each prefixed with `common.wgsl` (and the NL-means
+//! kernels with `nlmeans_acc.wgsl`, the running sums they share).
 
 const COMMON: &str = include_str!("shaders/common.wgsl");
+const NLMEANS_ACC: &str = include_str!("shaders/nlmeans_acc.wgsl");
 
 /// A kernel's source and entry point.
 #[derive(Debug, Clone, Copy)]
@@ -11,22 +13,28 @@ pub struct Kernel {
     pub body: &'static str,
     /// Entry point.
     pub entry: &'static str,
+    /// Shared WGSL between the common helpers and the body (or nothing).
+    pub shared: &'static str,
 }
 
 impl Kernel {
-    /// The full source: the common helpers, then the body.
+    /// The full source: the common helpers, the shared part, then the body.
     pub fn source(&self) -> String {
-        format!("{COMMON}\n{}", self.body)
+        format!("{COMMON}\n{}\n{}", self.shared, self.body)
     }
 }
 
 macro_rules! kernel {
     ($name:ident, $file:literal, $entry:literal) => {
+        kernel!($name, $file, $entry, "");
+    };
+    ($name:ident, $file:literal, $entry:literal, $shared:expr) => {
         #[doc = concat!("`", $file, "`, entry `", $entry, "`.")]
         pub const $name: Kernel = Kernel {
             name: concat!($file, "::", $entry),
             body: include_str!(concat!("shaders/", $file)),
             entry: $entry,
+            shared: $shared,
         };
     };
 }
@@ -47,7 +55,13 @@ kernel!(FEATHER_HORIZONTAL, "feather.wgsl", "horizontal");
 kernel!(FEATHER_VERTICAL, "feather.wgsl", "vertical");
 kernel!(EDGES, "edges.wgsl", "main");
 kernel!(COMPOSITE, "composite.wgsl", "main");
-kernel!(NLMEANS, "nlmeans.wgsl", "main");
+kernel!(NLMEANS, "nlmeans.wgsl", "main", NLMEANS_ACC);
+kernel!(
+    NLMEANS_UPSAMPLE,
+    "nlmeans_upsample.wgsl",
+    "main",
+    NLMEANS_ACC
+);
 
 /// Every kernel (the test that compiles them all reads this list).
 pub const ALL: &[Kernel] = &[
@@ -68,4 +82,5 @@ pub const ALL: &[Kernel] = &[
     EDGES,
     COMPOSITE,
     NLMEANS,
+    NLMEANS_UPSAMPLE,
 ];

@@ -1,4 +1,4 @@
-//! NLMeansInpaint: device against CPU.
+//! NLMeansInpaint, NLMeansDepth and NLMeansUpsample: device against CPU.
 
 mod common;
 
@@ -8,7 +8,9 @@ use common::*;
 use depthgraph_gpu::nlmeans::REL_TOL;
 use depthgraph_gpu::parity::depth_within;
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::depth::nlmeans::{NLMeansDepthParams, NLMeansInpaintParams};
+use depthgraph_nodes::depth::nlmeans::{
+    NLMeansDepthParams, NLMeansInpaintParams, NLMeansUpsampleParams,
+};
 use depthgraph_nodes::kit::rng::SplitMix64;
 
 fn conf_of(o: &Outputs) -> Arc<Confidence> {
@@ -186,4 +188,99 @@ fn subnormal_confidences_run_on_the_cpu() {
     let origin = b.origin.unwrap();
     assert_eq!(origin.backend, "cpu");
     assert!(origin.note.unwrap().contains("f32 range"));
+}
+
+/// Low-resolution depth (every `factor`-th pixel of the scene's, holes
+/// kept) with its intrinsics, and the scene's colour as the guide.
+fn upsample_inputs(w: usize, h: usize, factor: usize, seed: u64) -> Inputs {
+    let full = scene(w, h, seed);
+    let (Some(Value::Depth(d)), Some(Value::Color(c))) = (full.get("depth"), full.get("color"))
+    else {
+        panic!("scene without depth or colour")
+    };
+    let (lw, lh) = (w / factor, h / factor);
+    let low = DepthMap::from_fn(lw, lh, |x, y| {
+        *d.get(x * factor + factor / 2, y * factor + factor / 2)
+    });
+    let f = 1.2 * lw as f64;
+    let k = Intrinsics {
+        fx: f,
+        fy: f,
+        cx: lw as f64 / 2.0,
+        cy: lh as f64 / 2.0,
+        width: lw,
+        height: lh,
+    };
+    let mut i = Inputs::new();
+    i.insert("depth", Value::Depth(Arc::new(low)));
+    i.insert("intrinsics", Value::Intrinsics(k));
+    i.insert("color", Value::Color(c.clone()));
+    i
+}
+
+#[test]
+fn upsampling_agrees_with_the_cpu_within_its_stated_bound() {
+    for (seed, factor, p) in [
+        (11, 4, NLMeansUpsampleParams::default()),
+        (
+            12,
+            2,
+            NLMeansUpsampleParams {
+                alpha: 0.0,
+                prune: false,
+                ..Default::default()
+            },
+        ),
+        (
+            13,
+            4,
+            NLMeansUpsampleParams {
+                alpha: 1.0,
+                iterations: 0,
+                ..Default::default()
+            },
+        ),
+        (
+            14,
+            3,
+            NLMeansUpsampleParams {
+                alpha: 0.3,
+                low_patch_radius: 2,
+                patch_radius: 1,
+                ..Default::default()
+            },
+        ),
+    ] {
+        let i = upsample_inputs(60, 48, factor, seed);
+        let (cpu, dev) = both("NLMeansUpsample", &i, &p.to_values());
+        assert_eq!(
+            dev.origin.as_ref().map(|o| o.backend.as_str()),
+            Some("wgpu")
+        );
+        let (a, b) = (depth_of(&cpu, "depth"), depth_of(&dev, "depth"));
+        let r = depth_within(&a, &b, REL_TOL).unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        let dc = conf_diff(&conf_of(&cpu), &conf_of(&dev));
+        assert!(dc <= REL_TOL, "{p:?}: confidence differs by {dc}");
+        assert!(a.hole_count() < a.len(), "nothing upsampled");
+        eprintln!(
+            "upsample seed {seed} x{factor}: max |dz|/z {:.2e}, max |dc| {dc:.2e}",
+            r.max_rel
+        );
+    }
+}
+
+#[test]
+fn the_upsampling_check_fails_on_a_perturbed_result() {
+    let i = upsample_inputs(48, 36, 4, 15);
+    let p = NLMeansUpsampleParams::default();
+    let (cpu, dev) = both("NLMeansUpsample", &i, &p.to_values());
+    let (a, b) = (depth_of(&cpu, "depth"), depth_of(&dev, "depth"));
+    assert!(depth_within(&a, &b, REL_TOL).is_ok());
+    let t = a.as_slice().iter().position(|z| *z > 0.0).unwrap();
+    let mut off = (*b).clone();
+    off.as_mut_slice()[t] *= 1.0 + 3.0 * REL_TOL as f32;
+    assert!(depth_within(&a, &off, REL_TOL).is_err());
+    let mut hole = (*b).clone();
+    hole.as_mut_slice()[t] = 0.0;
+    assert!(depth_within(&a, &hole, REL_TOL).is_err());
 }

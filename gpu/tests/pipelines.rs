@@ -129,7 +129,9 @@ fn check(file: &str, expect_device: &[&str]) {
                         "JointBilateral" => depthgraph_gpu::bilateral::REL_TOL,
                         "PullPush" => depthgraph_gpu::pull_push::REL_TOL,
                         "DualPullPush" => depthgraph_gpu::pull_push::DUAL_REL_TOL,
-                        "NLMeansInpaint" | "NLMeansDepth" => depthgraph_gpu::nlmeans::REL_TOL,
+                        "NLMeansInpaint" | "NLMeansDepth" | "NLMeansUpsample" => {
+                            depthgraph_gpu::nlmeans::REL_TOL
+                        }
                         other => panic!("{file} {key}: no depth check for {other}"),
                     };
                     // a device node upstream adds its bound to the input's
@@ -195,6 +197,10 @@ fn check(file: &str, expect_device: &[&str]) {
                     let tol = depthgraph_gpu::nlmeans::REL_TOL * if upstream { 100.0 } else { 1.0 };
                     assert!(worst <= tol, "{file} {key}: {worst}");
                 }
+                // decided on the CPU by both backends: the very same value
+                (Value::Intrinsics(x), Value::Intrinsics(y), true) => {
+                    assert_eq!(x, y, "{file} {key}: intrinsics differ");
+                }
                 (_, _, true) => panic!("{file} {key}: no check for {} output", n.kind),
                 _ if !touched.contains(&i) => {
                     let (sa, sb) = (va.samples(), vb.samples());
@@ -243,7 +249,10 @@ fn check(file: &str, expect_device: &[&str]) {
 
 #[test]
 fn refocus_pipeline_agrees() {
-    check("refocus.ron", &["NLMeansInpaint", "Refocus"]);
+    check(
+        "refocus.ron",
+        &["NLMeansInpaint", "NLMeansUpsample", "Refocus"],
+    );
 }
 
 #[test]

@@ -38,68 +38,6 @@ struct Params {
 // (estimate, confidence, found, 0) per pixel
 @group(0) @binding(4) var<storage, read_write> result: array<vec4<f32>>;
 
-const SMALLEST_NORMAL: f32 = 1.17549435e-38;
-
-fn clampi(v: i32, n: u32) -> u32 {
-    return u32(clamp(v, 0, i32(n) - 1));
-}
-
-// The running sums of one target (the CPU's Acc, in f32).
-struct Acc {
-    has_s: bool,
-    ms: f32,
-    sim: f32,
-    sim_conf: f32,
-    has_w: bool,
-    mw: f32,
-    w: f32,
-    wv: f32,
-    lo: f32,
-    hi: f32,
-}
-
-fn add(a: ptr<function, Acc>, e: f32, conf: f32, prior: f32, v: f32) {
-    // NaN and -inf weigh nothing (the CPU skips them)
-    if (is_non_finite(e)) {
-        return;
-    }
-    if (!(*a).has_s) {
-        (*a).has_s = true;
-        (*a).ms = e;
-    } else if (e > (*a).ms) {
-        let k = exp((*a).ms - e);
-        (*a).sim = (*a).sim * k;
-        (*a).sim_conf = (*a).sim_conf * k;
-        (*a).ms = e;
-    }
-    let s = exp(e - (*a).ms);
-    (*a).sim = (*a).sim + s;
-    if (conf <= 0.0) {
-        return;
-    }
-    (*a).sim_conf = (*a).sim_conf + s * conf;
-    if (!(*a).has_w) {
-        (*a).has_w = true;
-        (*a).mw = e;
-    } else if (e > (*a).mw) {
-        let k = exp((*a).mw - e);
-        (*a).w = (*a).w * k;
-        (*a).wv = (*a).wv * k;
-        (*a).mw = e;
-    }
-    var rel = s;
-    if ((*a).mw != (*a).ms) {
-        rel = exp(e - (*a).mw);
-    }
-    let wgt = rel * conf * prior;
-    if (wgt > 0.0) {
-        (*a).w = (*a).w + wgt;
-        (*a).wv = (*a).wv + wgt * v;
-        (*a).lo = min((*a).lo, v);
-        (*a).hi = max((*a).hi, v);
-    }
-}
-
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= P.w || gid.y >= P.h) {
@@ -112,7 +50,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         result[i] = vec4<f32>(0.0);
         return;
     }
-    var acc = Acc(false, 0.0, 0.0, 0.0, false, 0.0, 0.0, 0.0, 3.4e38, -3.4e38);
+    var acc = acc_empty();
     let big_r = i32(P.search);
     let r = i32(P.patch_r);
     let zi = zc[i];
@@ -188,19 +126,5 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             add(&acc, -(dist + xi), cj, prior, zj);
         }
     }
-    // the CPU's Acc::finish
-    if (!(acc.w > 0.0) || is_non_finite(acc.w)) {
-        result[i] = vec4<f32>(0.0);
-        return;
-    }
-    let est = min(max(acc.wv / acc.w, acc.lo), acc.hi);
-    if (!is_valid_depth(est)) {
-        result[i] = vec4<f32>(0.0);
-        return;
-    }
-    var conf = 0.0;
-    if (acc.sim > 0.0) {
-        conf = acc.sim_conf / acc.sim;
-    }
-    result[i] = vec4<f32>(est, clamp(conf, SMALLEST_NORMAL, 1.0), 1.0, 0.0);
+    result[i] = finish(acc);
 }

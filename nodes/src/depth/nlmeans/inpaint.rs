@@ -103,6 +103,16 @@ pub trait PassRunner {
         job: &PassJob,
         progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
     ) -> Result<Vec<Option<(f32, f32)>>, NodeError>;
+
+    /// The first pass of the upsampling (eq. 4), on the CPU unless the
+    /// runner has its own.
+    fn run_upsample(
+        &mut self,
+        job: &super::upsample::UpsampleJob,
+        progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+    ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+        super::upsample::cpu_upsample_pass(job, progress)
+    }
 }
 
 /// The NL-means pass on the CPU (bands of rows in parallel, box sums).

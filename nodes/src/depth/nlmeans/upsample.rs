@@ -124,6 +124,78 @@ pub(super) fn log_add_exp(a: f64, b: f64) -> f64 {
     hi + (lo - hi).exp().ln_1p()
 }
 
+/// The first pass of the upsampling (eq. 4) as flat buffers, for a backend
+/// that runs it elsewhere (the GPU): the colour side is a [`PassJob`] over
+/// the high-resolution grid (every pixel a target; its `z` and `c` are
+/// empty), the depth side the low-resolution samples.
+#[derive(Debug, Clone, Copy)]
+pub struct UpsampleJob<'a> {
+    /// Grid, guide features, patch kernel and `h`s of the colour term.
+    pub pass: PassJob<'a>,
+    /// Low-resolution width and height.
+    pub low: (usize, usize),
+    /// Low-resolution depth (0 for holes) and confidence.
+    pub lz: &'a [f32],
+    /// Low-resolution confidence, 0 for holes.
+    pub lc: &'a [f32],
+    /// Per high-resolution pixel, the low-resolution sample placed on it
+    /// (`usize::MAX`: none).
+    pub sample_at: &'a [usize],
+    /// Per high-resolution column / row, the low-resolution column / row
+    /// its ray falls in (`usize::MAX`: outside).
+    pub lo_col: &'a [usize],
+    /// See `lo_col`.
+    pub lo_row: &'a [usize],
+    /// Radius of the low-resolution depth patches.
+    pub low_patch: usize,
+    /// The blend of eq. 4: `alpha` on the colour term, `1 - alpha` on the
+    /// depth term.
+    pub alpha: f64,
+}
+
+/// [`UpsampleJob`] on the CPU: the pass of [`nlmeans_upsample_with`].
+pub fn cpu_upsample_pass(
+    job: &UpsampleJob,
+    progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
+) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+    let (p, (lw, lh)) = (&job.pass, job.low);
+    let core = Core {
+        search: p.search,
+        patch: p.patch,
+        inv_hc2: p.inv_hc2,
+        inv_hd2: p.inv_hd2,
+    };
+    let n_low = 2 * job.low_patch + 1;
+    let kernel = UpsampleKernel {
+        w: p.w,
+        sample_at: job.sample_at,
+        lo_col: job.lo_col,
+        lo_row: job.lo_row,
+        z: job.lz,
+        c: job.lc,
+        lw,
+        lh,
+        low_patch: job.low_patch as isize,
+        // Guard: n_low >= 1.
+        inv_low_area: 1.0 / (n_low * n_low) as f64,
+        inv_hd2: p.inv_hd2,
+        ln_alpha: job.alpha.ln(),
+        ln_one_minus_alpha: (1.0 - job.alpha).ln(),
+    };
+    let pass = Pass {
+        w: p.w,
+        h: p.h,
+        guide: p.guide,
+        depth: None,
+        core,
+    };
+    let mut out = vec![None; p.w * p.h];
+    run_pass(&pass, p.targets, &kernel, progress, |i, acc| {
+        out[i] = acc.finish();
+    })?;
+    Ok(out)
+}
+
 /// Joint upsampling of low-resolution depth guided by high-resolution color
 /// (eq. 4), for a depth camera co-located with the color camera (depth
 /// already transformed into the color camera's frame). The high-resolution
@@ -184,7 +256,31 @@ pub fn nlmeans_upsample_with(
     guide_color_high: &ColorImage,
     color_k: Option<&Intrinsics>,
     p: &NLMeansUpsampleParams,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+) -> Result<(DepthMap, Confidence, Intrinsics), NodeError> {
+    nlmeans_upsample_on(
+        low_depth,
+        low_k,
+        guide_color_high,
+        color_k,
+        p,
+        on_progress,
+        &mut CpuPass,
+    )
+}
+
+/// [`nlmeans_upsample_with`] with its passes run by `runner` (the first
+/// one through [`PassRunner::run_upsample`], the inpainting's through
+/// [`PassRunner::run`]): the placement of the samples, the targets and the
+/// stopping rule stay here, so every backend decides alike.
+pub fn nlmeans_upsample_on(
+    low_depth: &DepthMap,
+    low_k: &Intrinsics,
+    guide_color_high: &ColorImage,
+    color_k: Option<&Intrinsics>,
+    p: &NLMeansUpsampleParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: &mut dyn PassRunner,
 ) -> Result<(DepthMap, Confidence, Intrinsics), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
     if p.low_patch_radius > MAX_PATCH_RADIUS {
@@ -236,44 +332,34 @@ pub fn nlmeans_upsample_with(
     let lo_col = axis_map(w, high_k.fx, high_k.cx, low_k.fx, low_k.cx, lw);
     let lo_row = axis_map(h, high_k.fy, high_k.cy, low_k.fy, low_k.cy, lh);
     let guide = guide_features(guide_color_high);
-    let n_low = 2 * p.low_patch_radius + 1;
-    let kernel = UpsampleKernel {
-        w,
+    let pk = PatchKernel::new(core.patch);
+    let targets = vec![true; w * h];
+    let job = UpsampleJob {
+        pass: PassJob::new((w, h), &guide, (&[], &[]), &targets, core, &pk, None),
+        low: (lw, lh),
+        lz: &lz,
+        lc: &lc,
         sample_at: &sample_at,
         lo_col: &lo_col,
         lo_row: &lo_row,
-        z: &lz,
-        c: &lc,
-        lw,
-        lh,
-        low_patch: p.low_patch_radius as isize,
-        // Guard: n_low >= 1.
-        inv_low_area: 1.0 / (n_low * n_low) as f64,
-        inv_hd2: core.inv_hd2,
-        ln_alpha: p.alpha.ln(),
-        ln_one_minus_alpha: (1.0 - p.alpha).ln(),
+        low_patch: p.low_patch_radius,
+        alpha: p.alpha,
     };
-    let pass = Pass {
-        w,
-        h,
-        guide: &guide,
-        depth: None,
-        core,
-    };
-    let targets = vec![true; w * h];
     let share = if p.iterations > 0 { 0.5 } else { 1.0 };
-    run_pass(
-        &pass,
-        &targets,
-        &kernel,
-        &mut |f| on_progress(f * share),
-        |i, acc| {
-            if let Some((v, conf)) = acc.finish() {
-                z[i] = v;
-                c[i] = conf;
-            }
-        },
-    )?;
+    let out = runner.run_upsample(&job, &mut |f| on_progress(f * share))?;
+    if out.len() != w * h {
+        return Err(NodeError::Invalid(format!(
+            "the upsampling pass returned {} results for {} pixels",
+            out.len(),
+            w * h
+        )));
+    }
+    for (i, r) in out.into_iter().enumerate() {
+        if let Some((v, conf)) = r {
+            z[i] = v;
+            c[i] = conf;
+        }
+    }
     if p.iterations > 0 && c.iter().any(|c| *c <= 0.0) && core.search > 0 {
         inpaint_state(
             &mut z,
@@ -285,7 +371,7 @@ pub fn nlmeans_upsample_with(
             p.iterations,
             false,
             &mut |f| on_progress(0.5 + 0.5 * f),
-            &mut CpuPass,
+            runner,
         )?;
     }
     Ok((image(w, h, z)?, image(w, h, c)?, high_k))

@@ -1,0 +1,192 @@
+// The first pass of NLMeansUpsample on the device (realistic-depth-blur
+// eq. 4): for every high-resolution pixel i, every candidate j of the
+// (2R+1)^2 search window that holds a placed low-resolution sample s(j),
+// the weight (1 - alpha) w(i_low, s(j)) + alpha w_u(i, j), summed in the
+// log domain (neither term underflows alone):
+//
+// - w_u: the colour patch distance of NL-means (nested box means of the
+//   capped per-pixel guide distances, patch pixels at clamped coordinates);
+// - w: the low-resolution depth patch distance (mean over the low patch of
+//   c_a c_b dz^2, clamped coordinates) plus the discontinuity term at the
+//   centres, over h_depth^2.
+//
+// One invocation per pixel, candidates in the CPU's order (dy, then dx):
+// the same bits on every run. Sums in f32 (the box sums compensated);
+// depths above 1e18 m or subnormal never get here (the runner sends such
+// jobs to the CPU), so no square overflows.
+
+struct Params {
+    w: u32,
+    h: u32,
+    lw: u32,
+    lh: u32,
+    search: u32,
+    patch_r: u32,
+    r0: u32,
+    r1: u32,
+    r2: u32,
+    n_boxes: u32,
+    low_patch: u32,
+    // 1 when alpha > 0 (the colour term exists), 1 when alpha < 1 (the depth term)
+    has_color: u32,
+    has_depth: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+    coef0: f32,
+    coef1: f32,
+    coef2: f32,
+    cap: f32,
+    inv_hc2: f32,
+    inv_hd2: f32,
+    inv_low_area: f32,
+    // ln(alpha), ln(1 - alpha) where the terms exist
+    ln_alpha: f32,
+    ln_one_minus_alpha: f32,
+    _pad3: f32,
+    _pad4: f32,
+    _pad5: f32,
+}
+
+const NONE: u32 = 0xffffffffu;
+
+@group(0) @binding(0) var<uniform> P: Params;
+// high-resolution guide features, 4 floats per pixel
+@group(0) @binding(1) var<storage, read> guide: array<vec4<f32>>;
+// low-resolution (depth, confidence)
+@group(0) @binding(2) var<storage, read> low: array<vec2<f32>>;
+// per high-resolution pixel, its placed low-resolution sample or NONE
+@group(0) @binding(3) var<storage, read> sample_at: array<u32>;
+// low-resolution column of each high-resolution column, then row of each
+// row (w + h entries), NONE outside
+@group(0) @binding(4) var<storage, read> lo_axis: array<u32>;
+// (estimate, confidence, found, 0) per pixel
+@group(0) @binding(5) var<storage, read_write> result: array<vec4<f32>>;
+
+// -ln w(a, b) of two low-resolution pixels (the CPU's low_distance).
+fn low_distance(a: u32, b: u32) -> f32 {
+    let ax = i32(a % P.lw);
+    let ay = i32(a / P.lw);
+    let bx = i32(b % P.lw);
+    let by = i32(b / P.lw);
+    let r = i32(P.low_patch);
+    var s = vec2<f32>(0.0);
+    for (var ky = -r; ky <= r; ky = ky + 1) {
+        let ra = clampi(ay + ky, P.lh) * P.lw;
+        let rb = clampi(by + ky, P.lh) * P.lw;
+        for (var kx = -r; kx <= r; kx = kx + 1) {
+            let pa = low[ra + clampi(ax + kx, P.lw)];
+            let pb = low[rb + clampi(bx + kx, P.lw)];
+            let cc = pa.y * pb.y;
+            if (cc > 0.0) {
+                let dz = pa.x - pb.x;
+                s = kahan_add(s, cc * dz * dz);
+            }
+        }
+    }
+    var dist = s.x * P.inv_low_area * P.inv_hd2;
+    let ca = low[a];
+    let cb = low[b];
+    if (ca.y > 0.0 && cb.y > 0.0) {
+        let dz = ca.x - cb.x;
+        dist = dist + dz * dz * P.inv_hd2;
+    }
+    return dist;
+}
+
+// ln(exp(a) + exp(b)) of two exponents, each one present or not.
+fn log_add_exp(a: f32, has_a: bool, b: f32, has_b: bool) -> vec2<f32> {
+    if (!has_a && !has_b) {
+        return vec2<f32>(0.0, 0.0);
+    }
+    if (!has_b) {
+        return vec2<f32>(a, 1.0);
+    }
+    if (!has_a) {
+        return vec2<f32>(b, 1.0);
+    }
+    let hi = max(a, b);
+    let lo = min(a, b);
+    return vec2<f32>(hi + log(1.0 + exp(lo - hi)), 1.0);
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= P.w || gid.y >= P.h) {
+        return;
+    }
+    let x = i32(gid.x);
+    let y = i32(gid.y);
+    let i = gid.y * P.w + gid.x;
+    var acc = acc_empty();
+    let big_r = i32(P.search);
+    let r = i32(P.patch_r);
+    let lx = lo_axis[gid.x];
+    let ly = lo_axis[P.w + gid.y];
+    let centre_low = lx != NONE && ly != NONE;
+    for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
+        let yj = y + dy;
+        if (yj < 0 || yj >= i32(P.h)) {
+            continue;
+        }
+        for (var dx = -big_r; dx <= big_r; dx = dx + 1) {
+            let xj = x + dx;
+            if (xj < 0 || xj >= i32(P.w)) {
+                continue;
+            }
+            let j = u32(yj) * P.w + u32(xj);
+            let s = sample_at[j];
+            if (s == NONE) {
+                continue;
+            }
+            // the colour term: box sums of the capped guide distances
+            var color = 0.0;
+            if (P.has_color != 0u) {
+                var b0 = vec2<f32>(0.0);
+                var b1 = vec2<f32>(0.0);
+                var b2 = vec2<f32>(0.0);
+                for (var v = -r; v <= r; v = v + 1) {
+                    let py = clampi(y + v, P.h);
+                    let qy = clampi(y + v + dy, P.h);
+                    for (var u = -r; u <= r; u = u + 1) {
+                        let p = py * P.w + clampi(x + u, P.w);
+                        let q = qy * P.w + clampi(x + u + dx, P.w);
+                        let dg = guide[p].xyz - guide[q].xyz;
+                        let d = min(dot(dg, dg) * P.inv_hc2, P.cap);
+                        let m = u32(max(abs(u), abs(v)));
+                        if (m <= P.r0) {
+                            b0 = kahan_add(b0, d);
+                        }
+                        if (P.n_boxes > 1u && m <= P.r1) {
+                            b1 = kahan_add(b1, d);
+                        }
+                        if (P.n_boxes > 2u && m <= P.r2) {
+                            b2 = kahan_add(b2, d);
+                        }
+                    }
+                }
+                var dist = P.coef0 * max(b0.x, 0.0);
+                if (P.n_boxes > 1u) {
+                    dist = dist + P.coef1 * max(b1.x, 0.0);
+                }
+                if (P.n_boxes > 2u) {
+                    dist = dist + P.coef2 * max(b2.x, 0.0);
+                }
+                color = P.ln_alpha - dist;
+            }
+            // the depth term
+            var depth = 0.0;
+            let has_depth = P.has_depth != 0u && centre_low;
+            if (has_depth) {
+                depth = P.ln_one_minus_alpha - low_distance(ly * P.lw + lx, s);
+            }
+            let e = log_add_exp(color, P.has_color != 0u, depth, has_depth);
+            if (e.y == 0.0) {
+                continue; // both terms absent: weighs nothing
+            }
+            let zs = low[s];
+            add(&acc, e.x, zs.y, 1.0, zs.x);
+        }
+    }
+    result[i] = finish(acc);
+}
