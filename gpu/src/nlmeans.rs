@@ -112,6 +112,35 @@ fn outside_f32(v: &f32) -> bool {
     *v != 0.0 && (v.abs() < f32::MIN_POSITIVE || v.abs() > 1e18)
 }
 
+/// What every NL-means job must meet on the device: a patch kernel of 1 to
+/// 3 boxes; values f32 holds as the CPU does ([`outside_f32`]); at most
+/// [`MAX_WORK`] patch-pixel comparisons. A job that fails the last two runs
+/// on the CPU (the node falls back as a whole, `explain` says why).
+fn check_job(
+    s: &mut Session,
+    job: &PassJob,
+    values: &[&[f32]],
+    work: f64,
+) -> Result<(), NodeError> {
+    if job.radii.is_empty() || job.radii.len() > 3 || job.coef.len() != job.radii.len() {
+        return Err(NodeError::Invalid(format!(
+            "NL-means patch kernel with {} boxes: the device kernel takes 1 to 3",
+            job.radii.len()
+        )));
+    }
+    if values.iter().any(|v| v.iter().any(outside_f32)) {
+        return Err(s.too_large(
+            "depths or confidences outside the device's f32 range (subnormal, or above 1e18)",
+        ));
+    }
+    if work > MAX_WORK {
+        return Err(s.too_large(&format!(
+            "{work:.1e} patch-pixel comparisons exceed one dispatch's budget ({MAX_WORK:.0e})"
+        )));
+    }
+    Ok(())
+}
+
 /// The passes on the device; the guide is uploaded once for all of them.
 struct DeviceRunner<'s, 'c> {
     s: &'s mut Session<'c>,
@@ -128,27 +157,9 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let (w, h) = (job.w, job.h);
         s.check_grid(w, h, 8)?;
         let n = w * h;
-        if job.radii.is_empty() || job.radii.len() > 3 || job.coef.len() != job.radii.len() {
-            return Err(NodeError::Invalid(format!(
-                "NL-means patch kernel with {} boxes: the device kernel takes 1 to 3",
-                job.radii.len()
-            )));
-        }
-        // Such a job, and one too costly for a single dispatch, runs on the
-        // CPU (the node falls back as a whole).
-        if job.z.iter().any(outside_f32) || job.c.iter().any(outside_f32) {
-            return Err(s.too_large(
-                "depths or confidences outside the device's f32 range (subnormal, or above 1e18)",
-            ));
-        }
         let window = (2 * job.search + 1).pow(2) as f64 * (2 * job.patch + 1).pow(2) as f64;
         let targets = job.targets.iter().filter(|t| **t).count() as f64;
-        if window * targets > MAX_WORK {
-            return Err(s.too_large(&format!(
-                "{:.1e} patch-pixel comparisons exceed one dispatch's budget ({MAX_WORK:.0e})",
-                window * targets
-            )));
-        }
+        check_job(s, job, &[job.z, job.c], window * targets)?;
         let r = |k: usize| job.radii.get(k).copied().unwrap_or(0) as u32;
         let c = |k: usize| job.coef.get(k).copied().unwrap_or(0.0) as f32;
         let params = Params {
@@ -209,12 +220,6 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let (lw, lh) = job.low;
         s.check_grid(w, h, 8)?;
         let n = w * h;
-        if p.radii.is_empty() || p.radii.len() > 3 || p.coef.len() != p.radii.len() {
-            return Err(NodeError::Invalid(format!(
-                "NL-means patch kernel with {} boxes: the device kernel takes 1 to 3",
-                p.radii.len()
-            )));
-        }
         if p.guide.len() != n
             || job.sample_at.len() != n
             || job.lo_col.len() != w
@@ -226,20 +231,10 @@ impl PassRunner for DeviceRunner<'_, '_> {
                 "NL-means upsampling buffers of another size than the grids".into(),
             ));
         }
-        if job.lz.iter().any(outside_f32) || job.lc.iter().any(outside_f32) {
-            return Err(s.too_large(
-                "depths or confidences outside the device's f32 range (subnormal, or above 1e18)",
-            ));
-        }
         let low_area = (2 * job.low_patch + 1).pow(2) as f64;
         let window =
             (2 * p.search + 1).pow(2) as f64 * ((2 * p.patch + 1).pow(2) as f64 + low_area);
-        if window * n as f64 > MAX_WORK {
-            return Err(s.too_large(&format!(
-                "{:.1e} patch-pixel comparisons exceed one dispatch's budget ({MAX_WORK:.0e})",
-                window * n as f64
-            )));
-        }
+        check_job(s, p, &[job.lz, job.lc], window * n as f64)?;
         let indices = |v: &[usize]| -> Result<Vec<u32>, NodeError> {
             v.iter()
                 .map(|&i| index_u32(i))

@@ -38,6 +38,22 @@ struct Params {
 // (estimate, confidence, found, 0) per pixel
 @group(0) @binding(4) var<storage, read_write> result: array<vec4<f32>>;
 
+// The capped distance of patch pixels p and q (colour, and depth where both
+// have confidence), for `patch_distance`.
+fn pixel_distance(p: u32, q: u32) -> f32 {
+    let dg = guide[p].xyz - guide[q].xyz;
+    var d = dot(dg, dg) * P.inv_hc2;
+    let cc = zc[p].y * zc[q].y;
+    if (cc > 0.0) {
+        // cc dz^2 / h^2 as the square of a capped root, so no product
+        // overflows (the cap leaves it unchanged)
+        let dz = zc[p].x - zc[q].x;
+        let t = min(abs(dz) * sqrt(cc * P.inv_hd2), sqrt(P.cap));
+        d = d + t * t;
+    }
+    return min(d, P.cap);
+}
+
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= P.w || gid.y >= P.h) {
@@ -52,7 +68,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     var acc = acc_empty();
     let big_r = i32(P.search);
-    let r = i32(P.patch_r);
     let zi = zc[i];
     for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
         let yj = y + dy;
@@ -64,46 +79,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (xj < 0 || xj >= i32(P.w)) {
                 continue;
             }
-            // box sums of the capped per-pixel distances (compensated)
-            var b0 = vec2<f32>(0.0);
-            var b1 = vec2<f32>(0.0);
-            var b2 = vec2<f32>(0.0);
-            for (var v = -r; v <= r; v = v + 1) {
-                let py = clampi(y + v, P.h);
-                let qy = clampi(y + v + dy, P.h);
-                for (var u = -r; u <= r; u = u + 1) {
-                    let p = py * P.w + clampi(x + u, P.w);
-                    let q = qy * P.w + clampi(x + u + dx, P.w);
-                    let dg = guide[p].xyz - guide[q].xyz;
-                    var d = dot(dg, dg) * P.inv_hc2;
-                    let cc = zc[p].y * zc[q].y;
-                    if (cc > 0.0) {
-                        // cc dz^2 / h^2 as the square of a capped root, so
-                        // no product overflows (the cap leaves it unchanged)
-                        let dz = zc[p].x - zc[q].x;
-                        let t = min(abs(dz) * sqrt(cc * P.inv_hd2), sqrt(P.cap));
-                        d = d + t * t;
-                    }
-                    d = min(d, P.cap);
-                    let m = u32(max(abs(u), abs(v)));
-                    if (m <= P.r0) {
-                        b0 = kahan_add(b0, d);
-                    }
-                    if (P.n_boxes > 1u && m <= P.r1) {
-                        b1 = kahan_add(b1, d);
-                    }
-                    if (P.n_boxes > 2u && m <= P.r2) {
-                        b2 = kahan_add(b2, d);
-                    }
-                }
-            }
-            var dist = P.coef0 * max(b0.x, 0.0);
-            if (P.n_boxes > 1u) {
-                dist = dist + P.coef1 * max(b1.x, 0.0);
-            }
-            if (P.n_boxes > 2u) {
-                dist = dist + P.coef2 * max(b2.x, 0.0);
-            }
+            let dist = patch_distance(x, y, dx, dy);
             // the CPU's DepthKernel
             let j = u32(yj) * P.w + u32(xj);
             let cj = zc[j].y;

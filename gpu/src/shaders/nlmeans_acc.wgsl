@@ -1,7 +1,9 @@
 // The running sums of one NL-means target (the CPU's `Acc` of
 // depthgraph_nodes' nlmeans::pass, in f32), shared by `nlmeans.wgsl` and
 // `nlmeans_upsample.wgsl` (each kernel's source is common.wgsl, this file,
-// then its own).
+// then its own), and the patch distance of both: each kernel declares its
+// uniform `P` (with w, h, patch_r, r0..r2, n_boxes, coef0..coef2) and its
+// own `pixel_distance(p, q)`.
 
 const SMALLEST_NORMAL: f32 = 1.17549435e-38;
 
@@ -84,4 +86,40 @@ fn finish(acc: Acc) -> vec4<f32> {
         conf = acc.sim_conf / acc.sim;
     }
     return vec4<f32>(est, clamp(conf, SMALLEST_NORMAL, 1.0), 1.0, 0.0);
+}
+
+// The patch distance of target (x, y) and candidate (x + dx, y + dy): the
+// average of the nested box means (radii r0..r2, pixel weights coef0..2)
+// of the capped per-pixel distances, patch pixels at clamped coordinates,
+// each box sum compensated (the CPU's PatchKernel over its box sums).
+fn patch_distance(x: i32, y: i32, dx: i32, dy: i32) -> f32 {
+    let r = i32(P.patch_r);
+    var b0 = vec2<f32>(0.0);
+    var b1 = vec2<f32>(0.0);
+    var b2 = vec2<f32>(0.0);
+    for (var v = -r; v <= r; v = v + 1) {
+        let py = clampi(y + v, P.h);
+        let qy = clampi(y + v + dy, P.h);
+        for (var u = -r; u <= r; u = u + 1) {
+            let d = pixel_distance(py * P.w + clampi(x + u, P.w), qy * P.w + clampi(x + u + dx, P.w));
+            let m = u32(max(abs(u), abs(v)));
+            if (m <= P.r0) {
+                b0 = kahan_add(b0, d);
+            }
+            if (P.n_boxes > 1u && m <= P.r1) {
+                b1 = kahan_add(b1, d);
+            }
+            if (P.n_boxes > 2u && m <= P.r2) {
+                b2 = kahan_add(b2, d);
+            }
+        }
+    }
+    var dist = P.coef0 * max(b0.x, 0.0);
+    if (P.n_boxes > 1u) {
+        dist = dist + P.coef1 * max(b1.x, 0.0);
+    }
+    if (P.n_boxes > 2u) {
+        dist = dist + P.coef2 * max(b2.x, 0.0);
+    }
+    return dist;
 }

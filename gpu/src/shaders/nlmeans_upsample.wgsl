@@ -110,6 +110,12 @@ fn log_add_exp(a: f32, has_a: bool, b: f32, has_b: bool) -> vec2<f32> {
     return vec2<f32>(hi + log(1.0 + exp(lo - hi)), 1.0);
 }
 
+// The capped colour distance of patch pixels p and q, for `patch_distance`.
+fn pixel_distance(p: u32, q: u32) -> f32 {
+    let dg = guide[p].xyz - guide[q].xyz;
+    return min(dot(dg, dg) * P.inv_hc2, P.cap);
+}
+
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= P.w || gid.y >= P.h) {
@@ -120,7 +126,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.y * P.w + gid.x;
     var acc = acc_empty();
     let big_r = i32(P.search);
-    let r = i32(P.patch_r);
     let lx = lo_axis[gid.x];
     let ly = lo_axis[P.w + gid.y];
     let centre_low = lx != NONE && ly != NONE;
@@ -142,36 +147,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             // the colour term: box sums of the capped guide distances
             var color = 0.0;
             if (P.has_color != 0u) {
-                var b0 = vec2<f32>(0.0);
-                var b1 = vec2<f32>(0.0);
-                var b2 = vec2<f32>(0.0);
-                for (var v = -r; v <= r; v = v + 1) {
-                    let py = clampi(y + v, P.h);
-                    let qy = clampi(y + v + dy, P.h);
-                    for (var u = -r; u <= r; u = u + 1) {
-                        let p = py * P.w + clampi(x + u, P.w);
-                        let q = qy * P.w + clampi(x + u + dx, P.w);
-                        let dg = guide[p].xyz - guide[q].xyz;
-                        let d = min(dot(dg, dg) * P.inv_hc2, P.cap);
-                        let m = u32(max(abs(u), abs(v)));
-                        if (m <= P.r0) {
-                            b0 = kahan_add(b0, d);
-                        }
-                        if (P.n_boxes > 1u && m <= P.r1) {
-                            b1 = kahan_add(b1, d);
-                        }
-                        if (P.n_boxes > 2u && m <= P.r2) {
-                            b2 = kahan_add(b2, d);
-                        }
-                    }
-                }
-                var dist = P.coef0 * max(b0.x, 0.0);
-                if (P.n_boxes > 1u) {
-                    dist = dist + P.coef1 * max(b1.x, 0.0);
-                }
-                if (P.n_boxes > 2u) {
-                    dist = dist + P.coef2 * max(b2.x, 0.0);
-                }
+                let dist = patch_distance(x, y, dx, dy);
                 color = P.ln_alpha - dist;
             }
             // the depth term
