@@ -29,6 +29,7 @@ pub const TARGETS: &[(&str, Target)] = &[
     ("load_pfm", load_pfm),
     ("load_pnm", load_pnm),
     ("load_exr", load_exr),
+    ("load_hdr", load_hdr),
     ("load_nyu_raw", load_nyu_raw),
     ("exposure_list", exposure_list),
 ];
@@ -267,6 +268,24 @@ pub fn load_pnm(data: &[u8]) {
 /// OpenEXR: f16/f32/u32 channels, any compression the `exr` crate reads.
 pub fn load_exr(data: &[u8]) {
     load_both(data, "fuzz.exr");
+}
+
+/// Radiance RGBE: any header order, both run-length encodings, every
+/// orientation; values finite and non-negative.
+pub fn load_hdr(data: &[u8]) {
+    if let Ok(r) = io::radiance::decode_rgbe(data, Path::new("fuzz.hdr"), &limits()) {
+        check_color(&r.image);
+        assert!(r.exposure.is_finite() && r.exposure > 0.0);
+        assert!(
+            r.image
+                .as_slice()
+                .as_flattened()
+                .iter()
+                .all(|v| v.is_finite() && *v >= 0.0),
+            "a decoded RGBE value that is negative or not finite"
+        );
+    }
+    load_both(data, "fuzz.hdr");
 }
 
 /// NYU Depth v2 raw dumps (little-endian PGM of Kinect disparity).

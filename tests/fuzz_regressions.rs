@@ -99,6 +99,24 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
             out.push(("load_exr", name.to_string(), std::fs::read(&p).unwrap()));
         }
     }
+    // Radiance: new RLE, flat (narrow), old RLE, XYZ, bottom-up
+    let wide = ColorImage::from_fn(9, 3, |x, y| [0.1 * x as f32, 2.0 * y as f32, 300.0]);
+    out.push((
+        "load_hdr",
+        "rle.hdr".into(),
+        io::radiance::encode_rgbe(&wide),
+    ));
+    out.push((
+        "load_hdr",
+        "flat.hdr".into(),
+        io::radiance::encode_rgbe(&color),
+    ));
+    let mut old = b"VIEW= -vtv\n#?RADIANCE\nEXPOSURE=0.5\n\n+Y 1 -X 12\n\x80\x40\x20\x81".to_vec();
+    old.extend_from_slice(&[1, 1, 1, 11]);
+    out.push(("load_hdr", "old_rle.hdr".into(), old));
+    let mut xyz = b"#?RADIANCE\nFORMAT=32-bit_rle_xyze\n\n-X 2 +Y 1\n".to_vec();
+    xyz.extend_from_slice(&[200, 210, 220, 128, 10, 20, 30, 130]);
+    out.push(("load_hdr", "xyz.hdr".into(), xyz));
     // PFM in both byte orders
     for (name, scale, le) in [("le.pfm", "-1.0", true), ("be.pfm", "1.0", false)] {
         let mut b = format!("Pf\n5 3\n{scale}\n").into_bytes();

@@ -50,17 +50,34 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     if r.take(8)? != MAGIC {
         return None;
     }
+    // Only the one encoding `encode` writes is accepted (a flag is 0 or 1,
+    // an absent string is empty, keys strictly increase): an entry decodes
+    // to outputs that encode back to the same bytes, so a damaged entry
+    // cannot pass for another one.
     let reason = r.string()?;
-    let has_reason = r.u8()? != 0;
+    let has_reason = r.r.bool()?;
     let backend = r.string()?;
     let adapter = r.string()?;
-    let has_adapter = r.u8()? != 0;
+    let has_adapter = r.r.bool()?;
     let note = r.string()?;
-    let has_note = r.u8()? != 0;
+    let has_note = r.r.bool()?;
+    if (!has_reason && !reason.is_empty())
+        || (!has_adapter && !adapter.is_empty())
+        || (!has_note && !note.is_empty())
+        || (backend.is_empty() && (has_adapter || has_note))
+    {
+        return None;
+    }
     let n = r.u64()? as usize;
     let mut values = BTreeMap::new();
     for _ in 0..n {
         let k = r.string()?;
+        if values
+            .last_key_value()
+            .is_some_and(|(last, _): (&String, _)| *last >= k)
+        {
+            return None;
+        }
         let v = r.value()?;
         values.insert(k, v);
     }
@@ -388,5 +405,36 @@ mod tests {
         // claim an absurd string length right after the magic
         huge[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
         assert!(decode(&huge, &Decoders::new()).is_none());
+    }
+
+    #[test]
+    fn only_the_canonical_encoding_decodes() {
+        let out = Outputs::new()
+            .with("a", Value::Scalar(1.0))
+            .with("b", Value::Scalar(-0.0));
+        let good = encode(&out);
+        let back = decode(&good, &Decoders::new()).unwrap();
+        assert_eq!(encode(&back), good);
+        // the keys swapped: "b" before "a" (each entry: key length, key,
+        // type tag 10, the f64)
+        let mut swapped = Vec::new();
+        let n_at = good.len() - 2 * (8 + 1 + 1 + 8);
+        swapped.extend_from_slice(&good[..n_at]);
+        let entry = |k: &[u8], bits: u64| {
+            let mut e = (1u64).to_le_bytes().to_vec();
+            e.extend_from_slice(k);
+            e.push(10);
+            e.extend_from_slice(&bits.to_le_bytes());
+            e
+        };
+        swapped.extend(entry(b"b", (-0.0f64).to_bits()));
+        swapped.extend(entry(b"a", 1.0f64.to_bits()));
+        assert_eq!(swapped.len(), good.len());
+        assert!(decode(&swapped, &Decoders::new()).is_none());
+        // a flag other than 0 or 1
+        let mut flag = good.clone();
+        // magic (8), empty reason (8), its flag
+        flag[16] = 2;
+        assert!(decode(&flag, &Decoders::new()).is_none());
     }
 }

@@ -24,6 +24,7 @@ pub mod mask;
 mod pfm;
 mod ply;
 mod pnm;
+pub mod radiance;
 mod write;
 
 pub use decode::{Limits, MAX_PIXELS, MAX_SIDE, Samples};
@@ -113,7 +114,7 @@ depthgraph_graph::param_choice! {
 node_params! {
     /// Parameters of `LoadColor`.
     pub struct LoadColorParams {
-        /// PNG, JPEG, TIFF (8 or 16 bit) or EXR file.
+        /// PNG, JPEG, TIFF (8 or 16 bit), EXR or Radiance .hdr file.
         pub path: String = "", ParamKind::InputPath;
         /// Encoding of 8/16-bit files: "srgb" (almost every photo) is linearised; float files are always linear.
         pub color_space: ColorSpace = ColorSpace::Srgb, ParamKind::Choice(ColorSpace::NAMES);
@@ -152,6 +153,10 @@ pub fn decode_color(
     if is_pnm(path) {
         let pnm = decode_pnm(bytes, path, false, lim)?;
         return pnm_color(pnm, path, color_space == ColorSpace::Srgb);
+    }
+    // Radiance files are linear radiance whatever `color_space` says
+    if radiance::looks_like_rgbe(bytes) || matches!(extension(path).as_str(), "hdr" | "pic") {
+        return Ok(radiance::decode_rgbe(bytes, path, lim)?.image);
     }
     let img = decode_image(bytes, path, lim)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
@@ -543,7 +548,7 @@ depthgraph_graph::param_choice! {
 node_params! {
     /// Parameters of `SaveColor`.
     pub struct SaveColorParams {
-        /// Output file; `.png` (sRGB, 8 or 16 bit) or `.exr` (linear float). Relative paths go under `--out`.
+        /// Output file; `.png` (sRGB, 8 or 16 bit), `.exr` (linear float) or `.hdr` (Radiance RGBE, linear). Relative paths go under `--out`.
         pub path: String = "color.png", ParamKind::OutputPath;
         /// PNG bit depth.
         pub bits: PngBits = PngBits::Eight, ParamKind::Choice(PngBits::NAMES);
@@ -573,6 +578,14 @@ pub fn save_color(
             let channels = vec![("R", plane(0)), ("G", plane(1)), ("B", plane(2))];
             write_atomic(path, |tmp| write_exr(tmp, img.dims(), "color", channels))
         }
+        "hdr" | "pic" => {
+            let bytes = radiance::encode_rgbe(&Image::from_vec(
+                img.width(),
+                img.height(),
+                img.as_slice().iter().map(|p| p.map(|v| v * gain)).collect(),
+            )?);
+            write_atomic(path, |tmp| fs::write(tmp, &bytes))
+        }
         "png" => {
             if bits16 {
                 let data: Vec<u16> = img
@@ -600,7 +613,7 @@ pub fn save_color(
         }
         other => Err(NodeError::param(
             "path",
-            format!("cannot write color as `.{other}`; use .png or .exr"),
+            format!("cannot write color as `.{other}`; use .png, .exr or .hdr"),
         )),
     }
 }
@@ -845,7 +858,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
         PortedNode::new(
             "LoadColor",
             1,
-            "Reads a PNG/JPEG/TIFF (8/16-bit, sRGB linearised) or EXR color image as linear RGB.",
+            "Reads a PNG/JPEG/TIFF (8/16-bit, sRGB linearised), EXR or Radiance .hdr color image as linear RGB.",
             load_color_eval,
         )
         .reads(|p: &LoadColorParams| vec![PathBuf::from(&p.path)]),
@@ -863,7 +876,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
         PortedNode::new(
             "SaveColor",
             1,
-            "Writes a color image: PNG (sRGB, 8 or 16 bit) or EXR (linear float), atomically.",
+            "Writes a color image: PNG (sRGB, 8 or 16 bit), EXR (linear float) or Radiance .hdr (RGBE), atomically.",
             save_color_eval,
         )
         .sink(),
