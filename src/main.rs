@@ -453,7 +453,10 @@ fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
         if let Some(a) = &chosen.adapter {
             outln!("adapter: {a}");
         }
-        print!("{}", result.trace.table());
+        {
+            use std::io::Write as _;
+            write!(std::io::stdout().lock(), "{}", result.trace.table())?;
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -505,7 +508,11 @@ fn cmd_sweep(
     let engine = engine(args)?;
     let mut opts = run_options(args);
     opts.progress = None;
-    outln!(
+    // the sweep's product is its CSV and plot: its table on stdout is a
+    // courtesy, so a closed stdout stops neither
+    use std::io::Write as _;
+    let _ = writeln!(
+        std::io::stdout().lock(),
         "{:>14}  {:>12}  {:>12}  {:>8}",
         "value",
         "ms (median)",
@@ -518,8 +525,6 @@ fn cmd_sweep(
             .map(|e| format!("{:.6}", e.value))
             .unwrap_or_else(|| r.note.clone().unwrap_or_default());
         let miss = r.error.map(|e| e.missing.to_string()).unwrap_or_default();
-        // a closed stdout here shows again at the next line outside
-        use std::io::Write as _;
         let _ = writeln!(
             std::io::stdout().lock(),
             "{:>14}  {:>12.2}  {:>12}  {:>8}",
@@ -541,9 +546,13 @@ fn cmd_sweep(
     let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
     let text = to_csv(target, metric, &rows);
     depthgraph::nodes::io::write_atomic(&csv, |tmp| std::fs::write(tmp, &text))?;
-    outln!("wrote {}", csv.display());
-    match depthgraph::nodes::io::write_atomic(&plot, |tmp| plot_svg(tmp, target, metric, &rows)) {
-        Ok(_) => outln!("wrote {}", plot.display()),
+    let plotted =
+        depthgraph::nodes::io::write_atomic(&plot, |tmp| plot_svg(tmp, target, metric, &rows));
+    let _ = writeln!(std::io::stdout().lock(), "wrote {}", csv.display());
+    match plotted {
+        Ok(_) => {
+            let _ = writeln!(std::io::stdout().lock(), "wrote {}", plot.display());
+        }
         Err(e) => eprintln!("warning: no plot: {e}"),
     }
     Ok(ExitCode::SUCCESS)
@@ -583,11 +592,11 @@ fn main() -> ExitCode {
     }
 }
 
+/// A write to standard output that failed because its reader is gone
+/// (the error `outln!` returns), never an error of a node's own file.
 fn is_broken_pipe(e: &anyhow::Error) -> bool {
-    e.chain().any(|c| {
-        c.downcast_ref::<std::io::Error>()
-            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
-    })
+    e.downcast_ref::<std::io::Error>()
+        .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
 }
 
 /// The kind of failure of an error the commands returned (`--help` lists

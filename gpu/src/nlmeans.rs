@@ -123,7 +123,7 @@ fn check_job(
     work: f64,
 ) -> Result<(), NodeError> {
     if job.radii.is_empty() || job.radii.len() > 3 || job.coef.len() != job.radii.len() {
-        return Err(NodeError::Invalid(format!(
+        return Err(NodeError::Internal(format!(
             "NL-means patch kernel with {} boxes: the device kernel takes 1 to 3",
             job.radii.len()
         )));
@@ -185,12 +185,12 @@ impl PassRunner for DeviceRunner<'_, '_> {
             self.guide = Some(s.upload(bytes_of(&g))?);
         }
         let Some(guide) = self.guide.as_ref() else {
-            return Err(NodeError::Invalid("no guide on the device".into()));
+            return Err(NodeError::Internal("no guide on the device".into()));
         };
         let zc: Vec<[f32; 2]> = job.z.iter().zip(job.c).map(|(&z, &c)| [z, c]).collect();
         let targets: Vec<u32> = job.targets.iter().map(|&t| u32::from(t)).collect();
         if job.z.len() != n || job.c.len() != n || job.guide.len() != n || targets.len() != n {
-            return Err(NodeError::Invalid(
+            return Err(NodeError::Internal(
                 "NL-means pass buffers of another size than the grid".into(),
             ));
         }
@@ -227,7 +227,7 @@ impl PassRunner for DeviceRunner<'_, '_> {
             || job.lz.len() != lw * lh
             || job.lc.len() != lw * lh
         {
-            return Err(NodeError::Invalid(
+            return Err(NodeError::Internal(
                 "NL-means upsampling buffers of another size than the grids".into(),
             ));
         }
@@ -239,7 +239,7 @@ impl PassRunner for DeviceRunner<'_, '_> {
             v.iter()
                 .map(|&i| index_u32(i))
                 .collect::<Option<Vec<u32>>>()
-                .ok_or_else(|| NodeError::Invalid("a low-resolution index beyond u32".into()))
+                .ok_or_else(|| NodeError::Internal("a low-resolution index beyond u32".into()))
         };
         let sample_at = indices(job.sample_at)?;
         let axis = indices(&[job.lo_col, job.lo_row].concat())?;

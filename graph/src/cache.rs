@@ -146,18 +146,18 @@ impl DiskCache {
         // process and thread in the name: concurrent writers of one key
         // (two processes sharing the store, two runs of one engine) never
         // write into the same temporary file
-        let tmp = parent.join(format!(
-            ".{}.{}.{}.tmp",
-            key.to_hex(),
-            std::process::id(),
-            thread_tag()
-        ));
-        {
+        let tmp = parent.join(format!(".{}.{}.tmp", key.to_hex(), temp_suffix()));
+        let written = (|| {
             let mut f = fs::File::create(&tmp)?;
             f.write_all(&bytes)?;
             f.sync_data()?;
+            fs::rename(&tmp, &path)
+        })();
+        if let Err(e) = written {
+            // a full disk leaves no partial file behind
+            let _ = fs::remove_file(&tmp);
+            return Err(e);
         }
-        fs::rename(&tmp, &path)?;
         self.trim()
     }
     /// Total bytes of the entries on disk.
@@ -228,13 +228,14 @@ impl DiskCache {
 /// its file within the time of one write).
 pub const STALE_TMP: std::time::Duration = std::time::Duration::from_secs(15 * 60);
 
-/// A number for the calling thread, unique among the live threads of the
-/// process.
-fn thread_tag() -> u64 {
+/// `pid.thread`: a part of a temporary file's name that no other live
+/// writer (another process, another thread of this one) uses, so
+/// concurrent writers of one file never share a temporary file.
+pub fn temp_suffix() -> String {
     use std::hash::{Hash, Hasher};
     let mut h = std::collections::hash_map::DefaultHasher::new();
     std::thread::current().id().hash(&mut h);
-    h.finish()
+    format!("{}.{:x}", std::process::id(), h.finish())
 }
 
 fn remove_if_present(p: &Path) -> std::io::Result<()> {

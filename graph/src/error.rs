@@ -293,7 +293,17 @@ pub enum NodeError {
         /// What is wrong with it.
         message: String,
     },
-    /// A file could not be read or written.
+    /// An input file could not be read (missing, unreadable, a
+    /// directory): the input's fault, exit code 65, unless the operating
+    /// system calls it transient (75).
+    #[error("{path}: {error}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The operating system's error.
+        error: std::io::Error,
+    },
+    /// A file could not be written (or another I/O operation failed).
     #[error("{path}: {error}")]
     Io {
         /// The file.
@@ -337,9 +347,14 @@ pub enum NodeError {
         /// What failed.
         message: String,
     },
-    /// Anything else, with its explanation.
+    /// Anything else about the inputs, with its explanation.
     #[error("{0}")]
     Invalid(String),
+    /// An internal inconsistency (a bug to report, exit code 70): a backend
+    /// that returned results of another size than asked, a buffer that
+    /// does not match its image.
+    #[error("internal error: {0}")]
+    Internal(String),
     /// The run was cancelled.
     #[error("cancelled")]
     Cancelled,
@@ -358,6 +373,13 @@ impl NodeError {
         NodeError::Param {
             param: param.to_string(),
             message: message.into(),
+        }
+    }
+    /// An error reading the input file `path`.
+    pub fn read(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
+        NodeError::Read {
+            path: path.into(),
+            error,
         }
     }
     /// An I/O error on `path`.
@@ -424,25 +446,43 @@ impl FailureKind {
         }
     }
 
-    /// The kind of an operating-system error met on a file: missing,
-    /// malformed or truncated contents are the data's fault; interrupted,
-    /// busy or timed-out operations are transient; the rest (permissions,
-    /// a full or read-only disk, a path through a non-directory) is I/O.
+    /// The kind of an operating-system error met writing a file (or
+    /// anything but reading an input): interrupted, busy or timed-out
+    /// operations are transient; the rest (permissions, a full or
+    /// read-only disk, a path through a non-directory) is I/O.
     pub fn of_io(e: &std::io::Error) -> Self {
-        use std::io::ErrorKind as K;
-        match e.kind() {
-            K::NotFound | K::InvalidData | K::UnexpectedEof | K::InvalidInput => FailureKind::Data,
-            K::Interrupted
-            | K::WouldBlock
-            | K::TimedOut
-            | K::ResourceBusy
-            | K::ConnectionReset
-            | K::ConnectionAborted
-            | K::ConnectionRefused
-            | K::NotConnected
-            | K::OutOfMemory => FailureKind::Transient,
-            _ => FailureKind::Io,
+        if Self::transient(e) {
+            FailureKind::Transient
+        } else {
+            FailureKind::Io
         }
+    }
+
+    /// The kind of an operating-system error met reading an input file:
+    /// transient as in [`FailureKind::of_io`], else the input's fault
+    /// (missing, unreadable, a directory).
+    pub fn of_read(e: &std::io::Error) -> Self {
+        if Self::transient(e) {
+            FailureKind::Transient
+        } else {
+            FailureKind::Data
+        }
+    }
+
+    fn transient(e: &std::io::Error) -> bool {
+        use std::io::ErrorKind as K;
+        matches!(
+            e.kind(),
+            K::Interrupted
+                | K::WouldBlock
+                | K::TimedOut
+                | K::ResourceBusy
+                | K::ConnectionReset
+                | K::ConnectionAborted
+                | K::ConnectionRefused
+                | K::NotConnected
+                | K::OutOfMemory
+        )
     }
 }
 
@@ -454,9 +494,10 @@ impl NodeError {
                 FailureKind::Data
             }
             NodeError::Param { .. } | NodeError::WouldOverwriteInput { .. } => FailureKind::Usage,
+            NodeError::Read { error, .. } => FailureKind::of_read(error),
             NodeError::Io { error, .. } => FailureKind::of_io(error),
             NodeError::Encode { .. } => FailureKind::Io,
-            NodeError::Shape(_) => FailureKind::Internal,
+            NodeError::Shape(_) | NodeError::Internal(_) => FailureKind::Internal,
             NodeError::Device { .. } | NodeError::Cancelled => FailureKind::Transient,
         }
     }
@@ -482,6 +523,7 @@ mod failure_kind_tests {
     #[test]
     fn every_node_error_maps_to_its_documented_code() {
         let io = |k| NodeError::io("f", std::io::Error::from(k));
+        let read = |k| NodeError::read("f", std::io::Error::from(k));
         use std::io::ErrorKind as K;
         let cases: Vec<(NodeError, u8)> = vec![
             (NodeError::input("depth", "x"), 65),
@@ -489,14 +531,18 @@ mod failure_kind_tests {
             (NodeError::Invalid("x".into()), 65),
             (NodeError::param("radius", "x"), 2),
             (NodeError::WouldOverwriteInput { path: "f".into() }, 2),
-            (io(K::NotFound), 65),
-            (io(K::UnexpectedEof), 65),
+            (read(K::NotFound), 65),
+            (read(K::PermissionDenied), 65),
+            (read(K::IsADirectory), 65),
+            (read(K::TimedOut), 75),
+            (io(K::NotFound), 74),
             (io(K::PermissionDenied), 74),
             (io(K::StorageFull), 74),
             (io(K::NotADirectory), 74),
             (io(K::Interrupted), 75),
             (io(K::TimedOut), 75),
             (NodeError::encode("f", "x"), 74),
+            (NodeError::Internal("x".into()), 70),
             (
                 NodeError::Shape(ShapeError {
                     width: 2,

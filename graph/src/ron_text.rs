@@ -227,6 +227,32 @@ impl<'a> Parser<'a> {
         let pos = self.pos();
         let value = match self.peek() {
             Some('"') => RonValue::Str(self.string()?),
+            // a raw identifier `r#name` (as `ron` reads it: letters, digits,
+            // `_`, `.`, `+`, `-`): the name
+            Some('r')
+                if self.peek_at(1) == Some('#')
+                    && self.peek_at(2).is_some_and(|c| {
+                        c.is_alphanumeric() || matches!(c, '_' | '.' | '+' | '-')
+                    }) =>
+            {
+                self.bump();
+                self.bump();
+                let mut ident = String::new();
+                while let Some(c) = self.peek() {
+                    if c.is_alphanumeric() || matches!(c, '_' | '.' | '+' | '-') {
+                        ident.push(c);
+                        self.bump();
+                    } else {
+                        break;
+                    }
+                }
+                self.skip_ws()?;
+                if self.peek() == Some('(') {
+                    self.paren(Some(ident))?
+                } else {
+                    RonValue::Ident(ident)
+                }
+            }
             Some('r') if matches!(self.peek_at(1), Some('"') | Some('#')) => {
                 RonValue::Str(self.raw_string()?)
             }
@@ -539,5 +565,14 @@ mod tests {
         let RonValue::List(l) = v.value else { panic!() };
         assert_eq!(l[0].value, RonValue::Float(1e-3));
         assert_eq!(l[2].value, RonValue::Float(f64::NEG_INFINITY));
+    }
+
+    #[test]
+    fn raw_identifiers_read_as_ron_reads_them() {
+        for text in ["r#rams", "r#a-b.c+d", "r#Name(1)"] {
+            assert!(ron::from_str::<ron::Value>(text).is_ok(), "{text}");
+            assert!(parse(text).is_ok(), "{text}");
+        }
+        assert!(matches!(parse("r#rams").unwrap().value, RonValue::Ident(ref s) if s == "rams"));
     }
 }

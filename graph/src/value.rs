@@ -263,7 +263,11 @@ impl DepthMap {
     /// a node outputs): `d` itself when it already is, else a copy whose
     /// negative, NaN and infinite samples are 0.
     pub fn canonical_holes(d: &Arc<Self>) -> Arc<Self> {
-        if d.as_slice().iter().all(|z| Self::is_valid(*z) || *z == 0.0) {
+        // +0.0 by its bits: -0.0 is rewritten too
+        if d.as_slice()
+            .iter()
+            .all(|z| Self::is_valid(*z) || z.to_bits() == 0)
+        {
             return Arc::clone(d);
         }
         let mut c = (**d).clone();

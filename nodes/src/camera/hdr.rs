@@ -828,10 +828,7 @@ pub fn bracket_entries(p: &LoadBracketParams) -> Result<Vec<(PathBuf, f64)>, Nod
             ));
         }
         let path = Path::new(&p.list);
-        let text = std::fs::read_to_string(path).map_err(|source| NodeError::Io {
-            path: path.to_path_buf(),
-            error: source,
-        })?;
+        let text = std::fs::read_to_string(path).map_err(|e| NodeError::read(path, e))?;
         return parse_bracket_list(&text, path);
     }
     if files.is_empty() {

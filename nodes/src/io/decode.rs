@@ -43,10 +43,7 @@ impl Limits {
 
 /// The bytes of `path`; an error naming the file when it cannot be read.
 pub(super) fn read_file(path: &Path) -> Result<Vec<u8>, NodeError> {
-    fs::read(path).map_err(|error| NodeError::Io {
-        path: path.to_path_buf(),
-        error,
-    })
+    fs::read(path).map_err(|error| NodeError::read(path, error))
 }
 
 /// A decoding error of `path`.

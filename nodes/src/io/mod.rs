@@ -76,6 +76,50 @@ fn write_exr(
 
 // ---------------------------------------------------------------- color
 
+/// An EXR header checked against the pixel budget before a decoder sees
+/// the file: every layer's size, the samples of all its channels (a reader
+/// allocates every channel of a layer before it reads a block: at most four
+/// channels' worth of the budget), and the largest block the header allows
+/// (its tile or scan-line block, which a reader allocates for one chunk:
+/// at most 16 bytes per pixel of the budget).
+fn check_exr_header(bytes: &[u8], path: &Path, lim: &Limits) -> Result<(), NodeError> {
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)
+        .map_err(|e| decode_err(path, e.to_string()))?;
+    let mut samples = 0usize;
+    for header in &meta.headers {
+        let size = header.layer_size;
+        check_dims(path, size.width(), size.height(), lim)?;
+        samples = samples.saturating_add(size.area().saturating_mul(header.channels.list.len()));
+        let block = match header.blocks {
+            exr::meta::BlockDescription::Tiles(t) => t.tile_size.area(),
+            exr::meta::BlockDescription::ScanLines => header
+                .compression
+                .scan_lines_per_block()
+                .saturating_mul(size.width()),
+        }
+        .saturating_mul(header.channels.bytes_per_pixel);
+        if block > lim.max_pixels.saturating_mul(16) {
+            return Err(decode_err(
+                path,
+                format!(
+                    "EXR blocks of {block} bytes; the limit is 16 x {} (--max-pixels)",
+                    lim.max_pixels
+                ),
+            ));
+        }
+    }
+    if samples > lim.max_pixels.saturating_mul(4) {
+        return Err(decode_err(
+            path,
+            format!(
+                "EXR holds {samples} samples in its channels; the limit is 4 x {} (--max-pixels)",
+                lim.max_pixels
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Decodes an image file's bytes with the `image` crate (format guessed
 /// from its magic bytes), its header's dimensions checked against `lim`
 /// before any pixel is decoded.
@@ -83,15 +127,15 @@ fn decode_image(bytes: &[u8], path: &Path, lim: &Limits) -> Result<DynamicImage,
     let reader = || {
         image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
-            .map_err(|error| NodeError::Io {
-                path: path.to_path_buf(),
-                error,
-            })
+            .map_err(|error| NodeError::read(path, error))
     };
     let (w, h) = reader()?
         .into_dimensions()
         .map_err(|e| decode_err(path, e.to_string()))?;
     check_dims(path, w as usize, h as usize, lim)?;
+    if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
+        check_exr_header(bytes, path, lim)?;
+    }
     let mut reader = reader()?;
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(MAX_SIDE as u32);
@@ -338,14 +382,7 @@ fn read_raw_depth(
 
 fn read_exr_channel(bytes: &[u8], path: &Path, lim: &Limits) -> Result<RawDepth, NodeError> {
     use exr::prelude::*;
-    // the header first: every layer's size against the budget, before the
-    // pixels are read
-    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)
-        .map_err(|e| decode_err(path, e.to_string()))?;
-    for header in &meta.headers {
-        let size = header.layer_size;
-        check_dims(path, size.width(), size.height(), lim)?;
-    }
+    check_exr_header(bytes, path, lim)?;
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -594,7 +631,7 @@ pub fn save_color(
                     .flat_map(|p| p.map(|v| srgb16(v * gain)))
                     .collect();
                 let buf = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_raw(w, h, data)
-                    .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
+                    .ok_or_else(|| NodeError::Internal("color buffer size mismatch".into()))?;
                 write_atomic(path, |tmp| {
                     write_dynamic(tmp, DynamicImage::ImageRgb16(buf), ImageFormat::Png)
                 })
@@ -605,7 +642,7 @@ pub fn save_color(
                     .flat_map(|p| p.map(|v| srgb8(v * gain)))
                     .collect();
                 let buf = image::RgbImage::from_raw(w, h, data)
-                    .ok_or_else(|| NodeError::Invalid("color buffer size mismatch".into()))?;
+                    .ok_or_else(|| NodeError::Internal("color buffer size mismatch".into()))?;
                 write_atomic(path, |tmp| {
                     write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
                 })
@@ -725,7 +762,7 @@ pub fn save_depth(
                 })
                 .collect();
             let buf = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(w, h, data)
-                .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
+                .ok_or_else(|| NodeError::Internal("depth buffer size mismatch".into()))?;
             let written = write_atomic(path, |tmp| {
                 write_dynamic(tmp, DynamicImage::ImageLuma16(buf), ImageFormat::Png)
             })?;
@@ -741,7 +778,7 @@ pub fn save_depth(
             let rgb = colormap_depth(depth, lo, hi);
             let data: Vec<u8> = rgb.as_slice().iter().flat_map(|p| p.map(srgb8)).collect();
             let buf = image::RgbImage::from_raw(w, h, data)
-                .ok_or_else(|| NodeError::Invalid("depth buffer size mismatch".into()))?;
+                .ok_or_else(|| NodeError::Internal("depth buffer size mismatch".into()))?;
             let written = write_atomic(path, |tmp| {
                 write_dynamic(tmp, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
             })?;

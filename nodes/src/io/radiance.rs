@@ -11,7 +11,8 @@
 //!   outside that gamut set to 0);
 //! - every `EXPOSURE=e` multiplies into the factor the pixels were scaled
 //!   by; the loader divides it out, so values are radiance as captured
-//!   (reported by [`Rgbe::exposure`]);
+//!   (reported by [`Rgbe::exposure`]; a product outside 1e-30..1e30 is an
+//!   error, and values beyond f32 saturate at its largest);
 //! - the resolution line in any of its eight orientations (`-Y H +X W` is
 //!   the usual top-down one; `+Y` is bottom-up, `-X` right-to-left, and
 //!   `±X W ±Y H` stores columns);
@@ -246,8 +247,11 @@ pub fn decode_rgbe(bytes: &[u8], path: &Path, lim: &Limits) -> Result<Rgbe, Node
             exposure *= e;
         }
     }
-    if !(exposure.is_finite() && exposure > 0.0) {
-        return Err(decode_err(path, "Radiance EXPOSURE product out of range"));
+    if !(1e-30..=1e30).contains(&exposure) {
+        return Err(decode_err(
+            path,
+            format!("Radiance EXPOSURE product {exposure:e} is outside 1e-30..1e30"),
+        ));
     }
     let end = bytes[pos..]
         .iter()
@@ -284,7 +288,8 @@ pub fn decode_rgbe(bytes: &[u8], path: &Path, lim: &Limits) -> Result<Rgbe, Node
                 // colours outside the sRGB gamut lose their negative part
                 c = [0, 1, 2].map(|i| (m[i][0] * c[0] + m[i][1] * c[1] + m[i][2] * c[2]).max(0.0));
             }
-            data[y * w + x] = c.map(|v| (v * inv_exposure) as f32);
+            // beyond f32 (2^127 mantissas, a tiny exposure) saturates
+            data[y * w + x] = c.map(|v| (v * inv_exposure).min(f64::from(f32::MAX)) as f32);
         }
     }
     Ok(Rgbe {
@@ -485,6 +490,22 @@ mod tests {
         }
         let e = decode_rgbe(&good, Path::new("g.hdr"), &Limits { max_pixels: 35 }).unwrap_err();
         assert!(e.to_string().contains("35 pixels"), "{e}");
+    }
+
+    #[test]
+    fn the_largest_values_stay_finite() {
+        // 255.5 2^119 / 0.1 (beyond f32: saturated) and the largest XYZ
+        for (head, saturated) in [
+            (&b"#?RADIANCE\nEXPOSURE=0.1\n"[..], true),
+            (&b"#?RADIANCE\nFORMAT=32-bit_rle_xyze\n"[..], false),
+        ] {
+            let mut b = head.to_vec();
+            b.extend_from_slice(b"\n-Y 1 +X 1\n\xff\xff\xff\xff");
+            let r = decode_rgbe(&b, Path::new("x.hdr"), &lim()).unwrap();
+            let p = r.image.get(0, 0);
+            assert!(p.iter().all(|v| v.is_finite() && *v >= 0.0), "{p:?}");
+            assert_eq!(p.contains(&f32::MAX), saturated, "{p:?}");
+        }
     }
 
     #[test]

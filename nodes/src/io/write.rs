@@ -65,7 +65,10 @@ pub fn write_atomic<E: Into<WriteFailure>>(
         error: source,
     })?;
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
-    let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
+    let tmp = parent.join(format!(
+        ".{name}.{}.tmp",
+        depthgraph_graph::cache::temp_suffix()
+    ));
     let fail = |f: WriteFailure| {
         let _ = fs::remove_file(&tmp);
         match f {

@@ -84,7 +84,7 @@ pub(super) fn checked_run(
 ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
     let out = runner.run(job, progress)?;
     if out.len() != job.w * job.h {
-        return Err(NodeError::Invalid(format!(
+        return Err(NodeError::Internal(format!(
             "an NL-means pass returned {} results for {} pixels",
             out.len(),
             job.w * job.h

@@ -348,7 +348,7 @@ pub fn nlmeans_upsample_on(
     let share = if p.iterations > 0 { 0.5 } else { 1.0 };
     let out = runner.run_upsample(&job, &mut |f| on_progress(f * share))?;
     if out.len() != w * h {
-        return Err(NodeError::Invalid(format!(
+        return Err(NodeError::Internal(format!(
             "the upsampling pass returned {} results for {} pixels",
             out.len(),
             w * h
