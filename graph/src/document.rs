@@ -92,9 +92,16 @@ impl Document {
     pub fn parse(text: &str, file: &str) -> Result<Document, Vec<CheckError>> {
         let loc = |pos: Pos| Location::new(file, pos);
         let root = ron_text::parse(text).map_err(|e| {
-            vec![CheckError::Syntax {
-                loc: loc(e.pos),
-                message: e.message,
+            vec![if e.valid_ron {
+                CheckError::Format {
+                    loc: loc(e.pos),
+                    message: e.message,
+                }
+            } else {
+                CheckError::Syntax {
+                    loc: loc(e.pos),
+                    message: e.message,
+                }
             }]
         })?;
         let mut errors = Vec::new();

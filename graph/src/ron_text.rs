@@ -90,6 +90,10 @@ pub struct SyntaxError {
     pub pos: Pos,
     /// What is wrong.
     pub message: String,
+    /// The `ron` crate reads the text, but it holds RON this reader does not
+    /// take into a pipeline (a range, a char or byte literal, a hex, binary
+    /// or suffixed number): a format error at the place, not a syntax error.
+    pub valid_ron: bool,
 }
 
 /// Parses a whole RON text into a spanned tree.
@@ -102,16 +106,27 @@ pub fn parse(text: &str) -> Result<Spanned<RonValue>, SyntaxError> {
                 col: e.span.start.col,
             },
             message: e.code.to_string(),
+            valid_ron: false,
         });
     }
     let mut p = Parser::new(text);
-    p.skip_ws()?;
-    let v = p.value()?;
-    p.skip_ws()?;
-    if p.peek().is_some() {
-        return Err(p.err("unexpected text after the end of the document"));
-    }
-    Ok(v)
+    let read = (|| {
+        p.skip_ws()?;
+        let v = p.value()?;
+        p.skip_ws()?;
+        if p.peek().is_some() {
+            return Err(p.err("unexpected text after the end of the document"));
+        }
+        Ok(v)
+    })();
+    read.map_err(|e| SyntaxError {
+        message: format!(
+            "{} (valid RON, but not a form a pipeline takes: write plain numbers, strings, lists, maps and structs)",
+            e.message
+        ),
+        valid_ron: true,
+        ..e
+    })
 }
 
 struct Parser<'a> {
@@ -143,6 +158,7 @@ impl<'a> Parser<'a> {
         SyntaxError {
             pos: self.pos(),
             message: msg.into(),
+            valid_ron: false,
         }
     }
     fn peek(&self) -> Option<char> {
@@ -194,6 +210,7 @@ impl<'a> Parser<'a> {
                                 return Err(SyntaxError {
                                     pos: start,
                                     message: "unterminated block comment".into(),
+                                    valid_ron: false,
                                 });
                             }
                             _ => {}
@@ -411,6 +428,7 @@ impl<'a> Parser<'a> {
                     return Err(SyntaxError {
                         pos: start,
                         message: "unterminated string".into(),
+                        valid_ron: false,
                     });
                 }
                 Some('"') => return Ok(s),
@@ -462,6 +480,7 @@ impl<'a> Parser<'a> {
                     return Err(SyntaxError {
                         pos: start,
                         message: "unterminated raw string".into(),
+                        valid_ron: false,
                     });
                 }
                 Some('"') => {
@@ -574,5 +593,27 @@ mod tests {
             assert!(parse(text).is_ok(), "{text}");
         }
         assert!(matches!(parse("r#rams").unwrap().value, RonValue::Ident(ref s) if s == "rams"));
+    }
+
+    #[test]
+    fn ron_the_reader_does_not_take_is_a_format_error_at_its_place() {
+        for text in [
+            "(version: ..1)",
+            "(a: 0x1F)",
+            "(a: 'c')",
+            "(a: 1u8)",
+            "(a: b'a')",
+        ] {
+            assert!(ron::from_str::<ron::Value>(text).is_ok(), "{text}");
+            let e = parse(text).unwrap_err();
+            assert!(e.valid_ron, "{text}");
+            assert_eq!(e.pos.line, 1);
+            assert!(
+                e.pos.col > 1 && e.pos.col <= text.len(),
+                "{text}: {:?}",
+                e.pos
+            );
+        }
+        assert!(!parse("(a: ").unwrap_err().valid_ron);
     }
 }
