@@ -340,12 +340,7 @@ fn eval(
     inputs: &Inputs,
     out_dir: &std::path::Path,
 ) -> std::thread::Result<Result<Outputs, NodeError>> {
-    let params: ParamMap = node
-        .schema()
-        .params
-        .iter()
-        .map(|p| (p.name.to_string(), p.default.clone()))
-        .collect();
+    let params = node.schema().default_params();
     let cancel = CancelToken::new();
     let ctx = EvalCtx {
         node: "under_test",

@@ -45,54 +45,68 @@ const MAX_WORK: f64 = 2e11;
 /// confidences `|Δc| <= REL_TOL`.
 pub const REL_TOL: f64 = 1e-5;
 
+/// The grid and patch kernel of a pass: the first member of both kernels'
+/// uniforms (`Patch` in `shaders/nlmeans_acc.wgsl`, field for field).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct PatchUniform {
+    w: u32,
+    h: u32,
+    search: u32,
+    patch: u32,
+    r: [u32; 3],
+    n_boxes: u32,
+    coef: [f32; 3],
+    cap: f32,
+    inv_hc2: f32,
+    inv_hd2: f32,
+    pad: [f32; 2],
+}
+
+impl PatchUniform {
+    /// The fields of `job` (at most three boxes: [`check_job`]).
+    fn of(job: &PassJob) -> Self {
+        let r = |k: usize| job.radii.get(k).copied().unwrap_or(0) as u32;
+        let c = |k: usize| job.coef.get(k).copied().unwrap_or(0.0) as f32;
+        Self {
+            w: job.w as u32,
+            h: job.h as u32,
+            search: job.search as u32,
+            patch: job.patch as u32,
+            r: [r(0), r(1), r(2)],
+            n_boxes: job.radii.len() as u32,
+            coef: [c(0), c(1), c(2)],
+            cap: job.cap.min(f32::MAX as f64) as f32,
+            inv_hc2: job.inv_hc2 as f32,
+            inv_hd2: job.inv_hd2 as f32,
+            pad: [0.0; 2],
+        }
+    }
+}
+
+/// `Params` of `shaders/nlmeans.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct Params {
-    w: u32,
-    h: u32,
-    search: u32,
-    patch: u32,
-    r0: u32,
-    r1: u32,
-    r2: u32,
-    n_boxes: u32,
-    coef0: f32,
-    coef1: f32,
-    coef2: f32,
-    cap: f32,
-    inv_hc2: f32,
-    inv_hd2: f32,
+    k: PatchUniform,
     inv_ref: f32,
     far: u32,
+    pad: [u32; 2],
 }
 
+/// `Params` of `shaders/nlmeans_upsample.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct UpsampleParams {
-    w: u32,
-    h: u32,
+    k: PatchUniform,
     lw: u32,
     lh: u32,
-    search: u32,
-    patch: u32,
-    r0: u32,
-    r1: u32,
-    r2: u32,
-    n_boxes: u32,
     low_patch: u32,
     has_color: u32,
     has_depth: u32,
-    pad_u: [u32; 3],
-    coef0: f32,
-    coef1: f32,
-    coef2: f32,
-    cap: f32,
-    inv_hc2: f32,
-    inv_hd2: f32,
     inv_low_area: f32,
     ln_alpha: f32,
     ln_one_minus_alpha: f32,
-    pad_f: [f32; 3],
 }
 
 /// An index of the CPU's (`usize::MAX` for none) as the kernel's `u32`
@@ -141,6 +155,21 @@ fn check_job(
     Ok(())
 }
 
+/// The guide features on the device, uploaded on first use: every pass of a
+/// node (the upsampling's and each inpainting iteration's) reads the same.
+fn guide_on_device<'g>(
+    slot: &'g mut Option<PooledBuffer>,
+    s: &mut Session,
+    guide: &[[f32; 3]],
+) -> Result<&'g PooledBuffer, NodeError> {
+    if slot.is_none() {
+        let g: Vec<[f32; 4]> = guide.iter().map(|g| [g[0], g[1], g[2], 0.0]).collect();
+        *slot = Some(s.upload(bytes_of(&g))?);
+    }
+    slot.as_ref()
+        .ok_or_else(|| NodeError::Internal("no guide on the device".into()))
+}
+
 /// The passes on the device; the guide is uploaded once for all of them.
 struct DeviceRunner<'s, 'c> {
     s: &'s mut Session<'c>,
@@ -160,33 +189,13 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let window = (2 * job.search + 1).pow(2) as f64 * (2 * job.patch + 1).pow(2) as f64;
         let targets = job.targets.iter().filter(|t| **t).count() as f64;
         check_job(s, job, &[job.z, job.c], window * targets)?;
-        let r = |k: usize| job.radii.get(k).copied().unwrap_or(0) as u32;
-        let c = |k: usize| job.coef.get(k).copied().unwrap_or(0.0) as f32;
         let params = Params {
-            w: w as u32,
-            h: h as u32,
-            search: job.search as u32,
-            patch: job.patch as u32,
-            r0: r(0),
-            r1: r(1),
-            r2: r(2),
-            n_boxes: job.radii.len() as u32,
-            coef0: c(0),
-            coef1: c(1),
-            coef2: c(2),
-            cap: job.cap.min(f32::MAX as f64) as f32,
-            inv_hc2: job.inv_hc2 as f32,
-            inv_hd2: job.inv_hd2 as f32,
+            k: PatchUniform::of(job),
             inv_ref: job.far.unwrap_or(0.0) as f32,
             far: u32::from(job.far.is_some()),
+            pad: [0; 2],
         };
-        if self.guide.is_none() {
-            let g: Vec<[f32; 4]> = job.guide.iter().map(|g| [g[0], g[1], g[2], 0.0]).collect();
-            self.guide = Some(s.upload(bytes_of(&g))?);
-        }
-        let Some(guide) = self.guide.as_ref() else {
-            return Err(NodeError::Internal("no guide on the device".into()));
-        };
+        let guide = guide_on_device(&mut self.guide, s, job.guide)?;
         let zc: Vec<[f32; 2]> = job.z.iter().zip(job.c).map(|(&z, &c)| [z, c]).collect();
         let targets: Vec<u32> = job.targets.iter().map(|&t| u32::from(t)).collect();
         if job.z.len() != n || job.c.len() != n || job.guide.len() != n || targets.len() != n {
@@ -243,30 +252,14 @@ impl PassRunner for DeviceRunner<'_, '_> {
         };
         let sample_at = indices(job.sample_at)?;
         let axis = indices(&[job.lo_col, job.lo_row].concat())?;
-        let r = |k: usize| p.radii.get(k).copied().unwrap_or(0) as u32;
-        let c = |k: usize| p.coef.get(k).copied().unwrap_or(0.0) as f32;
         let n_low = 2 * job.low_patch + 1;
         let params = UpsampleParams {
-            w: w as u32,
-            h: h as u32,
+            k: PatchUniform::of(p),
             lw: lw as u32,
             lh: lh as u32,
-            search: p.search as u32,
-            patch: p.patch as u32,
-            r0: r(0),
-            r1: r(1),
-            r2: r(2),
-            n_boxes: p.radii.len() as u32,
             low_patch: job.low_patch as u32,
             has_color: u32::from(job.alpha > 0.0),
             has_depth: u32::from(job.alpha < 1.0),
-            pad_u: [0; 3],
-            coef0: c(0),
-            coef1: c(1),
-            coef2: c(2),
-            cap: p.cap.min(f32::MAX as f64) as f32,
-            inv_hc2: p.inv_hc2 as f32,
-            inv_hd2: p.inv_hd2 as f32,
             // guard: n_low >= 1
             inv_low_area: (1.0 / (n_low * n_low) as f64) as f32,
             // only read where the term exists (alpha > 0, alpha < 1)
@@ -280,10 +273,9 @@ impl PassRunner for DeviceRunner<'_, '_> {
             } else {
                 0.0
             },
-            pad_f: [0.0; 3],
         };
-        let g: Vec<[f32; 4]> = p.guide.iter().map(|g| [g[0], g[1], g[2], 0.0]).collect();
-        let guide = s.upload(bytes_of(&g))?;
+        // the inpainting that follows uses the same guide
+        let guide = guide_on_device(&mut self.guide, s, p.guide)?;
         let low: Vec<[f32; 2]> = job.lz.iter().zip(job.lc).map(|(&z, &c)| [z, c]).collect();
         let kernel = s.kernel(&shaders::NLMEANS_UPSAMPLE)?;
         let uniform = s.uniform(bytemuck::bytes_of(&params))?;
@@ -293,12 +285,10 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let out = s.scratch(16 * n as u64)?;
         let bg = s.bind(
             &kernel,
-            &[&uniform, &guide, &low_buf, &at_buf, &axis_buf, &out],
+            &[&uniform, guide, &low_buf, &at_buf, &axis_buf, &out],
         );
         let encoder = s.image_passes(&[(&kernel, &bg)], (w, h));
         let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
-        // the inpainting that follows uses the same guide
-        self.guide = Some(guide);
         progress(1.0)?;
         Ok(f32s(&back[0])
             .chunks_exact(4)

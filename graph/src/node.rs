@@ -79,6 +79,13 @@ pub struct NodeSchema {
 }
 
 impl NodeSchema {
+    /// Every parameter at its default value.
+    pub fn default_params(&self) -> crate::params::ParamMap {
+        self.params
+            .iter()
+            .map(|p| (p.name.to_string(), p.default.clone()))
+            .collect()
+    }
     /// The input port named `name`.
     pub fn input(&self, name: &str) -> Option<&PortSpec> {
         self.inputs.iter().find(|p| p.name == name)

@@ -93,9 +93,7 @@ impl Pipeline {
             let mut params = ParamMap::new();
             if let Some(node) = &node {
                 let schema = node.schema();
-                for spec in &schema.params {
-                    params.insert(spec.name.to_string(), spec.default.clone());
-                }
+                params.extend(schema.default_params());
                 for (key, val) in &decl.params {
                     let pfile = decl
                         .param_files

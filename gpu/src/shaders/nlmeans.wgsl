@@ -8,24 +8,12 @@
 // the same bits on every run.
 
 struct Params {
-    w: u32,
-    h: u32,
-    search: u32,
-    patch_r: u32,
-    // radii of the (up to three) nested boxes, and how many
-    r0: u32,
-    r1: u32,
-    r2: u32,
-    n_boxes: u32,
-    coef0: f32,
-    coef1: f32,
-    coef2: f32,
-    cap: f32,
-    inv_hc2: f32,
-    inv_hd2: f32,
+    k: Patch,
     // 1 / z_ref of the far prior; 0 when off
     inv_ref: f32,
     far: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> P: Params;
@@ -42,46 +30,46 @@ struct Params {
 // have confidence), for `patch_distance`.
 fn pixel_distance(p: u32, q: u32) -> f32 {
     let dg = guide[p].xyz - guide[q].xyz;
-    var d = dot(dg, dg) * P.inv_hc2;
+    var d = dot(dg, dg) * P.k.inv_hc2;
     let cc = zc[p].y * zc[q].y;
     if (cc > 0.0) {
         // cc dz^2 / h^2 as the square of a capped root, so no product
         // overflows (the cap leaves it unchanged)
         let dz = zc[p].x - zc[q].x;
-        let t = min(abs(dz) * sqrt(cc * P.inv_hd2), sqrt(P.cap));
+        let t = min(abs(dz) * sqrt(cc * P.k.inv_hd2), sqrt(P.k.cap));
         d = d + t * t;
     }
-    return min(d, P.cap);
+    return min(d, P.k.cap);
 }
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= P.w || gid.y >= P.h) {
+    if (gid.x >= P.k.w || gid.y >= P.k.h) {
         return;
     }
     let x = i32(gid.x);
     let y = i32(gid.y);
-    let i = gid.y * P.w + gid.x;
+    let i = gid.y * P.k.w + gid.x;
     if (targets[i] == 0u) {
         result[i] = vec4<f32>(0.0);
         return;
     }
     var acc = acc_empty();
-    let big_r = i32(P.search);
+    let big_r = i32(P.k.search);
     let zi = zc[i];
     for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
         let yj = y + dy;
-        if (yj < 0 || yj >= i32(P.h)) {
+        if (yj < 0 || yj >= i32(P.k.h)) {
             continue;
         }
         for (var dx = -big_r; dx <= big_r; dx = dx + 1) {
             let xj = x + dx;
-            if (xj < 0 || xj >= i32(P.w)) {
+            if (xj < 0 || xj >= i32(P.k.w)) {
                 continue;
             }
             let dist = patch_distance(x, y, dx, dy);
             // the CPU's DepthKernel
-            let j = u32(yj) * P.w + u32(xj);
+            let j = u32(yj) * P.k.w + u32(xj);
             let cj = zc[j].y;
             if (cj <= 0.0) {
                 add(&acc, -dist, 0.0, 1.0, 0.0);
@@ -91,7 +79,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             var xi = 0.0;
             if (zi.y > 0.0) {
                 // bounded (1e36) instead of overflowing: its weight is 0 either way
-                let t = min(abs(zi.x - zj) * sqrt(P.inv_hd2), 1e18);
+                let t = min(abs(zi.x - zj) * sqrt(P.k.inv_hd2), 1e18);
                 xi = t * t;
             }
             var prior = 1.0;

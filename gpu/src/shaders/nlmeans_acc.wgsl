@@ -1,9 +1,33 @@
 // The running sums of one NL-means target (the CPU's `Acc` of
 // depthgraph_nodes' nlmeans::pass, in f32), shared by `nlmeans.wgsl` and
 // `nlmeans_upsample.wgsl` (each kernel's source is common.wgsl, this file,
-// then its own), and the patch distance of both: each kernel declares its
-// uniform `P` (with w, h, patch_r, r0..r2, n_boxes, coef0..coef2) and its
-// own `pixel_distance(p, q)`.
+// then its own), the patch kernel both kernels' uniforms start with
+// (`Patch`, the Rust `PatchUniform` of gpu/src/nlmeans.rs), and the patch
+// distance of both: each kernel declares its uniform `P` (whose member `k`
+// is the `Patch`) and its own `pixel_distance(p, q)`.
+
+// The grid and patch kernel of an NL-means pass.
+struct Patch {
+    w: u32,
+    h: u32,
+    search: u32,
+    patch_r: u32,
+    // radii of the (up to three) nested boxes, and how many
+    r0: u32,
+    r1: u32,
+    r2: u32,
+    n_boxes: u32,
+    // weight of one pixel of each box
+    coef0: f32,
+    coef1: f32,
+    coef2: f32,
+    // per-pixel distances are capped here
+    cap: f32,
+    inv_hc2: f32,
+    inv_hd2: f32,
+    _pad0: f32,
+    _pad1: f32,
+}
 
 const SMALLEST_NORMAL: f32 = 1.17549435e-38;
 
@@ -93,33 +117,33 @@ fn finish(acc: Acc) -> vec4<f32> {
 // of the capped per-pixel distances, patch pixels at clamped coordinates,
 // each box sum compensated (the CPU's PatchKernel over its box sums).
 fn patch_distance(x: i32, y: i32, dx: i32, dy: i32) -> f32 {
-    let r = i32(P.patch_r);
+    let r = i32(P.k.patch_r);
     var b0 = vec2<f32>(0.0);
     var b1 = vec2<f32>(0.0);
     var b2 = vec2<f32>(0.0);
     for (var v = -r; v <= r; v = v + 1) {
-        let py = clampi(y + v, P.h);
-        let qy = clampi(y + v + dy, P.h);
+        let py = clampi(y + v, P.k.h);
+        let qy = clampi(y + v + dy, P.k.h);
         for (var u = -r; u <= r; u = u + 1) {
-            let d = pixel_distance(py * P.w + clampi(x + u, P.w), qy * P.w + clampi(x + u + dx, P.w));
+            let d = pixel_distance(py * P.k.w + clampi(x + u, P.k.w), qy * P.k.w + clampi(x + u + dx, P.k.w));
             let m = u32(max(abs(u), abs(v)));
-            if (m <= P.r0) {
+            if (m <= P.k.r0) {
                 b0 = kahan_add(b0, d);
             }
-            if (P.n_boxes > 1u && m <= P.r1) {
+            if (P.k.n_boxes > 1u && m <= P.k.r1) {
                 b1 = kahan_add(b1, d);
             }
-            if (P.n_boxes > 2u && m <= P.r2) {
+            if (P.k.n_boxes > 2u && m <= P.k.r2) {
                 b2 = kahan_add(b2, d);
             }
         }
     }
-    var dist = P.coef0 * max(b0.x, 0.0);
-    if (P.n_boxes > 1u) {
-        dist = dist + P.coef1 * max(b1.x, 0.0);
+    var dist = P.k.coef0 * max(b0.x, 0.0);
+    if (P.k.n_boxes > 1u) {
+        dist = dist + P.k.coef1 * max(b1.x, 0.0);
     }
-    if (P.n_boxes > 2u) {
-        dist = dist + P.coef2 * max(b2.x, 0.0);
+    if (P.k.n_boxes > 2u) {
+        dist = dist + P.k.coef2 * max(b2.x, 0.0);
     }
     return dist;
 }

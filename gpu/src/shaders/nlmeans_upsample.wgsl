@@ -16,36 +16,17 @@
 // jobs to the CPU), so no square overflows.
 
 struct Params {
-    w: u32,
-    h: u32,
+    k: Patch,
     lw: u32,
     lh: u32,
-    search: u32,
-    patch_r: u32,
-    r0: u32,
-    r1: u32,
-    r2: u32,
-    n_boxes: u32,
     low_patch: u32,
     // 1 when alpha > 0 (the colour term exists), 1 when alpha < 1 (the depth term)
     has_color: u32,
     has_depth: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
-    coef0: f32,
-    coef1: f32,
-    coef2: f32,
-    cap: f32,
-    inv_hc2: f32,
-    inv_hd2: f32,
     inv_low_area: f32,
     // ln(alpha), ln(1 - alpha) where the terms exist
     ln_alpha: f32,
     ln_one_minus_alpha: f32,
-    _pad3: f32,
-    _pad4: f32,
-    _pad5: f32,
 }
 
 const NONE: u32 = 0xffffffffu;
@@ -84,12 +65,12 @@ fn low_distance(a: u32, b: u32) -> f32 {
             }
         }
     }
-    var dist = s.x * P.inv_low_area * P.inv_hd2;
+    var dist = s.x * P.inv_low_area * P.k.inv_hd2;
     let ca = low[a];
     let cb = low[b];
     if (ca.y > 0.0 && cb.y > 0.0) {
         let dz = ca.x - cb.x;
-        dist = dist + dz * dz * P.inv_hd2;
+        dist = dist + dz * dz * P.k.inv_hd2;
     }
     return dist;
 }
@@ -113,33 +94,33 @@ fn log_add_exp(a: f32, has_a: bool, b: f32, has_b: bool) -> vec2<f32> {
 // The capped colour distance of patch pixels p and q, for `patch_distance`.
 fn pixel_distance(p: u32, q: u32) -> f32 {
     let dg = guide[p].xyz - guide[q].xyz;
-    return min(dot(dg, dg) * P.inv_hc2, P.cap);
+    return min(dot(dg, dg) * P.k.inv_hc2, P.k.cap);
 }
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= P.w || gid.y >= P.h) {
+    if (gid.x >= P.k.w || gid.y >= P.k.h) {
         return;
     }
     let x = i32(gid.x);
     let y = i32(gid.y);
-    let i = gid.y * P.w + gid.x;
+    let i = gid.y * P.k.w + gid.x;
     var acc = acc_empty();
-    let big_r = i32(P.search);
+    let big_r = i32(P.k.search);
     let lx = lo_axis[gid.x];
-    let ly = lo_axis[P.w + gid.y];
+    let ly = lo_axis[P.k.w + gid.y];
     let centre_low = lx != NONE && ly != NONE;
     for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
         let yj = y + dy;
-        if (yj < 0 || yj >= i32(P.h)) {
+        if (yj < 0 || yj >= i32(P.k.h)) {
             continue;
         }
         for (var dx = -big_r; dx <= big_r; dx = dx + 1) {
             let xj = x + dx;
-            if (xj < 0 || xj >= i32(P.w)) {
+            if (xj < 0 || xj >= i32(P.k.w)) {
                 continue;
             }
-            let j = u32(yj) * P.w + u32(xj);
+            let j = u32(yj) * P.k.w + u32(xj);
             let s = sample_at[j];
             if (s == NONE) {
                 continue;

@@ -17,7 +17,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::{Registry, RegistryError};
 use image::DynamicImage;
 
-use super::decode::{Limits, check_dims, read_file};
+use super::decode::{Limits, read_file};
 
 node_params! {
     /// Parameters of `LoadMask`.
@@ -75,9 +75,9 @@ pub fn decode_mask(
     p: &LoadMaskParams,
     lim: &Limits,
 ) -> Result<Mask, NodeError> {
+    // decode_image checked the size against `lim`
     let img = super::decode_image(bytes, path, lim)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
-    check_dims(path, w, h, lim)?;
     let values: Vec<f32> = match p.channel {
         MaskChannel::Value => {
             let rgb = img.to_rgb32f();

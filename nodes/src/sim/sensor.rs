@@ -1192,12 +1192,7 @@ mod tests {
         let ctx = test_ctx.ctx();
         for kind in ["SimulateKinect", "SimulateToF", "SimulateBracket"] {
             let node = reg.get(kind).unwrap();
-            let params: ParamMap = node
-                .schema()
-                .params
-                .iter()
-                .map(|s| (s.name.to_string(), s.default.clone()))
-                .collect();
+            let params = node.schema().default_params();
             for spec in &node.schema().params {
                 spec.kind.validate(&spec.default).unwrap();
             }
