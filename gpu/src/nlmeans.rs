@@ -170,6 +170,28 @@ fn guide_on_device<'g>(
         .ok_or_else(|| NodeError::Internal("no guide on the device".into()))
 }
 
+/// One dispatch of an NL-means kernel over the `w x h` grid, bound to
+/// `inputs` then its result buffer (`(estimate, confidence, found, 0)` per
+/// pixel), read back as the runner's results.
+fn one_pass(
+    s: &mut Session,
+    kernel: &wgpu::ComputePipeline,
+    inputs: &[&wgpu::Buffer],
+    (w, h): (usize, usize),
+) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
+    let size = 16 * (w * h) as u64;
+    let out = s.scratch(size)?;
+    let mut binds = inputs.to_vec();
+    binds.push(&out);
+    let bg = s.bind(kernel, &binds);
+    let encoder = s.image_passes(&[(kernel, &bg)], (w, h));
+    let back = s.finish(encoder, &[(&out, size)])?;
+    Ok(f32s(&back[0])
+        .chunks_exact(4)
+        .map(|r| (r[2] > 0.0).then_some((r[0], r[1])))
+        .collect())
+}
+
 /// The passes on the device; the guide is uploaded once for all of them.
 struct DeviceRunner<'s, 'c> {
     s: &'s mut Session<'c>,
@@ -207,15 +229,9 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let uniform = s.uniform(bytemuck::bytes_of(&params))?;
         let zc_buf = s.upload(bytes_of(&zc))?;
         let t_buf = s.upload(bytes_of(&targets))?;
-        let out = s.scratch(16 * n as u64)?;
-        let bg = s.bind(&kernel, &[&uniform, guide, &zc_buf, &t_buf, &out]);
-        let encoder = s.image_passes(&[(&kernel, &bg)], (w, h));
-        let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
+        let out = one_pass(s, &kernel, &[&uniform, guide, &zc_buf, &t_buf], (w, h))?;
         progress(1.0)?;
-        Ok(f32s(&back[0])
-            .chunks_exact(4)
-            .map(|r| (r[2] > 0.0).then_some((r[0], r[1])))
-            .collect())
+        Ok(out)
     }
 
     fn run_upsample(
@@ -282,18 +298,10 @@ impl PassRunner for DeviceRunner<'_, '_> {
         let low_buf = s.upload(bytes_of(&low))?;
         let at_buf = s.upload(bytes_of(&sample_at))?;
         let axis_buf = s.upload(bytes_of(&axis))?;
-        let out = s.scratch(16 * n as u64)?;
-        let bg = s.bind(
-            &kernel,
-            &[&uniform, guide, &low_buf, &at_buf, &axis_buf, &out],
-        );
-        let encoder = s.image_passes(&[(&kernel, &bg)], (w, h));
-        let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
+        let inputs = [&*uniform, guide, &low_buf, &at_buf, &axis_buf];
+        let out = one_pass(s, &kernel, &inputs, (w, h))?;
         progress(1.0)?;
-        Ok(f32s(&back[0])
-            .chunks_exact(4)
-            .map(|r| (r[2] > 0.0).then_some((r[0], r[1])))
-            .collect())
+        Ok(out)
     }
 }
 
