@@ -16,9 +16,13 @@
 //! same run through `benches/peers/opencv_hdr.py` (set `DEPTHGRAPH_PEERS=0`
 //! to skip; `DEPTHGRAPH_PEER_DIR` keeps the exchanged files).
 //!
-//! `memorial.hdr` starts with a `VIEW=` line before `#?RADIANCE` and uses CRLF
-//! line ends, which the `image` crate's RGBE decoder (0.25) refuses, so this
-//! bench reads it with its own small RGBE reader ([`read_rgbe`]).
+//! 3. **Few exposures**: subsets of the memorial series (2, 3 and 5
+//!    exposures) against all 16, each method against its own 16-exposure
+//!    result, in stops.
+//!
+//! `memorial.hdr` starts with a `VIEW=` line before `#?RADIANCE`, which the
+//! `image` crate's RGBE decoder (0.25) refuses; it is read with `LoadColor`'s
+//! own Radiance reader.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -27,8 +31,8 @@ use std::time::Instant;
 use depthgraph::evaluation::shared_data_dir;
 use depthgraph::graph::prelude::*;
 use depthgraph::nodes::camera::hdr::{
-    LoadBracketParams, Merged, ResponseCurve, ResponseParams, load_bracket, merge_hdr,
-    recover_response,
+    LoadBracketParams, Merged, PolynomialParams, ResponseCurve, ResponseParams, load_bracket,
+    mean_stops_apart, merge_hdr, recover_polynomial, recover_response, seen_well,
 };
 use depthgraph::nodes::sim::sensor::{BracketParams, simulate_bracket};
 use depthgraph::nodes::sim::synthetic::{RenderOptions, Scene, render};
@@ -48,393 +52,29 @@ fn median_ms<T>(repeats: usize, mut f: impl FnMut() -> T) -> (Option<T>, f64) {
 
 // ------------------------------------------------------------------ RGBE
 
-fn rgbe_to_rgb(p: [u8; 4]) -> [f32; 3] {
-    if p[3] == 0 {
-        return [0.0; 3];
-    }
-    // Radiance's convention: (mantissa + 0.5) * 2^(exponent - 136)
-    let f = 2f64.powi(p[3] as i32 - 136);
-    [0, 1, 2].map(|c| ((p[c] as f64 + 0.5) * f) as f32)
-}
-
-/// The byte at `*pos`, advancing it.
-fn take(bytes: &[u8], pos: &mut usize) -> Result<u8, String> {
-    let b = *bytes.get(*pos).ok_or("truncated pixel data")?;
-    *pos += 1;
-    Ok(b)
-}
-
-fn read_scanline(bytes: &[u8], pos: &mut usize, scan: &mut [[u8; 4]]) -> Result<(), String> {
-    let w = scan.len();
-    let head = bytes.get(*pos..*pos + 4);
-    if let Some(&[2, 2, hi, lo]) = head {
-        if (8..32768).contains(&w) && hi & 0x80 == 0 {
-            // new run-length encoding: the four channels one after the other
-            let sw = ((hi as usize) << 8) | lo as usize;
-            if sw != w {
-                return Err(format!("scanline width {sw}, expected {w}"));
-            }
-            *pos += 4;
-            for ch in 0..4 {
-                let mut x = 0;
-                while x < w {
-                    let count = take(bytes, pos)? as usize;
-                    if count > 128 {
-                        let n = count - 128;
-                        let v = take(bytes, pos)?;
-                        if x + n > w {
-                            return Err("run overflows the scanline".into());
-                        }
-                        for px in &mut scan[x..x + n] {
-                            px[ch] = v;
-                        }
-                        x += n;
-                    } else {
-                        if count == 0 || x + count > w {
-                            return Err("bad literal run".into());
-                        }
-                        for px in &mut scan[x..x + count] {
-                            px[ch] = take(bytes, pos)?;
-                        }
-                        x += count;
-                    }
-                }
-            }
-            return Ok(());
-        }
-    }
-    // flat pixels, with the old encoding's (1, 1, 1, n) repeats
-    let mut x = 0;
-    let mut shift = 0;
-    while x < w {
-        let px = [
-            take(bytes, pos)?,
-            take(bytes, pos)?,
-            take(bytes, pos)?,
-            take(bytes, pos)?,
-        ];
-        if px[0] == 1 && px[1] == 1 && px[2] == 1 {
-            if x == 0 {
-                return Err("repeat before the first pixel".into());
-            }
-            if shift > 24 {
-                return Err("repeat count overflows".into());
-            }
-            let n = (px[3] as usize) << shift;
-            let prev = scan[x - 1];
-            let end = (x + n).min(w);
-            for p in &mut scan[x..end] {
-                *p = prev;
-            }
-            x = end;
-            shift += 8;
-        } else {
-            scan[x] = px;
-            x += 1;
-            shift = 0;
-        }
-    }
-    Ok(())
-}
-
-/// A byte of a CR LF-converted stream: itself, or a CR LF pair that stood
-/// for 0x0A, 0x0D or 0x0D 0x0A before the conversion.
-#[derive(Debug, Clone, Copy)]
-enum Tok {
-    Byte(u8),
-    CrLf,
-}
-
-/// Re-decodes one new-RLE scanline (without its 4-byte header) whose bytes
-/// went through a CR LF conversion. Every reading of the ambiguous pairs that
-/// gives a valid scanline ending exactly at the next scanline header is
-/// considered; among them the one whose bytes differ least from the scanline
-/// above (each difference capped at 40) wins (dynamic programming over the
-/// parser states, i.e. a Viterbi search). Returns the pixels and, per pixel,
-/// whether a byte of it came from a pair read as a single byte (0x0A or 0x0D:
-/// its value is uncertain).
-struct RowRepair<'a> {
-    tok: &'a [Tok],
-    w: usize,
-    above: Option<&'a [[u8; 4]]>,
-    memo: std::collections::HashMap<u64, (u32, u8)>,
-}
-
-const UNREACHABLE: u32 = u32::MAX;
-
-impl RowRepair<'_> {
-    fn key(ti: usize, pend: bool, ch: usize, x: usize, rem: usize, n: usize) -> u64 {
-        ti as u64
-            | (pend as u64) << 24
-            | (ch as u64) << 25
-            | (x as u64) << 28
-            | (rem as u64) << 44
-            | (n as u64) << 52
-    }
-
-    /// Readings of the next byte: (value, next token, pending 0x0A, uncertain).
-    fn reads(&self, ti: usize, pend: bool) -> Vec<(u8, usize, bool, bool)> {
-        if pend {
-            return vec![(10, ti, false, false)];
-        }
-        match self.tok.get(ti) {
-            None => vec![],
-            Some(Tok::Byte(v)) => vec![(*v, ti + 1, false, false)],
-            Some(Tok::CrLf) => vec![
-                (10, ti + 1, false, true),
-                (13, ti + 1, false, true),
-                (13, ti + 1, true, false),
-            ],
-        }
-    }
-
-    fn cost(&self, v: u8, ch: usize, x: usize, n: usize) -> u32 {
-        match self.above {
-            None => 0,
-            Some(a) => a[x..x + n]
-                .iter()
-                .map(|p| (v as i32 - p[ch] as i32).unsigned_abs().min(40))
-                .sum(),
-        }
-    }
-
-    /// The parser state after reading `v` in state (ch, x, rem, n), and the cost.
-    fn step(
-        &self,
-        v: u8,
-        ch: usize,
-        x: usize,
-        rem: usize,
-        n: usize,
-    ) -> Option<((usize, usize, usize, usize), u32)> {
-        if rem > 0 {
-            Some(((ch, x + 1, rem - 1, 0), self.cost(v, ch, x, 1)))
-        } else if n > 0 {
-            Some(((ch, x + n, 0, 0), self.cost(v, ch, x, n)))
-        } else if v > 128 {
-            let n = v as usize - 128;
-            (x + n <= self.w).then_some(((ch, x, 0, n), 0))
-        } else if v > 0 && x + v as usize <= self.w {
-            Some(((ch, x, v as usize, 0), 0))
-        } else {
-            None
-        }
-    }
-
-    fn best(&mut self, ti: usize, pend: bool, ch: usize, x: usize, rem: usize, n: usize) -> u32 {
-        let (mut ch, mut x) = (ch, x);
-        if x == self.w && rem == 0 && n == 0 {
-            ch += 1;
-            x = 0;
-        }
-        if ch == 4 {
-            return if ti == self.tok.len() && !pend {
-                0
-            } else {
-                UNREACHABLE
-            };
-        }
-        let key = Self::key(ti, pend, ch, x, rem, n);
-        if let Some(m) = self.memo.get(&key) {
-            return m.0;
-        }
-        let mut best = (UNREACHABLE, 0u8);
-        for (i, (v, t1, p1, _)) in self.reads(ti, pend).into_iter().enumerate() {
-            let Some(((c2, x2, r2, n2), c)) = self.step(v, ch, x, rem, n) else {
-                continue;
-            };
-            let rest = self.best(t1, p1, c2, x2, r2, n2);
-            if rest != UNREACHABLE && rest.saturating_add(c) < best.0 {
-                best = (rest.saturating_add(c), i as u8);
-            }
-        }
-        self.memo.insert(key, best);
-        best.0
-    }
-
-    fn decode(mut self) -> Option<(Vec<[u8; 4]>, Vec<bool>)> {
-        if self.best(0, false, 0, 0, 0, 0) == UNREACHABLE {
-            return None;
-        }
-        let w = self.w;
-        let mut out = vec![[0u8; 4]; w];
-        let mut unsure = vec![false; w];
-        let (mut ti, mut pend, mut ch, mut x, mut rem, mut n) = (0, false, 0, 0, 0, 0);
-        loop {
-            if x == w && rem == 0 && n == 0 {
-                ch += 1;
-                x = 0;
-            }
-            if ch == 4 {
-                return Some((out, unsure));
-            }
-            let (_, choice) = *self.memo.get(&Self::key(ti, pend, ch, x, rem, n))?;
-            let (v, t1, p1, amb) = *self.reads(ti, pend).get(choice as usize)?;
-            let ((c2, x2, r2, n2), _) = self.step(v, ch, x, rem, n)?;
-            let span = if rem > 0 {
-                x..x + 1
-            } else if n > 0 {
-                x..x + n
-            } else {
-                x..x
-            };
-            for k in span {
-                out[k][ch] = v;
-                unsure[k] |= amb;
-            }
-            (ti, pend, ch, x, rem, n) = (t1, p1, c2, x2, r2, n2);
-        }
-    }
-}
-
-/// True when `data` looks CR LF-converted: every LF follows a CR and every
-/// CR precedes an LF.
-fn crlf_converted(data: &[u8]) -> bool {
-    let lf = data.iter().filter(|b| **b == b'\n').count();
-    let cr = data.iter().filter(|b| **b == b'\r').count();
-    let pairs = data.windows(2).filter(|p| p == b"\r\n").count();
-    lf > 0 && lf == pairs && cr == pairs
-}
-
-/// Repairs new-RLE pixel data that went through a CR LF conversion (see
-/// [`RowRepair`]); scanlines are found by their headers `2 2 hi lo`.
-fn repair_rgbe(data: &[u8], w: usize, h: usize) -> Result<(Vec<[u8; 4]>, Vec<bool>), String> {
-    let marker = [2u8, 2, (w >> 8) as u8, (w & 255) as u8];
-    let starts: Vec<usize> = data
-        .windows(4)
-        .enumerate()
-        .filter(|(_, win)| *win == marker)
-        .map(|(i, _)| i)
-        .collect();
-    if starts.len() != h || starts.first() != Some(&0) {
-        return Err(format!(
-            "found {} scanline headers, expected {h}",
-            starts.len()
-        ));
-    }
-    let mut pixels = Vec::with_capacity(w * h);
-    let mut unsure = Vec::with_capacity(w * h);
-    for y in 0..h {
-        let end = starts.get(y + 1).copied().unwrap_or(data.len());
-        let seg = &data[starts[y] + 4..end];
-        let mut tok = Vec::with_capacity(seg.len());
-        let mut i = 0;
-        while i < seg.len() {
-            if seg[i] == b'\r' && seg.get(i + 1) == Some(&b'\n') {
-                tok.push(Tok::CrLf);
-                i += 2;
-            } else {
-                tok.push(Tok::Byte(seg[i]));
-                i += 1;
-            }
-        }
-        let above = (y > 0).then(|| &pixels[(y - 1) * w..y * w]);
-        let (row, amb) = RowRepair {
-            tok: &tok,
-            w,
-            above,
-            memo: std::collections::HashMap::new(),
-        }
-        .decode()
-        .ok_or_else(|| format!("row {y} has no consistent reading"))?;
-        pixels.extend(row);
-        unsure.extend(amb);
-    }
-    Ok((pixels, unsure))
-}
-
 /// Debevec's reference: the radiance, the pixels whose value is uncertain
-/// (only after a repair) and a note on how it was read.
+/// (none for an intact file) and a note on how it was read.
 struct Reference {
     img: ColorImage,
     unsure: Vec<bool>,
     note: String,
 }
 
-/// Reads a RADIANCE RGBE file (`-Y h +X w` orientation) as linear RGB. The
-/// signature may follow other header lines; CR LF line ends are accepted. A
-/// file whose binary data went through a CR LF conversion (the shared
-/// `memorial.hdr` did) is repaired by [`repair_rgbe`].
+/// Reads a Radiance RGBE file with the library's reader (`LoadColor`'s).
 fn read_rgbe(path: &Path) -> Result<Reference, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let err = |m: &str| format!("{}: {m}", path.display());
-    let mut pos = 0;
-    let mut line = || -> Result<String, String> {
-        let rest = bytes.get(pos..).unwrap_or(&[]);
-        let end = rest
-            .iter()
-            .position(|b| *b == b'\n')
-            .ok_or_else(|| err("header never ends"))?;
-        let text = String::from_utf8_lossy(&rest[..end])
-            .trim_end_matches('\r')
-            .to_string();
-        pos += end + 1;
-        Ok(text)
-    };
-    let mut radiance = false;
-    loop {
-        let l = line()?;
-        if l.is_empty() {
-            break;
-        }
-        radiance |= l.starts_with("#?");
-        if let Some(f) = l.strip_prefix("FORMAT=") {
-            if f.trim() != "32-bit_rle_rgbe" {
-                return Err(err(&format!("format {f} is not 32-bit_rle_rgbe")));
-            }
-        }
-    }
-    if !radiance {
-        return Err(err("no #?RADIANCE signature"));
-    }
-    let res = line()?;
-    let t: Vec<&str> = res.split_whitespace().collect();
-    let (h, w) = match t.as_slice() {
-        ["-Y", h, "+X", w] => (
-            h.parse::<usize>().map_err(|_| err("bad height"))?,
-            w.parse::<usize>().map_err(|_| err("bad width"))?,
-        ),
-        _ => return Err(err(&format!("unsupported orientation `{res}`"))),
-    };
-    if w == 0 || h == 0 || w > 1 << 15 || h > 1 << 15 {
-        return Err(err(&format!("size {w}x{h} out of range")));
-    }
-    let data = &bytes[pos.min(bytes.len())..];
-    let mut plain = Vec::with_capacity(w * h);
-    let mut scan = vec![[0u8; 4]; w];
-    let mut at = 0;
-    let mut failure = None;
-    for y in 0..h {
-        if let Err(e) = read_scanline(data, &mut at, &mut scan) {
-            failure = Some(format!("row {y}: {e}"));
-            break;
-        }
-        plain.extend_from_slice(&scan);
-    }
-    let (pixels, unsure, note) = match failure {
-        None => (plain, vec![false; w * h], String::new()),
-        Some(e) if crlf_converted(data) => {
-            let (px, unsure) = repair_rgbe(data, w, h)
-                .map_err(|r| err(&format!("{e}; the CR LF repair failed too: {r}")))?;
-            let n = unsure.iter().filter(|u| **u).count();
-            let note = format!(
-                "`{}` does not decode as stored ({e}): its binary data went through a CR LF \
-                 conversion (every LF byte is preceded by a CR, and no CR stands alone). It was \
-                 re-decoded by a dynamic-programming search over the readings of each CR LF pair \
-                 (0x0A, 0x0D or both) that keep every scanline valid, preferring the reading \
-                 closest to the scanline above; {n} pixels ({:.1} %) hold a byte whose value stays \
-                 uncertain (0x0A or 0x0D) and are left out of the comparison.",
-                path.display(),
-                // guard: w, h >= 1
-                100.0 * n as f64 / (w * h) as f64
-            );
-            (px, unsure, note)
-        }
-        Some(e) => return Err(err(&e)),
-    };
-    let img = Image::from_vec(w, h, pixels.into_iter().map(rgbe_to_rgb).collect())
-        .map_err(|e| err(&e.to_string()))?;
-    Ok(Reference { img, unsure, note })
+    let r = depthgraph::nodes::io::radiance::decode_rgbe(
+        &bytes,
+        path,
+        &depthgraph::nodes::io::Limits::default(),
+    )
+    .map_err(|e| e.to_string())?;
+    let unsure = vec![false; r.image.len()];
+    Ok(Reference {
+        img: r.image,
+        unsure,
+        note: String::new(),
+    })
 }
 
 // ------------------------------------------------------------------ metric
@@ -621,6 +261,8 @@ struct Row {
     err: Option<LogError>,
     /// The same error over the brightest 80 % of the compared pixels.
     err_bright: Option<LogError>,
+    /// The same error over the darkest 20 %.
+    err_dark: Option<LogError>,
 }
 
 /// `mask` without its darkest 20 % (by the reference's green channel).
@@ -647,8 +289,8 @@ fn brightest_80(reference: &ColorImage, mask: &[bool]) -> Vec<bool> {
 
 fn table(rows: &[Row], what: &str) -> String {
     let mut s = String::from(
-        "| method | response ms | merge ms | total ms | RMS ln error, per-channel factor | RMS ln error, one factor | within 10 % | slope of ln on ln ref | RMS ln error, brightest 80 % | pixels |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| method | response ms | merge ms | total ms | RMS ln error, per-channel factor | RMS ln error, one factor | within 10 % | slope of ln on ln ref | RMS ln error, brightest 80 % | RMS ln error, darkest 20 % | pixels |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in rows {
         let (a, b, c, sl, n) = match r.err {
@@ -663,12 +305,15 @@ fn table(rows: &[Row], what: &str) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {:.1} | {:.1} | {:.1} | {a} | {b} | {c} | {sl} | {} | {n} |",
+            "| {} | {:.1} | {:.1} | {:.1} | {a} | {b} | {c} | {sl} | {} | {} | {n} |",
             r.method,
             r.response_ms,
             r.merge_ms,
             r.response_ms + r.merge_ms,
             r.err_bright
+                .map(|e| format!("{:.4}", e.rms_channel))
+                .unwrap_or_else(|| "-".into()),
+            r.err_dark
                 .map(|e| format!("{:.4}", e.rms_channel))
                 .unwrap_or_else(|| "-".into())
         );
@@ -801,12 +446,14 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
         }
     }
     let bright = brightest_80(&reference, &mask);
+    let dark: Vec<bool> = mask.iter().zip(&bright).map(|(m, b)| *m && !*b).collect();
     let row = |method: &str, response_ms: f64, merge_ms: f64, out: Option<&ColorImage>| Row {
         method: method.to_string(),
         response_ms,
         merge_ms,
         err: out.and_then(|o| log_error(o, &reference, &mask)),
         err_bright: out.and_then(|o| log_error(o, &reference, &bright)),
+        err_dark: out.and_then(|o| log_error(o, &reference, &dark)),
     };
     let mut rows = Vec::new();
     for (label, r, m, out) in &outputs {
@@ -827,7 +474,113 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
         &rows,
         "Debevec's `memorial.hdr` (his own merge of the same scans, not ground truth)",
     ));
+    let full16 = outputs
+        .first()
+        .and_then(|o| o.3.as_ref())
+        .map(|m| m.color.clone());
+    let cv16 = peer_out.first().and_then(|o| o.3.clone());
+    s.push_str(&few_exposures(
+        &stack,
+        &list,
+        full16.as_ref(),
+        cv16.as_ref(),
+        peers,
+    ));
     (s, note)
+}
+
+/// Few exposures of the memorial series against all 16, each method against
+/// its own 16-exposure result (ours against ours, OpenCV against OpenCV).
+fn few_exposures(
+    stack: &ExposureStack,
+    list: &Path,
+    full16: Option<&ColorImage>,
+    cv16: Option<&ColorImage>,
+    peers: Option<&Path>,
+) -> String {
+    let mut s = String::from(
+        "\n## Few exposures of the memorial series against all 16\n\n\
+         Mean |log2| difference (stops) from the same method's 16-exposure result, after one factor per \
+         channel (the median). Pixels: valid in every one of the 16 exposures and seen by the subset \
+         (some exposure of it with every channel in 32..223 of 255). depthgraph: default recovery \
+         (`response: \"recover\"`) and the polynomial response (`\"polynomial\"`, degree 4); OpenCV: \
+         CalibrateDebevec (defaults) + MergeDebevec.\n\n\
+         | exposures (s) | depthgraph recover | depthgraph polynomial | OpenCV | pixels |\n|---|---:|---:|---:|---:|\n",
+    );
+    let Some(full16) = full16 else {
+        s.push_str("\n(no 16-exposure result: no rows)\n");
+        return s;
+    };
+    let files = load_list_files(list);
+    let (w, h) = full16.dims();
+    for pick in [
+        vec![3usize, 5, 7],
+        vec![2, 6, 10],
+        vec![4, 8, 12],
+        vec![5, 7],
+        vec![4, 6, 8, 10, 12],
+    ] {
+        let sub = ExposureStack {
+            images: pick.iter().map(|j| stack.images[*j].clone()).collect(),
+            times_s: pick.iter().map(|j| stack.times_s[*j]).collect(),
+        };
+        let ours = recover_response(&sub, &ResponseParams::default())
+            .and_then(|c| merge_hdr(&sub, &c))
+            .ok();
+        let poly = recover_polynomial(&sub, &PolynomialParams::default())
+            .and_then(|c| merge_hdr(&sub, &c))
+            .ok();
+        let case = format!(
+            "few{}",
+            pick.iter()
+                .map(|j| j.to_string())
+                .collect::<Vec<_>>()
+                .join("_")
+        );
+        let cv = peers.and_then(|pd| {
+            let f: Vec<String> = pick
+                .iter()
+                .filter_map(|j| files.get(*j))
+                .map(|p| p.display().to_string())
+                .collect();
+            let json = serde_json::json!({ "files": f, "times": sub.times_s }).to_string();
+            std::fs::write(pd.join(format!("{case}.json")), json).ok()?;
+            run_peers(pd, &case).ok()?;
+            read_rgb_f32(&pd.join(format!("{case}.opencv_default.f32")), w, h)
+        });
+        let seen = seen_well(&sub, 32.0 / 255.0, 223.0 / 255.0);
+        let mask: Vec<bool> = (0..full16.len())
+            .map(|i| {
+                seen[i]
+                    && stack
+                        .images
+                        .iter()
+                        .all(|img| img.as_slice()[i][0].is_finite())
+            })
+            .collect();
+        let fmt = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.3}"));
+        let a = ours
+            .as_ref()
+            .and_then(|m| mean_stops_apart(&m.color, full16, &mask));
+        let b = poly
+            .as_ref()
+            .and_then(|m| mean_stops_apart(&m.color, full16, &mask));
+        let c = match (&cv, cv16) {
+            (Some(x), Some(y)) => mean_stops_apart(x, y, &mask),
+            _ => None,
+        };
+        let times: Vec<String> = sub.times_s.iter().map(|t| format!("{t}")).collect();
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {} |",
+            times.join(", "),
+            fmt(a),
+            fmt(b),
+            fmt(c),
+            mask.iter().filter(|m| **m).count()
+        );
+    }
+    s
 }
 
 /// The image files a list names (for the peer), in order.
@@ -908,12 +661,14 @@ fn speed(peers: Option<&Path>, repeats: usize) -> (String, f64, Option<String>) 
         }
     }
     let bright = brightest_80(&truth, &mask);
+    let dark: Vec<bool> = mask.iter().zip(&bright).map(|(m, b)| *m && !*b).collect();
     let row = |method: String, response_ms: f64, merge_ms: f64, out: Option<&ColorImage>| Row {
         method,
         response_ms,
         merge_ms,
         err: out.and_then(|o| log_error(o, &truth, &mask)),
         err_bright: out.and_then(|o| log_error(o, &truth, &bright)),
+        err_dark: out.and_then(|o| log_error(o, &truth, &dark)),
     };
     let mut rows = vec![
         row(
@@ -976,7 +731,8 @@ fn main() {
          Error: RMS over pixels and channels of `ln(ours) - ln(ref)` minus its mean (per channel, \
          since a recovered response fixes radiance only up to one factor per channel; the \
          one-factor column removes a single offset); the brightest-80 % column leaves out the \
-         darkest fifth of the compared pixels (by the reference); slope: least-squares slope of \
+         darkest fifth of the compared pixels (by the reference), the darkest-20 % column is that \
+         fifth alone; slope: least-squares slope of \
          `ln(ours)` on `ln(ref)`, 1 when both span the same range of radiance. OpenCV has no \
          notion of missing pixels and sees the memorial's blue borders as they are. Times: median \
          of {repeats} runs (OpenCV: after one untimed run), release build, \

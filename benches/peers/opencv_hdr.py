@@ -2,7 +2,8 @@
 """OpenCV peer for HDR merging (CalibrateDebevec + MergeDebevec) on the exact
 inputs the depthgraph hdr_memorial bench wrote (same run, same machine).
 
-Usage: opencv_hdr.py DIR [CASE ...]   (CASE: memorial, speed; default: every case in DIR)
+Usage: opencv_hdr.py DIR [CASE ...]   (CASE: memorial, speed, or any NAME with DIR/NAME.json
+  holding {"files", "times"} like memorial.json; default: memorial and speed)
   DIR/memorial.json: {"files": [png paths], "times": [seconds]}  (read with cv2.imread)
   DIR/speed.json:    {"width", "height", "times"} with DIR/speed.<j>.u8 (RGB 8-bit, row-major)
 Each case present is run with two calibrations (OpenCV's defaults, and 400 samples with
@@ -46,6 +47,17 @@ def main(d, cases):
         if any(i is None for i in images):
             sys.exit("memorial: cannot read some of " + ", ".join(meta["files"]))
         run_case(d, "memorial", images, meta["times"])
+    for case in cases:
+        if case in ("memorial", "speed"):
+            continue
+        path = os.path.join(d, case + ".json")
+        if not os.path.exists(path):
+            sys.exit(f"{case}: no {path}")
+        meta = json.load(open(path))
+        images = [cv2.imread(f, cv2.IMREAD_COLOR) for f in meta["files"]]
+        if any(i is None for i in images):
+            sys.exit(case + ": cannot read some of " + ", ".join(meta["files"]))
+        run_case(d, case, images, meta["times"])
     path = os.path.join(d, "speed.json")
     if os.path.exists(path) and (not cases or "speed" in cases):
         meta = json.load(open(path))

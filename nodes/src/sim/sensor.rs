@@ -554,6 +554,10 @@ node_params! {
         pub bits: u32 = 8u32, ParamKind::Int { min: 1, max: 16 };
         /// Seed of the noise.
         pub seed: u64 = 0u64, ParamKind::Int { min: 0, max: i64::MAX };
+        /// A handheld bracket: the translation of each exposure in whole pixels, as pairs
+        /// [dx0, dy0, dx1, dy1, ...] (one pair per stop); exposure j shows the radiance at
+        /// (x - dx, y - dy), the border repeated. Empty: a tripod.
+        pub shift_px: Vec<f64> = Vec::<f64>::new(), ParamKind::Floats { min: -4096.0, max: 4096.0 };
     }
 }
 
@@ -583,6 +587,7 @@ pub fn simulate_bracket(
         return Err(NodeError::param("base_time_s", "must be positive"));
     }
     let (w, h) = radiance.dims();
+    let shifts = bracket_shifts(p)?;
     let levels = ((1u64 << p.bits.clamp(1, 16)) - 1) as f64;
     let curve = Curve::new(p.gamma);
     let mut stack = ExposureStack::default();
@@ -604,7 +609,10 @@ pub fn simulate_bracket(
                         x as u64,
                         y as u64,
                     );
-                    for (out, &l) in px.iter_mut().zip(radiance.get(x, y)) {
+                    let (dx, dy) = shifts[i];
+                    let sx = (x as i64 - dx).clamp(0, w as i64 - 1) as usize;
+                    let sy = (y as i64 - dy).clamp(0, h as i64 - 1) as usize;
+                    for (out, &l) in px.iter_mut().zip(radiance.get(sx, sy)) {
                         let g = rng.gaussian();
                         let r = l as f64;
                         let r = if r.is_nan() || r < 0.0 { 0.0 } else { r };
@@ -620,6 +628,41 @@ pub fn simulate_bracket(
         stack.times_s.push(t);
     }
     Ok(stack)
+}
+
+/// The translation of each exposure (`shift_px` as whole-pixel pairs; all
+/// zero when empty).
+fn bracket_shifts(p: &BracketParams) -> Result<Vec<(i64, i64)>, NodeError> {
+    if p.shift_px.is_empty() {
+        return Ok(vec![(0, 0); p.stops.len()]);
+    }
+    if p.shift_px.len() != 2 * p.stops.len() {
+        return Err(NodeError::param(
+            "shift_px",
+            format!(
+                "holds {} numbers for {} stops; expected one pair (dx, dy) per stop",
+                p.shift_px.len(),
+                p.stops.len()
+            ),
+        ));
+    }
+    p.shift_px
+        .chunks(2)
+        .map(|d| {
+            let ok = |v: f64| v.is_finite() && v.fract() == 0.0 && v.abs() <= 4096.0;
+            if ok(d[0]) && ok(d[1]) {
+                Ok((d[0] as i64, d[1] as i64))
+            } else {
+                Err(NodeError::param(
+                    "shift_px",
+                    format!(
+                        "({}, {}) is not a whole-pixel shift within 4096",
+                        d[0], d[1]
+                    ),
+                ))
+            }
+        })
+        .collect()
 }
 
 depthgraph_graph::ports! {

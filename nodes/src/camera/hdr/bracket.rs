@@ -1,0 +1,208 @@
+//! Reading exposure brackets: a list file or files with times, values kept
+//! after the camera response (not linearised).
+
+use std::path::{Path, PathBuf};
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+use rayon::prelude::*;
+// ---------------------------------------------------------------------------
+// Loading brackets
+// ---------------------------------------------------------------------------
+
+node_params! {
+    /// Parameters of `LoadBracket`.
+    pub struct LoadBracketParams {
+        /// Text file listing the exposures, one per line: `filename exposure_time_s [more columns
+        /// ignored]`; `#` starts a comment; file names are relative to the list's directory
+        /// (Debevec's memorial `image_list.txt` reads as is). Leave empty to use `files`.
+        pub list: String = "", ParamKind::InputPath;
+        /// Comma-separated image files (8/16-bit PNG or TIFF, JPEG; relative to the working
+        /// directory like LoadColor's path), used when `list` is empty.
+        pub files: String = "", ParamKind::Text;
+        /// Exposure time in seconds of each file of `files`, in the same order.
+        pub times_s: Vec<f64> = Vec::<f64>::new(), ParamKind::Floats { min: 0.0, max: 1e6 };
+        /// Debevec's memorial series marks shifted borders with pure blue (0, 0, 255):
+        /// such pixels become missing (NaN, weight 0 in the merge).
+        pub mask_pure_blue: bool = false, ParamKind::Bool;
+    }
+}
+
+/// Parses an exposure list (see [`LoadBracketParams::list`]); `list` is the
+/// list's own path, for errors and for resolving relative file names.
+pub fn parse_bracket_list(text: &str, list: &Path) -> Result<Vec<(PathBuf, f64)>, NodeError> {
+    let dir = list
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let err = |line: usize, message: String| NodeError::Decode {
+        path: list.to_path_buf(),
+        message: format!("line {line}: {message}"),
+    };
+    let mut out = Vec::new();
+    for (n, raw) in text.lines().enumerate() {
+        let line = raw.split('#').next().unwrap_or("").trim();
+        if line.is_empty() {
+            continue;
+        }
+        let mut tokens = line.split_whitespace();
+        let (Some(name), Some(time)) = (tokens.next(), tokens.next()) else {
+            return Err(err(
+                n + 1,
+                format!("expected `filename exposure_time_s`, found `{line}`"),
+            ));
+        };
+        let t: f64 = time.parse().map_err(|_| {
+            err(
+                n + 1,
+                format!("exposure time `{time}` of {name} is not a number"),
+            )
+        })?;
+        if !(t.is_finite() && t > 0.0) {
+            return Err(err(
+                n + 1,
+                format!("exposure time {t} s of {name} must be positive"),
+            ));
+        }
+        out.push((dir.join(name), t));
+    }
+    if out.is_empty() {
+        return Err(NodeError::Decode {
+            path: list.to_path_buf(),
+            message: "lists no exposure (expected lines `filename exposure_time_s`)".into(),
+        });
+    }
+    Ok(out)
+}
+
+/// The files and times the parameters name (reads the list file if set).
+pub fn bracket_entries(p: &LoadBracketParams) -> Result<Vec<(PathBuf, f64)>, NodeError> {
+    let files: Vec<&str> = p
+        .files
+        .split(',')
+        .map(str::trim)
+        .filter(|f| !f.is_empty())
+        .collect();
+    if !p.list.is_empty() {
+        if !files.is_empty() || !p.times_s.is_empty() {
+            return Err(NodeError::param(
+                "list",
+                "set either `list` or `files` + `times_s`, not both",
+            ));
+        }
+        let path = Path::new(&p.list);
+        let text = std::fs::read_to_string(path).map_err(|e| NodeError::read(path, e))?;
+        return parse_bracket_list(&text, path);
+    }
+    if files.is_empty() {
+        return Err(NodeError::param(
+            "list",
+            "no exposures given: set `list` (a file of `filename exposure_time_s` lines) or `files` and `times_s`",
+        ));
+    }
+    if files.len() != p.times_s.len() {
+        return Err(NodeError::param(
+            "times_s",
+            format!(
+                "holds {} times for the {} files of `files`; expected one per file",
+                p.times_s.len(),
+                files.len()
+            ),
+        ));
+    }
+    files
+        .iter()
+        .zip(&p.times_s)
+        .map(|(f, t)| {
+            if t.is_finite() && *t > 0.0 {
+                Ok((PathBuf::from(f), *t))
+            } else {
+                Err(NodeError::param(
+                    "times_s",
+                    format!("exposure time {t} s of {f} must be positive"),
+                ))
+            }
+        })
+        .collect()
+}
+
+/// Loads an exposure bracket: values are the stored codes scaled to `[0, 1]`
+/// (`/255`, `/65535`), **not** sRGB-linearised, since the merge needs the
+/// values after the camera response. Every image must have the size of the
+/// first; pure-blue pixels become NaN when `mask_pure_blue` is set.
+pub fn load_bracket(p: &LoadBracketParams) -> Result<ExposureStack, NodeError> {
+    load_bracket_with(p, &crate::io::Limits::default())
+}
+
+/// [`load_bracket`] with each image's header checked against `lim` before
+/// its pixels are decoded.
+pub fn load_bracket_with(
+    p: &LoadBracketParams,
+    lim: &crate::io::Limits,
+) -> Result<ExposureStack, NodeError> {
+    let entries = bracket_entries(p)?;
+    let loaded: Vec<Result<ColorImage, NodeError>> = entries
+        .par_iter()
+        .map(|(path, _)| crate::io::load_color_with(path, crate::io::ColorSpace::Linear, lim))
+        .collect();
+    let mut stack = ExposureStack::default();
+    for ((path, t), img) in entries.iter().zip(loaded) {
+        let mut img = img?;
+        if let Some(first) = stack.images.first() {
+            if img.dims() != first.dims() {
+                return Err(NodeError::Decode {
+                    path: path.clone(),
+                    message: format!(
+                        "is {}x{} but {} is {}x{}; every exposure must have the same size",
+                        img.width(),
+                        img.height(),
+                        entries[0].0.display(),
+                        first.width(),
+                        first.height()
+                    ),
+                });
+            }
+        }
+        if p.mask_pure_blue {
+            for px in img.as_mut_slice() {
+                if *px == [0.0, 0.0, 1.0] {
+                    *px = [f32::NAN; 3];
+                }
+            }
+        }
+        stack.images.push(img);
+        stack.times_s.push(*t);
+    }
+    Ok(stack)
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `LoadBracket`.
+    outputs struct LoadBracketOut {
+        /// values in [0, 1] after the camera response; NaN = missing
+        exposures: ExposureStack,
+    }
+}
+
+pub(super) fn load_bracket_eval(
+    ctx: &EvalCtx,
+    _: NoInputs,
+    p: &LoadBracketParams,
+) -> Result<Produced<LoadBracketOut>, NodeError> {
+    Ok(LoadBracketOut {
+        exposures: load_bracket_with(p, &crate::io::Limits::of(ctx))?,
+    }
+    .into())
+}
+
+pub(super) fn bracket_files(p: &LoadBracketParams) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if !p.list.is_empty() {
+        out.push(PathBuf::from(&p.list));
+    }
+    // best effort: the images the list names (an unreadable list is reported by eval)
+    if let Ok(entries) = bracket_entries(p) {
+        out.extend(entries.into_iter().map(|e| e.0));
+    }
+    out
+}
