@@ -35,10 +35,28 @@ fn methods() -> Vec<(&'static str, MethodFn)> {
                 .map(|r| r.depth)
                 .unwrap_or_else(|_| d.clone())
         }),
-        ("dual-weight pull-push (eq. 2-4)", |d, s| {
+        (
+            "dual-weight pull-push (eq. 2-4), background side (default)",
+            |d, s| {
+                pull_push(
+                    d,
+                    &PullPushParams::default(),
+                    Weights::Dual {
+                        color: &s.color,
+                        k: &s.intrinsics,
+                    },
+                )
+                .map(|r| r.depth)
+                .unwrap_or_else(|_| d.clone())
+            },
+        ),
+        ("dual-weight pull-push (eq. 2-4), background off", |d, s| {
             pull_push(
                 d,
-                &PullPushParams::default(),
+                &PullPushParams {
+                    background: 0.0,
+                    ..Default::default()
+                },
                 Weights::Dual {
                     color: &s.color,
                     k: &s.intrinsics,

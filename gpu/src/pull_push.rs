@@ -23,8 +23,8 @@ use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::depth::pull_push::{
-    DualPullPushIn, PullPushIn, PullPushOut, PullPushParams, Weights, check_inputs, level_count,
-    nothing_to_fill,
+    DualPullPushIn, PullPushIn, PullPushOut, PullPushParams, Weights, check_inputs, check_params,
+    level_count, nothing_to_fill,
 };
 
 use crate::session::{Bind, Session, bytes_of, entry, f32s, uniform_blocks};
@@ -53,7 +53,8 @@ struct Level {
     kfy: f32,
     kcx: f32,
     kcy: f32,
-    _pad1: [f32; 2],
+    beta: f32,
+    edge: f32,
 }
 
 const BINDS: &[Bind] = &[
@@ -104,6 +105,7 @@ fn fill(
         None => Weights::Bilinear,
     };
     check_inputs(depth, weights)?;
+    check_params(p)?;
     let (w, h) = depth.dims();
     s.check_grid(w, h, 8)?;
     let n_levels = level_count(depth, p) as usize;
@@ -136,7 +138,13 @@ fn fill(
             kfy: k.map_or(1.0, |k| k.fy as f32),
             kcx: k.map_or(0.0, |k| k.cx as f32),
             kcy: k.map_or(0.0, |k| k.cy as f32),
-            _pad1: [0.0; 2],
+            // the background bias needs the intrinsics: dual weights only
+            beta: if dual.is_some() {
+                p.background as f32
+            } else {
+                0.0
+            },
+            edge: p.edge_slope as f32,
         }
     };
     let blocks: Vec<Level> = (0..=n_levels).map(block).collect();

@@ -25,8 +25,9 @@ struct Level {
     kfy: f32,
     kcx: f32,
     kcy: f32,
-    _pad1: f32,
-    _pad2: f32,
+    // background bias (0 = off; dual weights only): strength and edge slope
+    beta: f32,
+    edge: f32,
 }
 
 @group(0) @binding(0) var<uniform> L: Level;
@@ -44,6 +45,18 @@ struct Level {
 // The mark of a filled pixel: valid for the next finer level (the CPU's
 // f64::MIN_POSITIVE; here the smallest normal f32).
 const FILLED: f32 = 1.17549435e-38;
+
+// The far factor of the CPU's pull_push (its module docs): samples
+// `spacing` input pixels apart; 1 when beta = 0 or z_max <= 0. It may
+// underflow to 0 for a large step: the farthest sample keeps 1.
+fn far_factor(z: f32, z_max: f32, spacing: f32) -> f32 {
+    if (L.beta > 0.0 && z_max > 0.0) {
+        let f = 0.5 * (L.kfx + L.kfy);
+        let s = (z_max - z) * f / (spacing * z_max);
+        return exp(-L.beta * max(s - L.edge, 0.0));
+    }
+    return 1.0;
+}
 
 fn finite_or_zero(v: f32) -> f32 {
     if (is_non_finite(v)) {
@@ -78,9 +91,20 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     var sw = 0.0;
+    var sb = 0.0;
     var sd = 0.0;
     var n = 0.0;
     var sc = vec3<f32>(0.0);
+    var z_max = 0.0;
+    for (var dy = 0u; dy < 2u; dy = dy + 1u) {
+        for (var dx = 0u; dx < 2u; dx = dx + 1u) {
+            let fx = 2u * gid.x + dx;
+            let fy = 2u * gid.y + dy;
+            if (fx < L.fw && fy < L.fh && lw[L.f_off + fy * L.fw + fx] > 0.0) {
+                z_max = max(z_max, lz[L.f_off + fy * L.fw + fx]);
+            }
+        }
+    }
     for (var dy = 0u; dy < 2u; dy = dy + 1u) {
         for (var dx = 0u; dx < 2u; dx = dx + 1u) {
             let fx = 2u * gid.x + dx;
@@ -91,7 +115,10 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>) {
             let i = L.f_off + fy * L.fw + fx;
             let wt = lw[i];
             sw = sw + wt;
-            sd = sd + wt * lz[i];
+            // the validity weight stays unbiased; the depth average leans far
+            let wb = wt * far_factor(lz[i], z_max, 1.0 / L.scale_f);
+            sb = sb + wb;
+            sd = sd + wb * lz[i];
             if (L.dual != 0u) {
                 sc = sc + lc[i].xyz;
             }
@@ -99,9 +126,9 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     let j = L.c_off + gid.y * L.cw + gid.x;
-    // Guard: sw > 0 checked; n >= 1 (every coarse pixel has a child).
-    if (sw > 0.0) {
-        lz[j] = sd / sw;
+    // Guard: sw, sb > 0 checked; n >= 1 (every coarse pixel has a child).
+    if (sw > 0.0 && sb > 0.0) {
+        lz[j] = sd / sb;
         lw[j] = min(sw, 1.0);
     } else {
         lz[j] = 0.0;
@@ -136,13 +163,21 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
     var nx = array<u32, 4>(x0, x1, x0, x1);
     var ny = array<u32, 4>(y0, y0, y1, y1);
     var nw = array<f32, 4>((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
+    var z_max = 0.0;
+    for (var k = 0u; k < 4u; k = k + 1u) {
+        let j = L.c_off + ny[k] * L.cw + nx[k];
+        if (lw[j] > 0.0) {
+            z_max = max(z_max, lz[j]);
+        }
+    }
     var bw = 0.0;
     var bd = 0.0;
     for (var k = 0u; k < 4u; k = k + 1u) {
         let j = L.c_off + ny[k] * L.cw + nx[k];
         if (lw[j] > 0.0) {
-            bw = bw + nw[k];
-            bd = bd + nw[k] * lz[j];
+            let wb = nw[k] * far_factor(lz[j], z_max, 2.0 / L.scale_f);
+            bw = bw + wb;
+            bd = bd + wb * lz[j];
         }
     }
     if (bw <= 0.0) {
@@ -152,8 +187,9 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
         for (var k = 0u; k < 4u; k = k + 1u) {
             let j = L.c_off + ny[k] * L.cw + nx[k];
             if (lw[j] > 0.0) {
-                n = n + 1.0;
-                s = s + lz[j];
+                let f = far_factor(lz[j], z_max, 2.0 / L.scale_f);
+                n = n + f;
+                s = s + f * lz[j];
             }
         }
         if (n == 0.0) {
@@ -187,8 +223,9 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
             // eq. 2 and 3; epsilon > 0
             let wd = 1.0 / (L.epsilon + length(vec3<f32>(dxy, dz)));
             let wc = 1.0 / (L.epsilon + distance(ci, lc[j].xyz));
-            sw = sw + wd * wc;
-            sd = sd + wd * wc * lz[j];
+            let wf = far_factor(lz[j], z_max, 2.0 / L.scale_f);
+            sw = sw + wd * wc * wf;
+            sd = sd + wd * wc * wf * lz[j];
         }
         // Guard: at least one valid neighbour and every weight > 0; a weight
         // is at most 1 / epsilon^2, which f32 holds for epsilon >= 1e-19.

@@ -17,6 +17,29 @@
 //!   3D point needs a depth: it is unprojected at the bilinear estimate from
 //!   the same four coarse pixels (the "interpolated depth pixel" of §III.B).
 //!
+//! **Background side** (DualPullPush, `background = β > 0`, on by
+//! default): holes beside a depth edge are mostly background by
+//! construction (a structured-light projector's shadow, a ToF camera's
+//! flying pixels at a silhouette), and an average of both sides puts them
+//! in mid-air. Every weight of the pull and of the push (eq. 4's `W_d W_c`,
+//! and the bilinear estimate the hole pixel is unprojected at) is
+//! multiplied by the far factor
+//!
+//! `W_f = exp(-β max(0, s_j - s_edge))`, `s_j = (z_max - z_j) f / (Δ z_max)`,
+//!
+//! `z_max` the largest depth among the 2x2 children (pull) or the four
+//! coarse neighbours (push), `Δ` their spacing in input pixels and `f` the
+//! focal length in pixels: `s_j` is the depth step over the lateral
+//! footprint of that spacing, the tangent of the slant a surface would need
+//! to make the step. A step steeper than `s_edge` (`edge_slope`, default 4:
+//! 76°) is an occlusion edge and the near side loses its weight; surfaces
+//! less slanted (a floor, a wall at an angle) are filled exactly as the
+//! paper does at every pyramid level. `β = 0` is the paper's filling
+//! exactly. `W_f` lies in `(0, 1]` (it may underflow to 0 for a large step,
+//! which is harmless: the farthest sample has `W_f = 1`, so no sum
+//! vanishes). Plain `PullPush` has no intrinsics to tell an edge from a
+//! slanted surface and stays the paper's Fig. 4c baseline.
+//!
 //! Every filled value is a convex combination of coarse values, which are
 //! convex combinations of valid input depths, so it lies within their
 //! `[min, max]`. Sums are accumulated in f64.
@@ -54,6 +77,15 @@ node_params! {
         /// Pyramid levels below the input; 0 = auto: as many as the largest hole needs
         /// (until the coarsest level has no hole).
         pub levels: u32 = 0u32, ParamKind::Int { min: 0, max: 24 };
+        /// DualPullPush: holes beside a depth edge are filled from the far side (projector
+        /// shadows, flying pixels): weights of samples on the near side of a step steeper than
+        /// `edge_slope` are multiplied by exp(-background * excess slope). 0 = off (the paper's
+        /// eq. 2-4 exactly).
+        pub background: f64 = 1.0, ParamKind::Float { min: 0.0, max: 100.0 };
+        /// DualPullPush: a depth step counts as an occlusion edge when it exceeds this many times
+        /// the lateral footprint of the pixel spacing (the tangent of the slant a surface would
+        /// need: 4 = 76 degrees).
+        pub edge_slope: f64 = 4.0, ParamKind::Float { min: 0.1, max: 1000.0 };
     }
 }
 
@@ -79,7 +111,33 @@ struct Level {
     color: Vec<[f64; 3]>,
 }
 
-fn pull(fine: &Level) -> Level {
+/// The background bias of one pyramid step (module docs): strength `β`,
+/// edge slope `s_edge` and the sample spacing over the focal length,
+/// `Δ / f`.
+#[derive(Debug, Clone, Copy)]
+struct Far {
+    beta: f64,
+    edge: f64,
+    spacing_over_f: f64,
+}
+
+impl Far {
+    /// The far factor `W_f` of a sample at depth `z` beside the farthest
+    /// at `z_max`; 1 when the bias is off or `z_max <= 0`.
+    #[inline]
+    fn factor(far: Option<Far>, z: f64, z_max: f64) -> f64 {
+        let Some(b) = far else { return 1.0 };
+        if z_max.is_nan() || z_max <= 0.0 {
+            return 1.0;
+        }
+        // guard: z_max > 0 and spacing_over_f > 0 (checked intrinsics)
+        let s = (z_max - z) / (b.spacing_over_f * z_max);
+        let excess = (s - b.edge).max(0.0);
+        (-b.beta * excess).exp()
+    }
+}
+
+fn pull(fine: &Level, far: Option<Far>) -> Level {
     let (w, h) = (fine.w.div_ceil(2), fine.h.div_ceil(2));
     let mut out = Level {
         w,
@@ -90,8 +148,17 @@ fn pull(fine: &Level) -> Level {
     };
     for y in 0..h {
         for x in 0..w {
-            let (mut sw, mut sd, mut n) = (0.0, 0.0, 0.0);
+            let (mut sw, mut sb, mut sd, mut n) = (0.0, 0.0, 0.0, 0.0);
             let mut sc = [0.0; 3];
+            let mut z_max = 0.0f64;
+            for dy in 0..2 {
+                for dx in 0..2 {
+                    let (fx, fy) = (2 * x + dx, 2 * y + dy);
+                    if fx < fine.w && fy < fine.h && fine.weight[fy * fine.w + fx] > 0.0 {
+                        z_max = z_max.max(fine.depth[fy * fine.w + fx]);
+                    }
+                }
+            }
             for dy in 0..2 {
                 for dx in 0..2 {
                     let (fx, fy) = (2 * x + dx, 2 * y + dy);
@@ -101,7 +168,10 @@ fn pull(fine: &Level) -> Level {
                     let i = fy * fine.w + fx;
                     let wt = fine.weight[i];
                     sw += wt;
-                    sd += wt * fine.depth[i];
+                    // the validity weight stays unbiased; the depth average leans far
+                    let wb = wt * Far::factor(far, fine.depth[i], z_max);
+                    sb += wb;
+                    sd += wb * fine.depth[i];
                     for (acc, v) in sc.iter_mut().zip(fine.color[i]) {
                         *acc += v;
                     }
@@ -110,14 +180,34 @@ fn pull(fine: &Level) -> Level {
             }
             let j = y * w + x;
             // guard: sw > 0 checked; n >= 1 (every coarse pixel has at least one child)
-            if sw > 0.0 {
-                out.depth[j] = sd / sw;
+            // guard: sb > 0 whenever sw > 0 (the farthest child has W_f = 1,
+            // and the weights of valid children are 1)
+            if sw > 0.0 && sb > 0.0 {
+                out.depth[j] = sd / sb;
                 out.weight[j] = sw.min(1.0);
             }
             out.color[j] = sc.map(|v| v / n);
         }
     }
     out
+}
+
+/// Checks the parameters both backends take as they are: `background`
+/// within `0..=100` and `edge_slope` within `0.1..=1000`.
+pub fn check_params(p: &PullPushParams) -> Result<(), NodeError> {
+    if !(p.background.is_finite() && (0.0..=100.0).contains(&p.background)) {
+        return Err(NodeError::param(
+            "background",
+            format!("{} is outside 0..=100", p.background),
+        ));
+    }
+    if !(p.edge_slope.is_finite() && (0.1..=1000.0).contains(&p.edge_slope)) {
+        return Err(NodeError::param(
+            "edge_slope",
+            format!("{} is outside 0.1..=1000", p.edge_slope),
+        ));
+    }
+    Ok(())
 }
 
 /// Checks what [`Weights::Dual`] needs: a guide and intrinsics of the
@@ -195,8 +285,20 @@ pub fn pull_push(
     weights: Weights,
 ) -> Result<Filled, NodeError> {
     check_inputs(depth, weights)?;
+    check_params(p)?;
     let (w, h) = depth.dims();
     let eps = p.epsilon;
+    // the background bias of a step whose samples lie `spacing` input pixels
+    // apart (dual weights only: the intrinsics tell an edge from a slope)
+    let far_at = |spacing: f64| match weights {
+        Weights::Dual { k, .. } if p.background > 0.0 => Some(Far {
+            beta: p.background,
+            edge: p.edge_slope,
+            // guard: sane intrinsics (checked) have fx, fy > 0
+            spacing_over_f: spacing / (0.5 * (k.fx + k.fy)),
+        }),
+        _ => None,
+    };
     let mut levels = vec![Level {
         w,
         h,
@@ -238,7 +340,8 @@ pub fn pull_push(
         if done {
             break;
         }
-        let next = pull(last);
+        // children of level r lie 2^r input pixels apart
+        let next = pull(last, far_at(2f64.powi((levels.len() - 1) as i32)));
         levels.push(next);
     }
     // Push: coarse to fine, filling only holes.
@@ -249,6 +352,8 @@ pub fn pull_push(
         // intrinsics at both levels: exactly 2^-r of the input's
         let scale_f = 0.5f64.powi(r as i32);
         let scale_c = scale_f * 0.5;
+        // coarse neighbours lie 2^(r+1) input pixels apart
+        let far = far_at(2.0 / scale_f);
         let (fw, cw, ch) = (fine.w, coarse.w, coarse.h);
         let fine_color = &fine.color;
         let fine_weight = &fine.weight;
@@ -281,11 +386,18 @@ pub fn pull_push(
                         (x0, y1, (1.0 - fx) * fy),
                         (x1, y1, fx * fy),
                     ];
-                    // bilinear estimate over valid coarse neighbours
+                    let z_max = nbrs
+                        .iter()
+                        .map(|&(cx, cy, _)| cy * cw + cx)
+                        .filter(|j| coarse.weight[*j] > 0.0)
+                        .map(|j| coarse.depth[j])
+                        .fold(0.0f64, f64::max);
+                    // bilinear estimate over valid coarse neighbours (far-leaning)
                     let (mut bw, mut bd) = (0.0, 0.0);
                     for &(cx, cy, wb) in &nbrs {
                         let j = cy * cw + cx;
                         if coarse.weight[j] > 0.0 {
+                            let wb = wb * Far::factor(far, coarse.depth[j], z_max);
                             bw += wb;
                             bd += wb * coarse.depth[j];
                         }
@@ -296,8 +408,9 @@ pub fn pull_push(
                         for &(cx, cy, _) in &nbrs {
                             let j = cy * cw + cx;
                             if coarse.weight[j] > 0.0 {
-                                n += 1.0;
-                                s += coarse.depth[j];
+                                let f = Far::factor(far, coarse.depth[j], z_max);
+                                n += f;
+                                s += f * coarse.depth[j];
                             }
                         }
                         if n == 0.0 {
@@ -332,8 +445,9 @@ pub fn pull_push(
                                     + (ci[2] - cj[2]).powi(2))
                                 .sqrt();
                                 let wc = 1.0 / (eps + dc); // eq. 3; eps > 0
-                                sw += wd * wc;
-                                sd += wd * wc * coarse.depth[j];
+                                let wf = Far::factor(far, coarse.depth[j], z_max);
+                                sw += wd * wc * wf;
+                                sd += wd * wc * wf * coarse.depth[j];
                             }
                             // guard: at least one valid neighbour (bw > 0) and every weight > 0;
                             // weights are at most 1/eps^2 <= 1e24, far from f64 overflow
@@ -489,7 +603,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "DualPullPush",
-        1,
+        2,
         "Fills depth holes by pull-push with 3D-distance x color-similarity weights (3d-editing eq. 2-4).",
         eval_dual,
     ))
@@ -594,7 +708,12 @@ mod tests {
                 *gt.get(x, y)
             }
         });
-        let [plain, dual] = both(&d, &c, &PullPushParams::default());
+        // the paper's weights (a hole across the edge that is not a shadow)
+        let paper = PullPushParams {
+            background: 0.0,
+            ..Default::default()
+        };
+        let [plain, dual] = both(&d, &c, &paper);
         let err = |r: &Filled| {
             let mut s = 0.0f64;
             let mut n = 0;
@@ -609,6 +728,77 @@ mod tests {
         let (ep, ed) = (err(&plain), err(&dual));
         assert!(ed < 0.5 * ep, "dual {ed} vs plain {ep}");
         assert!(ed < 0.25, "dual rmse {ed}");
+    }
+
+    /// RMSE inside the holes of `d` against `gt`.
+    fn hole_rmse(d: &DepthMap, gt: &DepthMap, r: &Filled) -> f64 {
+        let (mut s, mut n) = (0.0f64, 0usize);
+        for ((a, g), z) in d
+            .as_slice()
+            .iter()
+            .zip(gt.as_slice())
+            .zip(r.depth.as_slice())
+        {
+            if *a == 0.0 {
+                s += ((z - g) as f64).powi(2);
+                n += 1;
+            }
+        }
+        (s / n.max(1) as f64).sqrt()
+    }
+
+    #[test]
+    fn a_projector_shadow_is_filled_from_the_background() {
+        // A box at 1.2 m before a wall at 3 m; a structured-light projector to
+        // the right of the camera leaves a shadow band on the wall left of the
+        // box (background by construction), and a dropout hole inside the box.
+        let (w, h) = (96, 64);
+        let in_box = |x: usize, y: usize| (40..72).contains(&x) && (16..48).contains(&y);
+        let gt = DepthMap::from_fn(w, h, |x, y| if in_box(x, y) { 1.2f32 } else { 3.0 });
+        // a white box on a white wall: the colour guide cannot tell them apart
+        let c = ColorImage::filled(w, h, [0.8, 0.8, 0.8]);
+        let shadow = |x: usize, y: usize| (30..40).contains(&x) && (16..48).contains(&y);
+        let dropout = |x: usize, y: usize| (52..60).contains(&x) && (28..36).contains(&y);
+        let d = Image::from_fn(w, h, |x, y| {
+            if shadow(x, y) || dropout(x, y) {
+                0.0
+            } else {
+                *gt.get(x, y)
+            }
+        });
+        // a 640-pixel Kinect's field of view (f = 525 px) cropped to 96x64
+        let kk = Intrinsics {
+            fx: 525.0,
+            fy: 525.0,
+            ..k(w, h)
+        };
+        let fill = |background: f64| {
+            let p = PullPushParams {
+                background,
+                ..Default::default()
+            };
+            pull_push(&d, &p, Weights::Dual { color: &c, k: &kk }).unwrap()
+        };
+        let (on, off) = (fill(1.0), fill(0.0));
+        let (e_on, e_off) = (hole_rmse(&d, &gt, &on), hole_rmse(&d, &gt, &off));
+        assert!(e_on < 0.25 * e_off, "background on {e_on} vs off {e_off}");
+        assert!(e_on < 0.1, "{e_on} m");
+        // the dropout inside the box stays on the box
+        assert!(
+            (on.depth.get(56, 32) - 1.2).abs() < 0.01,
+            "{}",
+            on.depth.get(56, 32)
+        );
+        // plain PullPush has no intrinsics and ignores the bias
+        let p = PullPushParams::default();
+        let q = PullPushParams {
+            background: 0.0,
+            ..p.clone()
+        };
+        assert_eq!(
+            pull_push(&d, &p, Weights::Bilinear).unwrap(),
+            pull_push(&d, &q, Weights::Bilinear).unwrap()
+        );
     }
 
     #[test]
@@ -630,6 +820,7 @@ mod tests {
                 &PullPushParams {
                     epsilon: eps,
                     levels: 0,
+                    ..Default::default()
                 },
             ) {
                 for v in r.depth.as_slice() {
@@ -763,7 +954,7 @@ mod tests {
             let c = Image::from_fn(w, h, |_, _| [next() as f32, next() as f32, next() as f32]);
             let valid: Vec<f32> = d.as_slice().iter().copied().filter(|z| *z > 0.0).collect();
             let (lo, hi) = valid.iter().fold((f32::INFINITY, 0.0f32), |(a, b), v| (a.min(*v), b.max(*v)));
-            for r in both(&d, &c, &PullPushParams { epsilon: eps, levels: 0 }) {
+            for r in [0.0, 1.0, 100.0].iter().flat_map(|b| both(&d, &c, &PullPushParams { epsilon: eps, levels: 0, background: *b, edge_slope: 0.5 })) {
                 for (a, b) in d.as_slice().iter().zip(r.depth.as_slice()) {
                     prop_assert!(b.is_finite());
                     if *a > 0.0 { prop_assert_eq!(a, b); }

@@ -25,8 +25,10 @@
 //! - [`recover_polynomial`] fits Mitsunaga & Nayar's polynomial inverse
 //!   response instead (a handful of coefficients: less data needed).
 //! - [`merge_hdr`] evaluates eq. 6 per pixel and channel:
-//!   `ln E = Σ_j w_j (g(Z_j) - ln Δt_j) / Σ_j w_j`, by default with one
-//!   weight per exposure shared by the channels ([`MergeWeights::Joint`]).
+//!   `ln E = Σ_j w_j (g(Z_j) - ln Δt_j) / Σ_j w_j`, the hat weight of eq. 4
+//!   times the curve's exposure resolution at `Z_j` (low where the response
+//!   is flat: a toe, a shoulder, a black floor), by default one weight per
+//!   exposure shared by the channels ([`MergeWeights::Joint`]).
 //! - [`align_bracket`] registers handheld brackets first (Ward 2003).
 //!
 //! `g` is only determined up to an additive constant per channel, so
@@ -106,9 +108,9 @@ depthgraph_graph::param_choice! {
 depthgraph_graph::param_choice! {
     /// How exposures are weighted in the merge (the `weights` parameter).
     pub enum WeightChoice {
-        /// One weight per exposure, the mean of the channels' hat weights.
+        /// One weight per exposure, the mean of the channels' weights.
         Joint = "joint",
-        /// Each channel its own hat weight (eq. 4 as written).
+        /// Each channel its own weight.
         Channel = "channel",
     }
 }
@@ -132,7 +134,8 @@ node_params! {
         /// "polynomial": degree of the inverse response polynomial.
         pub degree: usize = 4usize, ParamKind::Int { min: 1, max: 8 };
         /// "joint": one weight per exposure shared by the channels (an exposure is trusted as a
-        /// whole; keeps hues steady); "channel": each channel its own hat weight (eq. 4).
+        /// whole; keeps hues steady); "channel": each channel its own weight. Weights are eq. 4's
+        /// hat times the curve's exposure resolution at the level (low on a toe or shoulder).
         pub weights: WeightChoice = WeightChoice::Joint, ParamKind::Choice(WeightChoice::NAMES);
         /// A neutral (white or grey) region [x0, y0, x1, y1] in pixels (half-open): the channels
         /// are scaled so that its mean radiance is neutral. Empty: the camera's own balance.
@@ -393,10 +396,11 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "HdrMerge",
-        2,
+        3,
         "Merges an exposure bracket into linear radiance (Debevec & Malik 1997, eq. 5-6).\n\
          Recovers the response curve g by least squares with smoothness (or a polynomial, or uses a \
-         gamma/linear or connected curve), then averages g(Z) - ln dt with hat weights. A recovered \
+         gamma/linear or connected curve), then averages g(Z) - ln dt with hat weights times the curve's \
+         resolution at each level. A recovered \
          curve gives radiance up to one factor per channel, tied so that neutral stays neutral.",
         hdr_merge_eval,
     ))?;
