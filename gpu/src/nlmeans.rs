@@ -91,7 +91,8 @@ struct Params {
     k: PatchUniform,
     inv_ref: f32,
     far: u32,
-    pad: [u32; 2],
+    beta: f32,
+    tau: f32,
 }
 
 /// `Params` of `shaders/nlmeans_upsample.wgsl`.
@@ -215,7 +216,8 @@ impl PassRunner for DeviceRunner<'_, '_> {
             k: PatchUniform::of(job),
             inv_ref: job.far.unwrap_or(0.0) as f32,
             far: u32::from(job.far.is_some()),
-            pad: [0; 2],
+            beta: job.background.map_or(0.0, |b| b.0 as f32),
+            tau: job.background.map_or(0.0, |b| b.1 as f32),
         };
         let guide = guide_on_device(&mut self.guide, s, job.guide)?;
         let zc: Vec<[f32; 2]> = job.z.iter().zip(job.c).map(|(&z, &c)| [z, c]).collect();

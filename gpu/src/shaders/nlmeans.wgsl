@@ -12,8 +12,9 @@ struct Params {
     // 1 / z_ref of the far prior; 0 when off
     inv_ref: f32,
     far: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // background side: strength (0 = off) and edge step
+    beta: f32,
+    tau: f32,
 }
 
 @group(0) @binding(0) var<uniform> P: Params;
@@ -57,6 +58,26 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var acc = acc_empty();
     let big_r = i32(P.k.search);
     let zi = zc[i];
+    // the largest source depth of the window (the CPU's window_max)
+    var z_max = 0.0;
+    if (P.beta > 0.0) {
+        for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
+            let yj = y + dy;
+            if (yj < 0 || yj >= i32(P.k.h)) {
+                continue;
+            }
+            for (var dx = -big_r; dx <= big_r; dx = dx + 1) {
+                let xj = x + dx;
+                if (xj < 0 || xj >= i32(P.k.w)) {
+                    continue;
+                }
+                let q = zc[u32(yj) * P.k.w + u32(xj)];
+                if (q.y > 0.0) {
+                    z_max = max(z_max, q.x);
+                }
+            }
+        }
+    }
     for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
         let yj = y + dy;
         if (yj < 0 || yj >= i32(P.k.h)) {
@@ -86,6 +107,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (P.far != 0u) {
                 let q = zj * P.inv_ref;
                 prior = q * q;
+            }
+            if (P.beta > 0.0 && z_max > 0.0) {
+                // in (0, 1]; 1 for the farthest source of the window
+                prior = prior * exp(-P.beta * max((z_max - zj) / z_max - P.tau, 0.0));
             }
             add(&acc, -(dist + xi), cj, prior, zj);
         }

@@ -94,7 +94,7 @@ fn filter_on(
     let mut out_z = z.clone();
     let mut out_c = vec![0.0f32; w * h];
     let pk = PatchKernel::new(core.patch);
-    let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, None);
+    let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, (None, None));
     for (i, r) in checked_run(runner, &job, &mut on_progress)?
         .into_iter()
         .enumerate()

@@ -44,6 +44,10 @@ pub struct PassJob<'a> {
     pub inv_hd2: f64,
     /// `1 / z_ref` of the far-depth prior, when on.
     pub far: Option<f64>,
+    /// The background side, when on: strength `β` and edge step `τ`; each
+    /// weight times `exp(-β max(0, (z_max - z_j) / z_max - τ))` with `z_max`
+    /// the largest source depth in the target's search window.
+    pub background: Option<(f64, f64)>,
 }
 
 impl<'a> PassJob<'a> {
@@ -55,7 +59,7 @@ impl<'a> PassJob<'a> {
         targets: &'a [bool],
         core: Core,
         pk: &'a PatchKernel,
-        far: Option<f64>,
+        (far, background): (Option<f64>, Option<(f64, f64)>),
     ) -> Self {
         Self {
             w,
@@ -72,6 +76,7 @@ impl<'a> PassJob<'a> {
             inv_hc2: core.inv_hc2,
             inv_hd2: core.inv_hd2,
             far,
+            background,
         }
     }
 }
@@ -138,11 +143,18 @@ impl PassRunner for CpuPass {
             depth: Some((job.z, job.c)),
             core,
         };
+        let local_max = job
+            .background
+            .map(|_| window_max(job.z, job.c, job.w, job.h, job.search));
         let kernel = DepthKernel {
             z: job.z,
             c: job.c,
             inv_hd2: job.inv_hd2,
             far: job.far,
+            background: job
+                .background
+                .zip(local_max.as_deref())
+                .map(|((beta, tau), m)| (beta, tau, m)),
         };
         let mut out = vec![None; job.w * job.h];
         run_pass(&pass, job.targets, &kernel, progress, |i, acc| {
@@ -150,6 +162,33 @@ impl PassRunner for CpuPass {
         })?;
         Ok(out)
     }
+}
+
+/// The largest source depth (confidence > 0) in the `(2r+1)^2` window of
+/// every pixel, clipped to the image (the candidates of a pass); 0 where
+/// the window holds no source. Separable: a row pass, then a column pass.
+pub(super) fn window_max(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let src: Vec<f32> = z
+        .iter()
+        .zip(c)
+        .map(|(z, c)| if *c > 0.0 && z.is_finite() { *z } else { 0.0 })
+        .collect();
+    let mut rows = vec![0.0f32; w * h];
+    for y in 0..h {
+        let row = &src[y * w..(y + 1) * w];
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r + 1).min(w));
+            rows[y * w + x] = row[a..b].iter().fold(0.0f32, |m, v| m.max(*v));
+        }
+    }
+    let mut out = vec![0.0f32; w * h];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(r), (y + r + 1).min(h));
+        for x in 0..w {
+            out[y * w + x] = (a..b).fold(0.0f32, |m, yy| m.max(rows[yy * w + x]));
+        }
+    }
+    out
 }
 
 /// Holes that have a source (confidence > 0) within `r` pixels (Chebyshev),
@@ -191,6 +230,7 @@ pub(super) fn inpaint_state(
     core: Core,
     iterations: usize,
     far_prior: bool,
+    background: Option<(f64, f64)>,
     progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
     runner: &mut dyn PassRunner,
 ) -> Result<usize, NodeError> {
@@ -210,7 +250,15 @@ pub(super) fn inpaint_state(
         let (mut nz, mut nc) = (z.clone(), c.clone());
         let mut filled = 0usize;
         let pk = PatchKernel::new(core.patch);
-        let job = PassJob::new((w, h), guide, (z, c), &targets, core, &pk, far);
+        let job = PassJob::new(
+            (w, h),
+            guide,
+            (z, c),
+            &targets,
+            core,
+            &pk,
+            (far, background),
+        );
         // Guard: iterations >= 1 inside the loop.
         let scale = 1.0 / iterations as f32;
         let mut sub = |f: f32| progress((it as f32 + f) * scale);
@@ -244,6 +292,15 @@ pub(super) fn inpaint_state(
 /// With `far_prior` each weight is multiplied by `(z_j / z_max)^2`, `z_max`
 /// the largest known depth, favouring the background (Sec. 2.3: holes
 /// opened by a change of viewpoint belong to the background).
+///
+/// With `background = β > 0` (the default) each weight of eq. 5 is also
+/// multiplied by `exp(-β max(0, (z_w - z_j) / z_w - τ))`, `z_w` the largest
+/// known depth in the target's search window and `τ = edge_step`: a source
+/// more than `τ` (relative) nearer than the window's farthest lies across
+/// an occlusion edge, and a hole beside such an edge (a projector shadow,
+/// flying pixels) is background by construction. Sources on one surface
+/// (steps below `τ`) keep their weights; the farthest source keeps factor
+/// 1, so an estimate exists wherever one did without the bias.
 ///
 /// Valid input pixels are never changed (nor their confidence). Holes that
 /// cannot be reached stay 0 with confidence 0 (e.g. an input without any
@@ -296,6 +353,18 @@ pub fn nlmeans_inpaint_on(
     if core.search == 0 {
         return Err(NodeError::param("search_radius", "must be at least 1"));
     }
+    if !(p.background.is_finite() && (0.0..=1000.0).contains(&p.background)) {
+        return Err(NodeError::param(
+            "background",
+            format!("{} is outside 0..=1000", p.background),
+        ));
+    }
+    if !(p.edge_step.is_finite() && (0.001..=1.0).contains(&p.edge_step)) {
+        return Err(NodeError::param(
+            "edge_step",
+            format!("{} is outside 0.001..=1", p.edge_step),
+        ));
+    }
     same_size(
         "color",
         "a guide image",
@@ -316,6 +385,7 @@ pub fn nlmeans_inpaint_on(
         core,
         p.iterations,
         p.far_prior,
+        (p.background > 0.0).then_some((p.background, p.edge_step)),
         &mut on_progress,
         runner,
     )?;

@@ -238,7 +238,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "NLMeansInpaint",
-        1,
+        2,
         "Iterative NL-means depth inpainting with confidence propagation (depth blur eq. 5).\n\
          Fills holes from the outside in, weighting known pixels by patch similarity and confidence; \
          optional far-depth prior for disocclusions. Valid pixels are unchanged.",
@@ -465,6 +465,7 @@ mod tests {
         let mean_fill = |far_prior: bool| {
             let p = NLMeansInpaintParams {
                 far_prior,
+                background: 0.0,
                 ..Default::default()
             };
             let (d, _) = nlmeans_inpaint(&depth, None, &color, &p).unwrap();
@@ -481,6 +482,55 @@ mod tests {
         let (plain, far) = (mean_fill(false), mean_fill(true));
         assert!((plain - 2.0).abs() < 0.05, "{plain}");
         assert!(far > plain + 0.35 && far <= 3.0, "{far} vs {plain}");
+    }
+
+    #[test]
+    fn the_background_side_fills_from_beyond_an_edge() {
+        // The same band, 6 pixels between 1 m and 3 m under a constant guide.
+        // With the background side every window that sees both sides takes
+        // the far one; only the first column (whose window reaches the near
+        // side alone) stays near.
+        let depth = DepthMap::from_fn(30, 8, |x, _| match x {
+            0..12 => 1.0,
+            12..18 => 0.0,
+            _ => 3.0,
+        });
+        let color = gray(30, 8);
+        let fill = |background: f64| {
+            let p = NLMeansInpaintParams {
+                background,
+                ..Default::default()
+            };
+            nlmeans_inpaint(&depth, None, &color, &p).unwrap().0
+        };
+        let (on, off) = (fill(50.0), fill(0.0));
+        for y in 0..8 {
+            for x in 13..18 {
+                assert!(
+                    (on.get(x, y) - 3.0).abs() < 1e-3,
+                    "({x}, {y}): {}",
+                    on.get(x, y)
+                );
+            }
+            assert!((on.get(12, y) - 1.0).abs() < 1e-3);
+        }
+        // without it the band splits between the sides
+        assert!((off.get(13, 4) - 1.0).abs() < 0.5, "{}", off.get(13, 4));
+        // a one-surface hole (a ramp, steps under edge_step) is unchanged
+        let ramp = DepthMap::from_fn(30, 8, |x, _| {
+            if (12..18).contains(&x) {
+                0.0
+            } else {
+                2.0 + 0.002 * x as f32
+            }
+        });
+        let p = |background| NLMeansInpaintParams {
+            background,
+            ..Default::default()
+        };
+        let a = nlmeans_inpaint(&ramp, None, &color, &p(50.0)).unwrap().0;
+        let b = nlmeans_inpaint(&ramp, None, &color, &p(0.0)).unwrap().0;
+        assert_eq!(a, b);
     }
 
     #[test]

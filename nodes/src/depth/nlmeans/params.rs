@@ -109,6 +109,17 @@ node_params! {
         /// Far-depth prior (Sec. 2.3): multiply each weight by
         /// (z_j / z_max)^2, favouring the background, for disocclusions.
         pub far_prior: bool = false, ParamKind::Bool;
+        /// Background side: holes beside a depth edge (projector shadows,
+        /// flying pixels) are filled from the far side: each weight times
+        /// exp(-background * max(0, (z_max - z_j) / z_max - edge_step)),
+        /// z_max the largest known depth in the search window. 0 = off (the
+        /// paper's eq. 5 exactly).
+        pub background: f64 = 50.0, ParamKind::Float { min: 0.0, max: 1000.0 };
+        /// Relative depth step within the search window beyond which the near
+        /// side counts as across an occlusion edge (0.05: 5 % of the depth;
+        /// over an 11-pixel window at f = 525 px that is a surface slanted
+        /// about 80 degrees).
+        pub edge_step: f64 = 0.05, ParamKind::Float { min: 0.001, max: 1.0 };
     }
 }
 

@@ -377,6 +377,9 @@ pub(super) struct DepthKernel<'a> {
     pub(super) inv_hd2: f64,
     /// `1 / z_ref` of the far-depth prior `(z_j / z_ref)^2`.
     pub(super) far: Option<f64>,
+    /// The background side: `β`, `τ` and the largest source depth in each
+    /// pixel's search window (see `PassJob::background`).
+    pub(super) background: Option<(f64, f64, &'a [f32])>,
 }
 
 impl PairKernel for DepthKernel<'_> {
@@ -395,13 +398,23 @@ impl PairKernel for DepthKernel<'_> {
         } else {
             0.0
         };
-        let prior = match self.far {
+        let mut prior = match self.far {
             Some(inv_ref) => {
                 let r = zj as f64 * inv_ref;
                 r * r
             }
             None => 1.0,
         };
+        if let Some((beta, tau, local_max)) = self.background {
+            let z_max = local_max[i] as f64;
+            if z_max > 0.0 {
+                // guard: z_max > 0; the factor lies in (0, 1] and is 1 for the
+                // farthest source, so the window's estimate always exists
+                // (an underflow to 0 only drops a near candidate)
+                let step = (z_max - zj as f64) / z_max;
+                prior *= (-beta * (step - tau).max(0.0)).exp();
+            }
+        }
         acc.add(-(d + xi), cj, prior, zj);
     }
 }

@@ -335,7 +335,15 @@ pub fn nlmeans_upsample_on(
     let pk = PatchKernel::new(core.patch);
     let targets = vec![true; w * h];
     let job = UpsampleJob {
-        pass: PassJob::new((w, h), &guide, (&[], &[]), &targets, core, &pk, None),
+        pass: PassJob::new(
+            (w, h),
+            &guide,
+            (&[], &[]),
+            &targets,
+            core,
+            &pk,
+            (None, None),
+        ),
         low: (lw, lh),
         lz: &lz,
         lc: &lc,
@@ -370,6 +378,7 @@ pub fn nlmeans_upsample_on(
             core,
             p.iterations,
             false,
+            None,
             &mut |f| on_progress(0.5 + 0.5 * f),
             runner,
         )?;
