@@ -230,11 +230,18 @@ pub fn merge_hdr_with(
             .zip(confidence.par_chunks_mut(w))
             .enumerate()
             .for_each(|(y, ((crow, frow), qrow))| {
-                // One row of sums; each exposure's row is read once, in order.
-                let mut sums = vec![[Eq6::EMPTY; 3]; w];
-                for (img, &lt) in stack.images.iter().zip(&ln_t) {
-                    for (acc, px) in sums.iter_mut().zip(img.row(y)) {
-                        let z = px.map(level);
+                // Pixel by pixel, the exposures' rows side by side: the sums
+                // of a pixel stay in registers.
+                let rows: Vec<&[[f32; 3]]> = stack.images.iter().map(|img| img.row(y)).collect();
+                for (x, ((px, fb), q)) in crow
+                    .iter_mut()
+                    .zip(frow.iter_mut())
+                    .zip(qrow.iter_mut())
+                    .enumerate()
+                {
+                    let mut acc = [Eq6::EMPTY; 3];
+                    for (row, &lt) in rows.iter().zip(&ln_t) {
+                        let z = row[x].map(level);
                         let wg: [(f64, f64); 3] =
                             std::array::from_fn(|c| z[c].map_or((0.0, 0.0), |zc| lut.at(c, zc)));
                         let joint = (wg[0].0 + wg[1].0 + wg[2].0) / 3.0;
@@ -247,15 +254,8 @@ pub fn merge_hdr_with(
                             a.add(zc, wc, wg[c].1, lt);
                         }
                     }
-                }
-                for (((px, fb), q), acc) in crow
-                    .iter_mut()
-                    .zip(frow.iter_mut())
-                    .zip(qrow.iter_mut())
-                    .zip(&sums)
-                {
                     let mut conf = 1.0f64;
-                    for (c, (out, a)) in px.iter_mut().zip(acc).enumerate() {
+                    for (c, (out, a)) in px.iter_mut().zip(&acc).enumerate() {
                         let (ln_e, used_fallback) = a.finish(c, curve);
                         *out = (ln_e.exp().min(f32::MAX as f64)) as f32;
                         if used_fallback {

@@ -6,7 +6,7 @@ use depthgraph_graph::prelude::*;
 
 use super::curve::{LEVELS, ResponseCurve, Z_MAX, hat_weight, level};
 use super::recover::{
-    check_recovery_input, cholesky_solve, select_samples, shape_curve, tie_channels,
+    Grid, check_recovery_input, cholesky_solve, select_samples, shape_curve, tie_channels,
 };
 
 /// Highest polynomial degree [`recover_polynomial`] accepts.
@@ -68,8 +68,9 @@ pub fn recover_polynomial(
     }
     let mut g = [[0.0; LEVELS]; 3];
     let mut support = [[0u32; LEVELS]; 3];
+    let grid = Grid::new(stack);
     for c in 0..3 {
-        let (gc, sc) = fit_channel(stack, c, p)?;
+        let (gc, sc) = fit_channel(stack, &grid, c, p)?;
         g[c] = gc;
         support[c] = sc;
         shape_curve(&mut g[c], &sc);
@@ -84,11 +85,12 @@ const CHANNEL: [&str; 3] = ["red", "green", "blue"];
 /// level.
 fn fit_channel(
     stack: &ExposureStack,
+    grid: &Grid,
     c: usize,
     p: &PolynomialParams,
 ) -> Result<([f64; LEVELS], [u32; LEVELS]), NodeError> {
     let n = p.degree;
-    let idx = select_samples(stack, c, p.samples);
+    let idx = select_samples(stack, grid, c, p.samples);
     let mut order: Vec<usize> = (0..stack.images.len()).collect();
     order.sort_by(|a, b| stack.times_s[*a].total_cmp(&stack.times_s[*b]));
     let mut a = vec![0.0f64; n * n];

@@ -65,10 +65,15 @@ impl Default for ResponseParams {
 /// which with two or three exposures is what ties the ends of the curve to
 /// the middle (a flat-region sampling alone leaves dark and bright levels
 /// without data, and the smoothness term then extrapolates noise).
-pub(super) fn select_samples(stack: &ExposureStack, c: usize, samples: usize) -> Vec<usize> {
+pub(super) fn select_samples(
+    stack: &ExposureStack,
+    grid: &Grid,
+    c: usize,
+    samples: usize,
+) -> Vec<usize> {
     let (w, h) = stack.images[0].dims();
     let n_px = w * h;
-    if n_px == 0 {
+    if n_px == 0 || grid.cand.is_empty() {
         return Vec::new();
     }
     let p = stack.images.len();
@@ -76,54 +81,48 @@ pub(super) fn select_samples(stack: &ExposureStack, c: usize, samples: usize) ->
     order.sort_by(|a, b| stack.times_s[*a].total_cmp(&stack.times_s[*b]));
     let reference = &stack.images[order[p / 2]];
     let at = |i: usize| -> f64 { level(reference.as_slice()[i][c]).unwrap_or(f64::INFINITY) };
-    // candidate grid: every `step`-th pixel of every `step`-th row
-    let step = ((n_px as f64 / COVER_CANDIDATES as f64).sqrt().ceil() as usize).max(1);
-    let cand: Vec<usize> = (0..h)
-        .step_by(step)
-        .flat_map(|y| (0..w).step_by(step).map(move |x| y * w + x))
+    let cand = &grid.cand;
+    let good: Vec<u8> = (0..cand.len())
+        .map(|k| {
+            grid.levels
+                .iter()
+                .filter(|l| l[k][c].is_some_and(|z| z > 0 && z < u8::MAX))
+                .count()
+                .min(u8::MAX as usize) as u8
+        })
         .collect();
-    // per candidate: number of well-exposed values
-    let mut good = vec![0u8; n_px];
-    for &i in &cand {
-        for img in &stack.images {
-            if level(img.as_slice()[i][c]).is_some_and(|z| hat_weight(z.round()) > 0.0) {
-                good[i] = good[i].saturating_add(1);
+    let grad: Vec<f64> = cand
+        .iter()
+        .map(|&i| {
+            let (x, y) = (i % w, i / w);
+            let here = at(i);
+            let dx = (at(y * w + (x + 1).min(w - 1)) - here).abs();
+            let dy = (at((y + 1).min(h - 1) * w + x) - here).abs();
+            if (dx + dy).is_finite() {
+                dx + dy
+            } else {
+                f64::MAX
             }
-        }
-    }
-    let grad = |i: usize| -> f64 {
-        let (x, y) = (i % w, i / w);
-        let here = at(i);
-        let dx = (at(y * w + (x + 1).min(w - 1)) - here).abs();
-        let dy = (at((y + 1).min(h - 1) * w + x) - here).abs();
-        if (dx + dy).is_finite() {
-            dx + dy
-        } else {
-            f64::MAX
-        }
-    };
+        })
+        .collect();
     let mut out: Vec<usize> = Vec::new();
-    for img in &stack.images {
+    for lv in &grid.levels {
         // best COVER_PER_LEVEL pixels per level: (good desc, gradient asc, index asc)
         let mut best: Vec<Vec<(u8, f64, usize)>> = vec![Vec::new(); LEVELS];
-        let px_of = img.as_slice();
-        for &i in &cand {
-            let px = &px_of[i];
-            let Some(z) = level(px[c]) else { continue };
-            let z = z.round() as usize;
-            if z == 0 || z >= LEVELS - 1 || good[i] < 2 {
+        for (k, z) in lv.iter().enumerate() {
+            let Some(z) = z[c] else { continue };
+            let z = z as usize;
+            if z == 0 || z >= LEVELS - 1 || good[k] < 2 {
                 continue;
             }
             let slot = &mut best[z];
-            if slot.len() == COVER_PER_LEVEL && slot[COVER_PER_LEVEL - 1].0 > good[i] {
-                continue; // the kept pixels all see more exposures
+            let entry = (good[k], grad[k], cand[k]);
+            if slot.len() == COVER_PER_LEVEL && !b_first(&entry, &slot[COVER_PER_LEVEL - 1]) {
+                continue; // not better than the kept ones
             }
-            let cand = (good[i], grad(i), i);
-            let pos = slot.partition_point(|a| b_first(a, &cand));
-            if pos < COVER_PER_LEVEL {
-                slot.insert(pos, cand);
-                slot.truncate(COVER_PER_LEVEL);
-            }
+            let pos = slot.partition_point(|a| b_first(a, &entry));
+            slot.insert(pos, entry);
+            slot.truncate(COVER_PER_LEVEL);
         }
         out.extend(best.iter().flatten().map(|a| a.2));
     }
@@ -133,6 +132,39 @@ pub(super) fn select_samples(stack: &ExposureStack, c: usize, samples: usize) ->
     out.sort_unstable();
     out.dedup();
     out
+}
+
+/// The candidate pixels of the coverage pass (a regular grid of at most
+/// [`COVER_CANDIDATES`] pixels) with their level in every exposure and
+/// channel (`None`: missing), read from the images once for all channels.
+pub(super) struct Grid {
+    cand: Vec<usize>,
+    /// `levels[j][k][c]`: exposure `j`, candidate `k`, channel `c`.
+    levels: Vec<Vec<[Option<u8>; 3]>>,
+}
+
+impl Grid {
+    pub(super) fn new(stack: &ExposureStack) -> Self {
+        let (w, h) = stack.images.first().map_or((0, 0), |i| i.dims());
+        let n_px = w * h;
+        // every `step`-th pixel of every `step`-th row
+        let step = ((n_px as f64 / COVER_CANDIDATES as f64).sqrt().ceil() as usize).max(1);
+        let cand: Vec<usize> = (0..h)
+            .step_by(step)
+            .flat_map(|y| (0..w).step_by(step).map(move |x| y * w + x))
+            .collect();
+        let levels = stack
+            .images
+            .par_iter()
+            .map(|img| {
+                let px = img.as_slice();
+                cand.iter()
+                    .map(|&i| px[i].map(|v| level(v).map(|z| z.round() as u8)))
+                    .collect()
+            })
+            .collect();
+        Self { cand, levels }
+    }
 }
 
 /// Order of the coverage pass: more well-exposed values first, then the
@@ -579,10 +611,11 @@ pub fn recover_response_with(
     let mut g = [[0.0; LEVELS]; 3];
     let mut support = [[0u32; LEVELS]; 3];
     // the three channels are independent: solved in parallel
+    let grid = Grid::new(stack);
     let solved: Vec<Result<Solved, NodeError>> = (0..3)
         .into_par_iter()
         .map(|c| {
-            let idx = select_samples(stack, c, p.samples);
+            let idx = select_samples(stack, &grid, c, p.samples);
             let (mut gc, sc) = recover_channel(stack, c, &idx, p.lambda)?;
             shape_curve(&mut gc, &sc);
             Ok((gc, sc))
