@@ -78,11 +78,14 @@ fn methods() -> Vec<(&'static str, MethodFn)> {
             .unwrap_or_else(|_| d.clone());
             joint_bilateral(&filled, &s.color, &BilateralParams::default()).unwrap_or(filled)
         }),
-        ("NL-means inpainting (eq. 5), background side (default)", |d, s| {
-            nlmeans_inpaint(d, None, &s.color, &NLMeansInpaintParams::default())
-                .map(|r| r.0)
-                .unwrap_or_else(|_| d.clone())
-        }),
+        (
+            "NL-means inpainting (eq. 5), background side (default)",
+            |d, s| {
+                nlmeans_inpaint(d, None, &s.color, &NLMeansInpaintParams::default())
+                    .map(|r| r.0)
+                    .unwrap_or_else(|_| d.clone())
+            },
+        ),
         ("NL-means inpainting (eq. 5), background off", |d, s| {
             let p = NLMeansInpaintParams {
                 background: 0.0,

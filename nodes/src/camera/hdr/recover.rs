@@ -159,7 +159,8 @@ impl Grid {
             .map(|img| {
                 let px = img.as_slice();
                 cand.iter()
-                    .map(|&i| px[i].map(|v| level(v).map(|z| z.round() as u8)))
+                    // z in [0, 255]: + 0.5 and truncation is round()
+                    .map(|&i| px[i].map(|v| level(v).map(|z| (z + 0.5) as u8)))
                     .collect()
             })
             .collect();
