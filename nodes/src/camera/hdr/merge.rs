@@ -74,16 +74,27 @@ impl Eq6 {
 
     /// Adds level `z` (present) of an exposure with `ln Δt = lt` and
     /// `g(z) = gz`, weighted by `w` unless the level itself is clipped.
+    /// Written without branches on the data (selects instead): clipped and
+    /// well-exposed values alternate unpredictably on real brackets. A
+    /// value that is not used adds `0 * (gz - lt)`, which leaves the sums
+    /// bit for bit as they were (`gz` and `lt` are finite).
     #[inline]
     fn add(&mut self, z: f64, w: f64, gz: f64, lt: f64) {
-        if z <= 0.0 {
-            self.black_lt = self.black_lt.max(lt);
-        } else if z >= Z_MAX {
-            self.sat_lt = self.sat_lt.min(lt);
-        } else if w > 0.0 {
-            self.num += w * (gz - lt);
-            self.den += w;
-        }
+        let black = z <= 0.0;
+        let sat = z >= Z_MAX;
+        self.black_lt = if black {
+            self.black_lt.max(lt)
+        } else {
+            self.black_lt
+        };
+        self.sat_lt = if sat {
+            self.sat_lt.min(lt)
+        } else {
+            self.sat_lt
+        };
+        let used = if black || sat || w <= 0.0 { 0.0 } else { w };
+        self.num += used * (gz - lt);
+        self.den += used;
     }
 
     /// `ln E` and whether the fallback of [`merge_hdr`] was used.
