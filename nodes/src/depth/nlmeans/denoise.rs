@@ -4,8 +4,9 @@ use crate::kit::checks::same_size;
 use depthgraph_graph::prelude::*;
 
 use super::common::*;
-use super::inpaint::{CpuPass, PassJob, PassRunner, checked_run};
+use super::inpaint::{CpuPass, PassRunner, checked_run};
 use super::inputs::*;
+use super::job::PassJob;
 use super::params::*;
 use super::pass::*;
 use super::prune::*;

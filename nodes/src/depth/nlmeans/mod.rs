@@ -58,18 +58,22 @@ mod common;
 mod denoise;
 mod inpaint;
 mod inputs;
+mod job;
 mod params;
 mod pass;
 mod prune;
 mod upsample;
+mod upsample_pass;
 
 pub use common::{MAX_PATCH_RADIUS, MAX_SEARCH_RADIUS};
 pub use denoise::*;
 pub use inpaint::*;
 use inputs::*;
+pub use job::*;
 pub use params::*;
 pub use prune::*;
 pub use upsample::*;
+pub use upsample_pass::*;
 
 use crate::kit::checks::same_size;
 use depthgraph_graph::prelude::*;

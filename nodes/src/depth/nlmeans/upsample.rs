@@ -6,9 +6,11 @@ use depthgraph_graph::prelude::*;
 use super::common::*;
 use super::inpaint::*;
 use super::inputs::*;
+use super::job::PassJob;
 use super::params::*;
 use super::pass::*;
 use super::prune::*;
+use super::upsample_pass::*;
 
 // ---------------------------------------------------------------------------
 // Upsampling
@@ -36,164 +38,6 @@ pub(super) fn axis_map(
             }
         })
         .collect()
-}
-
-/// Kernel of eq. 4: candidates are the high-resolution pixels holding a
-/// low-resolution sample.
-pub(super) struct UpsampleKernel<'a> {
-    pub(super) w: usize,
-    /// Low-resolution sample at each high-resolution pixel, or `NO_SAMPLE`.
-    pub(super) sample_at: &'a [usize],
-    /// Low-resolution column / row of each high-resolution column / row.
-    pub(super) lo_col: &'a [usize],
-    pub(super) lo_row: &'a [usize],
-    pub(super) z: &'a [f32],
-    pub(super) c: &'a [f32],
-    pub(super) lw: usize,
-    pub(super) lh: usize,
-    pub(super) low_patch: isize,
-    pub(super) inv_low_area: f64,
-    pub(super) inv_hd2: f64,
-    /// `ln(alpha)` and `ln(1 - alpha)` of the blend (`-inf` for 0).
-    pub(super) ln_alpha: f64,
-    pub(super) ln_one_minus_alpha: f64,
-}
-
-impl UpsampleKernel<'_> {
-    /// `-ln w(i_low, j_low)`: eq. 2/5 on low-resolution depth patches, with
-    /// the discontinuity factor at the centres.
-    pub(super) fn low_distance(&self, a: usize, b: usize) -> f64 {
-        let (ax, ay) = ((a % self.lw) as isize, (a / self.lw) as isize);
-        let (bx, by) = ((b % self.lw) as isize, (b / self.lw) as isize);
-        let cl = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
-        let r = self.low_patch;
-        let mut s = 0.0f64;
-        for ky in -r..=r {
-            let ra = cl(ay + ky, self.lh) * self.lw;
-            let rb = cl(by + ky, self.lh) * self.lw;
-            for kx in -r..=r {
-                let pa = ra + cl(ax + kx, self.lw);
-                let pb = rb + cl(bx + kx, self.lw);
-                let cc = self.c[pa] * self.c[pb];
-                if cc > 0.0 {
-                    let dz = self.z[pa] as f64 - self.z[pb] as f64;
-                    s += cc as f64 * dz * dz;
-                }
-            }
-        }
-        let mut dist = s * self.inv_low_area * self.inv_hd2;
-        if self.c[a] > 0.0 && self.c[b] > 0.0 {
-            let dz = self.z[a] as f64 - self.z[b] as f64;
-            dist += dz * dz * self.inv_hd2;
-        }
-        dist
-    }
-}
-
-impl PairKernel for UpsampleKernel<'_> {
-    #[inline]
-    fn add(&self, i: usize, j: usize, d: f64, acc: &mut Acc) {
-        let s = self.sample_at[j];
-        if s == NO_SAMPLE {
-            return;
-        }
-        // ln((1 - alpha) w + alpha w_u) computed in the log domain, so
-        // neither term underflows alone: ln(0) = -inf drops a term.
-        let color = self.ln_alpha - d;
-        let depth = if self.ln_one_minus_alpha > f64::NEG_INFINITY {
-            let (lx, ly) = (self.lo_col[i % self.w], self.lo_row[i / self.w]);
-            if lx == NO_SAMPLE || ly == NO_SAMPLE {
-                f64::NEG_INFINITY
-            } else {
-                self.ln_one_minus_alpha - self.low_distance(ly * self.lw + lx, s)
-            }
-        } else {
-            f64::NEG_INFINITY
-        };
-        acc.add(log_add_exp(color, depth), self.c[s], 1.0, self.z[s]);
-    }
-}
-
-/// `ln(exp(a) + exp(b))` without overflow or underflow; `-inf` when both are.
-#[inline]
-pub(super) fn log_add_exp(a: f64, b: f64) -> f64 {
-    let (hi, lo) = if a >= b { (a, b) } else { (b, a) };
-    if lo == f64::NEG_INFINITY {
-        return hi;
-    }
-    hi + (lo - hi).exp().ln_1p()
-}
-
-/// The first pass of the upsampling (eq. 4) as flat buffers, for a backend
-/// that runs it elsewhere (the GPU): the colour side is a [`PassJob`] over
-/// the high-resolution grid (every pixel a target; its `z` and `c` are
-/// empty), the depth side the low-resolution samples.
-#[derive(Debug, Clone, Copy)]
-pub struct UpsampleJob<'a> {
-    /// Grid, guide features, patch kernel and `h`s of the colour term.
-    pub pass: PassJob<'a>,
-    /// Low-resolution width and height.
-    pub low: (usize, usize),
-    /// Low-resolution depth (0 for holes) and confidence.
-    pub lz: &'a [f32],
-    /// Low-resolution confidence, 0 for holes.
-    pub lc: &'a [f32],
-    /// Per high-resolution pixel, the low-resolution sample placed on it
-    /// (`usize::MAX`: none).
-    pub sample_at: &'a [usize],
-    /// Per high-resolution column / row, the low-resolution column / row
-    /// its ray falls in (`usize::MAX`: outside).
-    pub lo_col: &'a [usize],
-    /// See `lo_col`.
-    pub lo_row: &'a [usize],
-    /// Radius of the low-resolution depth patches.
-    pub low_patch: usize,
-    /// The blend of eq. 4: `alpha` on the colour term, `1 - alpha` on the
-    /// depth term.
-    pub alpha: f64,
-}
-
-/// [`UpsampleJob`] on the CPU: the pass of [`nlmeans_upsample_with`].
-pub fn cpu_upsample_pass(
-    job: &UpsampleJob,
-    progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
-) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
-    let (p, (lw, lh)) = (&job.pass, job.low);
-    let core = Core {
-        search: p.search,
-        patch: p.patch,
-        inv_hc2: p.inv_hc2,
-        inv_hd2: p.inv_hd2,
-    };
-    let n_low = 2 * job.low_patch + 1;
-    let kernel = UpsampleKernel {
-        w: p.w,
-        sample_at: job.sample_at,
-        lo_col: job.lo_col,
-        lo_row: job.lo_row,
-        z: job.lz,
-        c: job.lc,
-        lw,
-        lh,
-        low_patch: job.low_patch as isize,
-        // Guard: n_low >= 1.
-        inv_low_area: 1.0 / (n_low * n_low) as f64,
-        inv_hd2: p.inv_hd2,
-        ln_alpha: job.alpha.ln(),
-        ln_one_minus_alpha: (1.0 - job.alpha).ln(),
-    };
-    let pass = Pass {
-        w: p.w,
-        h: p.h,
-        guide: p.guide,
-        depth: None,
-        core,
-    };
-    let mut out = vec![None; p.w * p.h];
-    run_pass(&pass, p.targets, &kernel, progress, |i, acc| {
-        out[i] = acc.finish();
-    })?;
-    Ok(out)
 }
 
 /// Joint upsampling of low-resolution depth guided by high-resolution color
