@@ -52,16 +52,8 @@ fn median_ms<T>(repeats: usize, mut f: impl FnMut() -> T) -> (Option<T>, f64) {
 
 // ------------------------------------------------------------------ RGBE
 
-/// Debevec's reference: the radiance, the pixels whose value is uncertain
-/// (none for an intact file) and a note on how it was read.
-struct Reference {
-    img: ColorImage,
-    unsure: Vec<bool>,
-    note: String,
-}
-
 /// Reads a Radiance RGBE file with the library's reader (`LoadColor`'s).
-fn read_rgbe(path: &Path) -> Result<Reference, String> {
+fn read_rgbe(path: &Path) -> Result<ColorImage, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
     let r = depthgraph::nodes::io::radiance::decode_rgbe(
         &bytes,
@@ -69,12 +61,7 @@ fn read_rgbe(path: &Path) -> Result<Reference, String> {
         &depthgraph::nodes::io::Limits::default(),
     )
     .map_err(|e| e.to_string())?;
-    let unsure = vec![false; r.image.len()];
-    Ok(Reference {
-        img: r.image,
-        unsure,
-        note: String::new(),
-    })
+    Ok(r.image)
 }
 
 // ------------------------------------------------------------------ metric
@@ -354,11 +341,7 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
         }
         None => return (s, None),
     };
-    let Reference {
-        img: reference,
-        unsure,
-        note: repair_note,
-    } = match read_rgbe(&dir.join("memorial.hdr")) {
+    let reference = match read_rgbe(&dir.join("memorial.hdr")) {
         Ok(r) => r,
         Err(e) => {
             eprintln!("memorial: {e}");
@@ -419,12 +402,7 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
     }
     // one pixel set for every method: valid in the reference and every output,
     // and not a fallback pixel of the masked merge
-    let mut mask: Vec<bool> = reference
-        .as_slice()
-        .iter()
-        .zip(&unsure)
-        .map(|(p, u)| positive(p) && !*u)
-        .collect();
+    let mut mask: Vec<bool> = reference.as_slice().iter().map(positive).collect();
     if let Some((_, _, _, Some(m))) = outputs.first() {
         for (k, (px, fb)) in m
             .color
@@ -461,9 +439,6 @@ fn memorial(data: &Path, peers: Option<&Path>, repeats: usize) -> (String, Optio
     }
     for (label, r, m, out) in &peer_out {
         rows.push(row(label, *r, *m, out.as_ref()));
-    }
-    if !repair_note.is_empty() {
-        let _ = writeln!(s, "{repair_note}\n");
     }
     let _ = writeln!(
         s,
