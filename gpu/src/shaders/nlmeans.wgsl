@@ -43,6 +43,22 @@ fn pixel_distance(p: u32, q: u32) -> f32 {
     return min(d, P.k.cap);
 }
 
+// The largest source depth (confidence > 0) of the search window of (x, y)
+// inside the image, 0 when it holds none: the CPU's window_max.
+fn window_max(x: i32, y: i32) -> f32 {
+    let big_r = i32(P.k.search);
+    var m = 0.0;
+    for (var yj = max(y - big_r, 0); yj <= min(y + big_r, i32(P.k.h) - 1); yj = yj + 1) {
+        for (var xj = max(x - big_r, 0); xj <= min(x + big_r, i32(P.k.w) - 1); xj = xj + 1) {
+            let q = zc[u32(yj) * P.k.w + u32(xj)];
+            if (q.y > 0.0) {
+                m = max(m, q.x);
+            }
+        }
+    }
+    return m;
+}
+
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= P.k.w || gid.y >= P.k.h) {
@@ -58,25 +74,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var acc = acc_empty();
     let big_r = i32(P.k.search);
     let zi = zc[i];
-    // the largest source depth of the window (the CPU's window_max)
     var z_max = 0.0;
     if (P.beta > 0.0) {
-        for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
-            let yj = y + dy;
-            if (yj < 0 || yj >= i32(P.k.h)) {
-                continue;
-            }
-            for (var dx = -big_r; dx <= big_r; dx = dx + 1) {
-                let xj = x + dx;
-                if (xj < 0 || xj >= i32(P.k.w)) {
-                    continue;
-                }
-                let q = zc[u32(yj) * P.k.w + u32(xj)];
-                if (q.y > 0.0) {
-                    z_max = max(z_max, q.x);
-                }
-            }
-        }
+        z_max = window_max(x, y);
     }
     for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
         let yj = y + dy;

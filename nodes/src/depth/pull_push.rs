@@ -49,7 +49,7 @@ use std::sync::Arc;
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
-use crate::kit::checks::sane_intrinsics;
+use crate::kit::checks::{param_within, sane_intrinsics};
 use depthgraph_graph::registry::RegistryError;
 use rayon::prelude::*;
 
@@ -195,19 +195,8 @@ fn pull(fine: &Level, far: Option<Far>) -> Level {
 /// Checks the parameters both backends take as they are: `background`
 /// within `0..=100` and `edge_slope` within `0.1..=1000`.
 pub fn check_params(p: &PullPushParams) -> Result<(), NodeError> {
-    if !(p.background.is_finite() && (0.0..=100.0).contains(&p.background)) {
-        return Err(NodeError::param(
-            "background",
-            format!("{} is outside 0..=100", p.background),
-        ));
-    }
-    if !(p.edge_slope.is_finite() && (0.1..=1000.0).contains(&p.edge_slope)) {
-        return Err(NodeError::param(
-            "edge_slope",
-            format!("{} is outside 0.1..=1000", p.edge_slope),
-        ));
-    }
-    Ok(())
+    param_within("background", p.background, 0.0, 100.0)?;
+    param_within("edge_slope", p.edge_slope, 0.1, 1000.0)
 }
 
 /// Checks what [`Weights::Dual`] needs: a guide and intrinsics of the

@@ -38,6 +38,20 @@ pub fn sane_intrinsics(k_port: &str, k: &Intrinsics) -> Result<(), NodeError> {
     ))
 }
 
+/// Parameter `name` must be finite and within `[lo, hi]`: for callers that
+/// build a parameter struct in Rust (the pipeline checks the same range
+/// before a node runs).
+pub fn param_within(name: &str, v: f64, lo: f64, hi: f64) -> Result<(), NodeError> {
+    if v.is_finite() && (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(NodeError::param(
+            name,
+            format!("{v} is outside {lo}..={hi}"),
+        ))
+    }
+}
+
 /// The image on `port` (`what`, e.g. "a guide image") must have the size
 /// `want` of the `of` image (e.g. "the depth map").
 pub fn same_size(

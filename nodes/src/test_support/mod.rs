@@ -1,5 +1,6 @@
 //! Fixtures shared by the unit tests of the node modules: thread pools,
 //! evaluation contexts, small scenes. No test module imports another's.
+#![cfg(test)]
 
 pub(crate) mod relight;
 /// Runs `f` on a rayon pool of `threads` threads (the tests that a

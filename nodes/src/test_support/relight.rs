@@ -1,5 +1,6 @@
 //! Relighting fixtures: a floor and a slab with an exact shadow, as depth
 //! maps and as `Relight` inputs, and the check of that shadow.
+#![cfg(test)]
 
 use depthgraph_graph::prelude::*;
 

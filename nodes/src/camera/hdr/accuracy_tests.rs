@@ -3,6 +3,7 @@
 //! neutral patches that must stay neutral, confidence at the ends, shifts
 //! recovered to the pixel, and Debevec's memorial series (3 of its 16
 //! exposures against all 16; needs `../shared/data` and says so without it).
+#![cfg(test)]
 
 use std::path::{Path, PathBuf};
 

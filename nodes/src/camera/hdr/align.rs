@@ -169,9 +169,8 @@ fn pyramid(g: Grey, levels: usize) -> Vec<Grey> {
 /// unless one of them has more than half its pixels stuck at an end
 /// (saturated windows, film base); then the middle of the quantiles where
 /// neither is stuck, so that both bitmaps still split the scene the same way.
-fn pair_quantile(a: &Grey, b: &Grey, tol: f32) -> f64 {
-    let (da, ba) = a.stuck_fractions(tol);
-    let (db, bb) = b.stuck_fractions(tol);
+/// `a`, `b`: each image's [`Grey::stuck_fractions`].
+fn pair_quantile((da, ba): (f64, f64), (db, bb): (f64, f64)) -> f64 {
     let lo = da.max(db);
     let hi = 1.0 - ba.max(bb);
     if lo < 0.5 && hi > 0.5 {
@@ -207,9 +206,9 @@ fn cost(a: &Bitmaps, b: &Bitmaps, dx: i64, dy: i64) -> u64 {
 }
 
 /// The translation that moves `b` onto `a`, searched coarse to fine over
-/// their pyramids (same sizes, full resolution first).
-fn shift_between(a: &[Grey], b: &[Grey], tol: f32) -> (i64, i64) {
-    let q = pair_quantile(&a[0], &b[0], tol);
+/// their pyramids (same sizes, full resolution first), both thresholded at
+/// the quantile `q`.
+fn shift_between(a: &[Grey], b: &[Grey], q: f64, tol: f32) -> (i64, i64) {
     let (mut dx, mut dy) = (0i64, 0i64);
     for (ga, gb) in a.iter().zip(b).rev() {
         dx *= 2;
@@ -275,6 +274,11 @@ pub fn align_bracket(stack: &ExposureStack, p: &AlignParams) -> Result<Alignment
         .par_iter()
         .map(|img| pyramid(Grey::of(img), levels))
         .collect();
+    // each image's stuck fractions at full resolution, once
+    let stuck: Vec<(f64, f64)> = pyramids
+        .par_iter()
+        .map(|p| p[0].stuck_fractions(tol))
+        .collect();
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|a, b| {
         stack.times_s[*a]
@@ -288,7 +292,9 @@ pub fn align_bracket(stack: &ExposureStack, p: &AlignParams) -> Result<Alignment
         .filter(|k| *k != r)
         .map(|k| {
             let toward = if k < r { k + 1 } else { k - 1 };
-            let s = shift_between(&pyramids[order[toward]], &pyramids[order[k]], tol);
+            let (a, b) = (order[toward], order[k]);
+            let q = pair_quantile(stuck[a], stuck[b]);
+            let s = shift_between(&pyramids[a], &pyramids[b], q, tol);
             (k, s)
         })
         .collect();

@@ -3,6 +3,9 @@
 
 use depthgraph_graph::prelude::*;
 
+/// Channel names, for errors.
+pub(super) const CHANNEL: [&str; 3] = ["red", "green", "blue"];
+
 /// Number of levels of the response curve (8-bit codes).
 pub const LEVELS: usize = 256;
 /// Highest level, `Z_max` of eq. 4.

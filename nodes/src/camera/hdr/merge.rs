@@ -137,13 +137,13 @@ impl Eq6 {
 /// Debevec's own merge: RMS ln error 0.353 with the hat alone, 0.176 with
 /// the resolution factor (OpenCV 0.317); see `docs/hdr.md`. A curve whose
 /// mid-range slope is not positive (a constant curve) keeps the hat.
-struct Lut {
+struct Lut<'a> {
     w: [[f64; LEVELS]; 3],
-    g: [[f64; LEVELS]; 3],
+    curve: &'a ResponseCurve,
 }
 
-impl Lut {
-    fn new(curve: &ResponseCurve) -> Self {
+impl<'a> Lut<'a> {
+    fn new(curve: &'a ResponseCurve) -> Self {
         let w = std::array::from_fn(|c| {
             let g = &curve.g[c];
             let slope = |z: usize| {
@@ -164,24 +164,25 @@ impl Lut {
                 }
             })
         });
-        Self { w, g: curve.g }
+        Self { w, curve }
     }
 
     /// Weight and `g` of channel `c` at the real level `z` in `[0, 255]`:
     /// the tables at an 8-bit level (within 1e-4, what an 8-bit value
-    /// stored as f32 gives back), else interpolated linearly.
+    /// stored as f32 gives back), else interpolated linearly (`g` by
+    /// [`ResponseCurve::eval`]).
     #[inline]
     fn at(&self, c: usize, z: f64) -> (f64, f64) {
-        let (w, g) = (&self.w[c], &self.g[c]);
+        let w = &self.w[c];
         // z >= 0: the nearest level by truncation (round() is a libm call
         // on baseline x86-64; this is one instruction and the same value)
         let k = ((z + 0.5) as usize).min(LEVELS - 1);
         if (z - k as f64).abs() < 1e-4 {
-            return (w[k], g[k]);
+            return (w[k], self.curve.g[c][k]);
         }
         let i = (z as usize).min(LEVELS - 2);
         let f = z - i as f64;
-        (w[i] + (w[i + 1] - w[i]) * f, g[i] + (g[i + 1] - g[i]) * f)
+        (w[i] + (w[i + 1] - w[i]) * f, self.curve.eval(c, z))
     }
 }
 

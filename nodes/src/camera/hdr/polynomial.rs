@@ -4,9 +4,9 @@
 
 use depthgraph_graph::prelude::*;
 
-use super::curve::{LEVELS, ResponseCurve, Z_MAX, hat_weight, level};
+use super::curve::{CHANNEL, LEVELS, ResponseCurve, Z_MAX, hat_weight, level};
 use super::recover::{
-    Grid, check_recovery_input, cholesky_solve, select_samples, shape_curve, tie_channels,
+    Grid, Solved, check_recovery_input, cholesky_solve, select_samples, solve_channels,
 };
 
 /// Highest polynomial degree [`recover_polynomial`] accepts.
@@ -66,20 +66,8 @@ pub fn recover_polynomial(
             format!("{} is outside 1..={MAX_DEGREE}", p.degree),
         ));
     }
-    let mut g = [[0.0; LEVELS]; 3];
-    let mut support = [[0u32; LEVELS]; 3];
-    let grid = Grid::new(stack);
-    for c in 0..3 {
-        let (gc, sc) = fit_channel(stack, &grid, c, p)?;
-        g[c] = gc;
-        support[c] = sc;
-        shape_curve(&mut g[c], &sc);
-    }
-    tie_channels(&mut g, &support);
-    Ok(ResponseCurve { g })
+    solve_channels(stack, |grid, c| fit_channel(stack, grid, c, p), |_| Ok(()))
 }
-
-const CHANNEL: [&str; 3] = ["red", "green", "blue"];
 
 /// Fits channel `c`; returns `g` and the support (pair observations) per
 /// level.
@@ -88,7 +76,7 @@ fn fit_channel(
     grid: &Grid,
     c: usize,
     p: &PolynomialParams,
-) -> Result<([f64; LEVELS], [u32; LEVELS]), NodeError> {
+) -> Result<Solved, NodeError> {
     let n = p.degree;
     let idx = select_samples(stack, grid, c, p.samples);
     let mut order: Vec<usize> = (0..stack.images.len()).collect();

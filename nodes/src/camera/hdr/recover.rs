@@ -5,13 +5,13 @@
 use depthgraph_graph::prelude::*;
 use rayon::prelude::*;
 
-use super::curve::{LEVELS, ResponseCurve, Z_MAX, Z_MID, check_stack, hat_weight, level};
+use super::curve::{CHANNEL, LEVELS, ResponseCurve, Z_MAX, Z_MID, check_stack, hat_weight, level};
 
 /// Most candidate pixels the coverage pass of [`select_samples`] scans (a
 /// regular grid over larger images).
 const COVER_CANDIDATES: usize = 1 << 16;
 /// One channel's solved curve and its support per level.
-type Solved = ([f64; LEVELS], [u32; LEVELS]);
+pub(super) type Solved = ([f64; LEVELS], [u32; LEVELS]);
 
 /// Pixels kept per (exposure, level) by the coverage pass of
 /// [`select_samples`].
@@ -308,8 +308,6 @@ pub(super) fn cholesky_solve(a: &mut [f64], n: usize, b: &mut [f64]) -> Result<(
     Ok(())
 }
 
-const CHANNEL: [&str; 3] = ["red", "green", "blue"];
-
 /// Recovers `g` for channel `c` from the sampled pixels `idx` (eq. 5); see
 /// [`recover_response`] for the solve.
 fn recover_channel(
@@ -317,7 +315,7 @@ fn recover_channel(
     c: usize,
     idx: &[usize],
     lambda: f64,
-) -> Result<([f64; LEVELS], [u32; LEVELS]), NodeError> {
+) -> Result<Solved, NodeError> {
     const N: usize = LEVELS;
     let ln_t: Vec<f64> = stack.times_s.iter().map(|t| t.ln()).collect();
     let mut s = vec![0.0f64; N * N];
@@ -474,7 +472,7 @@ fn isotonic(y: &mut [f64], w: &[f64]) {
 /// reached would otherwise hold whatever the smoothness term extrapolated
 /// from noisy end data. Curves with fewer than three supported levels are
 /// left as solved.
-pub(super) fn shape_curve(g: &mut [f64; LEVELS], support: &[u32; LEVELS]) {
+fn shape_curve(g: &mut [f64; LEVELS], support: &[u32; LEVELS]) {
     let Some(lo) = support.iter().position(|s| *s >= MIN_SUPPORT) else {
         return;
     };
@@ -507,7 +505,7 @@ pub(super) fn shape_curve(g: &mut [f64; LEVELS], support: &[u32; LEVELS]) {
 /// `g(128)` at 0. A camera whose channels share one response then maps a
 /// neutral surface (equal levels) to neutral radiance at every level, up
 /// to the recovery's noise, not only at level 128.
-pub(super) fn tie_channels(g: &mut [[f64; LEVELS]; 3], support: &[[u32; LEVELS]; 3]) {
+fn tie_channels(g: &mut [[f64; LEVELS]; 3], support: &[[u32; LEVELS]; 3]) {
     let all = |z: usize| support.iter().all(|s| s[z] >= MIN_SUPPORT);
     let any_common = (1..LEVELS - 1).any(all);
     let mut offset = [0.0f64; 3];
@@ -600,7 +598,7 @@ pub fn recover_response(
 pub fn recover_response_with(
     stack: &ExposureStack,
     p: &ResponseParams,
-    mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<ResponseCurve, NodeError> {
     check_recovery_input(stack)?;
     if !(p.lambda.is_finite() && p.lambda > 0.0) {
@@ -609,19 +607,37 @@ pub fn recover_response_with(
             format!("{} must be finite and positive", p.lambda),
         ));
     }
-    let mut g = [[0.0; LEVELS]; 3];
-    let mut support = [[0u32; LEVELS]; 3];
-    // the three channels are independent: solved in parallel
+    solve_channels(
+        stack,
+        |grid, c| {
+            let idx = select_samples(stack, grid, c, p.samples);
+            recover_channel(stack, c, &idx, p.lambda)
+        },
+        on_progress,
+    )
+}
+
+/// The part every recovery shares: the candidate [`Grid`], one `fit` per
+/// channel (independent, so solved in parallel; each gives its curve and
+/// its support per level), each curve shaped ([`shape_curve`]) and the
+/// channels tied ([`tie_channels`]). `on_progress` hears of each channel in
+/// order; the first channel's error wins.
+pub(super) fn solve_channels(
+    stack: &ExposureStack,
+    fit: impl Fn(&Grid, usize) -> Result<Solved, NodeError> + Sync,
+    mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+) -> Result<ResponseCurve, NodeError> {
     let grid = Grid::new(stack);
     let solved: Vec<Result<Solved, NodeError>> = (0..3)
         .into_par_iter()
         .map(|c| {
-            let idx = select_samples(stack, &grid, c, p.samples);
-            let (mut gc, sc) = recover_channel(stack, c, &idx, p.lambda)?;
+            let (mut gc, sc) = fit(&grid, c)?;
             shape_curve(&mut gc, &sc);
             Ok((gc, sc))
         })
         .collect();
+    let mut g = [[0.0; LEVELS]; 3];
+    let mut support = [[0u32; LEVELS]; 3];
     for (c, r) in solved.into_iter().enumerate() {
         let (gc, sc) = r?;
         g[c] = gc;

@@ -1,6 +1,6 @@
 //! Iterative inpainting with confidence propagation (eq. 5).
 
-use crate::kit::checks::same_size;
+use crate::kit::checks::{param_within, same_size};
 use depthgraph_graph::prelude::*;
 
 use super::common::*;
@@ -286,18 +286,8 @@ pub fn nlmeans_inpaint_on(
     if core.search == 0 {
         return Err(NodeError::param("search_radius", "must be at least 1"));
     }
-    if !(p.background.is_finite() && (0.0..=1000.0).contains(&p.background)) {
-        return Err(NodeError::param(
-            "background",
-            format!("{} is outside 0..=1000", p.background),
-        ));
-    }
-    if !(p.edge_step.is_finite() && (0.001..=1.0).contains(&p.edge_step)) {
-        return Err(NodeError::param(
-            "edge_step",
-            format!("{} is outside 0.001..=1", p.edge_step),
-        ));
-    }
+    param_within("background", p.background, 0.0, 1000.0)?;
+    param_within("edge_step", p.edge_step, 0.001, 1.0)?;
     same_size(
         "color",
         "a guide image",
