@@ -9,9 +9,12 @@ pub use depthgraph_graph as graph;
 pub use depthgraph_nodes as nodes;
 
 pub mod backend;
+pub mod batch;
 pub mod evaluation;
 pub mod fuzzing;
 pub mod metrics;
+#[cfg(feature = "s3")]
+pub mod remote;
 pub mod sweep;
 
 use std::path::{Path, PathBuf};
@@ -55,15 +58,74 @@ pub fn read_document(path: &Path, sets: &[String]) -> Result<Document, LoadError
     }
 }
 
-/// Reads, overrides and checks a pipeline against the full registry.
+/// Reads, overrides and checks a pipeline against the full registry; a
+/// pipeline that takes a frame index runs frame 0 (with a notice).
 pub fn load_pipeline(
     path: &Path,
     sets: &[String],
     reg: &Registry,
 ) -> Result<(Document, Pipeline), LoadError> {
+    load_pipeline_frame(path, sets, None, reg)
+}
+
+/// [`load_pipeline`] for frame `frame` of a pipeline with `{frame}`
+/// placeholders (`None`: frame 0, with a notice when the pipeline takes
+/// one). The returned document is the frame's.
+pub fn load_pipeline_frame(
+    path: &Path,
+    sets: &[String],
+    frame: Option<u64>,
+    reg: &Registry,
+) -> Result<(Document, Pipeline), LoadError> {
     let doc = read_document(path, sets)?;
+    let takes_frame = !doc.frame_params().is_empty();
+    let mut doc = doc
+        .for_frame(frame.unwrap_or(0))
+        .map_err(|e| LoadError::Check(CheckErrors(e)))?;
+    if takes_frame && frame.is_none() {
+        doc.notices.push(
+            "this pipeline takes a frame index ({frame}); running frame 0 (choose with --frame N, or run many with `depthgraph batch`)"
+                .to_string(),
+        );
+    }
     let p = Pipeline::check(&doc, reg).map_err(|e| LoadError::Check(CheckErrors(e)))?;
     Ok((doc, p))
+}
+
+/// A `--cache-url` that cannot be used: a usage error (a bad URL, a build
+/// without the `s3` feature) or a transient one (the store did not answer).
+#[derive(Debug, thiserror::Error)]
+#[error("{message}")]
+pub struct CacheUrlError {
+    /// What is wrong, naming the URL.
+    pub message: String,
+    /// Usage or Transient.
+    pub kind: FailureKind,
+}
+
+/// Opens the shared object-store cache of `--cache-url` (see [`remote`]).
+pub fn open_cache_url(
+    url: &str,
+) -> Result<std::sync::Arc<dyn depthgraph_graph::cache::BlobStore>, CacheUrlError> {
+    #[cfg(feature = "s3")]
+    {
+        remote::open(url).map_err(|e| CacheUrlError {
+            kind: match e {
+                remote::RemoteError::Url { .. } => FailureKind::Usage,
+                remote::RemoteError::Unreachable { .. } => FailureKind::Transient,
+            },
+            message: e.to_string(),
+        })
+    }
+    #[cfg(not(feature = "s3"))]
+    {
+        Err(CacheUrlError {
+            message: format!(
+                "--cache-url {url}: this depthgraph was built without the `s3` feature"
+            ),
+            kind: FailureKind::Usage,
+        })
+    }
 }
 
 /// The default persistent cache directory: `$DEPTHGRAPH_CACHE_DIR`, else

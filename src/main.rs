@@ -6,13 +6,15 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::{Arc, Mutex};
 
+mod batch_cli;
+
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use depthgraph::backend::{Backend, Chosen};
 use depthgraph::graph::prelude::*;
 use depthgraph::metrics::Metric;
 use depthgraph::sweep::{SweepSpec, plot_svg, run_sweep, to_csv};
-use depthgraph::{LoadError, default_cache_dir, load_pipeline, read_document};
+use depthgraph::{LoadError, default_cache_dir, load_pipeline, load_pipeline_frame, read_document};
 
 /// Exit code when the requested backend cannot be used (no GPU adapter):
 /// sysexits EX_UNAVAILABLE. A bad DEPTHGRAPH_BACKEND is a usage error (2).
@@ -83,6 +85,9 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Run a pipeline over many frames ({frame} placeholders, sequences), here or as a
+    /// Slurm array job; writes OUT/manifest.jsonl and exits 0, 65 (bad input) or 75 (transient).
+    Batch(Box<batch_cli::BatchArgs>),
     /// Error against time over the values of one parameter.
     Sweep {
         #[command(flatten)]
@@ -113,6 +118,47 @@ enum Command {
     },
 }
 
+/// Where results are cached: shared by `run`, `explain`, `sweep` and `batch`.
+#[derive(Args)]
+struct CacheArgs {
+    /// Do not read or write the on-disk cache.
+    #[arg(long)]
+    no_cache: bool,
+    /// Where the on-disk cache lives (default: $DEPTHGRAPH_CACHE_DIR, $XDG_CACHE_HOME/depthgraph or ~/.cache/depthgraph).
+    #[arg(long)]
+    cache_dir: Option<PathBuf>,
+    /// On-disk cache budget in MiB; least recently used entries go first.
+    #[arg(long, default_value_t = 4096)]
+    cache_mb: u64,
+    /// A cache many machines share, after the disk cache: s3://bucket/prefix, gs://, az://
+    /// or file:///path (credentials from AWS_*, GOOGLE_*, AZURE_* variables).
+    #[arg(long, value_name = "URL")]
+    cache_url: Option<String>,
+}
+
+impl CacheArgs {
+    /// The on-disk cache's directory.
+    fn dir(&self) -> PathBuf {
+        self.cache_dir.clone().unwrap_or_else(default_cache_dir)
+    }
+    /// The on-disk cache, unless `--no-cache`.
+    fn disk(&self) -> Option<DiskCache> {
+        (!self.no_cache).then(|| DiskCache::new(self.dir(), self.cache_mb.saturating_mul(1 << 20)))
+    }
+    /// The shared store of `--cache-url` (checked once), unless `--no-cache`.
+    fn remote(
+        &self,
+    ) -> std::result::Result<
+        Option<Arc<dyn depthgraph::graph::cache::BlobStore>>,
+        depthgraph::CacheUrlError,
+    > {
+        match &self.cache_url {
+            Some(url) if !self.no_cache => depthgraph::open_cache_url(url).map(Some),
+            _ => Ok(None),
+        }
+    }
+}
+
 #[derive(Args)]
 struct RunArgs {
     /// Pipeline file (RON).
@@ -123,15 +169,8 @@ struct RunArgs {
     /// Directory for relative output paths.
     #[arg(long, default_value = "out")]
     out: PathBuf,
-    /// Do not read or write the on-disk cache.
-    #[arg(long)]
-    no_cache: bool,
-    /// Where the on-disk cache lives (default: $DEPTHGRAPH_CACHE_DIR, $XDG_CACHE_HOME/depthgraph or ~/.cache/depthgraph).
-    #[arg(long)]
-    cache_dir: Option<PathBuf>,
-    /// On-disk cache budget in MiB; least recently used entries go first.
-    #[arg(long, default_value_t = 4096)]
-    cache_mb: u64,
+    #[command(flatten)]
+    cache: CacheArgs,
     /// In-memory cache budget in MiB.
     #[arg(long, default_value_t = 2048)]
     memory_mb: usize,
@@ -149,6 +188,9 @@ struct RunArgs {
     /// exists), cpu, or gpu (fail when there is none). Default: $DEPTHGRAPH_BACKEND, else auto.
     #[arg(long, value_enum)]
     backend: Option<Backend>,
+    /// The frame of a pipeline with {frame} placeholders (default 0; `batch` runs many).
+    #[arg(long)]
+    frame: Option<u64>,
 }
 
 fn registry() -> Result<Registry> {
@@ -176,7 +218,7 @@ fn registry_for(args: &RunArgs) -> Result<std::result::Result<(Registry, Chosen)
 
 /// Prints check errors (one per line) and turns them into a failure.
 fn load(args: &RunArgs, reg: &Registry) -> Result<(Document, Pipeline), ExitCode> {
-    match load_pipeline(&args.file, &args.sets, reg) {
+    match load_pipeline_frame(&args.file, &args.sets, args.frame, reg) {
         Ok((doc, p)) => {
             for n in &doc.notices {
                 eprintln!("note: {n}");
@@ -198,14 +240,12 @@ fn report_load_error(e: &LoadError) {
 }
 
 fn engine(args: &RunArgs) -> Result<Engine> {
-    let disk = (!args.no_cache).then(|| {
-        let dir = args.cache_dir.clone().unwrap_or_else(default_cache_dir);
-        DiskCache::new(dir, args.cache_mb.saturating_mul(1 << 20))
-    });
+    let remote = args.cache.remote()?;
     Ok(Engine::new(EngineOptions {
         memory_budget_bytes: args.memory_mb.saturating_mul(1 << 20),
-        disk,
+        disk: args.cache.disk(),
         threads: args.threads,
+        remote,
     })?)
 }
 
@@ -478,7 +518,10 @@ fn cmd_sweep(
         Err(code) => return Ok(code),
     };
     eprintln!("backend: {} ({})", chosen.used, chosen.reason);
-    let doc = match read_document(&args.file, &args.sets) {
+    let doc = match read_document(&args.file, &args.sets).and_then(|d| {
+        d.for_frame(args.frame.unwrap_or(0))
+            .map_err(|e| LoadError::Check(CheckErrors(e)))
+    }) {
         Ok(d) => d,
         Err(e) => {
             report_load_error(&e);
@@ -565,6 +608,7 @@ fn main() -> ExitCode {
         Command::Check { file, sets } => cmd_check(&file, &sets),
         Command::Nodes { kind, json } => cmd_nodes(kind.as_deref(), json),
         Command::Explain { common, json } => cmd_explain(&common, json),
+        Command::Batch(args) => batch_cli::cmd_batch(&args),
         Command::Sweep {
             common,
             param,
@@ -606,6 +650,9 @@ fn failure_kind(e: &anyhow::Error) -> FailureKind {
     for c in e.chain() {
         if let Some(r) = c.downcast_ref::<RunError>() {
             return r.kind();
+        }
+        if let Some(u) = c.downcast_ref::<depthgraph::CacheUrlError>() {
+            return u.kind;
         }
         if let Some(n) = c.downcast_ref::<NodeError>() {
             return n.kind();

@@ -455,9 +455,10 @@ impl EditorModel {
         self.revision += 1;
     }
 
-    /// Type-checks the document.
+    /// Type-checks the document (frame 0 of a pipeline with `{frame}`
+    /// placeholders: the editor shows the first frame of a sequence).
     pub fn check(&self) -> Result<Pipeline, Vec<CheckError>> {
-        Pipeline::check(&self.doc, &self.registry)
+        Pipeline::check(&self.doc.for_frame(0)?, &self.registry)
     }
 
     /// The checked pipeline requesting all outputs of `targets` (node names)

@@ -116,7 +116,9 @@ impl DiskCache {
     }
     fn path(&self, key: &Key) -> PathBuf {
         let hex = key.to_hex();
-        self.dir.join(&hex[..2]).join(format!("{hex}.bin"))
+        self.dir
+            .join(&hex[..2])
+            .join(format!("{hex}.{}.bin", codec::VERSION_TAG))
     }
     /// Reads an entry; `None` on a miss or an unreadable entry. Extension
     /// values are read with `decoders`.
@@ -172,6 +174,7 @@ impl DiskCache {
     #[allow(clippy::type_complexity)]
     fn files(&self) -> (Vec<(PathBuf, u64, SystemTime)>, Vec<(PathBuf, SystemTime)>) {
         let (mut out, mut tmps) = (Vec::new(), Vec::new());
+        let own_suffix = format!(".{}.bin", codec::VERSION_TAG);
         let Ok(dirs) = fs::read_dir(&self.dir) else {
             return (out, tmps);
         };
@@ -185,10 +188,13 @@ impl DiskCache {
                     continue; // removed meanwhile by another process
                 };
                 let t = m.modified().unwrap_or(SystemTime::UNIX_EPOCH);
-                match p.extension().and_then(|e| e.to_str()) {
-                    Some("bin") => out.push((p, m.len(), t)),
-                    Some("tmp") => tmps.push((p, t)),
-                    _ => {}
+                let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+                // entries of another codec version (another depthgraph
+                // sharing the store) are neither counted nor evicted
+                if name.ends_with(&own_suffix) {
+                    out.push((p, m.len(), t));
+                } else if name.ends_with(".tmp") {
+                    tmps.push((p, t));
                 }
             }
         }
@@ -223,19 +229,101 @@ impl DiskCache {
     }
 }
 
+/// A store of named byte blobs shared by many workers (an object store:
+/// S3, GCS, Azure, or a shared folder), the third cache level after memory
+/// and the local disk. Entries are content-addressed (the name is the
+/// Merkle key), so two workers writing one entry write the same bytes and a
+/// plain overwrite is safe.
+pub trait BlobStore: Send + Sync {
+    /// Where the store is, for messages (e.g. `s3://bucket/prefix`).
+    fn describe(&self) -> String;
+    /// The blob called `name`; `Ok(None)` when there is none.
+    fn get(&self, name: &str) -> Result<Option<Vec<u8>>, String>;
+    /// Stores `bytes` as `name`, replacing what was there.
+    fn put(&self, name: &str, bytes: &[u8]) -> Result<(), String>;
+}
+
+/// Node outputs in a [`BlobStore`], under the disk cache's entry names
+/// (`ab/<key>.dg3.bin`), so entries of another codec version never meet.
+/// Remote failures are misses: a cache that cannot be reached is not an
+/// error of the run (the command line checks the store once at start).
+#[derive(Clone)]
+pub struct RemoteCache {
+    store: Arc<dyn BlobStore>,
+}
+
+impl std::fmt::Debug for RemoteCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RemoteCache({})", self.store.describe())
+    }
+}
+
+impl RemoteCache {
+    /// A cache in `store`.
+    pub fn new(store: Arc<dyn BlobStore>) -> Self {
+        Self { store }
+    }
+    /// The store's description.
+    pub fn describe(&self) -> String {
+        self.store.describe()
+    }
+    /// The blob name of `key`'s entry.
+    pub fn name(key: &Key) -> String {
+        let hex = key.to_hex();
+        format!("{}/{hex}.{}.bin", &hex[..2], codec::VERSION_TAG)
+    }
+    /// Reads an entry; `None` on a miss, an unreachable store or an entry
+    /// that does not decode.
+    pub fn get(&self, key: &Key, decoders: &codec::Decoders) -> Option<Outputs> {
+        let bytes = self.store.get(&Self::name(key)).ok()??;
+        codec::decode(&bytes, decoders)
+    }
+    /// Writes an entry (values that cannot be persisted are skipped).
+    pub fn put(&self, key: &Key, out: &Outputs) -> Result<(), String> {
+        if !codec::persistable(out) {
+            return Ok(());
+        }
+        self.store.put(&Self::name(key), &codec::encode(out))
+    }
+}
+
 /// How old a writer's temporary file must be before [`DiskCache::trim`]
 /// takes it for the leftover of a killed process (a live writer renames
 /// its file within the time of one write).
 pub const STALE_TMP: std::time::Duration = std::time::Duration::from_secs(15 * 60);
 
-/// `pid.thread`: a part of a temporary file's name that no other live
-/// writer (another process, another thread of this one) uses, so
-/// concurrent writers of one file never share a temporary file.
+/// `host.pid.thread`: a part of a temporary file's name that no other live
+/// writer uses (another machine on a shared filesystem, another process,
+/// another thread of this one), so concurrent writers of one file never
+/// share a temporary file. One thread writes one file at a time (it renames
+/// or removes its temporary file before the next write), so this is enough.
 pub fn temp_suffix() -> String {
     use std::hash::{Hash, Hasher};
     let mut h = std::collections::hash_map::DefaultHasher::new();
     std::thread::current().id().hash(&mut h);
-    format!("{}.{:x}", std::process::id(), h.finish())
+    format!("{}.{}.{:x}", host_tag(), std::process::id(), h.finish())
+}
+
+/// The machine's host name, reduced to `[A-Za-z0-9-]` (at most 32
+/// characters), or `host` when it cannot be read.
+fn host_tag() -> String {
+    let name = std::env::var("HOSTNAME")
+        .ok()
+        .filter(|h| !h.is_empty())
+        .or_else(|| fs::read_to_string("/proc/sys/kernel/hostname").ok())
+        .or_else(|| fs::read_to_string("/etc/hostname").ok())
+        .unwrap_or_default();
+    let tag: String = name
+        .trim()
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || *c == '-')
+        .take(32)
+        .collect();
+    if tag.is_empty() {
+        "host".to_string()
+    } else {
+        tag
+    }
 }
 
 fn remove_if_present(p: &Path) -> std::io::Result<()> {
@@ -348,6 +436,72 @@ mod tests {
         assert!(!stale.exists());
         assert!(fresh.exists());
         assert!(c.get(&key(1), &Default::default()).is_some());
+    }
+
+    #[derive(Default)]
+    struct Blobs(std::sync::Mutex<BTreeMap<String, Vec<u8>>>);
+    impl BlobStore for Blobs {
+        fn describe(&self) -> String {
+            "memory".into()
+        }
+        fn get(&self, name: &str) -> Result<Option<Vec<u8>>, String> {
+            Ok(self.0.lock().unwrap().get(name).cloned())
+        }
+        fn put(&self, name: &str, bytes: &[u8]) -> Result<(), String> {
+            self.0
+                .lock()
+                .unwrap()
+                .insert(name.to_string(), bytes.to_vec());
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_remote_cache_round_trips_and_misses_on_damage() {
+        let blobs = Arc::new(Blobs::default());
+        let c = RemoteCache::new(blobs.clone());
+        assert!(c.get(&key(4), &Default::default()).is_none());
+        c.put(&key(4), &out(8)).unwrap();
+        assert_eq!(
+            c.get(&key(4), &Default::default()).unwrap().values,
+            out(8).values
+        );
+        let name = RemoteCache::name(&key(4));
+        assert!(name.ends_with(".dg3.bin") && name.starts_with("04/"));
+        blobs
+            .0
+            .lock()
+            .unwrap()
+            .insert(name, b"DGCACHE3 damaged".to_vec());
+        assert!(c.get(&key(4), &Default::default()).is_none());
+    }
+
+    #[test]
+    fn entries_of_another_codec_version_are_left_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = codec::encode(&out(50)).len() as u64;
+        let c = DiskCache::new(dir.path(), one);
+        c.put(&key(1), &out(50)).unwrap();
+        let sub = c.path(&key(1)).parent().unwrap().to_path_buf();
+        // a newer depthgraph's entry and an older layout's, both bigger than the budget
+        let newer = sub.join(format!("{}.dg9.bin", key(1).to_hex()));
+        let older = sub.join(format!("{}.bin", key(2).to_hex()));
+        fs::write(&newer, vec![7u8; (one * 3) as usize]).unwrap();
+        fs::write(&older, b"DGCACHE2 whatever").unwrap();
+        c.put(&key(3), &out(50)).unwrap();
+        c.trim().unwrap();
+        assert!(newer.exists() && older.exists());
+        assert_eq!(fs::read(&older).unwrap(), b"DGCACHE2 whatever");
+        assert!(c.used_bytes() <= one);
+        assert!(c.get(&key(3), &Default::default()).is_some());
+    }
+
+    #[test]
+    fn temporary_names_name_the_host_and_differ_between_threads() {
+        let a = temp_suffix();
+        let c = std::thread::spawn(temp_suffix).join().unwrap();
+        assert_ne!(a, c);
+        assert!(a.starts_with(&format!("{}.{}.", host_tag(), std::process::id())));
     }
 
     #[test]

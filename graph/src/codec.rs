@@ -16,6 +16,12 @@ use crate::value::{
 
 const MAGIC: &[u8; 8] = b"DGCACHE3";
 
+/// The codec's version as it appears in entry file names
+/// ([`DiskCache`](crate::cache::DiskCache) keeps `<key>.dg3.bin`): workers
+/// of another depthgraph version sharing a store never read, overwrite or
+/// evict each other's entries.
+pub const VERSION_TAG: &str = "dg3";
+
 /// Encodes outputs (values and the pass-through reason).
 pub fn encode(out: &Outputs) -> Vec<u8> {
     let mut w = ByteWriter(Vec::with_capacity(out.bytes() + 64));

@@ -19,6 +19,7 @@ use std::collections::BTreeMap;
 use std::fmt;
 
 use crate::error::{CheckError, Location};
+use crate::frames::{expand, has_placeholder, is_whole_placeholder};
 use crate::params::quote;
 use crate::ron_text::{self, Pos, RonValue, Spanned};
 
@@ -39,6 +40,9 @@ pub struct Document {
     pub outputs: Vec<Spanned<String>>,
     /// Editor positions by node name; the CLI ignores them.
     pub layout: BTreeMap<String, [f64; 2]>,
+    /// The frames `depthgraph batch` runs when given no `--frames`
+    /// (`frames: "0..30"`), checked as a [`FrameSelection`](crate::frames::FrameSelection).
+    pub frames: Option<String>,
     /// Notices from reading (e.g. a migrated older format).
     pub notices: Vec<String>,
 }
@@ -111,6 +115,7 @@ impl Document {
             nodes: Vec::new(),
             outputs: Vec::new(),
             layout: BTreeMap::new(),
+            frames: None,
             notices: Vec::new(),
         };
         let shape = |pos: Pos, what: &str, found: &RonValue| CheckError::Format {
@@ -220,13 +225,25 @@ impl Document {
                     }
                     other => errors.push(shape(val.pos, "a map of node positions", other)),
                 },
+                "frames" => match &val.value {
+                    RonValue::Str(f) => match crate::frames::FrameSelection::parse(f) {
+                        Ok(_) => doc.frames = Some(f.clone()),
+                        Err(e) => errors.push(CheckError::Format {
+                            loc: loc(val.pos),
+                            message: e.to_string(),
+                        }),
+                    },
+                    other => errors.push(shape(val.pos, "frames as text, e.g. \"0..30\"", other)),
+                },
                 other => {
-                    let suggestion =
-                        crate::registry::closest(other, ["version", "nodes", "outputs", "layout"]);
+                    let suggestion = crate::registry::closest(
+                        other,
+                        ["version", "nodes", "outputs", "layout", "frames"],
+                    );
                     errors.push(CheckError::Format {
                         loc: loc(key.pos),
                         message: format!(
-                            "unknown field `{other}`; a pipeline has `version`, `nodes`, `outputs` and `layout`{}",
+                            "unknown field `{other}`; a pipeline has `version`, `nodes`, `outputs`, `frames` and `layout`{}",
                             suggestion.map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default()
                         ),
                     });
@@ -362,6 +379,9 @@ impl Document {
         s.push_str("    },\n");
         let outs: Vec<String> = self.outputs.iter().map(|o| quote(&o.value)).collect();
         s.push_str(&format!("    outputs: [{}],\n", outs.join(", ")));
+        if let Some(f) = &self.frames {
+            s.push_str(&format!("    frames: {},\n", quote(f)));
+        }
         if !self.layout.is_empty() {
             s.push_str("    layout: {\n");
             for (k, [x, y]) in &self.layout {
@@ -533,6 +553,67 @@ fn parse_node(
         Ok(decl)
     } else {
         Err(errors)
+    }
+}
+
+impl Document {
+    /// The `(node, parameter)` pairs whose values hold a frame placeholder,
+    /// in file order; empty when the pipeline takes no frame index.
+    pub fn frame_params(&self) -> Vec<(String, String)> {
+        let mut out = Vec::new();
+        for n in &self.nodes {
+            for (k, v) in &n.params {
+                if let RonValue::Str(s) = &v.value
+                    && has_placeholder(s)
+                {
+                    out.push((n.name.value.clone(), k.value.clone()));
+                }
+            }
+        }
+        out
+    }
+
+    /// The document of frame `frame`: every placeholder replaced; a value
+    /// that is exactly one placeholder (`"{frame}"`) becomes the integer, so
+    /// number parameters can follow the frame. Errors name the node, the
+    /// parameter and its position.
+    pub fn for_frame(&self, frame: u64) -> Result<Document, Vec<CheckError>> {
+        let mut doc = self.clone();
+        let mut errors = Vec::new();
+        for n in &mut doc.nodes {
+            for (k, v) in &mut n.params {
+                let RonValue::Str(s) = &v.value else { continue };
+                match expand(s, frame) {
+                    Ok(None) => {}
+                    Ok(Some(text)) => {
+                        let whole = is_whole_placeholder(s);
+                        v.value = match (whole, i64::try_from(frame)) {
+                            (true, Ok(i)) => RonValue::Int(i),
+                            _ => RonValue::Str(text),
+                        };
+                    }
+                    Err(why) => {
+                        let file = n
+                            .param_files
+                            .get(&k.value)
+                            .cloned()
+                            .unwrap_or_else(|| self.file.clone());
+                        errors.push(CheckError::Format {
+                            loc: Location::new(&file, v.pos),
+                            message: format!(
+                                "node `{}`, parameter `{}`: {why}",
+                                n.name.value, k.value
+                            ),
+                        });
+                    }
+                }
+            }
+        }
+        if errors.is_empty() {
+            Ok(doc)
+        } else {
+            Err(errors)
+        }
     }
 }
 

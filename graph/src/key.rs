@@ -3,6 +3,10 @@
 //! `key(node) = blake3(kind, version, canonical parameters, for each input
 //! port in name order: port name, source output port, key(source))`.
 //!
+//! A node that reads files (a loader) has the files' contents mixed in as
+//! well ([`with_file_contents`]): editing an input file, or a frame of a
+//! sequence written anew, is a different result, never a stale cache hit.
+//!
 //! The key is known before evaluation, so a change downstream never re-runs
 //! upstream work, and a change upstream changes exactly the keys of the
 //! nodes that depend on it. Parameters are hashed in name order with floats
@@ -109,6 +113,38 @@ pub fn derived_key(
     Key(*h.finalize().as_bytes())
 }
 
+/// `key` with the contents of the files a node reads mixed in, in the
+/// order given: the blake3 digest of each file's bytes, or a marker for a
+/// file that cannot be read (the load then fails with its own error, and a
+/// file that appears later gives another key).
+pub fn with_file_contents(key: Key, files: &[std::path::PathBuf]) -> Key {
+    if files.is_empty() {
+        return key;
+    }
+    let mut h = blake3::Hasher::new();
+    h.update(RECIPE);
+    h.update(b"files");
+    h.update(key.as_bytes());
+    h.update(&(files.len() as u64).to_le_bytes());
+    for f in files {
+        let digest = std::fs::File::open(f).and_then(|file| {
+            let mut d = blake3::Hasher::new();
+            d.update_reader(file)?;
+            Ok(d.finalize())
+        });
+        match digest {
+            Ok(d) => {
+                h.update(&[1]);
+                h.update(d.as_bytes());
+            }
+            Err(_) => {
+                h.update(&[0]);
+            }
+        }
+    }
+    Key(*h.finalize().as_bytes())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -146,6 +182,23 @@ mod tests {
         assert_ne!(base, derived_key("K", 1, "scene", b"q", &[("x", Some(a))]));
         assert_ne!(base, derived_key("K", 1, "scene", b"p", &[("x", None)]));
         assert_ne!(base, derived_key("K", 1, "scene", b"p", &[("y", Some(a))]));
+    }
+
+    #[test]
+    fn file_contents_change_the_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("a.bin");
+        let k = Key::from_bytes([3; 32]);
+        assert_eq!(with_file_contents(k, &[]), k);
+        let missing = with_file_contents(k, std::slice::from_ref(&f));
+        std::fs::write(&f, b"one").unwrap();
+        let one = with_file_contents(k, std::slice::from_ref(&f));
+        assert_eq!(one, with_file_contents(k, std::slice::from_ref(&f)));
+        std::fs::write(&f, b"two").unwrap();
+        let two = with_file_contents(k, std::slice::from_ref(&f));
+        assert!(missing != one && one != two && missing != two);
+        std::fs::write(&f, b"one").unwrap();
+        assert_eq!(with_file_contents(k, &[f]), one);
     }
 
     #[test]

@@ -49,6 +49,7 @@ pub mod cache;
 pub mod codec;
 pub mod document;
 pub mod error;
+pub mod frames;
 pub mod key;
 pub mod node;
 pub mod params;

@@ -17,10 +17,10 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use crate::cache::{DiskCache, MemoryCache};
+use crate::cache::{BlobStore, DiskCache, MemoryCache, RemoteCache};
 use crate::codec::Decoders;
 use crate::error::RunError;
-use crate::key::{Key, node_key};
+use crate::key::{Key, node_key, with_file_contents};
 use crate::node::{
     CancelToken, Derivations, EvalCtx, Inputs, NodeError, Outputs, ProgressFn, ValueStore,
 };
@@ -29,7 +29,7 @@ use crate::trace::{DerivedRecord, NodeRecord, Status, Trace};
 use crate::value::Value;
 
 /// How an [`Engine`] keeps results and how many threads it uses.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct EngineOptions {
     /// In-memory cache budget in bytes.
     pub memory_budget_bytes: usize,
@@ -37,6 +37,20 @@ pub struct EngineOptions {
     pub disk: Option<DiskCache>,
     /// Worker threads (0 = rayon's default, one per core).
     pub threads: usize,
+    /// A store many workers share (object store), looked up after the
+    /// disk cache and written with it; `None` for none.
+    pub remote: Option<Arc<dyn BlobStore>>,
+}
+
+impl std::fmt::Debug for EngineOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EngineOptions")
+            .field("memory_budget_bytes", &self.memory_budget_bytes)
+            .field("disk", &self.disk)
+            .field("threads", &self.threads)
+            .field("remote", &self.remote.as_ref().map(|r| r.describe()))
+            .finish()
+    }
 }
 
 impl Default for EngineOptions {
@@ -45,6 +59,7 @@ impl Default for EngineOptions {
             memory_budget_bytes: 1 << 30,
             disk: None,
             threads: 0,
+            remote: None,
         }
     }
 }
@@ -84,6 +99,7 @@ pub struct RunResult {
 pub struct Engine {
     memory: Mutex<MemoryCache>,
     disk: Option<DiskCache>,
+    remote: Option<RemoteCache>,
     pool: rayon::ThreadPool,
     threads: usize,
 }
@@ -109,6 +125,7 @@ impl Engine {
         Ok(Self {
             memory: Mutex::new(MemoryCache::new(options.memory_budget_bytes)),
             disk: options.disk,
+            remote: options.remote.map(RemoteCache::new),
             threads: pool.current_num_threads(),
             pool,
         })
@@ -130,7 +147,8 @@ impl Engine {
         self.memory.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Every node's cache key, by node index.
+    /// Every node's cache key, by node index (a loader's key includes the
+    /// contents of the files it reads).
     pub fn keys(pipeline: &Pipeline) -> Vec<Key> {
         let mut keys: Vec<Option<Key>> = vec![None; pipeline.nodes.len()];
         for &i in &pipeline.order {
@@ -145,7 +163,8 @@ impl Engine {
                     (port.as_str(), src.port.as_str(), k)
                 })
                 .collect();
-            keys[i] = Some(node_key(schema.kind, schema.version, &n.params, &inputs));
+            let own = node_key(schema.kind, schema.version, &n.params, &inputs);
+            keys[i] = Some(with_file_contents(own, &n.node.input_files(&n.params)));
         }
         keys.into_iter()
             .map(|k| k.unwrap_or(Key::from_bytes([0; 32])))
@@ -243,11 +262,7 @@ impl Engine {
                 derived[i] = derived_here;
                 let out = Arc::new(out);
                 if !p.nodes[i].node.schema().sink {
-                    self.lock_memory().put(keys[i], out.clone());
-                    if let Some(disk) = &self.disk {
-                        // A cache that cannot be written is not an error of the run.
-                        let _ = disk.put(&keys[i], &out);
-                    }
+                    self.keep(keys[i], &out);
                 }
                 timings[i] = ms;
                 results[i] = Some(out);
@@ -323,10 +338,29 @@ impl Engine {
         if let Some(o) = self.lock_memory().get(key) {
             return Some((o, t.elapsed().as_secs_f64() * 1e3));
         }
-        let disk = self.disk.as_ref()?;
-        let out = Arc::new(disk.get(key, decoders)?);
+        if let Some(out) = self.disk.as_ref().and_then(|d| d.get(key, decoders)) {
+            let out = Arc::new(out);
+            self.lock_memory().put(*key, out.clone());
+            return Some((out, t.elapsed().as_secs_f64() * 1e3));
+        }
+        let out = Arc::new(self.remote.as_ref()?.get(key, decoders)?);
         self.lock_memory().put(*key, out.clone());
+        if let Some(disk) = &self.disk {
+            let _ = disk.put(key, &out);
+        }
         Some((out, t.elapsed().as_secs_f64() * 1e3))
+    }
+
+    /// Keeps a result in every cache level. A cache that cannot be written
+    /// is not an error of the run.
+    fn keep(&self, key: Key, out: &Arc<Outputs>) {
+        self.lock_memory().put(key, out.clone());
+        if let Some(disk) = &self.disk {
+            let _ = disk.put(&key, out);
+        }
+        if let Some(remote) = &self.remote {
+            let _ = remote.put(&key, out);
+        }
     }
 
     fn eval_node(
@@ -461,10 +495,6 @@ impl ValueStore for EngineStore<'_> {
     }
     fn store(&self, key: Key, value: Value) {
         let out = Arc::new(Outputs::new().with("value", value));
-        self.engine.lock_memory().put(key, out.clone());
-        if let Some(disk) = &self.engine.disk {
-            // A cache that cannot be written is not an error of the run.
-            let _ = disk.put(&key, &out);
-        }
+        self.engine.keep(key, &out);
     }
 }

@@ -25,6 +25,7 @@ mod pfm;
 mod ply;
 mod pnm;
 pub mod radiance;
+pub mod sequence;
 mod write;
 
 pub use decode::{Limits, MAX_PIXELS, MAX_SIDE, Samples};
@@ -908,6 +909,16 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
             load_depth_eval,
         )
         .reads(|p: &LoadDepthParams| vec![PathBuf::from(&p.path)]),
+    )?;
+    reg.register(
+        PortedNode::new(
+            "LoadSequence",
+            1,
+            "Reads one colour + depth frame of a sequence: a TUM RGB-D folder (pairs associated by timestamp), \
+             a list file or a glob; `frame: \"{frame}\"` in a pipeline run by `depthgraph batch`.",
+            sequence::eval,
+        )
+        .reads(sequence::files_read),
     )?;
     reg.register(
         PortedNode::new(

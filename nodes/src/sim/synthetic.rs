@@ -1213,7 +1213,7 @@ fn eval_thin_lens(
         sun_elevation_deg: p.sun_elevation_deg,
         sun_azimuth_deg: p.sun_azimuth_deg,
         emitter_radiance: p.emitter_radiance,
-        camera_position_m: [0.0; 3],
+        ..Default::default()
     })?;
     let lens = ThinLensRender {
         lens: ThinLens {
@@ -1258,6 +1258,13 @@ node_params! {
         /// (x right, y down, z forward): a second camera of a rig, e.g. a
         /// depth camera beside the color camera.
         pub camera_position_m: [f64; 3] = [0.0, 0.0, 0.0], ParamKind::Vec3 { min: -100.0, max: 100.0 };
+        /// Frame index of a sequence (`frame: "{frame}"` in a pipeline run by
+        /// `depthgraph batch`): the camera stands at
+        /// `camera_position_m + frame * dolly_m_per_frame`.
+        pub frame: u32 = 0u32, ParamKind::Int { min: 0, max: 10_000_000 };
+        /// How far the camera moves per frame, metres (x right, y down,
+        /// z forward): a dolly.
+        pub dolly_m_per_frame: [f64; 3] = [0.0, 0.0, 0.0], ParamKind::Vec3 { min: -1.0, max: 1.0 };
     }
 }
 
@@ -1274,7 +1281,8 @@ pub fn scene_from_params(p: &SyntheticSceneParams) -> Result<Scene, NodeError> {
     scene.light.sun_direction = sun_direction(p.sun_elevation_deg, p.sun_azimuth_deg);
     // Guard: DEFAULT_EMITTER_RADIANCE is a non-zero constant.
     scene.scale_emission(p.emitter_radiance / DEFAULT_EMITTER_RADIANCE);
-    scene.move_camera(DVec3::from_array(p.camera_position_m));
+    let dolly = DVec3::from_array(p.dolly_m_per_frame) * f64::from(p.frame);
+    scene.move_camera(DVec3::from_array(p.camera_position_m) + dolly);
     Ok(scene)
 }
 
@@ -1653,6 +1661,28 @@ mod tests {
         let opts = RenderOptions { supersample: 2 };
         let run = |threads| crate::test_support::with_threads(threads, || render(&scene, &opts));
         assert_eq!(run(1), run(3));
+    }
+
+    #[test]
+    fn a_dolly_moves_the_camera_by_frame_times_step() {
+        let at = |frame, dolly, pos| {
+            let p = SyntheticSceneParams {
+                width: 32,
+                height: 24,
+                frame,
+                dolly_m_per_frame: dolly,
+                camera_position_m: pos,
+                ..Default::default()
+            };
+            render(&scene_from_params(&p).unwrap(), &RenderOptions::default()).depth
+        };
+        // frame 5 at 0.1 m forward is the camera 0.5 m forward
+        assert_eq!(
+            at(5, [0.0, 0.0, 0.1], [0.0; 3]),
+            at(0, [0.0; 3], [0.0, 0.0, 0.5])
+        );
+        assert_eq!(at(0, [0.0, 0.0, 0.1], [0.0; 3]), at(0, [0.0; 3], [0.0; 3]));
+        assert_ne!(at(1, [0.0, 0.0, 0.1], [0.0; 3]), at(0, [0.0; 3], [0.0; 3]));
     }
 
     #[test]

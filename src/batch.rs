@@ -1,0 +1,744 @@
+//! `depthgraph batch`: one pipeline over many frames, locally or as a
+//! Slurm array job, with a manifest a re-run and a scheduler can read.
+//!
+//! - Frames come from `{frame}` placeholders ([`crate::graph::frames`]) and
+//!   sequence sources (`LoadSequence`); every output path must hold a
+//!   placeholder, so no frame overwrites another's files.
+//! - Frames run `jobs` at a time on one engine (one thread pool, one memory
+//!   cache, the shared disk cache), so memory is bounded by `jobs` frames in
+//!   flight. A re-run finds every finished frame's results in the disk cache
+//!   and only rewrites its files: the frame is `cached`.
+//! - Each finished frame is one line of `manifest.jsonl` ([`FrameRecord`]).
+//!   A Slurm array task writes its own part (`parts/part-NNNNN.jsonl`) and
+//!   `batch --collect` merges them.
+//! - Exit codes ([`BatchSummary::exit_code`]): 0 when every frame is done;
+//!   75 when a failure was transient (retrying is worthwhile; permanent
+//!   failures then fail again quickly and finished frames are cache hits);
+//!   otherwise the first permanent failure's code, 65 for bad input data.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use depthgraph_graph::frames::has_placeholder;
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::ron_text::RonValue;
+use depthgraph_nodes::io::sequence::{LoadSequenceParams, frames as sequence_frames};
+use serde::{Deserialize, Serialize};
+
+/// Environment variable of the fault-injection hook used by the Slurm and
+/// batch tests: `DEPTHGRAPH_FAULT_TRANSIENT=N` makes frame `N` fail once
+/// with a transient failure (exit 75) per output directory, the way a lost
+/// device or a full network share would. It changes nothing else.
+pub const FAULT_TRANSIENT_VAR: &str = "DEPTHGRAPH_FAULT_TRANSIENT";
+
+/// What became of one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameStatus {
+    /// Computed (at least one node ran).
+    Ok,
+    /// Every result came from the cache; only the files were written.
+    Cached,
+    /// The frame failed; `error` says why and `exit_code` of what kind.
+    Failed,
+}
+
+/// One line of `manifest.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameRecord {
+    /// The frame index.
+    pub frame: u64,
+    /// What became of it.
+    pub status: FrameStatus,
+    /// Wall time of the frame, milliseconds.
+    pub ms: f64,
+    /// The files it wrote.
+    pub outputs: Vec<String>,
+    /// Why it failed, printed once.
+    pub error: Option<String>,
+    /// The failure's exit code (0 when done): 2 usage, 65 bad input data,
+    /// 70 internal, 74 I/O, 75 transient.
+    pub exit_code: u8,
+}
+
+impl FrameRecord {
+    fn failed(frame: u64, ms: f64, error: String, kind: FailureKind) -> Self {
+        Self {
+            frame,
+            status: FrameStatus::Failed,
+            ms,
+            outputs: Vec::new(),
+            error: Some(error),
+            exit_code: kind.exit_code(),
+        }
+    }
+}
+
+/// Counts of a batch and its exit code.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BatchSummary {
+    /// Frames in all.
+    pub frames: usize,
+    /// Frames computed.
+    pub ok: usize,
+    /// Frames whose results all came from the cache.
+    pub cached: usize,
+    /// Failed frames by exit code.
+    pub failed: BTreeMap<u8, usize>,
+    /// Frames nobody reported (a Slurm task that never wrote its part).
+    pub missing: Vec<u64>,
+}
+
+impl BatchSummary {
+    /// Counts `records` against the `expected` frames.
+    pub fn of(records: &[FrameRecord], expected: &[u64]) -> Self {
+        let mut s = BatchSummary {
+            frames: expected.len(),
+            ..Default::default()
+        };
+        let mut seen = std::collections::BTreeSet::new();
+        for r in records {
+            seen.insert(r.frame);
+            match r.status {
+                FrameStatus::Ok => s.ok += 1,
+                FrameStatus::Cached => s.cached += 1,
+                FrameStatus::Failed => *s.failed.entry(r.exit_code).or_default() += 1,
+            }
+        }
+        s.missing = expected
+            .iter()
+            .copied()
+            .filter(|f| !seen.contains(f))
+            .collect();
+        s
+    }
+
+    /// 0 when every frame is done; 75 when some failure was transient or a
+    /// frame is missing (retrying is worthwhile); else the lowest permanent
+    /// code (65 for bad input data).
+    pub fn exit_code(&self) -> u8 {
+        let transient = FailureKind::Transient.exit_code();
+        if self.failed.is_empty() && self.missing.is_empty() {
+            0
+        } else if self.failed.contains_key(&transient) || !self.missing.is_empty() {
+            transient
+        } else {
+            self.failed.keys().next().copied().unwrap_or(transient)
+        }
+    }
+
+    /// One line: `20 frames: 18 done (5 computed, 13 from cache), 2 failed (65: 1, 75: 1)`.
+    pub fn line(&self) -> String {
+        let failed: usize = self.failed.values().sum();
+        let mut s = format!(
+            "{} frames: {} done ({} computed, {} from cache)",
+            self.frames,
+            self.ok + self.cached,
+            self.ok,
+            self.cached
+        );
+        if failed > 0 {
+            let by: Vec<String> = self
+                .failed
+                .iter()
+                .map(|(c, n)| format!("{n} with exit {c} ({})", code_name(*c)))
+                .collect();
+            s += &format!(", {failed} failed: {}", by.join(", "));
+        }
+        if !self.missing.is_empty() {
+            s += &format!(", {} never reported", self.missing.len());
+        }
+        s
+    }
+}
+
+/// What an exit code means, for the summary.
+pub fn code_name(code: u8) -> &'static str {
+    match code {
+        2 => "usage or pipeline check",
+        65 => "bad input data",
+        69 => "no device",
+        70 => "internal error",
+        74 => "I/O error",
+        75 => "transient",
+        _ => "other",
+    }
+}
+
+/// A batch that cannot start (a usage error, exit 2).
+#[derive(Debug, thiserror::Error)]
+pub enum BatchError {
+    /// The pipeline or the frame selection does not make a batch.
+    #[error("{0}")]
+    Usage(String),
+    /// Check errors of the pipeline for its first frame.
+    #[error("{0}")]
+    Check(CheckErrors),
+    /// A manifest or job file that cannot be written or read.
+    #[error("{path}: {error}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        error: std::io::Error,
+    },
+    /// A manifest or job file that is not what `batch` writes.
+    #[error("{path}: line {line}: {message}")]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// Its line, from 1.
+        line: usize,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+impl BatchError {
+    /// The exit code: 2 for usage and check errors, 74 for I/O, 65 for a
+    /// malformed manifest.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            BatchError::Usage(_) | BatchError::Check(_) => 2,
+            BatchError::Io { .. } => 74,
+            BatchError::Format { .. } => 65,
+        }
+    }
+}
+
+/// Refuses a batch of several frames whose outputs would overwrite each
+/// other: every output path must hold a `{frame}` placeholder.
+pub fn check_outputs_per_frame(doc: &Document, reg: &Registry) -> Result<(), BatchError> {
+    let mut shared = Vec::new();
+    for n in &doc.nodes {
+        let Some(node) = reg.get(&n.kind.value) else {
+            continue; // the check names unknown kinds
+        };
+        for spec in &node.schema().params {
+            if spec.kind != ParamKind::OutputPath {
+                continue;
+            }
+            let value = n
+                .params
+                .iter()
+                .find(|(k, _)| k.value == spec.name)
+                .map(|(_, v)| match &v.value {
+                    RonValue::Str(s) => s.clone(),
+                    _ => String::new(),
+                })
+                .unwrap_or_else(|| match &spec.default {
+                    ParamValue::Text(s) => s.clone(),
+                    other => other.to_string(),
+                });
+            if !has_placeholder(&value) {
+                shared.push(format!("`{}.{}` = \"{value}\"", n.name.value, spec.name));
+            }
+        }
+    }
+    if shared.is_empty() {
+        Ok(())
+    } else {
+        Err(BatchError::Usage(format!(
+            "every frame would write the same file: {} (put {{frame}} or {{frame:05}} in the path, e.g. --set node.path=out_{{frame:05}}.png)",
+            shared.join(", ")
+        )))
+    }
+}
+
+/// The number of frames of the pipeline's sequence sources (the shortest
+/// when there are several), or `None` when it has none.
+pub fn sequence_length(p: &Pipeline) -> Option<Result<u64, String>> {
+    let mut len: Option<Result<u64, String>> = None;
+    for n in p.nodes.iter().filter(|n| n.kind == "LoadSequence") {
+        let this = LoadSequenceParams::from_values(&n.params)
+            .map_err(|e| format!("node `{}`: {e}", n.name))
+            .and_then(|params| {
+                sequence_frames(&params)
+                    .map(|f| f.len() as u64)
+                    .map_err(|e| format!("node `{}`: {e}", n.name))
+            });
+        len = Some(match (len, this) {
+            (None, t) => t,
+            (Some(Err(e)), _) | (_, Err(e)) => Err(e),
+            (Some(Ok(a)), Ok(b)) => Ok(a.min(b)),
+        });
+    }
+    len
+}
+
+/// Everything a frame run needs besides its index.
+pub struct FrameRunner<'a> {
+    /// The document with its placeholders.
+    pub doc: &'a Document,
+    /// The registry (with the chosen backend's kinds).
+    pub registry: &'a Registry,
+    /// The engine all frames share.
+    pub engine: &'a Engine,
+    /// Where outputs go.
+    pub out_dir: PathBuf,
+    /// Files no sink may overwrite (the pipeline file).
+    pub protected_files: Vec<PathBuf>,
+    /// The pixel budget of one input file.
+    pub max_pixels: Option<usize>,
+}
+
+impl FrameRunner<'_> {
+    /// Runs one frame; never fails as a whole: a failure is the record's.
+    pub fn run(&self, frame: u64) -> FrameRecord {
+        let t = Instant::now();
+        let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+        if let Some(r) = self.injected_fault(frame) {
+            return r;
+        }
+        let checked = self
+            .doc
+            .for_frame(frame)
+            .and_then(|doc| Pipeline::check(&doc, self.registry));
+        let p = match checked {
+            Ok(p) => p,
+            Err(e) => {
+                let text = CheckErrors(e).to_string();
+                return FrameRecord::failed(frame, ms(t), text, FailureKind::Usage);
+            }
+        };
+        let opts = RunOptions {
+            out_dir: self.out_dir.clone(),
+            protected_files: self.protected_files.clone(),
+            max_pixels: self.max_pixels,
+            ..RunOptions::default()
+        };
+        match self.engine.run(&p, &opts) {
+            Ok(result) => {
+                let computed = result.trace.nodes.iter().any(|r| {
+                    matches!(r.status, Status::Ran | Status::Passthrough)
+                        && p.index_of(&r.node)
+                            .is_some_and(|i| !p.nodes[i].node.schema().sink)
+                });
+                let outputs = result
+                    .outputs
+                    .values()
+                    .filter_map(|v| match v {
+                        Value::File(f) => Some(f.display().to_string()),
+                        _ => None,
+                    })
+                    .collect();
+                FrameRecord {
+                    frame,
+                    status: if computed {
+                        FrameStatus::Ok
+                    } else {
+                        FrameStatus::Cached
+                    },
+                    ms: ms(t),
+                    outputs,
+                    error: None,
+                    exit_code: 0,
+                }
+            }
+            Err(e) => FrameRecord::failed(frame, ms(t), e.to_string(), e.kind()),
+        }
+    }
+
+    /// The test hook of [`FAULT_TRANSIENT_VAR`]: the first attempt at the
+    /// named frame in this output directory fails as transient.
+    fn injected_fault(&self, frame: u64) -> Option<FrameRecord> {
+        let want: u64 = std::env::var(FAULT_TRANSIENT_VAR)
+            .ok()?
+            .trim()
+            .parse()
+            .ok()?;
+        if want != frame {
+            return None;
+        }
+        let marker = self.out_dir.join(format!(".fault-transient-{frame}"));
+        if marker.exists() {
+            return None;
+        }
+        std::fs::create_dir_all(&self.out_dir).ok()?;
+        std::fs::write(&marker, b"injected once\n").ok()?;
+        Some(FrameRecord::failed(
+            frame,
+            0.0,
+            format!("injected transient failure ({FAULT_TRANSIENT_VAR}={frame})"),
+            FailureKind::Transient,
+        ))
+    }
+
+    /// Runs `frames`, `jobs` at a time; `done` sees each record as it
+    /// finishes (in completion order). The result is in frame order.
+    pub fn run_all(
+        &self,
+        frames: &[u64],
+        jobs: usize,
+        done: &(dyn Fn(&FrameRecord) + Sync),
+    ) -> Vec<FrameRecord> {
+        let next = AtomicUsize::new(0);
+        let records: Mutex<Vec<FrameRecord>> = Mutex::new(Vec::with_capacity(frames.len()));
+        std::thread::scope(|s| {
+            for _ in 0..jobs.clamp(1, frames.len().max(1)) {
+                s.spawn(|| {
+                    loop {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(&f) = frames.get(i) else { break };
+                        let r = self.run(f);
+                        done(&r);
+                        records.lock().unwrap_or_else(|e| e.into_inner()).push(r);
+                    }
+                });
+            }
+        });
+        let mut out = records.into_inner().unwrap_or_else(|e| e.into_inner());
+        out.sort_by_key(|r| r.frame);
+        out
+    }
+}
+
+/// Appends records to a manifest as they finish, one JSON object per line.
+pub struct ManifestWriter {
+    file: Mutex<std::fs::File>,
+    path: PathBuf,
+}
+
+impl ManifestWriter {
+    /// Creates (or truncates) `path`.
+    pub fn create(path: &Path) -> Result<Self, BatchError> {
+        let io = |error| BatchError::Io {
+            path: path.to_path_buf(),
+            error,
+        };
+        if let Some(d) = path.parent() {
+            std::fs::create_dir_all(d).map_err(io)?;
+        }
+        let file = std::fs::File::create(path).map_err(io)?;
+        Ok(Self {
+            file: Mutex::new(file),
+            path: path.to_path_buf(),
+        })
+    }
+    /// Appends one record (a failed write is reported at [`write_manifest`]).
+    pub fn append(&self, r: &FrameRecord) {
+        if let Ok(line) = serde_json::to_string(r) {
+            let mut f = self.file.lock().unwrap_or_else(|e| e.into_inner());
+            let _ = writeln!(f, "{line}");
+            let _ = f.flush();
+        }
+    }
+    /// The file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+/// Writes `records` (frame order) to `path` atomically.
+pub fn write_manifest(path: &Path, records: &[FrameRecord]) -> Result<(), BatchError> {
+    let mut text = String::new();
+    for r in records {
+        let line = serde_json::to_string(r).map_err(|e| BatchError::Io {
+            path: path.to_path_buf(),
+            error: std::io::Error::other(e),
+        })?;
+        text.push_str(&line);
+        text.push('\n');
+    }
+    write_text(path, &text)
+}
+
+fn write_text(path: &Path, text: &str) -> Result<(), BatchError> {
+    depthgraph_nodes::io::write_atomic(path, |tmp| std::fs::write(tmp, text))
+        .map(|_| ())
+        .map_err(|e| BatchError::Io {
+            path: path.to_path_buf(),
+            error: std::io::Error::other(e.to_string()),
+        })
+}
+
+/// Reads a manifest (or a part of one).
+pub fn read_manifest(path: &Path) -> Result<Vec<FrameRecord>, BatchError> {
+    let text = std::fs::read_to_string(path).map_err(|error| BatchError::Io {
+        path: path.to_path_buf(),
+        error,
+    })?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let r: FrameRecord = serde_json::from_str(line).map_err(|e| BatchError::Format {
+            path: path.to_path_buf(),
+            line: i + 1,
+            message: e.to_string(),
+        })?;
+        out.push(r);
+    }
+    Ok(out)
+}
+
+/// The peak resident memory of this process in MiB (Linux), if known.
+pub fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+// ------------------------------------------------------------------ Slurm
+
+/// How a batch is split into a Slurm array job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SlurmPlan {
+    /// Frames per array task.
+    pub frames_per_task: usize,
+    /// At most this many tasks at once (`--array=...%N`).
+    pub array_max: Option<usize>,
+    /// The partition, when not the default.
+    pub partition: Option<String>,
+    /// Retries of a task that exits 75 (transient), within its allocation.
+    pub retries: u32,
+}
+
+/// The job description `batch --slurm` leaves in `DIR/slurm/job.json`, so
+/// `batch --collect DIR` knows which frames to expect.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobFile {
+    /// The pipeline file.
+    pub pipeline: String,
+    /// Every frame of the batch, in order.
+    pub frames: Vec<u64>,
+    /// Frames per array task.
+    pub frames_per_task: usize,
+    /// Number of array tasks.
+    pub tasks: usize,
+    /// Slurm's job id, once submitted.
+    pub job_id: Option<String>,
+}
+
+/// The frames of array task `task`.
+pub fn task_frames(frames: &[u64], frames_per_task: usize, task: usize) -> &[u64] {
+    let k = frames_per_task.max(1);
+    let start = task.saturating_mul(k).min(frames.len());
+    let end = start.saturating_add(k).min(frames.len());
+    &frames[start..end]
+}
+
+/// The number of array tasks for `n` frames.
+pub fn task_count(n: usize, frames_per_task: usize) -> usize {
+    n.div_ceil(frames_per_task.max(1))
+}
+
+/// The file of array task `task`'s part of the manifest.
+pub fn part_path(out: &Path, task: usize) -> PathBuf {
+    out.join("parts").join(format!("part-{task:05}.jsonl"))
+}
+
+/// Quotes `s` for a POSIX shell.
+pub fn shell_quote(s: &str) -> String {
+    if !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./=:,+@%".contains(c))
+    {
+        s.to_string()
+    } else {
+        format!("'{}'", s.replace('\'', "'\\''"))
+    }
+}
+
+/// The sbatch script of an array job: each task runs
+/// `task_command + --task $SLURM_ARRAY_TASK_ID`, retried up to
+/// `plan.retries` times while it exits 75, and ends with the task's exit
+/// code (75 left after the retries lets a cluster with `RequeueExit=75`
+/// requeue it).
+pub fn slurm_script(
+    name: &str,
+    task_command: &[String],
+    workdir: &Path,
+    out: &Path,
+    tasks: usize,
+    plan: &SlurmPlan,
+) -> String {
+    let mut s = String::from("#!/bin/bash\n");
+    s += &format!("#SBATCH --job-name={}\n", shell_quote(name));
+    let throttle = plan
+        .array_max
+        .map(|n| format!("%{}", n.max(1)))
+        .unwrap_or_default();
+    s += &format!("#SBATCH --array=0-{}{throttle}\n", tasks.saturating_sub(1));
+    s += &format!(
+        "#SBATCH --output={}\n",
+        shell_quote(
+            &out.join("slurm")
+                .join("task-%A_%a.log")
+                .display()
+                .to_string()
+        )
+    );
+    s += &format!(
+        "#SBATCH --chdir={}\n",
+        shell_quote(&workdir.display().to_string())
+    );
+    if let Some(p) = &plan.partition {
+        s += &format!("#SBATCH --partition={}\n", shell_quote(p));
+    }
+    s += "#SBATCH --requeue\n";
+    s += "# Written by `depthgraph batch --slurm`; each task writes its part of the\n";
+    s += "# manifest, and `depthgraph batch --collect DIR` merges them.\n";
+    s += "set -u\n";
+    let cmd: Vec<String> = task_command.iter().map(|a| shell_quote(a)).collect();
+    s += &format!("retries={}\n", plan.retries);
+    s += "attempt=0\n";
+    s += "while true; do\n";
+    s += &format!("  {} --task \"$SLURM_ARRAY_TASK_ID\"\n", cmd.join(" "));
+    s += "  rc=$?\n";
+    s += "  if [ \"$rc\" -ne 75 ] || [ \"$attempt\" -ge \"$retries\" ]; then exit \"$rc\"; fi\n";
+    s += "  attempt=$((attempt + 1))\n";
+    s += "  echo \"depthgraph: task $SLURM_ARRAY_TASK_ID failed transiently (exit 75): retry $attempt of $retries\" >&2\n";
+    s += "  sleep $((attempt * 2))\n";
+    s += "done\n";
+    s
+}
+
+/// Writes the job file.
+pub fn write_job(out: &Path, job: &JobFile) -> Result<PathBuf, BatchError> {
+    let path = out.join("slurm").join("job.json");
+    let text = serde_json::to_string_pretty(job).map_err(|e| BatchError::Io {
+        path: path.clone(),
+        error: std::io::Error::other(e),
+    })?;
+    write_text(&path, &(text + "\n"))?;
+    Ok(path)
+}
+
+/// Reads the job file of a batch directory.
+pub fn read_job(out: &Path) -> Result<JobFile, BatchError> {
+    let path = out.join("slurm").join("job.json");
+    let text = std::fs::read_to_string(&path).map_err(|error| BatchError::Io {
+        path: path.clone(),
+        error,
+    })?;
+    serde_json::from_str(&text).map_err(|e| BatchError::Format {
+        path,
+        line: e.line(),
+        message: e.to_string(),
+    })
+}
+
+/// Merges the parts of a Slurm batch into `DIR/manifest.jsonl`: every
+/// frame the job file expects, the last part's record of each frame. A
+/// frame no part reports is counted as missing.
+pub fn collect(out: &Path) -> Result<(Vec<FrameRecord>, BatchSummary), BatchError> {
+    let job = read_job(out)?;
+    let mut by_frame: BTreeMap<u64, FrameRecord> = BTreeMap::new();
+    for task in 0..job.tasks {
+        let part = part_path(out, task);
+        if !part.exists() {
+            continue;
+        }
+        for r in read_manifest(&part)? {
+            by_frame.insert(r.frame, r);
+        }
+    }
+    let wanted: std::collections::BTreeSet<u64> = job.frames.iter().copied().collect();
+    let records: Vec<FrameRecord> = by_frame
+        .into_values()
+        .filter(|r| wanted.contains(&r.frame))
+        .collect();
+    write_manifest(&out.join("manifest.jsonl"), &records)?;
+    let summary = BatchSummary::of(&records, &job.frames);
+    Ok((records, summary))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rec(frame: u64, status: FrameStatus, code: u8) -> FrameRecord {
+        FrameRecord {
+            frame,
+            status,
+            ms: 1.0,
+            outputs: vec![],
+            error: None,
+            exit_code: code,
+        }
+    }
+
+    #[test]
+    fn exit_codes_say_whether_a_retry_is_worthwhile() {
+        let all = [0, 1, 2, 3];
+        let ok = [
+            rec(0, FrameStatus::Ok, 0),
+            rec(1, FrameStatus::Cached, 0),
+            rec(2, FrameStatus::Ok, 0),
+            rec(3, FrameStatus::Ok, 0),
+        ];
+        assert_eq!(BatchSummary::of(&ok, &all).exit_code(), 0);
+        let mut bad = ok.clone();
+        bad[1] = rec(1, FrameStatus::Failed, 65);
+        let s = BatchSummary::of(&bad, &all);
+        assert_eq!(s.exit_code(), 65);
+        assert!(
+            s.line().contains("1 with exit 65 (bad input data)"),
+            "{}",
+            s.line()
+        );
+        bad[2] = rec(2, FrameStatus::Failed, 75);
+        assert_eq!(BatchSummary::of(&bad, &all).exit_code(), 75);
+        // a frame nobody reported is worth a retry
+        let s = BatchSummary::of(&ok[..3], &all);
+        assert_eq!(s.missing, vec![3]);
+        assert_eq!(s.exit_code(), 75);
+        bad[2] = rec(2, FrameStatus::Failed, 74);
+        assert_eq!(BatchSummary::of(&bad, &all).exit_code(), 65);
+    }
+
+    #[test]
+    fn tasks_cover_every_frame_once() {
+        let frames: Vec<u64> = (0..23).map(|f| f * 3).collect();
+        let k = 5;
+        let n = task_count(frames.len(), k);
+        assert_eq!(n, 5);
+        let joined: Vec<u64> = (0..n)
+            .flat_map(|t| task_frames(&frames, k, t).to_vec())
+            .collect();
+        assert_eq!(joined, frames);
+        assert!(task_frames(&frames, k, n).is_empty());
+    }
+
+    #[test]
+    fn the_script_runs_each_task_and_retries_only_transient_failures() {
+        let plan = SlurmPlan {
+            frames_per_task: 4,
+            array_max: Some(3),
+            partition: Some("debug".into()),
+            retries: 2,
+        };
+        let cmd = vec![
+            "/bin/depthgraph".to_string(),
+            "batch".into(),
+            "a b.ron".into(),
+        ];
+        let s = slurm_script("dg", &cmd, Path::new("/w"), Path::new("/o"), 7, &plan);
+        assert!(s.contains("#SBATCH --array=0-6%3\n"), "{s}");
+        assert!(s.contains("#SBATCH --partition=debug\n"));
+        assert!(s.contains("/bin/depthgraph batch 'a b.ron' --task \"$SLURM_ARRAY_TASK_ID\""));
+        assert!(s.contains("retries=2\n") && s.contains("\"$rc\" -ne 75"));
+        assert_eq!(shell_quote("it's"), "'it'\\''s'");
+        assert_eq!(shell_quote(""), "''");
+    }
+
+    #[test]
+    fn manifests_round_trip_and_report_their_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.jsonl");
+        let rs = vec![rec(0, FrameStatus::Ok, 0), rec(5, FrameStatus::Failed, 65)];
+        write_manifest(&p, &rs).unwrap();
+        assert_eq!(read_manifest(&p).unwrap(), rs);
+        std::fs::write(&p, "{\"frame\": 1}\n").unwrap();
+        let e = read_manifest(&p).unwrap_err();
+        assert!(matches!(e, BatchError::Format { line: 1, .. }), "{e}");
+        assert_eq!(e.exit_code(), 65);
+    }
+}

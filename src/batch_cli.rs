@@ -1,0 +1,466 @@
+//! The `batch` subcommand: arguments and printing around
+//! [`depthgraph::batch`].
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use depthgraph::backend::Backend;
+use depthgraph::batch::{
+    BatchError, BatchSummary, FrameRecord, FrameRunner, JobFile, ManifestWriter, SlurmPlan,
+    check_outputs_per_frame, collect, part_path, peak_rss_mib, sequence_length, slurm_script,
+    task_count, task_frames, write_job, write_manifest,
+};
+use depthgraph::graph::frames::FrameSelection;
+use depthgraph::graph::prelude::*;
+use depthgraph::{LoadError, read_document};
+
+#[derive(Args)]
+pub struct BatchArgs {
+    /// Pipeline file (RON) with {frame} placeholders in its paths (not with --collect).
+    #[arg(required_unless_present = "collect")]
+    file: Option<PathBuf>,
+    /// Frames: START..END (END excluded), START..END:STEP, N, or all (every frame of its
+    /// LoadSequence). Default: the pipeline's own `frames: "..."`.
+    #[arg(long)]
+    frames: Option<String>,
+    /// Directory of the outputs, manifest.jsonl, and the Slurm files.
+    #[arg(long, default_value = "out")]
+    out: PathBuf,
+    /// Frames in flight at once (memory grows with it; 0 = one per core).
+    #[arg(long, default_value_t = 0)]
+    jobs: usize,
+    /// Override a parameter: node.param=value (RON syntax; bare words are text).
+    #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+    sets: Vec<String>,
+    #[command(flatten)]
+    cache: crate::CacheArgs,
+    /// In-memory cache budget in MiB (frames rarely share results in memory).
+    #[arg(long, default_value_t = 512)]
+    memory_mb: usize,
+    /// Worker threads of the engine all frames share (0 = one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// The most pixels one input file may hold.
+    #[arg(long, default_value_t = depthgraph::graph::node::DEFAULT_MAX_PIXELS, value_parser = clap::value_parser!(usize))]
+    max_pixels: usize,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+    /// Where the device node kinds run (as `run`).
+    #[arg(long, value_enum)]
+    backend: Option<Backend>,
+    /// Submit the batch as a Slurm array job (sbatch) instead of running it here.
+    #[arg(long)]
+    slurm: bool,
+    /// Slurm: at most this many array tasks at once.
+    #[arg(long)]
+    array_max: Option<usize>,
+    /// Slurm: frames per array task.
+    #[arg(long, default_value_t = 10)]
+    frames_per_task: usize,
+    /// Slurm: the partition.
+    #[arg(long)]
+    partition: Option<String>,
+    /// Slurm: retries of a task that fails transiently (exit 75).
+    #[arg(long, default_value_t = 3)]
+    retries: u32,
+    /// Slurm: write and print the script and the job file, submit nothing.
+    #[arg(long)]
+    dry_run: bool,
+    /// Slurm: wait for the job to end, then collect its manifest.
+    #[arg(long)]
+    wait: bool,
+    /// Run array task N's frames and write its part of the manifest (what the Slurm script runs).
+    #[arg(long, value_name = "N")]
+    task: Option<usize>,
+    /// Merge the parts of a Slurm batch in DIR into DIR/manifest.jsonl and report.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["file", "slurm", "task"])]
+    collect: Option<PathBuf>,
+}
+
+fn fail(e: &BatchError) -> ExitCode {
+    eprintln!("error: {e}");
+    ExitCode::from(e.exit_code())
+}
+
+fn report(summary: &BatchSummary, records: &[FrameRecord]) {
+    for r in records.iter().filter(|r| r.error.is_some()) {
+        if let Some(e) = &r.error {
+            eprintln!("frame {}: {e}", r.frame);
+        }
+    }
+    if !summary.missing.is_empty() {
+        eprintln!("frames never reported: {:?}", summary.missing);
+    }
+    eprintln!("{}", summary.line());
+}
+
+pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
+    if let Some(dir) = &args.collect {
+        return Ok(match collect(dir) {
+            Ok((records, summary)) => {
+                report(&summary, &records);
+                eprintln!("wrote {}", dir.join("manifest.jsonl").display());
+                ExitCode::from(summary.exit_code())
+            }
+            Err(e) => fail(&e),
+        });
+    }
+    let Some(file) = &args.file else {
+        return Ok(fail(&BatchError::Usage(
+            "a pipeline file is required (or --collect DIR)".into(),
+        )));
+    };
+    let mut reg = depthgraph::nodes::registry().context("building the node registry")?;
+    let chosen = match Backend::resolve(args.backend)
+        .and_then(|b| depthgraph::backend::apply(b, &mut reg))
+    {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return Ok(ExitCode::from(match e {
+                depthgraph::backend::BackendError::BadVariable(_) => 2,
+                depthgraph::backend::BackendError::NoDevice(_) => {
+                    FailureKind::Unavailable.exit_code()
+                }
+            }));
+        }
+    };
+    let doc = match read_document(file, &args.sets) {
+        Ok(d) => d,
+        Err(LoadError::Check(errs)) => {
+            eprintln!("{errs}");
+            return Ok(ExitCode::from(2));
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            return Ok(ExitCode::from(2));
+        }
+    };
+    for n in &doc.notices {
+        eprintln!("note: {n}");
+    }
+    let Some(frames_text) = args.frames.as_ref().or(doc.frames.as_ref()) else {
+        return Ok(fail(&BatchError::Usage(format!(
+            "--frames is required: {} names no default `frames`",
+            file.display()
+        ))));
+    };
+    let selection = match FrameSelection::parse(frames_text) {
+        Ok(s) => s,
+        Err(e) => return Ok(fail(&BatchError::Usage(e.to_string()))),
+    };
+    // the pipeline as its first frame would run it: checked once up front
+    let first = match selection {
+        FrameSelection::Range { start, .. } => start,
+        FrameSelection::All => 0,
+    };
+    let p = match doc.for_frame(first).and_then(|d| Pipeline::check(&d, &reg)) {
+        Ok(p) => p,
+        Err(e) => return Ok(fail(&BatchError::Check(CheckErrors(e)))),
+    };
+    let count = match sequence_length(&p) {
+        Some(Ok(n)) => Some(n),
+        Some(Err(e)) => return Ok(fail(&BatchError::Usage(format!("the sequence: {e}")))),
+        None => None,
+    };
+    let Some(frames) = selection.frames(count) else {
+        return Ok(fail(&BatchError::Usage(
+            "--frames all needs a LoadSequence node to say how many frames there are; give a range such as 0..100".into(),
+        )));
+    };
+    if frames.is_empty() {
+        return Ok(fail(&BatchError::Usage(
+            "the sequence holds no frame".into(),
+        )));
+    }
+    if frames.len() > 1 {
+        if doc.frame_params().is_empty() {
+            return Ok(fail(&BatchError::Usage(format!(
+                "{} takes no frame index (no {{frame}} placeholder): every frame would be the same",
+                file.display()
+            ))));
+        }
+        if let Err(e) = check_outputs_per_frame(&doc, &reg) {
+            return Ok(fail(&e));
+        }
+    }
+    let jobs = if args.jobs == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.jobs
+    };
+    let cache_dir = args.cache.dir();
+    if args.slurm {
+        return slurm(args, file, &frames, &cache_dir);
+    }
+    let remote = match args.cache.remote() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return Ok(ExitCode::from(e.kind.exit_code()));
+        }
+    };
+    let engine = Engine::new(EngineOptions {
+        memory_budget_bytes: args.memory_mb.saturating_mul(1 << 20),
+        disk: args.cache.disk(),
+        threads: args.threads,
+        remote,
+    })?;
+    let runner = FrameRunner {
+        doc: &doc,
+        registry: &reg,
+        engine: &engine,
+        out_dir: args.out.clone(),
+        protected_files: vec![file.clone()],
+        max_pixels: Some(args.max_pixels),
+    };
+    if let Some(task) = args.task {
+        let mine = task_frames(&frames, args.frames_per_task, task);
+        let records = runner.run_all(mine, jobs, &|_| {});
+        let summary = BatchSummary::of(&records, mine);
+        let part = part_path(&args.out, task);
+        if let Err(e) = write_manifest(&part, &records) {
+            return Ok(fail(&e));
+        }
+        report(&summary, &records);
+        return Ok(ExitCode::from(summary.exit_code()));
+    }
+
+    let manifest = match ManifestWriter::create(&args.out.join("manifest.jsonl")) {
+        Ok(m) => m,
+        Err(e) => return Ok(fail(&e)),
+    };
+    let bar = (!args.quiet && std::io::stderr().is_terminal()).then(|| {
+        let b = indicatif::ProgressBar::new(frames.len() as u64);
+        let style = indicatif::ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} frames, {elapsed} elapsed, ETA {eta} {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+        b.set_style(style);
+        b
+    });
+    eprintln!(
+        "batch: {} frames, {jobs} at a time, {} threads (backend: {})",
+        frames.len(),
+        engine.threads(),
+        chosen.used
+    );
+    let t = std::time::Instant::now();
+    let records = runner.run_all(&frames, jobs, &|r| {
+        manifest.append(r);
+        if let Some(b) = &bar {
+            if r.error.is_some() {
+                b.set_message(format!("(frame {} failed)", r.frame));
+            }
+            b.inc(1);
+        }
+    });
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    let wall = t.elapsed().as_secs_f64();
+    // the final manifest in frame order
+    if let Err(e) = write_manifest(manifest.path(), &records) {
+        return Ok(fail(&e));
+    }
+    let summary = BatchSummary::of(&records, &frames);
+    report(&summary, &records);
+    let rss = peak_rss_mib()
+        .map(|m| format!(", peak memory {m:.0} MiB"))
+        .unwrap_or_default();
+    eprintln!(
+        "{wall:.2} s ({:.0} ms per frame{rss}); manifest {}",
+        wall * 1e3 / frames.len() as f64,
+        manifest.path().display()
+    );
+    Ok(ExitCode::from(summary.exit_code()))
+}
+
+fn absolute(p: &Path) -> Result<PathBuf> {
+    std::path::absolute(p)
+        .with_context(|| format!("{}: cannot make the path absolute", p.display()))
+}
+
+/// Writes the array job's script and job file; submits it unless
+/// `--dry-run`; with `--wait`, collects its manifest when it ends.
+fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Result<ExitCode> {
+    let out = absolute(&args.out)?;
+    let file = absolute(file)?;
+    let workdir = std::env::current_dir().context("the working directory")?;
+    let exe = std::env::current_exe().context("the path of this program")?;
+    let k = args.frames_per_task.max(1);
+    let tasks = task_count(frames.len(), k);
+    // the frames resolved now (`all` becomes its range), so every task sees the same list
+    let spec = match (frames.first(), frames.last()) {
+        (Some(&a), Some(&b)) if frames.len() as u64 == b - a + 1 => format!("{a}..{}", b + 1),
+        _ => frames_text(frames),
+    };
+    let mut cmd: Vec<String> = vec![
+        exe.display().to_string(),
+        "batch".into(),
+        file.display().to_string(),
+        "--frames".into(),
+        spec,
+        "--out".into(),
+        out.display().to_string(),
+        "--frames-per-task".into(),
+        k.to_string(),
+        "--jobs".into(),
+        args.jobs.to_string(),
+        "--threads".into(),
+        args.threads.to_string(),
+        "--memory-mb".into(),
+        args.memory_mb.to_string(),
+        "--max-pixels".into(),
+        args.max_pixels.to_string(),
+        "--quiet".into(),
+    ];
+    if args.cache.no_cache {
+        cmd.push("--no-cache".into());
+    } else {
+        cmd.push("--cache-dir".into());
+        cmd.push(absolute(cache_dir)?.display().to_string());
+        cmd.push("--cache-mb".into());
+        cmd.push(args.cache.cache_mb.to_string());
+    }
+    if let Some(u) = &args.cache.cache_url {
+        cmd.push("--cache-url".into());
+        cmd.push(u.clone());
+    }
+    if let Some(b) = args.backend {
+        cmd.push("--backend".into());
+        cmd.push(b.name().to_string());
+    }
+    for s in &args.sets {
+        cmd.push("--set".into());
+        cmd.push(s.clone());
+    }
+    let plan = SlurmPlan {
+        frames_per_task: k,
+        array_max: args.array_max,
+        partition: args.partition.clone(),
+        retries: args.retries,
+    };
+    let name = format!(
+        "depthgraph-{}",
+        file.file_stem()
+            .map(|s| s.to_string_lossy())
+            .unwrap_or_default()
+    );
+    let script = slurm_script(&name, &cmd, &workdir, &out, tasks, &plan);
+    let mut job = JobFile {
+        pipeline: file.display().to_string(),
+        frames: frames.to_vec(),
+        frames_per_task: k,
+        tasks,
+        job_id: None,
+    };
+    let script_path = out.join("slurm").join("batch.sbatch");
+    let written =
+        depthgraph::nodes::io::write_atomic(&script_path, |tmp| std::fs::write(tmp, &script));
+    if let Err(e) = written {
+        eprintln!("error: {e}");
+        return Ok(ExitCode::from(e.kind().exit_code()));
+    }
+    // a previous job's parts would be merged with this one's
+    let parts = out.join("parts");
+    if parts.is_dir() {
+        for e in std::fs::read_dir(&parts)?.flatten() {
+            let p = e.path();
+            if p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("part-") && n.ends_with(".jsonl"))
+            {
+                std::fs::remove_file(&p)
+                    .with_context(|| format!("{}: removing an old part", p.display()))?;
+            }
+        }
+    }
+    if let Err(e) = write_job(&out, &job) {
+        return Ok(fail(&e));
+    }
+    if args.dry_run {
+        println!("{script}");
+        eprintln!(
+            "dry run: {} frames in {tasks} array tasks of {k}; nothing submitted (submit with: sbatch {})",
+            frames.len(),
+            script_path.display()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let mut sbatch = std::process::Command::new("sbatch");
+    sbatch.arg("--parsable");
+    if args.wait {
+        sbatch.arg("--wait");
+    }
+    sbatch.arg(&script_path);
+    eprintln!(
+        "submitting {} frames as {tasks} array tasks of {k} ({})",
+        frames.len(),
+        script_path.display()
+    );
+    let output = match sbatch.output() {
+        Ok(o) => o,
+        Err(e) => {
+            eprintln!(
+                "error: cannot run sbatch ({e}); is this a Slurm login node? (the script is at {})",
+                script_path.display()
+            );
+            return Ok(ExitCode::from(FailureKind::Unavailable.exit_code()));
+        }
+    };
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let id = stdout
+        .lines()
+        .next()
+        .and_then(|l| l.split(';').next())
+        .map(|s| s.trim().to_string())
+        .filter(|s| !s.is_empty());
+    if id.is_none() && !output.status.success() {
+        eprintln!(
+            "error: sbatch failed: {}",
+            String::from_utf8_lossy(&output.stderr).trim()
+        );
+        return Ok(ExitCode::from(FailureKind::Transient.exit_code()));
+    }
+    job.job_id = id.clone();
+    if let Err(e) = write_job(&out, &job) {
+        return Ok(fail(&e));
+    }
+    let id = id.unwrap_or_else(|| "?".into());
+    if !args.wait {
+        println!("{id}");
+        eprintln!(
+            "submitted job {id}; when it ends: depthgraph batch --collect {}",
+            out.display()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    eprintln!("job {id} ended; collecting");
+    Ok(match collect(&out) {
+        Ok((records, summary)) => {
+            report(&summary, &records);
+            eprintln!("wrote {}", out.join("manifest.jsonl").display());
+            ExitCode::from(summary.exit_code())
+        }
+        Err(e) => fail(&e),
+    })
+}
+
+/// Frames that are not one contiguous range, as a range with a step when
+/// they are evenly spaced.
+fn frames_text(frames: &[u64]) -> String {
+    match frames {
+        [a, b, ..] => {
+            let step = b - a;
+            let last = frames[frames.len() - 1];
+            format!("{a}..{}:{step}", last + 1)
+        }
+        [a] => a.to_string(),
+        [] => "0..0".into(),
+    }
+}
