@@ -38,6 +38,11 @@ start)
   chown munge:munge /run/munge /var/log/munge /var/lib/munge
   if ! pgrep -x munged >/dev/null; then
     su -s /bin/sh munge -c "/usr/sbin/munged --pid-file=/run/munge/munged.pid"
+    touch "$STATE/started-munged"   # stop only the munged this script started
+  fi
+  # keep a configuration this script did not write
+  if [ -s "$CONF" ] && ! grep -q "written by depthgraph's .ci/slurm.sh" "$CONF"; then
+    cp "$CONF" "$STATE/slurm.conf.before"
   fi
   cat >"$CONF" <<CONF
 # written by depthgraph's .ci/slurm.sh: one node, root, no cgroups
@@ -68,6 +73,10 @@ SlurmdTimeout=60
 NodeName=$host CPUs=$cpus RealMemory=$mem_mb State=UNKNOWN
 PartitionName=debug Nodes=$host Default=YES MaxTime=INFINITE State=UP
 CONF
+  if pgrep -x slurmctld >/dev/null || pgrep -x slurmd >/dev/null; then
+    echo "slurm: a slurmctld or slurmd already runs here; not starting a test cluster over it" >&2
+    exit 1
+  fi
   /usr/sbin/slurmctld -c -f "$CONF"
   /usr/sbin/slurmd -f "$CONF"
   for _ in $(seq 1 120); do
@@ -85,7 +94,13 @@ CONF
 stop)
   stop_pid "$STATE/slurmd.pid"
   stop_pid "$STATE/slurmctld.pid"
-  stop_pid /run/munge/munged.pid
+  if [ -e "$STATE/started-munged" ]; then
+    stop_pid /run/munge/munged.pid
+    rm -f "$STATE/started-munged"
+  fi
+  if [ -s "$STATE/slurm.conf.before" ]; then
+    mv "$STATE/slurm.conf.before" "$CONF"
+  fi
   echo "slurm: stopped"
   ;;
 *)

@@ -146,15 +146,57 @@ fn main() {
             &kk,
             "--wait",
         ]) {
-            Ok((w, _)) => println!(
-                "| Slurm array, {k} frames per task, 1 frame in flight per task | {w:.1} | {:.2}x | {:.0} | |{}",
-                w / ideal,
-                w * 1e3 / n as f64,
-                local2
-                    .map(|l| format!(" (local --jobs 2 x {:.2})", w / l))
+            Ok((w, _)) => {
+                let span = task_span(Path::new(&out));
+                println!(
+                    "| Slurm array, {k} frames per task, --jobs 1 per task | {w:.1} | {:.2}x | {:.0} | |{}{}",
+                    w / ideal,
+                    w * 1e3 / n as f64,
+                    local2
+                        .map(|l| format!(" local --jobs 2 x {:.2};", w / l))
+                        .unwrap_or_default(),
+                    span.map(|s| format!(
+                        " first task start to last task end {s:.1} s{}",
+                        local2
+                            .map(|l| format!(" (x {:.2} of local)", s / l))
+                            .unwrap_or_default()
+                    ))
                     .unwrap_or_default()
-            ),
+                );
+            }
             Err(e) => println!("| Slurm array, {k} per task | failed: {} | | | |", e.trim()),
         }
     }
+}
+
+/// Seconds from the first array task's start to the last one's end: each
+/// part file is written when its task ends, and a task with `--jobs 1`
+/// started its frames' summed time before that. This leaves out what
+/// Slurm adds before the first task and `sbatch --wait`'s polling after the
+/// last.
+fn task_span(out: &Path) -> Option<f64> {
+    let mut first_start = f64::INFINITY;
+    let mut last_end = f64::NEG_INFINITY;
+    for sub in std::fs::read_dir(out.join("parts")).ok()?.flatten() {
+        for part in std::fs::read_dir(sub.path()).ok()?.flatten() {
+            let end = part
+                .metadata()
+                .ok()?
+                .modified()
+                .ok()?
+                .duration_since(std::time::UNIX_EPOCH)
+                .ok()?
+                .as_secs_f64();
+            let text = std::fs::read_to_string(part.path()).ok()?;
+            let busy: f64 = text
+                .lines()
+                .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+                .filter_map(|v| v["ms"].as_f64())
+                .sum::<f64>()
+                / 1e3;
+            first_start = first_start.min(end - busy);
+            last_end = last_end.max(end);
+        }
+    }
+    (last_end > first_start).then_some(last_end - first_start)
 }

@@ -14,7 +14,7 @@
 //! - Exit codes ([`BatchSummary::exit_code`]): 0 when every frame is done;
 //!   75 when a failure was transient (retrying is worthwhile; permanent
 //!   failures then fail again quickly and finished frames are cache hits);
-//!   otherwise the first permanent failure's code, 65 for bad input data.
+//!   otherwise the lowest permanent failure's code, 65 for bad input data.
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -287,8 +287,28 @@ pub struct FrameRunner<'a> {
 }
 
 impl FrameRunner<'_> {
-    /// Runs one frame; never fails as a whole: a failure is the record's.
+    /// Runs one frame; never fails as a whole: a failure is the record's,
+    /// a panic (a bug) included, recorded as an internal error (70) so the
+    /// other frames go on.
     pub fn run(&self, frame: u64) -> FrameRecord {
+        let t = Instant::now();
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.run_inner(frame)))
+            .unwrap_or_else(|p| {
+                let why = p
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| p.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "a panic".into());
+                FrameRecord::failed(
+                    frame,
+                    t.elapsed().as_secs_f64() * 1e3,
+                    format!("internal error (please report it): {why}"),
+                    FailureKind::Internal,
+                )
+            })
+    }
+
+    fn run_inner(&self, frame: u64) -> FrameRecord {
         let t = Instant::now();
         let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
         if let Some(r) = self.injected_fault(frame) {
@@ -501,9 +521,14 @@ pub struct SlurmPlan {
 }
 
 /// The job description `batch --slurm` leaves in `DIR/slurm/job.json`, so
-/// `batch --collect DIR` knows which frames to expect.
+/// `batch --collect DIR` knows which frames to expect and which
+/// submission's parts to read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobFile {
+    /// This submission's id: its tasks write under `DIR/parts/<submission>/`,
+    /// so the parts of an earlier job in the same directory (still running,
+    /// or finished) are never merged with this one's.
+    pub submission: String,
     /// The pipeline file.
     pub pipeline: String,
     /// Every frame of the batch, in order.
@@ -529,9 +554,27 @@ pub fn task_count(n: usize, frames_per_task: usize) -> usize {
     n.div_ceil(frames_per_task.max(1))
 }
 
-/// The file of array task `task`'s part of the manifest.
-pub fn part_path(out: &Path, task: usize) -> PathBuf {
-    out.join("parts").join(format!("part-{task:05}.jsonl"))
+/// The file of array task `task`'s part of the manifest of submission
+/// `submission`.
+pub fn part_path(out: &Path, submission: &str, task: usize) -> PathBuf {
+    out.join("parts")
+        .join(submission)
+        .join(format!("part-{task:05}.jsonl"))
+}
+
+/// A new submission id: the time in nanoseconds since 1970 and the
+/// process, in hex (unique per submitting process and moment).
+pub fn new_submission_id() -> String {
+    let ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    format!("{ns:x}-{:x}", std::process::id())
+}
+
+/// Whether `id` is a submission id [`new_submission_id`] could have made
+/// (it becomes a folder name).
+pub fn valid_submission_id(id: &str) -> bool {
+    !id.is_empty() && id.len() <= 64 && id.chars().all(|c| c.is_ascii_hexdigit() || c == '-')
 }
 
 /// Quotes `s` for a POSIX shell.
@@ -631,8 +674,15 @@ pub fn read_job(out: &Path) -> Result<JobFile, BatchError> {
 pub fn collect(out: &Path) -> Result<(Vec<FrameRecord>, BatchSummary), BatchError> {
     let job = read_job(out)?;
     let mut by_frame: BTreeMap<u64, FrameRecord> = BTreeMap::new();
+    if !valid_submission_id(&job.submission) {
+        return Err(BatchError::Format {
+            path: out.join("slurm").join("job.json"),
+            line: 1,
+            message: format!("`{}` is not a submission id", job.submission),
+        });
+    }
     for task in 0..job.tasks {
-        let part = part_path(out, task);
+        let part = part_path(out, &job.submission, task);
         if !part.exists() {
             continue;
         }

@@ -37,8 +37,9 @@ pub struct BatchArgs {
     sets: Vec<String>,
     #[command(flatten)]
     cache: crate::CacheArgs,
-    /// In-memory cache budget in MiB (frames rarely share results in memory).
-    #[arg(long, default_value_t = 512)]
+    /// In-memory cache budget in MiB: frames rarely share results in memory,
+    /// so little is kept there and memory grows with --jobs, not the batch.
+    #[arg(long, default_value_t = 64)]
     memory_mb: usize,
     /// Worker threads of the engine all frames share (0 = one per core).
     #[arg(long, default_value_t = 0)]
@@ -56,26 +57,29 @@ pub struct BatchArgs {
     #[arg(long)]
     slurm: bool,
     /// Slurm: at most this many array tasks at once.
-    #[arg(long)]
+    #[arg(long, requires = "slurm")]
     array_max: Option<usize>,
     /// Slurm: frames per array task.
     #[arg(long, default_value_t = 10)]
     frames_per_task: usize,
     /// Slurm: the partition.
-    #[arg(long)]
+    #[arg(long, requires = "slurm")]
     partition: Option<String>,
     /// Slurm: retries of a task that fails transiently (exit 75).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, requires = "slurm")]
     retries: u32,
     /// Slurm: write and print the script and the job file, submit nothing.
-    #[arg(long)]
+    #[arg(long, requires = "slurm")]
     dry_run: bool,
-    /// Slurm: wait for the job to end, then collect its manifest.
-    #[arg(long)]
+    /// Slurm: wait for the job to end (squeue, once a second), then collect its manifest.
+    #[arg(long, requires = "slurm")]
     wait: bool,
     /// Run array task N's frames and write its part of the manifest (what the Slurm script runs).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", requires = "submission")]
     task: Option<usize>,
+    /// The submission whose part array task N writes (OUT/parts/ID/).
+    #[arg(long, value_name = "ID", requires = "task")]
+    submission: Option<String>,
     /// Merge the parts of a Slurm batch in DIR into DIR/manifest.jsonl and report.
     #[arg(long, value_name = "DIR", conflicts_with_all = ["file", "slurm", "task"])]
     collect: Option<PathBuf>,
@@ -222,7 +226,13 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
         let mine = task_frames(&frames, args.frames_per_task, task);
         let records = runner.run_all(mine, jobs, &|_| {});
         let summary = BatchSummary::of(&records, mine);
-        let part = part_path(&args.out, task);
+        let submission = args.submission.as_deref().unwrap_or_default();
+        if !depthgraph::batch::valid_submission_id(submission) {
+            return Ok(fail(&BatchError::Usage(format!(
+                "--submission `{submission}` is not a submission id"
+            ))));
+        }
+        let part = part_path(&args.out, submission, task);
         if let Err(e) = write_manifest(&part, &records) {
             return Ok(fail(&e));
         }
@@ -269,6 +279,11 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     }
     let summary = BatchSummary::of(&records, &frames);
     report(&summary, &records);
+    if engine.remote_failed() {
+        eprintln!(
+            "warning: the --cache-url store failed during the run and was not used after that"
+        );
+    }
     let rss = peak_rss_mib()
         .map(|m| format!(", peak memory {m:.0} MiB"))
         .unwrap_or_default();
@@ -294,11 +309,17 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
     let exe = std::env::current_exe().context("the path of this program")?;
     let k = args.frames_per_task.max(1);
     let tasks = task_count(frames.len(), k);
+    if tasks > 1000 {
+        eprintln!(
+            "note: {tasks} array tasks; Slurm's default MaxArraySize (1001) refuses more than 1000: raise --frames-per-task if sbatch refuses the job"
+        );
+    }
     // the frames resolved now (`all` becomes its range), so every task sees the same list
     let spec = match (frames.first(), frames.last()) {
         (Some(&a), Some(&b)) if frames.len() as u64 == b - a + 1 => format!("{a}..{}", b + 1),
         _ => frames_text(frames),
     };
+    let submission = depthgraph::batch::new_submission_id();
     let mut cmd: Vec<String> = vec![
         exe.display().to_string(),
         "batch".into(),
@@ -309,6 +330,8 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         out.display().to_string(),
         "--frames-per-task".into(),
         k.to_string(),
+        "--submission".into(),
+        submission.clone(),
         "--jobs".into(),
         args.jobs.to_string(),
         "--threads".into(),
@@ -353,6 +376,7 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
     );
     let script = slurm_script(&name, &cmd, &workdir, &out, tasks, &plan);
     let mut job = JobFile {
+        submission,
         pipeline: file.display().to_string(),
         frames: frames.to_vec(),
         frames_per_task: k,
@@ -365,20 +389,6 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
     if let Err(e) = written {
         eprintln!("error: {e}");
         return Ok(ExitCode::from(e.kind().exit_code()));
-    }
-    // a previous job's parts would be merged with this one's
-    let parts = out.join("parts");
-    if parts.is_dir() {
-        for e in std::fs::read_dir(&parts)?.flatten() {
-            let p = e.path();
-            if p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("part-") && n.ends_with(".jsonl"))
-            {
-                std::fs::remove_file(&p)
-                    .with_context(|| format!("{}: removing an old part", p.display()))?;
-            }
-        }
     }
     if let Err(e) = write_job(&out, &job) {
         return Ok(fail(&e));
@@ -393,11 +403,7 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         return Ok(ExitCode::SUCCESS);
     }
     let mut sbatch = std::process::Command::new("sbatch");
-    sbatch.arg("--parsable");
-    if args.wait {
-        sbatch.arg("--wait");
-    }
-    sbatch.arg(&script_path);
+    sbatch.arg("--parsable").arg(&script_path);
     eprintln!(
         "submitting {} frames as {tasks} array tasks of {k} ({})",
         frames.len(),
@@ -421,11 +427,18 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         .map(|s| s.trim().to_string())
         .filter(|s| !s.is_empty());
     if id.is_none() && !output.status.success() {
-        eprintln!(
-            "error: sbatch failed: {}",
-            String::from_utf8_lossy(&output.stderr).trim()
-        );
-        return Ok(ExitCode::from(FailureKind::Transient.exit_code()));
+        let why = String::from_utf8_lossy(&output.stderr).trim().to_string();
+        eprintln!("error: sbatch refused the job: {why}");
+        // an unreachable controller is worth a retry; a refused script
+        // (a bad partition, an array beyond MaxArraySize) is not
+        let transient = ["Unable to contact", "timed out", "Socket", "try again"]
+            .iter()
+            .any(|m| why.contains(m));
+        return Ok(ExitCode::from(if transient {
+            FailureKind::Transient.exit_code()
+        } else {
+            2
+        }));
     }
     job.job_id = id.clone();
     if let Err(e) = write_job(&out, &job) {
@@ -439,6 +452,10 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
             out.display()
         );
         return Ok(ExitCode::SUCCESS);
+    }
+    if let Err(e) = wait_for_job(&id) {
+        eprintln!("error: {e}");
+        return Ok(ExitCode::from(FailureKind::Transient.exit_code()));
     }
     eprintln!("job {id} ended; collecting");
     Ok(match collect(&out) {
@@ -462,5 +479,41 @@ fn frames_text(frames: &[u64]) -> String {
         }
         [a] => a.to_string(),
         [] => "0..0".into(),
+    }
+}
+
+/// Waits until no task of job `id` is pending or running, asking `squeue`
+/// once a second (`sbatch --wait` polls with growing pauses, up to tens of
+/// seconds after the job ended). A controller that does not answer for a
+/// minute is an error.
+fn wait_for_job(id: &str) -> std::result::Result<(), String> {
+    let mut unanswered = 0u32;
+    loop {
+        let q = std::process::Command::new("squeue")
+            .args(["-h", "-j", id, "-o", "%i"])
+            .output();
+        match q {
+            Ok(o) if o.status.success() => {
+                unanswered = 0;
+                if String::from_utf8_lossy(&o.stdout).trim().is_empty() {
+                    return Ok(());
+                }
+            }
+            // a job that left the controller's memory is done too
+            Ok(o) if String::from_utf8_lossy(&o.stderr).contains("Invalid job id") => {
+                return Ok(());
+            }
+            Ok(o) => {
+                unanswered += 1;
+                if unanswered >= 60 {
+                    return Err(format!(
+                        "squeue has not answered about job {id} for a minute: {}",
+                        String::from_utf8_lossy(&o.stderr).trim()
+                    ));
+                }
+            }
+            Err(e) => return Err(format!("cannot run squeue: {e}")),
+        }
+        std::thread::sleep(std::time::Duration::from_secs(1));
     }
 }

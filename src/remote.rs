@@ -8,7 +8,9 @@
 //! `AZURE_*`). Entries are content-addressed (their name is the Merkle key),
 //! so workers on many machines share one prefix and plain overwrites are
 //! safe. The store's calls are async; a small runtime of this store's own
-//! runs them for the engine's threads.
+//! runs them for the engine's threads. Cloud stores retry a few times
+//! within 20 s; after a failed call the engine stops asking the store
+//! (every later lookup is a miss) and the batch summary says so.
 
 use std::sync::Arc;
 
@@ -86,6 +88,64 @@ impl BlobStore for ObjectStoreBlobs {
     }
 }
 
+/// How long a cloud store may take: a few retries within 20 s, 5 s to
+/// connect, 60 s per request (object_store's defaults retry for minutes,
+/// which a cache should not: a miss costs less than the wait).
+fn retry() -> object_store::RetryConfig {
+    object_store::RetryConfig {
+        max_retries: 3,
+        retry_timeout: std::time::Duration::from_secs(20),
+        backoff: object_store::BackoffConfig::default(),
+    }
+}
+
+const CONNECT_TIMEOUT: &str = "5s";
+const REQUEST_TIMEOUT: &str = "60s";
+
+/// The store of `url` with its service's environment variables, the
+/// timeouts and retries of [`retry`] for cloud stores.
+fn build(url: &url::Url) -> object_store::Result<(Box<dyn ObjectStore>, StorePath)> {
+    use object_store::{ClientConfigKey as C, ObjectStoreScheme as S};
+    let (scheme, path) = S::parse(url)?;
+    let store: Box<dyn ObjectStore> = match scheme {
+        S::AmazonS3 => {
+            use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey as K};
+            Box::new(
+                AmazonS3Builder::from_env()
+                    .with_url(url.as_str())
+                    .with_retry(retry())
+                    .with_config(K::Client(C::ConnectTimeout), CONNECT_TIMEOUT)
+                    .with_config(K::Client(C::Timeout), REQUEST_TIMEOUT)
+                    .build()?,
+            )
+        }
+        S::GoogleCloudStorage => {
+            use object_store::gcp::{GoogleCloudStorageBuilder, GoogleConfigKey as K};
+            Box::new(
+                GoogleCloudStorageBuilder::from_env()
+                    .with_url(url.as_str())
+                    .with_retry(retry())
+                    .with_config(K::Client(C::ConnectTimeout), CONNECT_TIMEOUT)
+                    .with_config(K::Client(C::Timeout), REQUEST_TIMEOUT)
+                    .build()?,
+            )
+        }
+        S::MicrosoftAzure => {
+            use object_store::azure::{AzureConfigKey as K, MicrosoftAzureBuilder};
+            Box::new(
+                MicrosoftAzureBuilder::from_env()
+                    .with_url(url.as_str())
+                    .with_retry(retry())
+                    .with_config(K::Client(C::ConnectTimeout), CONNECT_TIMEOUT)
+                    .with_config(K::Client(C::Timeout), REQUEST_TIMEOUT)
+                    .build()?,
+            )
+        }
+        _ => return object_store::parse_url(url),
+    };
+    Ok((store, path))
+}
+
 /// Opens the store of `url` and checks once that it answers (a miss on a
 /// probe name is an answer); credentials from the environment.
 pub fn open(url: &str) -> Result<Arc<dyn BlobStore>, RemoteError> {
@@ -94,13 +154,7 @@ pub fn open(url: &str) -> Result<Arc<dyn BlobStore>, RemoteError> {
         message,
     };
     let parsed = url::Url::parse(url).map_err(|e| bad(e.to_string()))?;
-    let options = std::env::vars().filter(|(k, _)| {
-        ["AWS_", "GOOGLE_", "AZURE_"]
-            .iter()
-            .any(|p| k.starts_with(p))
-    });
-    let (store, prefix) =
-        object_store::parse_url_opts(&parsed, options).map_err(|e| bad(e.to_string()))?;
+    let (store, prefix) = build(&parsed).map_err(|e| bad(e.to_string()))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("depthgraph-store")

@@ -472,6 +472,13 @@ fn batches_that_cannot_be_right_are_refused_before_running() {
         assert_eq!(code(&o), 2, "{frames}: {}", stderr(&o));
         assert!(stderr(&o).contains(says), "{frames}: {}", stderr(&o));
     }
+    // Slurm's options without --slurm would silently run here instead
+    let o = batch(
+        &[s(&pipe), "--frames", "0..2", "--out", s(&out), "--dry-run"],
+        &[],
+    );
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("--slurm"), "{}", stderr(&o));
     // a pipeline without a frame index
     let o = batch(
         &[

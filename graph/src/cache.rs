@@ -190,9 +190,13 @@ impl DiskCache {
                 let t = m.modified().unwrap_or(SystemTime::UNIX_EPOCH);
                 let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
                 // entries of another codec version (another depthgraph
-                // sharing the store) are neither counted nor evicted
+                // sharing the store) are neither counted nor evicted; those
+                // of the layout before version tags (`<key>.bin`, written by
+                // earlier builds of this one) are counted and evicted first
                 if name.ends_with(&own_suffix) {
                     out.push((p, m.len(), t));
+                } else if is_untagged_entry(name) {
+                    out.push((p, m.len(), SystemTime::UNIX_EPOCH));
                 } else if name.ends_with(".tmp") {
                     tmps.push((p, t));
                 }
@@ -250,6 +254,9 @@ pub trait BlobStore: Send + Sync {
 #[derive(Clone)]
 pub struct RemoteCache {
     store: Arc<dyn BlobStore>,
+    /// Set at the first failed call: the store is not asked again by this
+    /// engine (a store that went away must not slow every node down).
+    failed: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl std::fmt::Debug for RemoteCache {
@@ -261,7 +268,21 @@ impl std::fmt::Debug for RemoteCache {
 impl RemoteCache {
     /// A cache in `store`.
     pub fn new(store: Arc<dyn BlobStore>) -> Self {
-        Self { store }
+        Self {
+            store,
+            failed: Arc::default(),
+        }
+    }
+    /// Whether a call failed, after which the store is no longer used.
+    pub fn failed(&self) -> bool {
+        self.failed.load(std::sync::atomic::Ordering::Relaxed)
+    }
+    fn note<T>(&self, r: Result<T, String>) -> Result<T, String> {
+        if r.is_err() {
+            self.failed
+                .store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+        r
     }
     /// The store's description.
     pub fn describe(&self) -> String {
@@ -275,15 +296,18 @@ impl RemoteCache {
     /// Reads an entry; `None` on a miss, an unreachable store or an entry
     /// that does not decode.
     pub fn get(&self, key: &Key, decoders: &codec::Decoders) -> Option<Outputs> {
-        let bytes = self.store.get(&Self::name(key)).ok()??;
+        if self.failed() {
+            return None;
+        }
+        let bytes = self.note(self.store.get(&Self::name(key))).ok()??;
         codec::decode(&bytes, decoders)
     }
     /// Writes an entry (values that cannot be persisted are skipped).
     pub fn put(&self, key: &Key, out: &Outputs) -> Result<(), String> {
-        if !codec::persistable(out) {
+        if !codec::persistable(out) || self.failed() {
             return Ok(());
         }
-        self.store.put(&Self::name(key), &codec::encode(out))
+        self.note(self.store.put(&Self::name(key), &codec::encode(out)))
     }
 }
 
@@ -292,26 +316,36 @@ impl RemoteCache {
 /// its file within the time of one write).
 pub const STALE_TMP: std::time::Duration = std::time::Duration::from_secs(15 * 60);
 
-/// `host.pid.thread`: a part of a temporary file's name that no other live
-/// writer uses (another machine on a shared filesystem, another process,
-/// another thread of this one), so concurrent writers of one file never
-/// share a temporary file. One thread writes one file at a time (it renames
-/// or removes its temporary file before the next write), so this is enough.
+/// `host.pid.thread.nanos`: a part of a temporary file's name that no
+/// other live writer uses (another machine on a shared filesystem, another
+/// process, another thread of this one). The clock's nanoseconds guard
+/// against two machines that report the same host name (an inherited
+/// `$HOSTNAME`, cloned containers) and happen to run writers of one entry
+/// under one pid; a writer creates and renames its file within one call.
 pub fn temp_suffix() -> String {
     use std::hash::{Hash, Hasher};
     let mut h = std::collections::hash_map::DefaultHasher::new();
     std::thread::current().id().hash(&mut h);
-    format!("{}.{}.{:x}", host_tag(), std::process::id(), h.finish())
+    let ns = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    format!(
+        "{}.{}.{:x}.{ns:x}",
+        host_tag(),
+        std::process::id(),
+        h.finish()
+    )
 }
 
 /// The machine's host name, reduced to `[A-Za-z0-9-]` (at most 32
 /// characters), or `host` when it cannot be read.
 fn host_tag() -> String {
-    let name = std::env::var("HOSTNAME")
+    // the kernel's name first: `$HOSTNAME` may be inherited from the
+    // machine a job was submitted on
+    let name = fs::read_to_string("/proc/sys/kernel/hostname")
         .ok()
-        .filter(|h| !h.is_empty())
-        .or_else(|| fs::read_to_string("/proc/sys/kernel/hostname").ok())
         .or_else(|| fs::read_to_string("/etc/hostname").ok())
+        .or_else(|| std::env::var("HOSTNAME").ok())
         .unwrap_or_default();
     let tag: String = name
         .trim()
@@ -324,6 +358,12 @@ fn host_tag() -> String {
     } else {
         tag
     }
+}
+
+/// `<64 hex digits>.bin`: an entry of the layout before version tags.
+fn is_untagged_entry(name: &str) -> bool {
+    name.strip_suffix(".bin")
+        .is_some_and(|h| h.len() == 64 && h.chars().all(|c| c.is_ascii_hexdigit()))
 }
 
 fn remove_if_present(p: &Path) -> std::io::Result<()> {
@@ -477,21 +517,22 @@ mod tests {
     }
 
     #[test]
-    fn entries_of_another_codec_version_are_left_alone() {
+    fn entries_of_another_codec_version_are_left_alone_and_untagged_ones_evicted() {
         let dir = tempfile::tempdir().unwrap();
         let one = codec::encode(&out(50)).len() as u64;
         let c = DiskCache::new(dir.path(), one);
         c.put(&key(1), &out(50)).unwrap();
         let sub = c.path(&key(1)).parent().unwrap().to_path_buf();
-        // a newer depthgraph's entry and an older layout's, both bigger than the budget
+        // a newer depthgraph's entry, bigger than the budget, is left alone;
+        // an entry of the untagged layout counts and goes first
         let newer = sub.join(format!("{}.dg9.bin", key(1).to_hex()));
         let older = sub.join(format!("{}.bin", key(2).to_hex()));
         fs::write(&newer, vec![7u8; (one * 3) as usize]).unwrap();
         fs::write(&older, b"DGCACHE2 whatever").unwrap();
         c.put(&key(3), &out(50)).unwrap();
         c.trim().unwrap();
-        assert!(newer.exists() && older.exists());
-        assert_eq!(fs::read(&older).unwrap(), b"DGCACHE2 whatever");
+        assert!(newer.exists());
+        assert!(!older.exists());
         assert!(c.used_bytes() <= one);
         assert!(c.get(&key(3), &Default::default()).is_some());
     }

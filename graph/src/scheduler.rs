@@ -136,6 +136,12 @@ impl Engine {
         self.threads
     }
 
+    /// Whether the shared store (`EngineOptions::remote`) failed a call,
+    /// after which this engine stopped using it.
+    pub fn remote_failed(&self) -> bool {
+        self.remote.as_ref().is_some_and(|r| r.failed())
+    }
+
     /// Drops every in-memory result.
     pub fn clear_memory(&self) {
         self.lock_memory().clear();

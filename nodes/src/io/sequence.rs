@@ -95,16 +95,15 @@ fn read_text(path: &Path) -> Result<String, NodeError> {
 fn tum_list(path: &Path, dir: &Path) -> Result<Vec<(f64, PathBuf)>, NodeError> {
     let mut out = Vec::new();
     for (n, line) in read_text(path)?.lines().enumerate() {
-        let line = line.trim();
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
+        // as associate.py reads them: commas and tabs are spaces, and a
+        // line without a path is skipped
+        let line = line.replace([',', '\t'], " ");
         let mut cols = line.split_whitespace();
         let (Some(t), Some(file)) = (cols.next(), cols.next()) else {
-            return Err(bad(
-                path,
-                format!("line {}: expected `timestamp path`", n + 1),
-            ));
+            continue;
         };
         let t: f64 = t
             .parse()
@@ -126,12 +125,14 @@ pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Vec<(usize, usize
     let times: Vec<f64> = bs.iter().map(|&i| b[i]).collect();
     let mut cand: Vec<(f64, usize, usize)> = Vec::new();
     for (i, &ta) in a.iter().enumerate() {
-        let lo = times.partition_point(|&t| t <= ta - max_difference);
+        // the window uses the same differences as the test below, so a pair
+        // exactly at the rounding edge of the limit is judged once, alike
+        let lo = times.partition_point(|&t| ta - t >= max_difference);
         for k in lo..times.len() {
-            let d = (ta - times[k]).abs();
-            if times[k] >= ta + max_difference {
+            if times[k] - ta >= max_difference {
                 break;
             }
+            let d = (ta - times[k]).abs();
             if d < max_difference {
                 cand.push((d, i, bs[k]));
             }
@@ -302,21 +303,23 @@ pub fn frame(p: &LoadSequenceParams) -> Result<FramePair, NodeError> {
     })
 }
 
-/// The files a `LoadSequence` node reads: the index files and the frame's
-/// pair (only the index when the frame cannot be resolved, so the load
-/// reports why).
+/// The files a `LoadSequence` node reads, for its cache key: the frame's
+/// pair. The index files are left out on purpose: a sequence that grows
+/// (a capture still being written) keeps its earlier frames' keys, and a
+/// frame the index maps to other files has other contents. When the frame
+/// cannot be resolved, the index (so that fixing it changes the key).
 pub fn files_read(p: &LoadSequenceParams) -> Vec<PathBuf> {
-    let source = PathBuf::from(&p.source);
-    let mut out = match kind_of(&source) {
-        SequenceKind::Tum => vec![source.join("rgb.txt"), source.join("depth.txt")],
-        SequenceKind::List => vec![source],
-        SequenceKind::Glob => Vec::new(),
-    };
-    if let Ok(f) = frame(p) {
-        out.push(f.color);
-        out.push(f.depth);
+    match frame(p) {
+        Ok(f) => vec![f.color, f.depth],
+        Err(_) => {
+            let source = PathBuf::from(&p.source);
+            match kind_of(&source) {
+                SequenceKind::Tum => vec![source.join("rgb.txt"), source.join("depth.txt")],
+                SequenceKind::List => vec![source],
+                SequenceKind::Glob => Vec::new(),
+            }
+        }
     }
-    out
 }
 
 depthgraph_graph::ports! {
@@ -387,6 +390,31 @@ mod tests {
         // a larger tolerance still pairs each frame once
         assert_eq!(associate(&a, &b, 2.0), vec![(0, 0), (1, 2), (2, 1)]);
         assert!(associate(&a, &[], 1.0).is_empty());
+        // a pair just inside the limit in floating point is paired, one at it is not
+        let (ta, tb) = (1305031102.199999, 1305031102.179999);
+        assert!((ta - tb) < 0.02);
+        assert_eq!(associate(&[ta], &[tb], 0.02), vec![(0, 0)]);
+        assert_eq!(
+            associate(&[1.5], &[1.25], 0.25),
+            Vec::<(usize, usize)>::new()
+        );
+    }
+
+    #[test]
+    fn tum_lists_read_as_associate_py_reads_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("rgb.txt");
+        fs::write(&p, "# c\n1.0,rgb/a.png\n2.0\trgb/b.png\n3.0\n\n").unwrap();
+        let l = tum_list(&p, dir.path()).unwrap();
+        assert_eq!(l.len(), 2);
+        assert_eq!(l[1].1, dir.path().join("rgb/b.png"));
+        fs::write(&p, "x rgb/a.png\n").unwrap();
+        assert!(
+            tum_list(&p, dir.path())
+                .unwrap_err()
+                .to_string()
+                .contains("line 1")
+        );
     }
 
     #[test]
