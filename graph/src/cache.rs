@@ -115,10 +115,7 @@ impl DiskCache {
         &self.dir
     }
     fn path(&self, key: &Key) -> PathBuf {
-        let hex = key.to_hex();
-        self.dir
-            .join(&hex[..2])
-            .join(format!("{hex}.{}.bin", codec::VERSION_TAG))
+        self.dir.join(entry_name(key))
     }
     /// Reads an entry; `None` on a miss or an unreadable entry. Extension
     /// values are read with `decoders`.
@@ -288,10 +285,9 @@ impl RemoteCache {
     pub fn describe(&self) -> String {
         self.store.describe()
     }
-    /// The blob name of `key`'s entry.
+    /// The blob name of `key`'s entry (the disk cache's relative path).
     pub fn name(key: &Key) -> String {
-        let hex = key.to_hex();
-        format!("{}/{hex}.{}.bin", &hex[..2], codec::VERSION_TAG)
+        entry_name(key)
     }
     /// Reads an entry; `None` on a miss, an unreachable store or an entry
     /// that does not decode.
@@ -358,6 +354,14 @@ fn host_tag() -> String {
     } else {
         tag
     }
+}
+
+/// `ab/<key>.dg3.bin`: where both the disk cache and a shared store keep
+/// `key`'s entry (the first two hex digits as a folder, the codec's version
+/// tag in the name).
+fn entry_name(key: &Key) -> String {
+    let hex = key.to_hex();
+    format!("{}/{hex}.{}.bin", &hex[..2], codec::VERSION_TAG)
 }
 
 /// `<64 hex digits>.bin`: an entry of the layout before version tags.
