@@ -475,7 +475,7 @@ fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
             .map(|r| {
                 serde_json::json!({
                     "node": r.node, "kind": r.kind, "status": r.status.as_str(),
-                    "reason": r.reason, "ms": r.ms, "bytes": r.bytes, "backend": r.backend,
+                    "reason": r.reason, "report": r.report, "ms": r.ms, "bytes": r.bytes, "backend": r.backend,
                     "adapter": r.adapter, "backend_note": r.backend_note, "transfers": r.transfers,
                 })
             })

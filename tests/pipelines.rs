@@ -511,3 +511,77 @@ fn the_relight_scene_is_an_engine_cached_value() {
     ]);
     assert_eq!(scene_status(&run(&e, &other, false)), Status::Ran);
 }
+
+/// `graphs/copy_paste_estimated_light.ron`: the map is estimated from the
+/// target photo; the light found is the target's sun (elevation 35,
+/// azimuth 40) within 10°, `explain` (text and JSON) shows the report,
+/// and a result read from the disk cache keeps it.
+#[test]
+fn the_estimated_light_pipeline_finds_the_targets_sun_and_reports_it() {
+    let reg = depthgraph::nodes::registry().unwrap();
+    let file = graph("copy_paste_estimated_light.ron");
+    let (_, mut p) = depthgraph::load_pipeline(&file, &[], &reg).unwrap();
+    let i = p.index_of("relight").unwrap();
+    p.outputs = vec![OutputRef {
+        node: i,
+        port: Some("color".into()),
+    }];
+    let disk = tempfile::tempdir().unwrap();
+    let engine = || {
+        Engine::new(EngineOptions {
+            disk: Some(DiskCache::new(disk.path(), 1 << 30)),
+            ..EngineOptions::default()
+        })
+        .unwrap()
+    };
+    let first = engine().run(&p, &RunOptions::default()).unwrap();
+    let rec = first.trace.get("env").unwrap();
+    assert_eq!(rec.status, Status::Ran);
+    let report = rec.report.clone().unwrap();
+    // "light at elevation E°, azimuth A°, ..."
+    let num = |key: &str| -> f64 {
+        let at = report.find(key).unwrap() + key.len();
+        report[at..]
+            .split('°')
+            .next()
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap()
+    };
+    let (e, a) = (num("elevation"), num("azimuth"));
+    let found = depthgraph::nodes::relight::envmap::sun_direction(e, a);
+    let truth = depthgraph::nodes::relight::envmap::sun_direction(35.0, 40.0);
+    let err = found.dot(truth).clamp(-1.0, 1.0).acos().to_degrees();
+    assert!(err < 10.0, "{err:.1}° off: {report}");
+    assert!(first.trace.table().contains(&format!("found: {report}")));
+    // a second engine reads the map from disk, with its report
+    let again = engine().run(&p, &RunOptions::default()).unwrap();
+    let rec = again.trace.get("env").unwrap();
+    assert_eq!(rec.status, Status::Cached, "{rec:?}");
+    assert_eq!(rec.report.as_deref(), Some(report.as_str()));
+    // the CLI's JSON carries it
+    let cache = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_depthgraph"))
+        .args([
+            "explain",
+            file.to_str().unwrap(),
+            "--json",
+            "--quiet",
+            "--backend",
+            "cpu",
+        ])
+        .env("DEPTHGRAPH_CACHE_DIR", cache.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("\"report\"") && text.contains("light at elevation"),
+        "{text}"
+    );
+}

@@ -245,7 +245,7 @@ pub trait BlobStore: Send + Sync {
 }
 
 /// Node outputs in a [`BlobStore`], under the disk cache's entry names
-/// (`ab/<key>.dg3.bin`), so entries of another codec version never meet.
+/// (`ab/<key>.dg4.bin`), so entries of another codec version never meet.
 /// Remote failures are misses: a cache that cannot be reached is not an
 /// error of the run (the command line checks the store once at start).
 #[derive(Clone)]
@@ -356,7 +356,7 @@ fn host_tag() -> String {
     }
 }
 
-/// `ab/<key>.dg3.bin`: where both the disk cache and a shared store keep
+/// `ab/<key>.dg4.bin`: where both the disk cache and a shared store keep
 /// `key`'s entry (the first two hex digits as a folder, the codec's version
 /// tag in the name).
 fn entry_name(key: &Key) -> String {
@@ -511,12 +511,12 @@ mod tests {
             out(8).values
         );
         let name = RemoteCache::name(&key(4));
-        assert!(name.ends_with(".dg3.bin") && name.starts_with("04/"));
+        assert!(name.ends_with(".dg4.bin") && name.starts_with("04/"));
         blobs
             .0
             .lock()
             .unwrap()
-            .insert(name, b"DGCACHE3 damaged".to_vec());
+            .insert(name, b"DGCACHE4 damaged".to_vec());
         assert!(c.get(&key(4), &Default::default()).is_none());
     }
 

@@ -14,20 +14,22 @@ use crate::value::{
     ExposureStack, ExtensionDecoder, Image, Intrinsics, Mesh, PointCloud, Value, Vpl,
 };
 
-const MAGIC: &[u8; 8] = b"DGCACHE3";
+const MAGIC: &[u8; 8] = b"DGCACHE4";
 
 /// The codec's version as it appears in entry file names
-/// ([`DiskCache`](crate::cache::DiskCache) keeps `<key>.dg3.bin`): workers
+/// ([`DiskCache`](crate::cache::DiskCache) keeps `<key>.dg4.bin`): workers
 /// of another depthgraph version sharing a store never read, overwrite or
 /// evict each other's entries.
-pub const VERSION_TAG: &str = "dg3";
+pub const VERSION_TAG: &str = "dg4";
 
-/// Encodes outputs (values and the pass-through reason).
+/// Encodes outputs (values, the pass-through reason and the report).
 pub fn encode(out: &Outputs) -> Vec<u8> {
     let mut w = ByteWriter(Vec::with_capacity(out.bytes() + 64));
     w.0.extend_from_slice(MAGIC);
     w.str(out.passthrough.as_deref().unwrap_or(""));
     w.u8(out.passthrough.is_some() as u8);
+    w.str(out.report.as_deref().unwrap_or(""));
+    w.u8(out.report.is_some() as u8);
     let origin = out.origin.clone().unwrap_or_default();
     w.str(&origin.backend);
     w.str(origin.adapter.as_deref().unwrap_or(""));
@@ -62,12 +64,15 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     // cannot pass for another one.
     let reason = r.string()?;
     let has_reason = r.r.bool()?;
+    let report = r.string()?;
+    let has_report = r.r.bool()?;
     let backend = r.string()?;
     let adapter = r.string()?;
     let has_adapter = r.r.bool()?;
     let note = r.string()?;
     let has_note = r.r.bool()?;
     if (!has_reason && !reason.is_empty())
+        || (!has_report && !report.is_empty())
         || (!has_adapter && !adapter.is_empty())
         || (!has_note && !note.is_empty())
         || (backend.is_empty() && (has_adapter || has_note))
@@ -93,6 +98,7 @@ pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
     Some(Outputs {
         values,
         passthrough: has_reason.then_some(reason),
+        report: has_report.then_some(report),
         origin: (!backend.is_empty()).then(|| crate::node::Origin {
             backend,
             adapter: has_adapter.then_some(adapter),

@@ -384,6 +384,9 @@ pub struct Outputs {
     /// Set when the node passed its input through unchanged, with the reason
     /// (e.g. "no holes to fill"); `explain` shows it.
     pub passthrough: Option<String>,
+    /// What the node found, in one line (e.g. the light `EstimateLighting`
+    /// estimated); `explain` shows it and the disk cache keeps it.
+    pub report: Option<String>,
     /// Which backend and device produced the values; the scheduler fills
     /// it in after evaluation and the disk cache keeps it, so `explain`
     /// names the producer of a cached result too.

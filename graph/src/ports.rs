@@ -116,6 +116,8 @@ pub struct Produced<O> {
     pub out: O,
     /// Why the node passed its input through, if it did.
     pub passthrough: Option<String>,
+    /// What the node found, in one line (`explain` shows it).
+    pub report: Option<String>,
 }
 
 impl<O> Produced<O> {
@@ -124,6 +126,15 @@ impl<O> Produced<O> {
         Self {
             out,
             passthrough: Some(reason.into()),
+            report: None,
+        }
+    }
+    /// Outputs with a report of what the node found.
+    pub fn reported(out: O, report: impl Into<String>) -> Self {
+        Self {
+            out,
+            passthrough: None,
+            report: Some(report.into()),
         }
     }
 }
@@ -133,6 +144,7 @@ impl<O> From<O> for Produced<O> {
         Self {
             out,
             passthrough: None,
+            report: None,
         }
     }
 }
@@ -353,6 +365,7 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for PortedNode<I, O, P> 
         let r = (self.eval)(ctx, i, &p)?;
         let mut out = r.out.into_outputs();
         out.passthrough = r.passthrough;
+        out.report = r.report;
         Ok(out)
     }
     fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {

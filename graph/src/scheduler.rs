@@ -314,11 +314,17 @@ impl Engine {
                     State::Run => results[i].as_ref().map(|o| o.transfers).unwrap_or_default(),
                     _ => Default::default(),
                 };
+                let report = match &state[i] {
+                    State::Hit(o, _) => o.report.clone(),
+                    State::Run => results[i].as_ref().and_then(|o| o.report.clone()),
+                    State::Unvisited => None,
+                };
                 NodeRecord {
                     node: node.name.clone(),
                     kind: node.kind.clone(),
                     status,
                     reason,
+                    report,
                     ms,
                     bytes: results[i].as_ref().map(|o| o.bytes()).unwrap_or(0),
                     backend,

@@ -41,6 +41,8 @@ pub struct NodeRecord {
     pub status: Status,
     /// Why the node passed through (also kept when the result came from the cache).
     pub reason: Option<String>,
+    /// What the node found (its report; kept with a cached result too).
+    pub report: Option<String>,
     /// Evaluation (or cache fetch) time in milliseconds.
     pub ms: f64,
     /// Bytes of the node's outputs.
@@ -138,6 +140,9 @@ impl Trace {
                 human_bytes(r.bytes),
                 r.reason.as_deref().unwrap_or("")
             );
+            if let Some(n) = &r.report {
+                let _ = writeln!(s, "{:<w_node$}  {:<w_kind$}  found: {n}", "", "");
+            }
             if let Some(n) = &r.backend_note {
                 let _ = writeln!(s, "{:<w_node$}  {:<w_kind$}  backend: {n}", "", "");
             }

@@ -1,9 +1,12 @@
 //! Helpers every family shares, one copy each: the sRGB transfer and
 //! luminance ([`color`]), one random number generator ([`rng`]), the depth
-//! colormap ([`colormap`]), and the shape checks of inputs ([`checks`]).
+//! colormap ([`colormap`]), the shape checks of inputs ([`checks`]), a
+//! small dense solver ([`linalg`]) and pixel neighbourhoods ([`grid`]).
 //! Nothing here is a node; everything is a plain function.
 
 pub mod checks;
 pub mod color;
 pub mod colormap;
+pub mod grid;
+pub mod linalg;
 pub mod rng;

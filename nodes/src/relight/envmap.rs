@@ -152,13 +152,47 @@ pub fn sample_sky(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
         }
     });
     let sun = sun_direction(p.sun_elevation_deg, p.sun_azimuth_deg);
-    let half = (0.5 * p.sun_size_deg).to_radians();
-    let cos_half = half.cos();
-    let omega_sun = 2.0 * PI * (1.0 - cos_half);
-    let energy = p.sun_radiance * omega_sun;
-    if energy <= 0.0 {
-        return Ok(map);
+    let omega = sun_solid_angle(p.sun_size_deg);
+    let energy = p.sun_radiance * omega;
+    paint_sun(&mut map, sun, p.sun_size_deg, [energy; 3], SunBlend::Cover);
+    Ok(map)
+}
+
+/// Solid angle (sr) of a sun disc of angular diameter `size_deg`:
+/// `2π (1 - cos(size / 2))`.
+pub fn sun_solid_angle(size_deg: f64) -> f64 {
+    2.0 * PI * (1.0 - (0.5 * size_deg).to_radians().cos())
+}
+
+/// How [`paint_sun`] combines the disc with what the map holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SunBlend {
+    /// The disc covers the sky behind it (a pixel partly covered keeps the
+    /// rest of its sky).
+    Cover,
+    /// The disc's radiance is added to the map's.
+    Add,
+}
+
+/// Paints a sun disc of angular diameter `size_deg` towards `sun` (unit,
+/// camera frame) into `map` so that the map's integral over the disc,
+/// `Σ L ΔΩ`, is exactly `irradiance` per channel (what a surface facing the
+/// sun receives from it), also when the disc is smaller than a pixel (then
+/// it lands in the pixel holding the sun's direction). Pixels near the
+/// disc's edge are weighted by their coverage (8x8 sub-samples).
+pub fn paint_sun(
+    map: &mut ColorImage,
+    sun: DVec3,
+    size_deg: f64,
+    irradiance: [f64; 3],
+    blend: SunBlend,
+) {
+    let (w, h) = map.dims();
+    if w == 0 || h == 0 || irradiance.iter().all(|e| *e <= 0.0) {
+        return;
     }
+    let half = (0.5 * size_deg).to_radians();
+    let cos_half = half.cos();
     // Coverage of each pixel near the sun by 8x8 sub-samples.
     const SS: usize = 8;
     let mut cover: Vec<(usize, f64)> = Vec::new();
@@ -192,21 +226,23 @@ pub fn sample_sky(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
         let y = (v.floor() as usize).min(h - 1);
         cover.push((y * w + x, 1.0));
     }
-    // Renormalise so that Σ L ΔΩ over the disc is exactly `energy`.
+    // Renormalise so that Σ L ΔΩ over the disc is exactly the irradiance.
     let covered: f64 = cover
         .iter()
         .map(|&(i, f)| f * pixel_solid_angle(i / w, w, h))
         .sum();
     // guard: every pixel has ΔΩ > 0 (sin θ > 0 at row centres) and f > 0
-    let scale = energy / covered.max(f64::MIN_POSITIVE);
+    let scale = irradiance.map(|e| e.max(0.0) / covered.max(f64::MIN_POSITIVE));
     let data = map.as_mut_slice();
     for (i, f) in cover {
-        let add = (f * scale) as f32;
-        for c in &mut data[i] {
-            *c = (1.0 - f as f32) * *c + add;
+        for (c, s) in data[i].iter_mut().zip(scale) {
+            let add = (f * s) as f32;
+            *c = match blend {
+                SunBlend::Cover => (1.0 - f as f32) * *c + add,
+                SunBlend::Add => *c + add,
+            };
         }
     }
-    Ok(map)
 }
 
 /// Turns the map about the vertical axis by `yaw_deg` (a light at azimuth

@@ -1,10 +1,11 @@
 //! Relighting by differential rendering with instant radiosity
 //! (3d-editing §III.E): the environment map, VPL sampling, imperfect shadow
-//! maps, the paired and scene-cached schemes, and the ray-cast reference
-//! with its BVH.
+//! maps, the paired and scene-cached schemes, the ray-cast reference
+//! with its BVH, and lighting estimated from the photo ([`lighting`]).
 pub mod closure;
 pub mod envmap;
 pub mod ism;
+pub mod lighting;
 pub mod node;
 pub mod paired;
 pub mod raycast;
@@ -20,6 +21,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     envmap::register(reg)?;
     vpl::register(reg)?;
     node::register(reg)?;
+    lighting::node::register(reg)?;
     reg.register_value("RelightScene", scene_cached::decode_scene);
     Ok(())
 }

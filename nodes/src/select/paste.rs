@@ -77,6 +77,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
 use crate::kit::checks::{fits_intrinsics, sane_intrinsics};
+use crate::kit::grid::neighbours4;
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -227,9 +228,8 @@ pub fn source_object(
             queue.push_back(seed);
             while let Some(i) = queue.pop_front() {
                 size += 1;
-                let (x, y) = (i % w, i / w);
                 let zi = z[i] as f64;
-                let mut visit = |j: usize| {
+                for j in neighbours4(i, w, h) {
                     if member[j]
                         && label[j] == u32::MAX
                         && connected(zi, z[j] as f64, max_depth_jump_rel)
@@ -237,18 +237,6 @@ pub fn source_object(
                         label[j] = next;
                         queue.push_back(j);
                     }
-                };
-                if x > 0 {
-                    visit(i - 1);
-                }
-                if x + 1 < w {
-                    visit(i + 1);
-                }
-                if y > 0 {
-                    visit(i - w);
-                }
-                if y + 1 < h {
-                    visit(i + w);
                 }
             }
             if size > best.0 {

@@ -1,5 +1,6 @@
 //! Simulation with exact ground truth: synthetic scenes and their renderer,
 //! and sensors (Kinect, ToF, exposure brackets).
+pub mod lighting_truth;
 pub mod pathtrace;
 pub mod relight_truth;
 pub mod sensor;

@@ -1,0 +1,1089 @@
+//! The lighting of a photo estimated from its own shading: an environment
+//! map for `VplSample` and `Relight` when no capture of the scene's light
+//! exists (3d-editing §VI names "estimating reflectance model and lighting
+//! environment" as its future work).
+//!
+//! # Model and its assumptions
+//!
+//! - Surfaces are **Lambertian**: pixel `i` of albedo `a` and normal `n_i`
+//!   shows `I_i = a E(n_i)`, `E` the irradiance.
+//! - Albedo is **piecewise constant** over the regions of
+//!   [`albedo_regions`]: within a region every change of brightness is
+//!   shading.
+//! - The irradiance is a low-frequency part, spherical harmonics of order 2
+//!   ([`sh`]: nine radiance coefficients `L_j`, `E = Σ L_j Â_l Y_j(n)`), plus
+//!   optionally one **dominant directional light** `d` of irradiance `s`
+//!   (sun, lamp), seen or not by each pixel according to the depth map:
+//!   `E(n_i) = Σ_j L_j Â_l Y_j(n_i) + s max(0, n_i·d) V_i(d)`. Light that
+//!   the room bounces is part of what the fit calls ambient.
+//!
+//! # The fit
+//!
+//! Writing `φ_i` for the vector of the basis terms (and the light's) at
+//! sample `i`, `E_i = φ_i·θ`. The unknown albedo of region `r` drops out of
+//! the ratio of a sample to its region's mean, `I_i / Ī_r = E_i / Ē_r`,
+//! which is **linear** in `θ`: `(y_i φ̄_r - φ_i)·θ = 0` with
+//! `y_i = I_i / Ī_r` and `φ̄_r` the region's mean of `φ`. With `L_00 = 1`
+//! fixed, this is a linear least-squares problem in the other terms,
+//! regularised towards an isotropic light (ridge weights per order), solved
+//! by Cholesky in f64. A region facing one direction only (a flat wall)
+//! gives rows of zero: it carries no information, and neither does it bias
+//! the fit.
+//!
+//! The light's direction is found by search: every direction of a
+//! Fibonacci sphere ([`EstimateParams::directions`]), then two finer grids
+//! around the best; its visibility `V_i(d)` is a march through the depth
+//! map (the cast shadows of what the photo shows). The light is kept when
+//! it explains at least [`EstimateParams::min_light_gain`] of what the
+//! ambient-only fit leaves and its irradiance is positive. At the chosen
+//! direction, iteratively reweighted least squares (Huber weights, scale
+//! from the median absolute residual) lowers the pull of specular
+//! highlights, textures and shadows the depth map cannot explain. Each
+//! colour channel is then fitted with those weights.
+//!
+//! The albedo scale is not observable (brighter light on darker surfaces
+//! looks the same): it is fixed by assuming the median albedo of the
+//! sampled surfaces is [`EstimateParams::assumed_albedo`] in every channel
+//! (grey world: a scene whose surfaces share a strong hue gives a light
+//! tinted by its complement). `Relight` is insensitive to that scale where
+//! the object is shaded by a ratio of irradiances of one map.
+//!
+//! Directions no normal faces get the low-frequency value the fit gives
+//! them (the ridge keeps it near the isotropic level). A photo with too
+//! little shading variation (below [`EstimateParams::min_variation`]: a
+//! flat wall) gives the ambient-only estimate, isotropic, with a
+//! confidence near zero, and says so.
+
+use std::f64::consts::PI;
+
+use depthgraph_graph::node_params;
+use depthgraph_graph::prelude::*;
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::kit::color::luminance_f64;
+use crate::kit::linalg::cholesky_solve;
+use crate::relight::envmap::{SunBlend, paint_sun, pixel_direction};
+use crate::relight::lighting::regions::{NO_REGION, RegionParams, albedo_regions};
+use crate::relight::lighting::sh::{self, SH_ORDER, SH_TERMS};
+use crate::relight::shading::depth_normal;
+
+node_params! {
+    /// Parameters of `EstimateLighting`.
+    pub struct EstimateParams {
+        /// Width of the output map (its height is half).
+        pub width: usize = 128usize, ParamKind::Int { min: 8, max: 4096 };
+        /// Pixels sampled for the fit (on a regular grid).
+        pub samples: usize = 3000usize, ParamKind::Int { min: 64, max: 1000000 };
+        /// Search for a dominant directional light (sun, lamp); off = low-frequency light only.
+        pub light: bool = true, ParamKind::Bool;
+        /// Directions of the coarse search (Fibonacci sphere); two finer grids refine the best.
+        pub directions: usize = 300usize, ParamKind::Int { min: 16, max: 100000 };
+        /// Smallest irradiance of the light on a surface facing it, as a fraction of the mean irradiance of the samples, for it to be kept (a broad sky's gradient is not a sun).
+        pub min_light_share: f64 = 0.5, ParamKind::Float { min: 0.0, max: 100.0 };
+        /// Lowest elevation searched for the light, degrees (light from below the camera's horizon is rare).
+        pub min_elevation_deg: f64 = -10.0, ParamKind::Float { min: -90.0, max: 90.0 };
+        /// Fraction of the ambient-only fit's residual the light must explain to be kept.
+        pub min_light_gain: f64 = 0.05, ParamKind::Float { min: 0.0, max: 1.0 };
+        /// Below this RMS of relative shading variation the photo is treated as unlit by any direction (ambient only).
+        pub min_variation: f64 = 0.02, ParamKind::Float { min: 0.0, max: 1.0 };
+        /// Median albedo assumed for the sampled surfaces (fixes the light's scale).
+        pub assumed_albedo: f64 = 0.5, ParamKind::Float { min: 0.01, max: 1.0 };
+        /// Angular diameter of the estimated light's disc in the map, degrees.
+        pub light_size_deg: f64 = 3.0, ParamKind::Float { min: 0.1, max: 60.0 };
+        /// How far shadow rays march through the depth map, metres.
+        pub shadow_reach_m: f64 = 3.0, ParamKind::Float { min: 0.0, max: 100.0 };
+        /// Thickness assumed behind every depth pixel for shadows, metres.
+        pub occluder_thickness_m: f64 = 0.4, ParamKind::Float { min: 0.001, max: 100.0 };
+    }
+}
+
+/// Ridge weight of the order-1 terms, times the total sample weight.
+const RIDGE_L1: f64 = 1e-3;
+/// Ridge weight of the order-2 terms (they extrapolate worst).
+const RIDGE_L2: f64 = 0.1;
+/// Ridge weight of the light's irradiance.
+const RIDGE_LIGHT: f64 = 1e-5;
+/// Samples whose ratio to their region's mean is beyond `1 ± this` are
+/// left out of the search (highlights, deep unexplained shadows).
+const OUTLIER_RATIO: f64 = 2.0;
+/// Regions with fewer samples than this are left out.
+const MIN_REGION_SAMPLES: usize = 6;
+/// Below this spread of the sampled normals (`1 - |mean normal|`, about
+/// 10° around their mean) shading cannot tell one light from another.
+const MIN_NORMAL_SPREAD: f64 = 0.015;
+/// Marching steps of a shadow ray.
+const SHADOW_STEPS: usize = 24;
+
+/// The estimated directional light.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LightEstimate {
+    /// Unit direction towards the light (camera frame).
+    pub direction: DVec3,
+    /// Its elevation above the camera's horizontal plane, degrees.
+    pub elevation_deg: f64,
+    /// Its azimuth in the map convention, degrees (0 behind the camera).
+    pub azimuth_deg: f64,
+    /// Irradiance on a surface facing it, per channel.
+    pub irradiance: [f64; 3],
+    /// Fraction of the ambient-only residual it explains.
+    pub gain: f64,
+}
+
+/// What [`estimate_lighting`] returns.
+#[derive(Debug, Clone)]
+pub struct LightingEstimate {
+    /// Equirectangular radiance (`width x width/2`, envmap convention).
+    pub map: ColorImage,
+    /// The low-frequency part's radiance coefficients per channel.
+    pub sh: [[f64; SH_TERMS]; 3],
+    /// The dominant light, when one was found.
+    pub light: Option<LightEstimate>,
+    /// Mean radiance of the low-frequency part per channel.
+    pub ambient: [f64; 3],
+    /// In `[0, 1]`: how much of the shading variation the model explains,
+    /// times how much variation there was to explain.
+    pub confidence: f64,
+    /// RMS relative shading variation within regions.
+    pub variation: f64,
+    /// Samples used and regions they fell in.
+    pub samples: usize,
+    /// Regions with samples.
+    pub regions: usize,
+    /// One line for `explain`.
+    pub report: String,
+}
+
+/// Inputs of [`estimate_lighting`].
+#[derive(Debug, Clone, Copy)]
+pub struct EstimateInputs<'a> {
+    /// The photo, linear radiance.
+    pub color: &'a ColorImage,
+    /// Its depth, metres.
+    pub depth: &'a DepthMap,
+    /// Its camera.
+    pub k: &'a Intrinsics,
+    /// Normals, else from the depth.
+    pub normals: Option<&'a NormalMap>,
+    /// Surfaces to trust (>= 0.5), else all.
+    pub mask: Option<&'a Mask>,
+}
+
+/// One sampled pixel.
+#[derive(Debug, Clone, Copy)]
+struct Sample {
+    pos: DVec3,
+    n: DVec3,
+    /// Linear RGB and luminance.
+    rgbl: [f64; 4],
+    region: usize,
+    /// The irradiance basis at `n`.
+    phi: [f64; SH_TERMS],
+}
+
+/// Per-region means of the intensities (each channel and luminance).
+fn region_means(samples: &[Sample], regions: usize) -> Vec<[f64; 4]> {
+    let mut sum = vec![[0.0f64; 4]; regions];
+    let mut cnt = vec![0usize; regions];
+    for s in samples {
+        for (a, v) in sum[s.region].iter_mut().zip(&s.rgbl) {
+            *a += v;
+        }
+        cnt[s.region] += 1;
+    }
+    sum.iter()
+        .zip(&cnt)
+        // guard: regions without samples were removed before
+        .map(|(s, n)| s.map(|v| v / (*n).max(1) as f64))
+        .collect()
+}
+
+/// `V_i(d)`: whether the depth map leaves the ray from `pos` towards `d`
+/// open (module docs: a march of [`SHADOW_STEPS`] geometric steps up to
+/// `reach` metres; a point behind a depth pixel by less than `thickness`
+/// is in shadow; a ray leaving the frame or going behind the camera is
+/// open).
+fn lit(
+    depth: &DepthMap,
+    k: &Intrinsics,
+    pos: DVec3,
+    n: DVec3,
+    d: DVec3,
+    reach: f64,
+    thickness: f64,
+) -> bool {
+    let (w, h) = depth.dims();
+    let start = pos + n * (0.01 + 0.01 * pos.z);
+    let t0 = 0.02f64;
+    if reach <= t0 {
+        return true;
+    }
+    // guard: reach > t0 > 0
+    let ratio = (reach / t0).powf(1.0 / (SHADOW_STEPS - 1) as f64);
+    let mut t = t0;
+    for _ in 0..SHADOW_STEPS {
+        let q = start + d * t;
+        let Some(px) = k.project(q) else {
+            return true;
+        };
+        if px.x < 0.0 || px.y < 0.0 || px.x >= w as f64 || px.y >= h as f64 {
+            return true;
+        }
+        let z = f64::from(*depth.get(px.x as usize, px.y as usize));
+        if DepthMap::is_valid(z as f32) {
+            let tol = 0.01 + 0.01 * q.z;
+            if z < q.z - tol && q.z - z < thickness {
+                return false;
+            }
+        }
+        t *= ratio;
+    }
+    true
+}
+
+/// Unit directions of a Fibonacci sphere.
+fn fibonacci_sphere(n: usize) -> Vec<DVec3> {
+    let golden = PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            // guard: n >= 1 where called
+            let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let a = golden * i as f64;
+            DVec3::new(r * a.cos(), y, r * a.sin())
+        })
+        .collect()
+}
+
+/// A solved fit: the radiance coefficients, the light's irradiance (0
+/// without one), the weighted residual and each sample's residual.
+#[derive(Debug, Clone)]
+struct Fit {
+    theta: [f64; SH_TERMS],
+    light: f64,
+    rss: f64,
+    resid: Vec<f64>,
+}
+
+/// Huber's loss of residuals `r` with weights `w` at scale `k`
+/// (quadratic within `k`, linear beyond: what the search minimises, so a
+/// texture the model cannot explain pulls less than a shadow it can).
+fn huber_cost(r: &[f64], w: &[f64], k: f64) -> f64 {
+    r.iter()
+        .zip(w)
+        .map(|(r, w)| {
+            let a = r.abs();
+            w * if a <= k {
+                0.5 * a * a
+            } else {
+                k * (a - 0.5 * k)
+            }
+        })
+        .sum()
+}
+
+/// The scale of Huber's loss for residuals `r`: twice 1.4826 × their
+/// median absolute value, at least 0.02 (2 % of the mean irradiance).
+fn huber_scale(r: &[f64]) -> f64 {
+    let mut a: Vec<f64> = r.iter().map(|v| v.abs()).collect();
+    a.sort_by(|x, y| x.total_cmp(y));
+    let med = a.get(a.len() / 2).copied().unwrap_or(0.0);
+    2.0 * (1.4826 * med).max(0.01)
+}
+
+/// The part of the ratio system (module docs) that does not depend on the
+/// light: for channel `ch` (0-2, 3 = luminance) and weights `wts`, each
+/// sample's ratio `y_i = I_i / Ī_r` (`None` in a black region) and its
+/// low-frequency row `y_i φ̄_r - φ_i`, and their weighted normal matrix, so
+/// that each direction the search tries adds only the light's column.
+struct Design<'a> {
+    samples: &'a [Sample],
+    wts: &'a [f64],
+    regions: usize,
+    y: Vec<Option<f64>>,
+    rows: Vec<[f64; SH_TERMS]>,
+    /// `Σ w a aᵀ` over the low-frequency rows (row-major, lower triangle).
+    m_sh: [f64; SH_TERMS * SH_TERMS],
+    /// Weighted mean of `φ`.
+    c_sh: [f64; SH_TERMS],
+    wsum: f64,
+}
+
+impl<'a> Design<'a> {
+    fn new(
+        samples: &'a [Sample],
+        means: &[[f64; 4]],
+        ch: usize,
+        wts: &'a [f64],
+        regions: usize,
+    ) -> Self {
+        let mut fbar = vec![[0.0f64; SH_TERMS]; regions];
+        let mut cnt = vec![0usize; regions];
+        for s in samples {
+            for (a, b) in fbar[s.region].iter_mut().zip(&s.phi) {
+                *a += b;
+            }
+            cnt[s.region] += 1;
+        }
+        for (fb, n) in fbar.iter_mut().zip(&cnt) {
+            // guard: every region kept has samples
+            let inv = 1.0 / (*n).max(1) as f64;
+            fb.iter_mut().for_each(|v| *v *= inv);
+        }
+        let y: Vec<Option<f64>> = samples
+            .iter()
+            .map(|s| {
+                let mean = means[s.region][ch];
+                // guard: a black region carries no ratio
+                (mean > 1e-12).then(|| s.rgbl[ch] / mean)
+            })
+            .collect();
+        let rows: Vec<[f64; SH_TERMS]> = samples
+            .iter()
+            .zip(&y)
+            .map(|(s, y)| {
+                let y = y.unwrap_or(0.0);
+                std::array::from_fn(|j| y * fbar[s.region][j] - s.phi[j])
+            })
+            .collect();
+        let mut m_sh = [0.0; SH_TERMS * SH_TERMS];
+        let mut c_sh = [0.0; SH_TERMS];
+        let mut wsum = 0.0;
+        for ((s, row), (y, w)) in samples.iter().zip(&rows).zip(y.iter().zip(wts)) {
+            if *w <= 0.0 || y.is_none() {
+                continue;
+            }
+            for p in 0..SH_TERMS {
+                for q in 0..=p {
+                    m_sh[p * SH_TERMS + q] += w * row[p] * row[q];
+                }
+                c_sh[p] += w * s.phi[p];
+            }
+            wsum += w;
+        }
+        Self {
+            samples,
+            wts,
+            regions,
+            y,
+            rows,
+            m_sh,
+            c_sh,
+            wsum,
+        }
+    }
+
+    /// Solves the ratio system with the light's column `col` (`None` =
+    /// ambient only).
+    ///
+    /// With `a_i = y_i φ̄_r - φ_i` the rows, it minimises
+    /// `Σ w_i (a_i·θ)² + Σ_j λ_j θ_j²` under `c·θ = 1`, `c` the weighted
+    /// mean of `φ` (the mean irradiance over the samples is 1: no solution
+    /// can shrink the residual by dimming the light everywhere): with
+    /// `M = Σ w a aᵀ + diag(λ)`, `θ = M⁻¹c / (cᵀ M⁻¹ c)`. The ridge `λ` is
+    /// [`RIDGE_L1`], [`RIDGE_L2`] or [`RIDGE_LIGHT`] times the total
+    /// weight, and 1e-9 of it on `L_00` (which keeps `M` positive definite
+    /// when the photo has no variation at all).
+    fn solve(&self, col: Option<&[f64]>) -> Option<Fit> {
+        if self.wsum <= 0.0 {
+            return None;
+        }
+        let m = SH_TERMS + usize::from(col.is_some());
+        let mut a = vec![0.0f64; m * m];
+        for p in 0..SH_TERMS {
+            for q in 0..=p {
+                a[p * m + q] = self.m_sh[p * SH_TERMS + q];
+            }
+        }
+        let mut c = vec![0.0f64; m];
+        c[..SH_TERMS].copy_from_slice(&self.c_sh);
+        // the light's rows: y_i mean_r(col) - col_i
+        let light_rows: Option<Vec<f64>> = col.map(|col| {
+            let mut sum = vec![0.0f64; self.regions];
+            let mut cnt = vec![0usize; self.regions];
+            for (s, v) in self.samples.iter().zip(col) {
+                sum[s.region] += v;
+                cnt[s.region] += 1;
+            }
+            self.samples
+                .iter()
+                .zip(col)
+                .zip(&self.y)
+                // guard: every region kept has samples
+                .map(|((s, v), y)| {
+                    y.unwrap_or(0.0) * sum[s.region] / cnt[s.region].max(1) as f64 - v
+                })
+                .collect()
+        });
+        if let (Some(lr), Some(col)) = (&light_rows, col) {
+            let l = SH_TERMS;
+            for (i, (row, r)) in self.rows.iter().zip(lr).enumerate() {
+                let w = self.wts[i];
+                if w <= 0.0 || self.y[i].is_none() {
+                    continue;
+                }
+                for (q, rq) in row.iter().enumerate() {
+                    a[l * m + q] += w * r * rq;
+                }
+                a[l * m + l] += w * r * r;
+                c[l] += w * col[i];
+            }
+            c[l] /= self.wsum; // guard: wsum > 0 checked above
+        }
+        for cp in c.iter_mut().take(SH_TERMS) {
+            *cp /= self.wsum; // guard: wsum > 0 checked above
+        }
+        for p in 0..m {
+            let ridge = match p {
+                0 => 1e-9,
+                p if p < SH_TERMS && SH_ORDER[p] == 1 => RIDGE_L1,
+                p if p < SH_TERMS => RIDGE_L2,
+                _ => RIDGE_LIGHT,
+            };
+            a[p * m + p] += ridge * self.wsum;
+        }
+        let mut z = c.clone();
+        cholesky_solve(&mut a, m, &mut z).ok()?;
+        let cz: f64 = c.iter().zip(&z).map(|(u, v)| u * v).sum();
+        if !(cz > 0.0 && cz.is_finite()) {
+            return None; // guard: cᵀM⁻¹c > 0 for a positive definite M and c ≠ 0
+        }
+        let x: Vec<f64> = z.iter().map(|v| v / cz).collect();
+        let light = if col.is_some() { x[SH_TERMS] } else { 0.0 };
+        let mut rss = 0.0;
+        let resid: Vec<f64> = self
+            .rows
+            .iter()
+            .enumerate()
+            .map(|(i, row)| {
+                if self.y[i].is_none() {
+                    return 0.0;
+                }
+                let mut r: f64 = row.iter().zip(&x).map(|(u, v)| u * v).sum();
+                if let Some(lr) = &light_rows {
+                    r += lr[i] * light;
+                }
+                rss += self.wts[i].max(0.0) * r * r;
+                r
+            })
+            .collect();
+        let mut theta = [0.0; SH_TERMS];
+        theta.copy_from_slice(&x[..SH_TERMS]);
+        Some(Fit {
+            theta,
+            light,
+            rss,
+            resid,
+        })
+    }
+}
+
+/// Huber weights of residuals `r` (at [`huber_scale`]).
+fn huber(r: &[f64]) -> Vec<f64> {
+    let k = huber_scale(r);
+    r.iter()
+        .map(|v| if v.abs() <= k { 1.0 } else { k / v.abs() })
+        .collect()
+}
+
+/// Unit direction from elevation and azimuth (degrees) and back.
+fn angles(d: DVec3) -> (f64, f64) {
+    let e = (-d.y).clamp(-1.0, 1.0).asin().to_degrees();
+    let a = d.x.atan2(-d.z).to_degrees();
+    (e, a)
+}
+
+/// The estimate when the photo holds nothing to fit: an isotropic map
+/// whose radiance `L` lights a surface of the assumed albedo `a` to the
+/// photo's mean colour `I` (`I = a π L`), confidence 0, and why.
+fn fallback(color: &ColorImage, p: &EstimateParams, why: &str) -> LightingEstimate {
+    let mut sum = [0.0f64; 3];
+    let mut n = 0.0f64;
+    for c in color.as_slice() {
+        if c.iter().all(|v| v.is_finite() && *v >= 0.0) {
+            for (a, v) in sum.iter_mut().zip(c) {
+                *a += f64::from(*v);
+            }
+            n += 1.0;
+        }
+    }
+    // guards: n >= 1 by max; assumed_albedo >= 0.01 (parameter range)
+    let l: [f64; 3] = sum.map(|s| s / n.max(1.0) / (p.assumed_albedo.max(0.01) * PI));
+    let (mw, mh) = (p.width.max(2), (p.width / 2).max(1));
+    let map = ColorImage::filled(mw, mh, l.map(|v| v as f32));
+    let mut shc = [[0.0; SH_TERMS]; 3];
+    for (c, v) in shc.iter_mut().zip(l) {
+        c[0] = v / sh::basis(DVec3::Y)[0];
+    }
+    LightingEstimate {
+        map,
+        sh: shc,
+        light: None,
+        ambient: l,
+        confidence: 0.0,
+        variation: 0.0,
+        samples: 0,
+        regions: 0,
+        report: format!(
+            "ambient only, radiance {:.4} from the photo's mean colour: {why}, nothing to estimate the \
+             light from; confidence 0",
+            luminance_f64(l)
+        ),
+    }
+}
+
+/// Estimates the lighting of a photo (module docs).
+pub fn estimate_lighting(
+    inp: &EstimateInputs,
+    p: &EstimateParams,
+) -> Result<LightingEstimate, NodeError> {
+    let (w, h) = inp.color.dims();
+    crate::kit::checks::fits_intrinsics("intrinsics", inp.k, "color", (w, h))?;
+    crate::kit::checks::fits_intrinsics("intrinsics", inp.k, "depth", inp.depth.dims())?;
+    if let Some(n) = inp.normals {
+        crate::kit::checks::fits_intrinsics("intrinsics", inp.k, "normals", n.dims())?;
+    }
+    if let Some(m) = inp.mask {
+        crate::kit::checks::fits_intrinsics("intrinsics", inp.k, "mask", m.dims())?;
+    }
+    let k = inp.k;
+    // per-pixel normals and usability
+    let normals: Vec<Option<DVec3>> = (0..w * h)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if !DepthMap::is_valid(*inp.depth.get(x, y)) {
+                return None;
+            }
+            inp.normals
+                .map(|n| DVec3::from_array(n.get(x, y).map(f64::from)))
+                .filter(|n| n.is_finite() && n.length_squared() > 0.5)
+                .map(|n| n.normalize())
+                .or_else(|| depth_normal(inp.depth, k, x, y))
+        })
+        .collect();
+    let usable: Vec<bool> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let c = inp.color.get(x, y);
+            let trusted = inp.mask.is_none_or(|m| *m.get(x, y) >= 0.5);
+            trusted
+                && c.iter().all(|v| v.is_finite() && *v >= 0.0)
+                && luminance_f64(c.map(f64::from)) > 1e-6
+        })
+        .collect();
+    let (labels, _) = albedo_regions(
+        inp.color,
+        inp.depth,
+        &normals,
+        &usable,
+        &RegionParams::default(),
+    );
+
+    // samples on a regular grid
+    let valid = labels.iter().filter(|l| **l != NO_REGION).count();
+    if valid == 0 {
+        let why = "no pixel has a depth, a normal and a colour (under the mask)";
+        return Ok(fallback(inp.color, p, why));
+    }
+    // guard: samples >= 64 (parameter range)
+    let stride = ((valid as f64 / p.samples.max(1) as f64).sqrt().floor() as usize).max(1);
+    let mut raw = Vec::new();
+    for y in (stride / 2..h).step_by(stride) {
+        for x in (stride / 2..w).step_by(stride) {
+            let i = y * w + x;
+            if labels[i] == NO_REGION {
+                continue;
+            }
+            let Some(n) = normals[i] else { continue };
+            // the mean over the sample's block on its region (less noise)
+            let mut c = [0.0f64; 3];
+            let mut cnt = 0.0f64;
+            for yy in y.saturating_sub(stride / 2)..(y + stride - stride / 2).min(h) {
+                for xx in x.saturating_sub(stride / 2)..(x + stride - stride / 2).min(w) {
+                    if labels[yy * w + xx] == labels[i] {
+                        for (a, v) in c.iter_mut().zip(inp.color.get(xx, yy)) {
+                            *a += f64::from(*v);
+                        }
+                        cnt += 1.0;
+                    }
+                }
+            }
+            // guard: cnt >= 1 (the sample's own pixel)
+            let c = c.map(|v| v / cnt.max(1.0));
+            let z = f64::from(*inp.depth.get(x, y));
+            raw.push(Sample {
+                pos: k.unproject(x as f64 + 0.5, y as f64 + 0.5, z),
+                n,
+                rgbl: [c[0], c[1], c[2], luminance_f64(c)],
+                region: labels[i] as usize,
+                phi: sh::irradiance_basis(n),
+            });
+        }
+    }
+    // keep regions with enough samples, renumbered
+    let max_label = raw.iter().map(|s| s.region + 1).max().unwrap_or(0);
+    let mut count = vec![0usize; max_label];
+    for s in &raw {
+        count[s.region] += 1;
+    }
+    let mut remap = vec![usize::MAX; max_label];
+    let mut regions = 0;
+    for (r, c) in count.iter().enumerate() {
+        if *c >= MIN_REGION_SAMPLES {
+            remap[r] = regions;
+            regions += 1;
+        }
+    }
+    let samples: Vec<Sample> = raw
+        .into_iter()
+        .filter(|s| remap[s.region] != usize::MAX)
+        .map(|mut s| {
+            s.region = remap[s.region];
+            s
+        })
+        .collect();
+    if samples.is_empty() {
+        let why = format!("no surface region has {MIN_REGION_SAMPLES} samples");
+        return Ok(fallback(inp.color, p, &why));
+    }
+    let means = region_means(&samples, regions);
+    // the variation to explain, and the search's weights (outliers out)
+    let ratios: Vec<f64> = samples
+        .iter()
+        .map(|s| {
+            let m = means[s.region][3];
+            if m > 1e-12 { s.rgbl[3] / m } else { 1.0 } // guard: black region
+        })
+        .collect();
+    let base_w: Vec<f64> = ratios
+        .iter()
+        .map(|y| {
+            if (y - 1.0).abs() <= OUTLIER_RATIO {
+                1.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let wsum: f64 = base_w.iter().sum();
+    let variation = (ratios
+        .iter()
+        .zip(&base_w)
+        .map(|(y, w)| w * (y - 1.0) * (y - 1.0))
+        .sum::<f64>()
+        / wsum.max(1.0))
+    .sqrt();
+    // guard: samples is not empty
+    let mean_n = samples.iter().map(|s| s.n).sum::<DVec3>() / samples.len() as f64;
+    let spread = 1.0 - mean_n.length();
+    let flat = variation < p.min_variation || spread < MIN_NORMAL_SPREAD;
+
+    let base = Design::new(&samples, &means, 3, &base_w, regions);
+    let amb = base.solve(None);
+
+    let light_col = |d: DVec3| -> Vec<f64> {
+        samples
+            .iter()
+            .map(|s| {
+                let c = s.n.dot(d);
+                if c <= 0.0
+                    || !lit(
+                        inp.depth,
+                        k,
+                        s.pos,
+                        s.n,
+                        d,
+                        p.shadow_reach_m,
+                        p.occluder_thickness_m,
+                    )
+                {
+                    0.0
+                } else {
+                    c
+                }
+            })
+            .collect()
+    };
+    // the search compares Huber costs at the ambient-only fit's scale
+    let k_search = amb.as_ref().map_or(0.02, |f| huber_scale(&f.resid));
+    let amb_cost = amb
+        .as_ref()
+        .map_or(f64::INFINITY, |f| huber_cost(&f.resid, &base_w, k_search));
+    let score = |d: DVec3, design: &Design| -> Option<(Fit, Vec<f64>, f64)> {
+        let col = light_col(d);
+        let f = design.solve(Some(&col))?;
+        let cost = huber_cost(&f.resid, design.wts, k_search);
+        (f.light > 0.0).then_some((f, col, cost))
+    };
+
+    // search for the light
+    let mut best: Option<(DVec3, Fit, Vec<f64>, f64)> = None;
+    if p.light && !flat {
+        let min_up = p.min_elevation_deg.to_radians().sin();
+        let dirs: Vec<DVec3> = fibonacci_sphere(p.directions.max(1))
+            .into_iter()
+            .filter(|d| -d.y >= min_up)
+            .collect();
+        let scored: Vec<(DVec3, f64)> = dirs
+            .par_iter()
+            .filter_map(|d| score(*d, &base).map(|(_, _, c)| (*d, c)))
+            .collect();
+        let mut centre = scored
+            .iter()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(d, _)| *d);
+        // the fine search with the robust weights of the coarse best
+        let mut search_w = base_w.clone();
+        if let Some(c) = centre
+            && let Some((f, _, _)) = score(c, &base)
+        {
+            let hw = huber(&f.resid);
+            search_w = base_w.iter().zip(&hw).map(|(a, b)| a * b).collect();
+        }
+        // two finer grids about the best: ±1 coarse spacing, then ±1/4 of one
+        let coarse = (4.0 * PI / p.directions.max(1) as f64).sqrt();
+        let robust = Design::new(&samples, &means, 3, &search_w, regions);
+        for step in [coarse / 4.0, coarse / 16.0] {
+            let Some(c) = centre else { break };
+            let (t1, t2) = c.any_orthonormal_pair();
+            let grid: Vec<DVec3> = (-4..=4)
+                .flat_map(|i| (-4..=4).map(move |j| (i, j)))
+                .map(|(i, j)| (c + t1 * (i as f64 * step) + t2 * (j as f64 * step)).normalize())
+                .filter(|d| -d.y >= min_up)
+                .collect();
+            centre = grid
+                .par_iter()
+                .filter_map(|d| score(*d, &robust).map(|(_, _, c)| (*d, c)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .map(|(d, _)| d);
+        }
+        if let Some(d) = centre
+            && let Some((f, col, c)) = score(d, &base)
+        {
+            best = Some((d, f, col, c));
+        }
+    }
+    let gain = best.as_ref().map_or(0.0, |(_, _, _, c)| {
+        if amb_cost > 0.0 && amb_cost.is_finite() {
+            1.0 - c / amb_cost
+        } else {
+            0.0
+        }
+    });
+    let share = best.as_ref().map_or(0.0, |(_, f, _, _)| f.light);
+    let keep = best.is_some() && gain >= p.min_light_gain && share >= p.min_light_share;
+    let (dir, col) = match (&best, keep) {
+        (Some((d, _, col, _)), true) => (Some(*d), Some(col.clone())),
+        _ => (None, None),
+    };
+
+    // robust refit (luminance), then each channel with its weights
+    let mut wts = base_w.clone();
+    let mut fit_l = if flat {
+        None
+    } else {
+        base.solve(col.as_deref())
+    };
+    for _ in 0..4 {
+        let Some(f) = fit_l else { break };
+        let hw = huber(&f.resid);
+        wts = base_w.iter().zip(&hw).map(|(a, b)| a * b).collect();
+        fit_l = Design::new(&samples, &means, 3, &wts, regions)
+            .solve(col.as_deref())
+            .or(Some(f));
+    }
+    let isotropic = Fit {
+        theta: {
+            let mut t = [0.0; SH_TERMS];
+            t[0] = 1.0;
+            t
+        },
+        light: 0.0,
+        rss: 0.0,
+        resid: Vec::new(),
+    };
+    let tss: f64 = ratios
+        .iter()
+        .zip(&wts)
+        .map(|(y, w)| w * (y - 1.0) * (y - 1.0))
+        .sum();
+    let r2 = match &fit_l {
+        Some(f) if tss > 0.0 => (1.0 - f.rss / tss).clamp(0.0, 1.0),
+        _ => 0.0,
+    };
+    let mut fits = [isotropic.clone(), isotropic.clone(), isotropic];
+    if !flat {
+        for (ch, f) in fits.iter_mut().enumerate() {
+            if let Some(s) = Design::new(&samples, &means, ch, &wts, regions).solve(col.as_deref())
+            {
+                *f = s;
+            }
+        }
+    }
+
+    // absolute scale per channel: the median albedo is `assumed_albedo`
+    let mut scale = [1.0f64; 3];
+    for ch in 0..3 {
+        let f = &fits[ch];
+        let mut ebar = vec![0.0f64; regions];
+        let mut cnt = vec![0usize; regions];
+        for (i, s) in samples.iter().enumerate() {
+            let amb: f64 = s.phi.iter().zip(&f.theta).map(|(a, b)| a * b).sum();
+            ebar[s.region] += amb + col.as_ref().map_or(0.0, |c| f.light * c[i]);
+            cnt[s.region] += 1;
+        }
+        let mut albedo: Vec<f64> = samples
+            .iter()
+            .filter_map(|s| {
+                // guard: n >= 1; a region with no positive irradiance has no albedo
+                let e = ebar[s.region] / cnt[s.region].max(1) as f64;
+                (e > 1e-12).then(|| means[s.region][ch] / e)
+            })
+            .collect();
+        albedo.sort_by(|a, b| a.total_cmp(b));
+        if let Some(med) = albedo.get(albedo.len() / 2).copied().filter(|m| *m > 0.0) {
+            scale[ch] = med / p.assumed_albedo;
+        }
+    }
+    let shc: [[f64; SH_TERMS]; 3] = std::array::from_fn(|ch| fits[ch].theta.map(|t| t * scale[ch]));
+    let light_irr: [f64; 3] = std::array::from_fn(|ch| (fits[ch].light * scale[ch]).max(0.0));
+
+    // the map
+    let (mw, mh) = (p.width.max(2), (p.width / 2).max(1));
+    let mut map = ColorImage::from_fn(mw, mh, |x, y| {
+        let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, mw, mh);
+        std::array::from_fn(|ch| sh::radiance(&shc[ch], d).max(0.0) as f32)
+    });
+    let light = dir.map(|d| {
+        paint_sun(&mut map, d, p.light_size_deg, light_irr, SunBlend::Add);
+        let (e, a) = angles(d);
+        LightEstimate {
+            direction: d,
+            elevation_deg: e,
+            azimuth_deg: a,
+            irradiance: light_irr,
+            gain,
+        }
+    });
+    let ambient: [f64; 3] =
+        std::array::from_fn(|ch| (shc[ch][0] * sh::basis(DVec3::Y)[0]).max(0.0));
+    let confidence = if flat {
+        0.0
+    } else {
+        r2 * (variation / 0.1).min(1.0)
+    };
+    let amb_l = luminance_f64(ambient).max(0.0);
+    let report = match (&light, flat) {
+        (_, true) => format!(
+            "ambient only, radiance {amb_l:.4}: no usable shading variation (RMS {:.1} %, {:.1} % needed; \
+             normals spread {:.3}, {MIN_NORMAL_SPREAD} needed: a flat or uniformly lit surface); confidence \
+             {confidence:.2}",
+            100.0 * variation,
+            100.0 * p.min_variation,
+            spread
+        ),
+        (Some(l), false) => format!(
+            "light at elevation {:.1}°, azimuth {:.1}°, irradiance {:.3} ({:.0} % of the mean irradiance; \
+             {:.0} % of the residual explained); ambient radiance {amb_l:.4}; confidence {confidence:.2} \
+             ({} samples, {regions} regions)",
+            l.elevation_deg,
+            l.azimuth_deg,
+            luminance_f64(l.irradiance),
+            100.0 * share,
+            100.0 * l.gain,
+            samples.len()
+        ),
+        (None, false) => format!(
+            "ambient only, radiance {amb_l:.4}: no dominant light (the best explains {:.0} % of the residual, \
+             {:.0} % needed, and gives {:.0} % of the mean irradiance, {:.0} % needed); confidence \
+             {confidence:.2} ({} samples, {regions} regions)",
+            100.0 * gain.max(0.0),
+            100.0 * p.min_light_gain,
+            100.0 * share.max(0.0),
+            100.0 * p.min_light_share,
+            samples.len()
+        ),
+    };
+    Ok(LightingEstimate {
+        map,
+        sh: shc,
+        light,
+        ambient,
+        confidence,
+        variation,
+        samples: samples.len(),
+        regions,
+        report,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::lighting_truth::{LightRoom, light_case};
+    use crate::sim::pathtrace::PathTraceParams;
+    use crate::sim::relight_truth::Sky;
+    use crate::sim::synthetic::{RenderOptions, Scene, ScenePreset, render, sun_direction};
+
+    fn angle_deg(a: DVec3, b: DVec3) -> f64 {
+        a.normalize()
+            .dot(b.normalize())
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
+    }
+
+    fn estimate(
+        c: &ColorImage,
+        d: &DepthMap,
+        k: &Intrinsics,
+        n: Option<&NormalMap>,
+    ) -> LightingEstimate {
+        let inp = EstimateInputs {
+            color: c,
+            depth: d,
+            k,
+            normals: n,
+            mask: None,
+        };
+        estimate_lighting(&inp, &EstimateParams::default()).unwrap()
+    }
+
+    fn path_traced(room: LightRoom, sky: Sky) -> LightingEstimate {
+        let pt = PathTraceParams {
+            samples: 128,
+            bounces: 3,
+            seed: 1,
+        };
+        let c = light_case(room, sky, 160, 120, 128, &pt).unwrap();
+        estimate(&c.photo, &c.depth, &c.k, None)
+    }
+
+    /// The SyntheticScene's tabletop (a sun and a uniform ambient term,
+    /// cast shadows; textured surfaces): the sun within 10°.
+    #[test]
+    fn finds_the_sun_of_a_rendered_tabletop() {
+        let (e, a) = (35.0, 40.0);
+        let mut scene = Scene::of(ScenePreset::Tabletop, 320, 240);
+        scene.light.sun_direction = sun_direction(e, a);
+        let out = render(&scene, &RenderOptions::default());
+        let est = estimate(&out.color, &out.depth, &scene.camera, Some(&out.normals));
+        let l = est
+            .light
+            .unwrap_or_else(|| panic!("no light: {}", est.report));
+        let err = angle_deg(l.direction, sun_direction(e, a));
+        assert!(err < 10.0, "{err:.1}° off: {}", est.report);
+        assert!(est.report.contains("light at elevation"), "{}", est.report);
+    }
+
+    /// Path-traced rooms lit only by a sky with a sun (depth only, normals
+    /// from it): the sun within 10° of the truth, and the map's sun carries
+    /// most of the light a surface facing it receives.
+    #[test]
+    fn finds_the_sun_of_path_traced_rooms() {
+        for (e, a) in [(50.0, -40.0), (40.0, 70.0), (60.0, -80.0)] {
+            let est = path_traced(
+                LightRoom::Objects,
+                Sky::Sun {
+                    elevation_deg: e,
+                    azimuth_deg: a,
+                },
+            );
+            eprintln!("({e}, {a}): {}", est.report);
+            let l = est
+                .light
+                .unwrap_or_else(|| panic!("({e}, {a}): no light: {}", est.report));
+            let err = angle_deg(l.direction, sun_direction(e, a));
+            assert!(err < 10.0, "({e}, {a}): {err:.1}° off: {}", est.report);
+            assert!(est.confidence > 0.5, "{}", est.report);
+            // the map's brightest pixel looks towards the light
+            let (w, h) = est.map.dims();
+            let (mut bi, mut bv) = (0, 0.0f32);
+            for (i, c) in est.map.as_slice().iter().enumerate() {
+                if c[1] > bv {
+                    (bi, bv) = (i, c[1]);
+                }
+            }
+            let d = pixel_direction((bi % w) as f64 + 0.5, (bi / w) as f64 + 0.5, w, h);
+            assert!(angle_deg(d, l.direction) < 3.0);
+        }
+    }
+
+    /// An overcast sky has no sun: the estimate keeps the low-frequency
+    /// light only, brighter above than below.
+    #[test]
+    fn an_overcast_room_has_no_sun() {
+        let est = path_traced(LightRoom::Objects, Sky::Overcast);
+        assert!(est.light.is_none(), "{}", est.report);
+        let up = sh::irradiance(&est.sh[1], DVec3::NEG_Y);
+        let down = sh::irradiance(&est.sh[1], DVec3::Y);
+        assert!(up > down, "up {up}, down {down}");
+    }
+
+    /// A flat wall shows no shading variation: ambient only, isotropic,
+    /// confidence 0, and the report says why, under a sun as well.
+    #[test]
+    fn a_flat_wall_gives_ambient_only_and_says_so() {
+        for sky in [
+            Sky::Overcast,
+            Sky::Sun {
+                elevation_deg: 40.0,
+                azimuth_deg: 20.0,
+            },
+        ] {
+            let est = path_traced(LightRoom::FlatWall, sky);
+            assert!(
+                est.light.is_none() && est.confidence < 0.05,
+                "{}",
+                est.report
+            );
+            assert!(
+                est.report.contains("no usable shading variation"),
+                "{}",
+                est.report
+            );
+            let px = est.map.as_slice();
+            let (lo, hi) = px
+                .iter()
+                .fold((f32::MAX, 0.0f32), |(a, b), c| (a.min(c[1]), b.max(c[1])));
+            assert!(hi > 0.0 && (hi - lo) / hi < 1e-3, "isotropic: {lo} to {hi}");
+        }
+    }
+
+    /// No depth: the ambient level of the photo's mean colour, confidence
+    /// 0, and the reason; mismatched sizes are errors, not panics.
+    #[test]
+    fn no_depth_gives_ambient_only_and_bad_sizes_are_errors() {
+        let k = crate::sim::synthetic::kinect_like_intrinsics(32, 24);
+        let c = ColorImage::filled(32, 24, [0.5f32; 3]);
+        let d = DepthMap::filled(32, 24, 0.0);
+        let inp = EstimateInputs {
+            color: &c,
+            depth: &d,
+            k: &k,
+            normals: None,
+            mask: None,
+        };
+        let est = estimate_lighting(&inp, &EstimateParams::default()).unwrap();
+        assert!(
+            est.light.is_none() && est.confidence == 0.0,
+            "{}",
+            est.report
+        );
+        assert!(
+            est.report.contains("no pixel has a depth"),
+            "{}",
+            est.report
+        );
+        let l = f64::from(est.map.get(0, 0)[1]);
+        assert!((l - 1.0 / PI).abs() < 1e-6, "{l}");
+        let small = DepthMap::filled(16, 24, 1.0);
+        let inp = EstimateInputs {
+            depth: &small,
+            ..inp
+        };
+        assert!(estimate_lighting(&inp, &EstimateParams::default()).is_err());
+    }
+}

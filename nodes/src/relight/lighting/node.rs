@@ -1,0 +1,76 @@
+//! The `EstimateLighting` node: reads the photo and its depth and runs
+//! [`estimate_lighting`].
+
+use std::sync::Arc;
+
+use depthgraph_graph::prelude::*;
+use depthgraph_graph::registry::RegistryError;
+
+use crate::relight::lighting::estimate::{EstimateInputs, EstimateParams, estimate_lighting};
+
+depthgraph_graph::ports! {
+    /// Inputs of `EstimateLighting`.
+    inputs struct EstimateIn {
+        /// the photo, linear RGB
+        color: Arc<ColorImage>,
+        /// its depth, metres
+        depth: Arc<DepthMap>,
+        /// of the photo
+        intrinsics: Intrinsics,
+        /// its normals (else from the depth)
+        normals: Option<Arc<NormalMap>>,
+        /// surfaces to trust (>= 0.5), else all
+        mask: Option<Arc<Mask>>,
+    }
+}
+
+depthgraph_graph::ports! {
+    /// Outputs of `EstimateLighting`.
+    outputs struct EstimateOut {
+        /// equirectangular linear radiance (the EnvironmentMap convention)
+        map: ColorImage,
+        /// in [0, 1]: shading variation explained, times the variation there was
+        confidence: f64,
+    }
+}
+
+fn eval(
+    _: &EvalCtx,
+    i: EstimateIn,
+    p: &EstimateParams,
+) -> Result<Produced<EstimateOut>, NodeError> {
+    let est = estimate_lighting(
+        &EstimateInputs {
+            color: &i.color,
+            depth: &i.depth,
+            k: &i.intrinsics,
+            normals: i.normals.as_deref(),
+            mask: i.mask.as_deref(),
+        },
+        p,
+    )?;
+    Ok(Produced::reported(
+        EstimateOut {
+            map: est.map,
+            confidence: est.confidence,
+        },
+        est.report,
+    ))
+}
+
+/// Registers `EstimateLighting`.
+pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
+    reg.register(PortedNode::new(
+        "EstimateLighting",
+        1,
+        "The photo's lighting estimated from its own shading, as an environment map for VplSample and Relight \
+         when no capture of the light exists (3d-editing §VI, future work).\n\
+         Lambertian surfaces of piecewise-constant albedo; low-frequency light as spherical harmonics of order 2 \
+         (Ramamoorthi & Hanrahan 2001) fitted to the ratios of each pixel to its region's mean, plus a dominant \
+         directional light (sun, lamp) searched over the sphere with its cast shadows marched through the depth \
+         map; robust weights for highlights and textures. The light's scale assumes a median albedo \
+         (assumed_albedo, grey world). A photo without shading variation gives an isotropic ambient map with \
+         confidence 0 and says so. explain shows the light found, the ambient level and the confidence.",
+        eval,
+    ))
+}
