@@ -522,10 +522,17 @@ fn the_estimated_light_pipeline_finds_the_targets_sun_and_reports_it() {
     let file = graph("copy_paste_estimated_light.ron");
     let (_, mut p) = depthgraph::load_pipeline(&file, &[], &reg).unwrap();
     let i = p.index_of("relight").unwrap();
-    p.outputs = vec![OutputRef {
-        node: i,
-        port: Some("color".into()),
-    }];
+    let j = p.index_of("env").unwrap();
+    p.outputs = vec![
+        OutputRef {
+            node: i,
+            port: Some("color".into()),
+        },
+        OutputRef {
+            node: j,
+            port: Some("map".into()),
+        },
+    ];
     let disk = tempfile::tempdir().unwrap();
     let engine = || {
         Engine::new(EngineOptions {
