@@ -10,6 +10,9 @@
 //!    the true map and with the map estimated from the photo, beside the
 //!    naive paste (display PSNR in the influence region and on the object).
 //! 3. Time at 640x480: the SyntheticScene tabletop (median of 5).
+//!
+//! `DEPTHGRAPH_LIGHTING_PARTS=known,relight,time` picks parts (default
+//! all; the document is written only when all run).
 
 mod common;
 use common::{env_usize, timed};
@@ -88,6 +91,10 @@ fn main() {
         bounces: 3,
         seed: 1,
     };
+    let parts =
+        std::env::var("DEPTHGRAPH_LIGHTING_PARTS").unwrap_or_else(|_| "known,relight,time".into());
+    let part = |name: &str| parts.split(',').any(|p| p.trim() == name);
+    let all = ["known", "relight", "time"].iter().all(|p| part(p));
     let mut doc = String::new();
     let _ = writeln!(
         doc,
@@ -151,7 +158,7 @@ fn main() {
             },
         ),
     ];
-    for (room, sky) in skies {
+    for (room, sky) in skies.into_iter().filter(|_| part("known")) {
         let c = light_case(room, sky, w, h, 256, &pt).expect("case");
         let (est, ms) = timed(3, || estimate(&c.photo, &c.depth, &c.k));
         let (raw, scaled) = irradiance_error(&est.map, &c.env);
@@ -199,7 +206,7 @@ fn main() {
         "| scene | estimate | influence: naive | true map | estimated | object: naive | true map | estimated |\n|---|---|---:|---:|---:|---:|---:|---:|"
     );
     let p = RelightParams::default();
-    for room in Room::ALL {
+    for room in Room::ALL.into_iter().filter(|_| part("relight")) {
         for sky in [None, Some(Sky::Overcast)] {
             let case = relight_case(room, sky, w, h, 256, &pt).expect("case");
             let inp = case.inputs();
@@ -235,10 +242,21 @@ fn main() {
                 true_r.object_db,
                 est_r.object_db
             );
-            eprintln!("{}: {}", case.name, est.report);
+            eprintln!(
+                "{}: {} | infl naive {:.1} true {:.1} est {:.1}",
+                case.name,
+                est.report,
+                true_r.naive_influence_db,
+                true_r.influence_db,
+                est_r.influence_db
+            );
         }
     }
 
+    if !part("time") {
+        eprintln!("parts {parts}: docs/lighting.md not written");
+        return;
+    }
     let mut scene = Scene::of(ScenePreset::Tabletop, 640, 480);
     scene.light.sun_direction = sun_direction(35.0, 40.0);
     let out = render(&scene, &RenderOptions::default());
@@ -264,6 +282,10 @@ fn main() {
     let root = std::env::var("DEPTHGRAPH_ROOT")
         .map(PathBuf::from)
         .unwrap_or_else(|_| PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    if !all {
+        eprintln!("parts {parts}: docs/lighting.md not written");
+        return;
+    }
     let path = root.join("docs/lighting.md");
     if let Err(e) = std::fs::write(&path, doc) {
         eprintln!("cannot write {}: {e}", path.display());

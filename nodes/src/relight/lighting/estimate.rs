@@ -81,8 +81,10 @@ node_params! {
         pub directions: usize = 300usize, ParamKind::Int { min: 16, max: 100000 };
         /// Smallest irradiance of the light on a surface facing it, as a fraction of the mean irradiance of the samples, for it to be kept (a broad sky's gradient is not a sun).
         pub min_light_share: f64 = 0.5, ParamKind::Float { min: 0.0, max: 100.0 };
-        /// Lowest elevation searched for the light, degrees (light from below the camera's horizon is rare).
-        pub min_elevation_deg: f64 = -10.0, ParamKind::Float { min: -90.0, max: 90.0 };
+        /// Largest irradiance of the light as a multiple of the mean irradiance of the samples: a brighter one is not believed (the fit let it explain textures with its shadows).
+        pub max_light_share: f64 = 3.0, ParamKind::Float { min: 0.0, max: 1000.0 };
+        /// Lowest elevation searched for the light, degrees (light from the horizon or below is rare, and a grazing light's long shadows can be made to match any texture).
+        pub min_elevation_deg: f64 = 5.0, ParamKind::Float { min: -90.0, max: 90.0 };
         /// Fraction of the ambient-only fit's residual the light must explain to be kept.
         pub min_light_gain: f64 = 0.05, ParamKind::Float { min: 0.0, max: 1.0 };
         /// Below this RMS of relative shading variation the photo is treated as unlit by any direction (ambient only).
@@ -99,7 +101,7 @@ node_params! {
 }
 
 /// Ridge weight of the order-1 terms, times the total sample weight.
-const RIDGE_L1: f64 = 1e-3;
+const RIDGE_L1: f64 = 0.02;
 /// Ridge weight of the order-2 terms (they extrapolate worst).
 const RIDGE_L2: f64 = 0.1;
 /// Ridge weight of the light's irradiance.
@@ -112,6 +114,9 @@ const MIN_REGION_SAMPLES: usize = 6;
 /// Below this spread of the sampled normals (`1 - |mean normal|`, about
 /// 10° around their mean) shading cannot tell one light from another.
 const MIN_NORMAL_SPREAD: f64 = 0.015;
+/// A light found within this many degrees above the search's lowest
+/// elevation is pressed against that limit and is not believed.
+const GRAZING_MARGIN_DEG: f64 = 2.0;
 /// Marching steps of a shadow ray.
 const SHADOW_STEPS: usize = 24;
 
@@ -773,7 +778,17 @@ pub fn estimate_lighting(
         }
     });
     let share = best.as_ref().map_or(0.0, |(_, f, _, _)| f.light);
-    let keep = best.is_some() && gain >= p.min_light_gain && share >= p.min_light_share;
+    // a light pressed against the search's lower limit is a grazing light
+    // the fit uses to explain gradients (ambient occlusion, bounce), not a
+    // sun: it is not believed
+    let grazing = best
+        .as_ref()
+        .is_some_and(|(d, _, _, _)| angles(*d).0 < p.min_elevation_deg + GRAZING_MARGIN_DEG);
+    let keep = best.is_some()
+        && !grazing
+        && gain >= p.min_light_gain
+        && share >= p.min_light_share
+        && share <= p.max_light_share;
     let (dir, col) = match (&best, keep) {
         (Some((d, _, col, _)), true) => (Some(*d), Some(col.clone())),
         _ => (None, None),
@@ -895,14 +910,22 @@ pub fn estimate_lighting(
             100.0 * l.gain,
             samples.len()
         ),
+        (None, false) if grazing => format!(
+            "ambient only, radiance {amb_l:.4}: no dominant light (the best lies at the lowest elevation \
+             searched, {:.0}°: a grazing light explaining gradients, not believed); confidence {confidence:.2} \
+             ({} samples, {regions} regions)",
+            p.min_elevation_deg,
+            samples.len()
+        ),
         (None, false) => format!(
             "ambient only, radiance {amb_l:.4}: no dominant light (the best explains {:.0} % of the residual, \
-             {:.0} % needed, and gives {:.0} % of the mean irradiance, {:.0} % needed); confidence \
-             {confidence:.2} ({} samples, {regions} regions)",
+             {:.0} % needed, and gives {:.0} % of the mean irradiance, {:.0} to {:.0} % believed); \
+             confidence {confidence:.2} ({} samples, {regions} regions)",
             100.0 * gain.max(0.0),
             100.0 * p.min_light_gain,
             100.0 * share.max(0.0),
             100.0 * p.min_light_share,
+            100.0 * p.max_light_share,
             samples.len()
         ),
     };
