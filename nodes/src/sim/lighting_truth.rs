@@ -4,13 +4,12 @@
 //! their exact depth and normals and the map itself.
 
 use depthgraph_graph::prelude::*;
-use glam::DVec3;
 
 use crate::sim::pathtrace::{EnvLight, PathTraceParams, path_trace};
-use crate::sim::relight_truth::{FLOOR_Y, Sky};
+use crate::sim::relight_truth::{Sky, furnished_objects};
 use crate::sim::synthetic::{
-    Object, Primitive, RenderOptions, Scene, ScenePreset, Texture, kinect_like_intrinsics, plane,
-    render, solid,
+    Object, RenderOptions, Scene, ScenePreset, Texture, kinect_like_intrinsics, plane, render,
+    solid,
 };
 
 /// The rooms of the lighting truth.
@@ -39,50 +38,12 @@ pub struct LightCase {
 }
 
 fn objects(room: LightRoom) -> Vec<Object> {
-    let grey = |v: f32| Texture::Solid([v, v, v]);
     match room {
-        LightRoom::Objects => vec![
-            solid(1, plane([0.0, FLOOR_Y, 0.0], [0.0, -1.0, 0.0]), grey(0.5)),
-            solid(
-                2,
-                Primitive::Box {
-                    center: DVec3::new(0.0, 0.5 * (FLOOR_Y - 1.7), 3.65),
-                    half_extents: DVec3::new(2.25, 0.5 * (FLOOR_Y + 1.7), 0.05),
-                    yaw_rad: 0.0,
-                },
-                Texture::Solid([0.6, 0.58, 0.55]),
-            ),
-            solid(
-                3,
-                Primitive::Sphere {
-                    center: DVec3::new(0.3, FLOOR_Y - 0.18, 1.7),
-                    radius: 0.18,
-                },
-                grey(0.6),
-            ),
-            solid(
-                4,
-                Primitive::Box {
-                    center: DVec3::new(-0.35, FLOOR_Y - 0.15, 1.9),
-                    half_extents: DVec3::new(0.15, 0.15, 0.15),
-                    yaw_rad: 0.6,
-                },
-                Texture::Solid([0.55, 0.5, 0.45]),
-            ),
-            solid(
-                5,
-                Primitive::Cylinder {
-                    center_base: DVec3::new(-0.05, FLOOR_Y, 2.5),
-                    radius: 0.1,
-                    height: 0.6,
-                },
-                Texture::Solid([0.45, 0.5, 0.55]),
-            ),
-        ],
+        LightRoom::Objects => furnished_objects(),
         LightRoom::FlatWall => vec![solid(
             1,
             plane([0.0, 0.0, 1.5], [0.0, 0.0, -1.0]),
-            grey(0.6),
+            Texture::Solid([0.6; 3]),
         )],
     }
 }

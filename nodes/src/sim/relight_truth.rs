@@ -51,6 +51,11 @@ pub enum Room {
     NearWall,
     /// A sphere on a red floor (the floor's bounce colours the object).
     ColouredFloor,
+    /// A sphere pasted before [`furnished_objects`] (a sphere, a box and a
+    /// cylinder on a grey floor): a photo whose shading and cast shadows
+    /// show its light (the lighting estimate's case; not in [`Room::ALL`],
+    /// the rooms of the relighting table).
+    Furnished,
 }
 
 impl Room {
@@ -69,6 +74,7 @@ impl Room {
             Room::Occluded => "occluded",
             Room::NearWall => "near wall",
             Room::ColouredFloor => "coloured floor",
+            Room::Furnished => "furnished",
         }
     }
 }
@@ -176,14 +182,47 @@ pub const OBJECT_ID: u32 = 100;
 /// Floor height below the camera (metres, `+y` is down).
 pub const FLOOR_Y: f64 = 0.5;
 
-/// The room's objects, the pasted object and the sky of `room`.
-fn layout(room: Room) -> (Vec<Object>, Object, Sky) {
-    let grey: Rgb = [0.5, 0.5, 0.5];
-    let floor = |albedo: Texture| solid(1, plane([0.0, FLOOR_Y, 0.0], [0.0, -1.0, 0.0]), albedo);
-    // the back wall fills the frame at 3.6 m and ends there (infinite
-    // planes beside and above it would light the object from where no
-    // photo shows them)
-    let back = solid(
+/// The objects of the furnished room (ids 1-5): a grey floor, the back
+/// wall, a grey sphere, a box and a cylinder.
+pub fn furnished_objects() -> Vec<Object> {
+    let grey = |v: f32| Texture::Solid([v, v, v]);
+    vec![
+        solid(1, plane([0.0, FLOOR_Y, 0.0], [0.0, -1.0, 0.0]), grey(0.5)),
+        back_wall(),
+        solid(
+            3,
+            Primitive::Sphere {
+                center: DVec3::new(0.3, FLOOR_Y - 0.18, 1.7),
+                radius: 0.18,
+            },
+            grey(0.6),
+        ),
+        solid(
+            4,
+            Primitive::Box {
+                center: DVec3::new(-0.35, FLOOR_Y - 0.15, 1.9),
+                half_extents: DVec3::new(0.15, 0.15, 0.15),
+                yaw_rad: 0.6,
+            },
+            Texture::Solid([0.55, 0.5, 0.45]),
+        ),
+        solid(
+            5,
+            Primitive::Cylinder {
+                center_base: DVec3::new(-0.05, FLOOR_Y, 2.5),
+                radius: 0.1,
+                height: 0.6,
+            },
+            Texture::Solid([0.45, 0.5, 0.55]),
+        ),
+    ]
+}
+
+/// The back wall: it fills the frame at 3.6 m and ends there (infinite
+/// planes beside and above it would light the object from where no photo
+/// shows them).
+fn back_wall() -> Object {
+    solid(
         2,
         Primitive::Box {
             center: DVec3::new(0.0, 0.5 * (FLOOR_Y - 1.7), 3.65),
@@ -191,7 +230,14 @@ fn layout(room: Room) -> (Vec<Object>, Object, Sky) {
             yaw_rad: 0.0,
         },
         Texture::Solid([0.6, 0.58, 0.55]),
-    );
+    )
+}
+
+/// The room's objects, the pasted object and the sky of `room`.
+fn layout(room: Room) -> (Vec<Object>, Object, Sky) {
+    let grey: Rgb = [0.5, 0.5, 0.5];
+    let floor = |albedo: Texture| solid(1, plane([0.0, FLOOR_Y, 0.0], [0.0, -1.0, 0.0]), albedo);
+    let back = back_wall();
     let object_texture = Texture::Waves {
         a: [0.75, 0.72, 0.68],
         b: [0.45, 0.55, 0.7],
@@ -280,6 +326,24 @@ fn layout(room: Room) -> (Vec<Object>, Object, Sky) {
                 azimuth_deg: 70.0,
             },
         ),
+        Room::Furnished => {
+            let r = 0.14;
+            (
+                furnished_objects(),
+                solid(
+                    OBJECT_ID,
+                    Primitive::Sphere {
+                        center: DVec3::new(-0.05, FLOOR_Y - r, 1.3),
+                        radius: r,
+                    },
+                    object_texture,
+                ),
+                Sky::Sun {
+                    elevation_deg: 45.0,
+                    azimuth_deg: -30.0,
+                },
+            )
+        }
         Room::ColouredFloor => {
             let r = 0.16;
             (

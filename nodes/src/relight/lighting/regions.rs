@@ -24,6 +24,7 @@
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::value::Rgb;
 use glam::DVec3;
+use rayon::prelude::*;
 
 use crate::kit::grid::neighbours4;
 
@@ -65,6 +66,8 @@ fn chroma(c: Rgb) -> Option<(f64, f64)> {
 fn box3(color: &ColorImage, usable: &[bool]) -> Vec<Rgb> {
     let (w, h) = color.dims();
     (0..w * h)
+        .into_par_iter()
+        .with_min_len(4096)
         .map(|i| {
             let (x, y) = (i % w, i / w);
             if !usable[i] {
