@@ -64,6 +64,19 @@ pub struct ThinLens {
     pub sensor_width_mm: f64,
 }
 
+/// The f-number of a lens whose aperture is given as a diameter when
+/// `aperture_diameter_mm > 0` (`focal_length_mm / aperture_diameter_mm`,
+/// which may be below any real lens's f/0.5: a virtual camera's
+/// exaggerated blur), else `f_number` as given.
+pub fn effective_f_number(focal_length_mm: f64, f_number: f64, aperture_diameter_mm: f64) -> f64 {
+    if aperture_diameter_mm > 0.0 && aperture_diameter_mm.is_finite() {
+        // guard: the diameter is positive and finite here
+        focal_length_mm / aperture_diameter_mm
+    } else {
+        f_number
+    }
+}
+
 impl ThinLens {
     /// Checks the lens: positive finite focal length, f-number and sensor
     /// width, and a focus distance beyond the focal length (a thin lens

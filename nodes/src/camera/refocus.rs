@@ -42,7 +42,7 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
-use crate::camera::lens::{Aperture, ApertureShape, ThinLens, inv_depth};
+use crate::camera::lens::{Aperture, ApertureShape, ThinLens, effective_f_number, inv_depth};
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
 pub const TILE: usize = 16;
@@ -63,6 +63,8 @@ node_params! {
         pub focal_length_mm: f64 = 50.0, ParamKind::Float { min: 1.0, max: 2000.0 };
         /// f-number N: the aperture diameter is focal_length_mm / N.
         pub f_number: f64 = 2.8, ParamKind::Float { min: 0.5, max: 1000.0 };
+        /// Aperture diameter in millimetres; > 0 overrides f_number, also beyond f/0.5 (no real lens: a virtual camera's exaggerated blur); 0 = use f_number.
+        pub aperture_diameter_mm: f64 = 0.0, ParamKind::Float { min: 0.0, max: 100000.0 };
         /// Focus distance in metres (`inf` for infinity); must exceed the
         /// focal length.
         pub focus_m: f64 = 2.0, ParamKind::Float { min: 1e-3, max: f64::INFINITY };
@@ -101,7 +103,11 @@ impl RefocusParams {
     pub fn lens(&self) -> ThinLens {
         ThinLens {
             focal_length_mm: self.focal_length_mm,
-            f_number: self.f_number,
+            f_number: effective_f_number(
+                self.focal_length_mm,
+                self.f_number,
+                self.aperture_diameter_mm,
+            ),
             focus_m: self.focus_m,
             sensor_width_mm: self.sensor_width_mm,
         }
@@ -831,6 +837,57 @@ mod tests {
         );
         let total: f64 = out.as_slice().iter().map(|p| p[0] as f64).sum();
         assert!((total - 1000.0).abs() < 1e-3, "{total}");
+    }
+
+    /// `aperture_diameter_mm` overrides `f_number`: a diameter of f/N
+    /// renders as f/N (to rounding), a diameter beyond f/0.5 (no real lens)
+    /// gives a circle of confusion in proportion, and 0 leaves the lens as
+    /// the f-number says (bit for bit).
+    #[test]
+    fn an_aperture_diameter_overrides_the_f_number() {
+        let mut c = ColorImage::filled(64, 64, [0.0; 3]);
+        *c.get_mut(32, 32) = [1000.0, 0.0, 0.0];
+        let d = DepthMap::filled(64, 64, 6.0);
+        let by_n = params(1.0, 2.0, 64);
+        let by_d = RefocusParams {
+            aperture_diameter_mm: 25.0, // 50 mm / 2
+            ..by_n.clone()
+        };
+        let run = |p: &RefocusParams| refocus(&c, &d, &Aperture::Disc, p, |_| Ok(())).unwrap();
+        let ((a, ra), (b, rb)) = (run(&by_n), run(&by_d));
+        assert!((ra.max_coc_px - rb.max_coc_px).abs() < 1e-9 * ra.max_coc_px);
+        let diff = a
+            .as_slice()
+            .iter()
+            .zip(b.as_slice())
+            .map(|(p, q)| (p[0] - q[0]).abs())
+            .fold(0.0f32, f32::max);
+        assert!(diff < 1e-3, "{diff}");
+        // f/0.25: twice the blur of the widest real f-number, f/0.5
+        let wide = RefocusParams {
+            aperture_diameter_mm: 200.0,
+            samples: 8,
+            ..by_n.clone()
+        };
+        let half = RefocusParams {
+            f_number: 0.5,
+            samples: 8,
+            ..by_n.clone()
+        };
+        let (rw, rh) = (run(&wide).1, run(&half).1);
+        assert!(
+            (rw.max_coc_px / rh.max_coc_px - 2.0).abs() < 1e-9,
+            "{rw:?} {rh:?}"
+        );
+        assert_eq!(
+            by_n.lens(),
+            RefocusParams {
+                aperture_diameter_mm: 0.0,
+                ..by_n.clone()
+            }
+            .lens()
+        );
+        assert_eq!(by_n.lens().f_number, 2.0);
     }
 
     #[test]

@@ -23,7 +23,7 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::camera::lens::{Aperture, ApertureShape, ThinLens};
+use crate::camera::lens::{Aperture, ApertureShape, ThinLens, effective_f_number};
 
 depthgraph_graph::param_choice! {
     /// The built-in scenes (the `preset` parameter).
@@ -1175,6 +1175,8 @@ node_params! {
         pub focal_length_mm: f64 = 50.0, ParamKind::Float { min: 1.0, max: 2000.0 };
         /// f-number.
         pub f_number: f64 = 2.8, ParamKind::Float { min: 0.5, max: 1000.0 };
+        /// Aperture diameter in millimetres; > 0 overrides f_number (as Refocus), 0 = use f_number.
+        pub aperture_diameter_mm: f64 = 0.0, ParamKind::Float { min: 0.0, max: 100000.0 };
         /// Focus distance in metres (`inf` for infinity).
         pub focus_m: f64 = 2.0, ParamKind::Float { min: 1e-3, max: f64::INFINITY };
         /// Sensor width in millimetres, spanning the image width.
@@ -1218,7 +1220,7 @@ fn eval_thin_lens(
     let lens = ThinLensRender {
         lens: ThinLens {
             focal_length_mm: p.focal_length_mm,
-            f_number: p.f_number,
+            f_number: effective_f_number(p.focal_length_mm, p.f_number, p.aperture_diameter_mm),
             focus_m: p.focus_m,
             sensor_width_mm: p.sensor_width_mm,
         },
