@@ -22,7 +22,7 @@ use std::path::PathBuf;
 
 use depthgraph::nodes::relight::envmap::sun_direction;
 use depthgraph::nodes::relight::lighting::estimate::{
-    EstimateInputs, EstimateParams, LightingEstimate, estimate_lighting,
+    EstimateInputs, EstimateParams, LightingEstimate, angle_deg, estimate_lighting,
 };
 use depthgraph::nodes::relight::lighting::sh;
 use depthgraph::nodes::relight::scene_cached::{RelightScene, relight_moved};
@@ -34,14 +34,6 @@ use depthgraph::nodes::sim::relight_truth::{Room, Sky, relight_case, score};
 use depthgraph::nodes::sim::synthetic::{RenderOptions, Scene, ScenePreset, render};
 use depthgraph_graph::prelude::*;
 use glam::DVec3;
-
-fn angle_deg(a: DVec3, b: DVec3) -> f64 {
-    a.normalize()
-        .dot(b.normalize())
-        .clamp(-1.0, 1.0)
-        .acos()
-        .to_degrees()
-}
 
 /// Relative RMS difference of the order-2 irradiance (luminance-weighted
 /// green channel) of two maps over 2000 normals, raw and after the best

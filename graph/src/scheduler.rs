@@ -292,17 +292,20 @@ impl Engine {
         let records = (0..n)
             .map(|i| {
                 let node = &p.nodes[i];
-                let (status, reason, ms) = match &state[i] {
-                    State::Unvisited => (Status::NotNeeded, None, 0.0),
-                    State::Hit(o, ms) => (Status::Cached, o.passthrough.clone(), *ms),
+                let (status, reason, report, ms) = match &state[i] {
+                    State::Unvisited => (Status::NotNeeded, None, None, 0.0),
+                    State::Hit(o, ms) => {
+                        (Status::Cached, o.passthrough.clone(), o.report.clone(), *ms)
+                    }
                     State::Run => {
-                        let r = results[i].as_ref().and_then(|o| o.passthrough.clone());
+                        let o = results[i].as_ref();
+                        let r = o.and_then(|o| o.passthrough.clone());
                         let st = if r.is_some() {
                             Status::Passthrough
                         } else {
                             Status::Ran
                         };
-                        (st, r, timings[i])
+                        (st, r, o.and_then(|o| o.report.clone()), timings[i])
                     }
                 };
                 let origin = results[i].as_ref().and_then(|o| o.origin.clone());
@@ -313,11 +316,6 @@ impl Engine {
                 let transfers = match &state[i] {
                     State::Run => results[i].as_ref().map(|o| o.transfers).unwrap_or_default(),
                     _ => Default::default(),
-                };
-                let report = match &state[i] {
-                    State::Hit(o, _) => o.report.clone(),
-                    State::Run => results[i].as_ref().and_then(|o| o.report.clone()),
-                    State::Unvisited => None,
                 };
                 NodeRecord {
                     node: node.name.clone(),

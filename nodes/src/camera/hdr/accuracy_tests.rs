@@ -1,3 +1,4 @@
+#![cfg(test)]
 //! Accuracy of recovery, merge and alignment against known answers:
 //! synthetic brackets of 2, 3 and 5 exposures against the exact radiance,
 //! neutral patches that must stay neutral, confidence at the ends, shifts

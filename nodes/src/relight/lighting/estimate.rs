@@ -66,7 +66,7 @@ use crate::kit::linalg::cholesky_solve;
 use crate::relight::envmap::{SunBlend, paint_sun, pixel_direction};
 use crate::relight::lighting::regions::{NO_REGION, RegionParams, albedo_regions};
 use crate::relight::lighting::sh::{self, SH_ORDER, SH_TERMS};
-use crate::relight::shading::depth_normal;
+use crate::relight::shading::target_surfaces;
 
 node_params! {
     /// Parameters of `EstimateLighting`.
@@ -573,6 +573,15 @@ fn region_labels(
         .collect()
 }
 
+/// Angle between two directions in degrees (the error of a found light).
+pub fn angle_deg(a: DVec3, b: DVec3) -> f64 {
+    a.normalize_or_zero()
+        .dot(b.normalize_or_zero())
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
 /// Estimates the lighting of a photo (module docs).
 pub fn estimate_lighting(
     inp: &EstimateInputs,
@@ -589,21 +598,9 @@ pub fn estimate_lighting(
     }
     let k = inp.k;
     // per-pixel normals and usability
-    let normals: Vec<Option<DVec3>> = (0..w * h)
-        .into_par_iter()
-        .with_min_len(4096)
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            if !DepthMap::is_valid(*inp.depth.get(x, y)) {
-                return None;
-            }
-            inp.normals
-                .map(|n| DVec3::from_array(n.get(x, y).map(f64::from)))
-                .filter(|n| n.is_finite() && n.length_squared() > 0.5)
-                .map(|n| n.normalize())
-                .or_else(|| depth_normal(inp.depth, k, x, y))
-        })
-        .collect();
+    // the given normal where finite and non-zero, else from the depth (as Relight)
+    let surfaces = target_surfaces(inp.depth, inp.normals, k);
+    let normals: Vec<Option<DVec3>> = surfaces.iter().map(|s| s.as_ref().map(|s| s.n)).collect();
     let usable: Vec<bool> = (0..w * h)
         .into_par_iter()
         .with_min_len(4096)
@@ -632,7 +629,8 @@ pub fn estimate_lighting(
             if labels[i] == NO_REGION {
                 continue;
             }
-            let Some(n) = normals[i] else { continue };
+            let Some(surf) = &surfaces[i] else { continue };
+            let n = surf.n;
             // the mean over the sample's block on its region (less noise)
             let mut c = [0.0f64; 3];
             let mut cnt = 0.0f64;
@@ -648,9 +646,8 @@ pub fn estimate_lighting(
             }
             // guard: cnt >= 1 (the sample's own pixel)
             let c = c.map(|v| v / cnt.max(1.0));
-            let z = f64::from(*inp.depth.get(x, y));
             raw.push(Sample {
-                pos: k.unproject(x as f64 + 0.5, y as f64 + 0.5, z),
+                pos: surf.pos,
                 n,
                 rgbl: [c[0], c[1], c[2], luminance_f64(c)],
                 region: labels[i] as usize,
@@ -978,14 +975,6 @@ mod tests {
     use crate::sim::pathtrace::PathTraceParams;
     use crate::sim::relight_truth::Sky;
     use crate::sim::synthetic::{RenderOptions, Scene, ScenePreset, render, sun_direction};
-
-    fn angle_deg(a: DVec3, b: DVec3) -> f64 {
-        a.normalize()
-            .dot(b.normalize())
-            .clamp(-1.0, 1.0)
-            .acos()
-            .to_degrees()
-    }
 
     fn estimate(
         c: &ColorImage,
