@@ -11,6 +11,8 @@
 //! Scenes: the synthetic presets (exact truth) and, when `../shared/data` is
 //! present, Middlebury 2005 (Art, Books, Dolls, Moebius) and MiddEval3 ArtL.
 
+mod common;
+
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -137,19 +139,7 @@ fn write_peer_inputs(
             "{{\"width\": {w}, \"height\": {h}, \"sigma_color_u8\": 25.0, \"sigma_space_px\": 3.0}}"
         ),
     )?;
-    let bytes: Vec<u8> = input
-        .as_slice()
-        .iter()
-        .flat_map(|v| v.to_le_bytes())
-        .collect();
-    std::fs::write(dir.join(format!("{case}.depth.f32")), bytes)?;
-    let rgb: Vec<u8> = s
-        .color
-        .as_slice()
-        .iter()
-        .flat_map(|c| c.map(depthgraph::nodes::kit::color::srgb8))
-        .collect();
-    std::fs::write(dir.join(format!("{case}.color.u8")), rgb)
+    common::write_peer_frame(dir, case, input, &s.color)
 }
 
 fn read_f32(path: &Path, w: usize, h: usize) -> Option<DepthMap> {

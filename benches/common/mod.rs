@@ -34,3 +34,25 @@ pub fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
     }
     (out, median(times))
 }
+
+/// Writes a frame for an OpenCV peer script: `DIR/<case>.depth.f32`
+/// (little-endian f32, row-major) and `DIR/<case>.color.u8` (sRGB 8-bit RGB).
+pub fn write_peer_frame(
+    dir: &std::path::Path,
+    case: &str,
+    depth: &depthgraph::graph::value::DepthMap,
+    color: &depthgraph::graph::value::ColorImage,
+) -> std::io::Result<()> {
+    let z: Vec<u8> = depth
+        .as_slice()
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    std::fs::write(dir.join(format!("{case}.depth.f32")), z)?;
+    let rgb: Vec<u8> = color
+        .as_slice()
+        .iter()
+        .flat_map(|c| c.map(depthgraph::nodes::kit::color::srgb8))
+        .collect();
+    std::fs::write(dir.join(format!("{case}.color.u8")), rgb)
+}

@@ -69,13 +69,7 @@ impl PassRunner for CpuPass {
             inv_hc2: job.inv_hc2,
             inv_hd2: job.inv_hd2,
         };
-        let pass = Pass {
-            w: job.w,
-            h: job.h,
-            guide: job.guide,
-            depth: Some((job.z, job.c)),
-            core,
-        };
+        let pass = Pass::new((job.w, job.h), job.guide, Some((job.z, job.c)), core);
         let local_max = job
             .background
             .map(|_| window_max(job.z, job.c, job.w, job.h, job.search));
@@ -90,9 +84,24 @@ impl PassRunner for CpuPass {
                 .map(|((beta, tau), m)| (beta, tau, m)),
         };
         let mut out = vec![None; job.w * job.h];
-        run_pass(&pass, job.targets, &kernel, progress, |i, acc| {
-            out[i] = acc.finish();
+        // The vectorised rows first; targets they hand back (every weight
+        // near underflow) again with the running maximum.
+        let mut exact = vec![false; job.w * job.h];
+        let mut any_exact = false;
+        run_pass(&pass, job.targets, &kernel, progress, |i, r| match r {
+            Finish::Done(v) => out[i] = v,
+            Finish::Exact => {
+                exact[i] = true;
+                any_exact = true;
+            }
         })?;
+        if any_exact {
+            run_pass(&pass, &exact, &PerPair(&kernel), &mut |_| Ok(()), |i, r| {
+                if let Finish::Done(v) = r {
+                    out[i] = v;
+                }
+            })?;
+        }
         Ok(out)
     }
 }

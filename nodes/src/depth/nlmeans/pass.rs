@@ -122,23 +122,177 @@ pub(super) trait PairKernel: Sync {
     fn add(&self, i: usize, j: usize, d: f64, acc: &mut Acc);
 }
 
+/// The candidates of one band row at one search offset: targets at image
+/// columns `x0..x0 + dist.len()` of row `y`, each with the candidate `dx`
+/// columns away on row `yj`.
+pub(super) struct RowCands<'a> {
+    pub(super) y: usize,
+    pub(super) yj: usize,
+    pub(super) x0: usize,
+    pub(super) dx: isize,
+    /// Mean patch distance of each target and its candidate (divided by the h's).
+    pub(super) dist: &'a [f64],
+    /// Which of the row's pixels are targets (aligned with `dist`).
+    pub(super) targets: &'a [bool],
+    /// Index of the first target's sums in the band's sums.
+    pub(super) at: usize,
+}
+
+/// A target's result once every candidate was added.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum Finish {
+    /// The estimate and confidence, or `None` without a source.
+    Done(Option<(f32, f32)>),
+    /// The kernel's sums cannot give the estimate to its stated precision
+    /// (every source's weight near underflow): run the target again with
+    /// the exact per-pair kernel.
+    Exact,
+}
+
+/// What a pass does with a band row of candidate pairs: [`PerPair`] adapts
+/// any [`PairKernel`]; the depth kernel has its own vectorised rows.
+pub(super) trait RowKernel: Sync {
+    /// The sums of a band's targets.
+    type Sums: Send;
+    /// Empty sums for `len` targets.
+    fn sums(&self, len: usize) -> Self::Sums;
+    /// Adds one row of candidates (`w` is the grid's width).
+    fn add_row(&self, w: usize, row: &RowCands, sums: &mut Self::Sums);
+    /// The result of target `k` of the sums.
+    fn finish(&self, sums: &Self::Sums, k: usize) -> Finish;
+}
+
+/// A [`PairKernel`] run candidate by candidate with the running sums of [`Acc`].
+pub(super) struct PerPair<'a, K>(pub(super) &'a K);
+
+impl<K: PairKernel> RowKernel for PerPair<'_, K> {
+    type Sums = Vec<Acc>;
+
+    fn sums(&self, len: usize) -> Vec<Acc> {
+        vec![Acc::EMPTY; len]
+    }
+
+    fn add_row(&self, w: usize, row: &RowCands, sums: &mut Vec<Acc>) {
+        for (k, (&d, &t)) in row.dist.iter().zip(row.targets).enumerate() {
+            if !t {
+                continue;
+            }
+            let x = row.x0 + k;
+            let xj = (x as isize + row.dx) as usize;
+            self.0
+                .add(row.y * w + x, row.yj * w + xj, d, &mut sums[row.at + k]);
+        }
+    }
+
+    fn finish(&self, sums: &Vec<Acc>, k: usize) -> Finish {
+        Finish::Done(sums[k].finish())
+    }
+}
+
 /// One NL-means pass over a `w` x `h` grid.
 pub(super) struct Pass<'a> {
     pub(super) w: usize,
     pub(super) h: usize,
-    /// Guide features, `w * h`.
-    pub(super) guide: &'a [[f32; 3]],
     /// Depth and confidence for the depth patch term (eq. 5), or none.
     pub(super) depth: Option<(&'a [f32], &'a [f32])>,
     pub(super) core: Core,
+    /// The guide (and depth) planes, padded for every patch and offset.
+    pub(super) padded: Padded,
+}
+
+impl<'a> Pass<'a> {
+    /// A pass over the `w` x `h` grid of `guide` (features, `w * h`).
+    pub(super) fn new(
+        (w, h): (usize, usize),
+        guide: &[[f32; 3]],
+        depth: Option<(&'a [f32], &'a [f32])>,
+        core: Core,
+    ) -> Self {
+        Self {
+            w,
+            h,
+            depth,
+            core,
+            padded: Padded::new((w, h), guide, depth, core.patch + core.search),
+        }
+    }
+}
+
+/// The guide's channels (and depth and confidence) as planes whose rows
+/// are extended by `pad` columns on each side with the border pixel's
+/// values: the patch pixels of every target and candidate of a row are
+/// then one contiguous slice (the clamped coordinates of the patches).
+pub(super) struct Padded {
+    pub(super) pad: usize,
+    stride: usize,
+    g: [Vec<f32>; 3],
+    z: Vec<f32>,
+    c: Vec<f32>,
+}
+
+impl Padded {
+    fn new(
+        (w, h): (usize, usize),
+        guide: &[[f32; 3]],
+        depth: Option<(&[f32], &[f32])>,
+        pad: usize,
+    ) -> Self {
+        let stride = w + 2 * pad;
+        let plane = |at: &dyn Fn(usize) -> f32| -> Vec<f32> {
+            if w == 0 {
+                return Vec::new();
+            }
+            let mut out = Vec::with_capacity(stride * h);
+            for y in 0..h {
+                for u in 0..stride {
+                    let x = u.saturating_sub(pad).min(w.saturating_sub(1));
+                    out.push(at(y * w + x));
+                }
+            }
+            out
+        };
+        let (z, c) = match depth {
+            Some((z, c)) => (plane(&|i| z[i]), plane(&|i| c[i])),
+            None => (Vec::new(), Vec::new()),
+        };
+        Self {
+            pad,
+            stride,
+            g: [0, 1, 2].map(|k| plane(&|i| guide[i][k])),
+            z,
+            c,
+        }
+    }
+
+    /// The guide channels of row `y`, padded columns `start..start + len`.
+    #[inline]
+    pub(super) fn row(&self, y: usize, start: usize, len: usize) -> [&[f32]; 3] {
+        let a = y * self.stride + start;
+        [0, 1, 2].map(|k| &self.g[k][a..a + len])
+    }
+
+    /// The depth of row `y`, padded columns `start..start + len` (a pass with depth).
+    #[inline]
+    pub(super) fn z_row(&self, y: usize, start: usize, len: usize) -> &[f32] {
+        let a = y * self.stride + start;
+        &self.z[a..a + len]
+    }
+
+    /// The confidence of row `y`, padded columns `start..start + len`.
+    #[inline]
+    pub(super) fn c_row(&self, y: usize, start: usize, len: usize) -> &[f32] {
+        let a = y * self.stride + start;
+        &self.c[a..a + len]
+    }
 }
 
 /// Sums of one band of rows, columns `[xa, xa + bw)`.
-pub(super) struct BandOut {
+pub(super) struct BandOut<S> {
     pub(super) y0: usize,
     pub(super) xa: usize,
     pub(super) bw: usize,
-    pub(super) acc: Vec<Acc>,
+    pub(super) bh: usize,
+    pub(super) sums: Option<S>,
 }
 
 /// Radii of the nested boxes whose average is the patch kernel (see
@@ -181,13 +335,50 @@ impl PatchKernel {
 }
 
 /// Computes the sums of every target pixel of rows `[y0, y1)`.
-pub(super) fn band<K: PairKernel>(
+///
+/// On x86-64 CPUs with AVX2 the same code is compiled a second time with
+/// those instructions (4 f64 lanes instead of SSE2's 2) and chosen at run
+/// time. Each lane computes what the scalar code computes, in the same
+/// order (Rust never fuses a multiply and an add on its own, and no sum
+/// runs across lanes), so both versions should give the same bits; only
+/// the AVX2 one runs on the machines the tests ran on.
+pub(super) fn band<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
     kernel: &K,
     y0: usize,
     y1: usize,
-) -> BandOut {
+) -> BandOut<K::Sums> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: `band_avx2` only needs AVX2, which the CPU was just found to have.
+        return unsafe { band_avx2(pass, targets, kernel, y0, y1) };
+    }
+    band_body(pass, targets, kernel, y0, y1)
+}
+
+/// [`band_body`] compiled with AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn band_avx2<K: RowKernel>(
+    pass: &Pass,
+    targets: &[bool],
+    kernel: &K,
+    y0: usize,
+    y1: usize,
+) -> BandOut<K::Sums> {
+    band_body(pass, targets, kernel, y0, y1)
+}
+
+/// The work of [`band`].
+#[inline(always)]
+fn band_body<K: RowKernel>(
+    pass: &Pass,
+    targets: &[bool],
+    kernel: &K,
+    y0: usize,
+    y1: usize,
+) -> BandOut<K::Sums> {
     let (w, h) = (pass.w, pass.h);
     let (mut xa, mut xb) = (w, 0);
     for y in y0..y1 {
@@ -204,7 +395,8 @@ pub(super) fn band<K: PairKernel>(
             y0,
             xa: 0,
             bw: 0,
-            acc: Vec::new(),
+            bh: 0,
+            sums: None,
         };
     }
     let (bw, bh) = (xb - xa, y1 - y0);
@@ -216,16 +408,18 @@ pub(super) fn band<K: PairKernel>(
     let (inv_hc2, inv_hd2) = (pass.core.inv_hc2, pass.core.inv_hd2);
     let big_r = pass.core.search as isize;
     let clampi = |v: isize, len: usize| v.clamp(0, len as isize - 1) as usize;
-    let cols: Vec<usize> = (0..ew)
-        .map(|e| clampi(xa as isize - r as isize + e as isize, w))
-        .collect();
-    let mut cols_o = vec![0usize; ew];
+    let pad = &pass.padded;
+    // Extended column e of the band is padded column `e0 + e`; its candidate
+    // at offset dx is `e0 + e + dx`.
+    let e0 = pad.pad + xa - r;
     let mut d = vec![0.0f64; ew];
     // Horizontal box sums of every extended row, per box.
     let mut hs = vec![0.0f64; nb * eh * bw];
     // Vertical box sums of the current row, per box.
     let mut vs = vec![0.0f64; nb * bw];
-    let mut acc = vec![Acc::EMPTY; bw * bh];
+    let mut sums = kernel.sums(bw * bh);
+    // Patch distances of the current row's targets.
+    let mut drow = vec![0.0f64; bw];
     for dy in -big_r..=big_r {
         // Rows of the band whose candidate row y + dy is inside the image.
         let t0 = (-(y0 as isize) - dy).max(0) as usize;
@@ -239,44 +433,43 @@ pub(super) fn band<K: PairKernel>(
             if c0 >= c1 {
                 continue;
             }
-            for (e, co) in cols_o.iter_mut().enumerate() {
-                *co = clampi(xa as isize - r as isize + e as isize + dx, w);
-            }
+            let eo = (e0 as isize + dx) as usize;
             // Per-pixel distances of the extended rows needed by rows [t0, t1),
             // then horizontal box sums.
             for er in t0..t1 + n - 1 {
                 let y = clampi(y0 as isize - r as isize + er as isize, h);
                 let yo = clampi(y0 as isize - r as isize + er as isize + dy, h);
-                let g = &pass.guide[y * w..(y + 1) * w];
-                let go = &pass.guide[yo * w..(yo + 1) * w];
-                for ((de, &p), &q) in d.iter_mut().zip(&cols).zip(&cols_o) {
-                    let (a, b) = (g[p], go[q]);
-                    let (d0, d1, d2) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+                let (ga, gb) = (pad.row(y, e0, ew), pad.row(yo, eo, ew));
+                for (k, de) in d.iter_mut().enumerate() {
+                    let d0 = ga[0][k] - gb[0][k];
+                    let d1 = ga[1][k] - gb[1][k];
+                    let d2 = ga[2][k] - gb[2][k];
                     *de = (d0 * d0 + d1 * d1 + d2 * d2) as f64 * inv_hc2;
                 }
-                if let Some((z, c)) = pass.depth {
-                    let (zr, cr) = (&z[y * w..(y + 1) * w], &c[y * w..(y + 1) * w]);
-                    let (zo, co) = (&z[yo * w..(yo + 1) * w], &c[yo * w..(yo + 1) * w]);
-                    for ((de, &p), &q) in d.iter_mut().zip(&cols).zip(&cols_o) {
-                        let cc = cr[p] * co[q];
-                        if cc > 0.0 {
-                            let dz = zr[p] as f64 - zo[q] as f64;
-                            *de += cc as f64 * dz * dz * inv_hd2;
-                        }
+                if pass.depth.is_some() {
+                    let (za, ca) = (pad.z_row(y, e0, ew), pad.c_row(y, e0, ew));
+                    let (zb, cb) = (pad.z_row(yo, eo, ew), pad.c_row(yo, eo, ew));
+                    for (k, de) in d.iter_mut().enumerate() {
+                        // holes have confidence 0 and depth 0: the term is 0
+                        let cc = ca[k] * cb[k];
+                        let dz = za[k] as f64 - zb[k] as f64;
+                        *de += cc as f64 * dz * dz * inv_hd2;
                     }
                 }
                 for de in d.iter_mut() {
                     *de = de.min(pk.cap);
                 }
                 for (b, &sr) in pk.radii.iter().enumerate() {
-                    // Box of radius sr centred on extended column x + r.
-                    let (lo, len) = (r - sr, 2 * sr + 1);
+                    // Box of radius sr centred on extended column x + r:
+                    // summed directly (no running sum, so no drift, and
+                    // every output independent: the loop vectorises).
+                    let lo = r - sr;
                     let hrow = &mut hs[(b * eh + er) * bw..(b * eh + er + 1) * bw];
-                    let mut s: f64 = d[lo..lo + len].iter().sum();
-                    hrow[0] = s;
-                    for x in 1..bw {
-                        s += d[lo + x + len - 1] - d[lo + x - 1];
-                        hrow[x] = s;
+                    hrow.copy_from_slice(&d[lo..lo + bw]);
+                    for k in 1..2 * sr + 1 {
+                        for (hv, dv) in hrow.iter_mut().zip(&d[lo + k..lo + k + bw]) {
+                            *hv += dv;
+                        }
                     }
                 }
             }
@@ -304,35 +497,48 @@ pub(super) fn band<K: PairKernel>(
                     }
                 }
                 let y = y0 + t;
-                let yj = (y as isize + dy) as usize;
-                let trow = &targets[y * w..(y + 1) * w];
-                for cidx in c0..c1 {
-                    let x = xa + cidx;
-                    if !trow[x] {
-                        continue;
-                    }
-                    let xj = (x as isize + dx) as usize;
-                    let mut dist = 0.0;
-                    for (b, coef) in pk.coef.iter().enumerate() {
-                        dist += coef * vs[b * bw + cidx].max(0.0);
-                    }
-                    kernel.add(y * w + x, yj * w + xj, dist, &mut acc[t * bw + cidx]);
+                let trow = &targets[y * w + xa + c0..y * w + xa + c1];
+                if !trow.iter().any(|t| *t) {
+                    continue;
                 }
+                let dist = &mut drow[c0..c1];
+                dist.fill(0.0);
+                for (b, coef) in pk.coef.iter().enumerate() {
+                    for (dv, v) in dist.iter_mut().zip(&vs[b * bw + c0..b * bw + c1]) {
+                        *dv += coef * v.max(0.0);
+                    }
+                }
+                let row = RowCands {
+                    y,
+                    yj: (y as isize + dy) as usize,
+                    x0: xa + c0,
+                    dx,
+                    dist,
+                    targets: trow,
+                    at: t * bw + c0,
+                };
+                kernel.add_row(w, &row, &mut sums);
             }
         }
     }
-    BandOut { y0, xa, bw, acc }
+    BandOut {
+        y0,
+        xa,
+        bw,
+        bh,
+        sums: Some(sums),
+    }
 }
 
 /// Runs a pass over every target pixel and hands each target's sums to
 /// `sink` (row by row, in order), reporting progress in `[0, 1]` after every
 /// wave of bands.
-pub(super) fn run_pass<K: PairKernel>(
+pub(super) fn run_pass<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
     kernel: &K,
     progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
-    mut sink: impl FnMut(usize, &Acc),
+    mut sink: impl FnMut(usize, Finish),
 ) -> Result<(), NodeError> {
     let (w, h) = (pass.w, pass.h);
     if w == 0 || h == 0 {
@@ -345,19 +551,17 @@ pub(super) fn run_pass<K: PairKernel>(
         .collect();
     let waves = bands.len().div_ceil(WAVE_BANDS).max(1);
     for (k, wave) in bands.chunks(WAVE_BANDS).enumerate() {
-        let outs: Vec<BandOut> = wave
+        let outs: Vec<BandOut<K::Sums>> = wave
             .par_iter()
             .map(|&(y0, y1)| band(pass, targets, kernel, y0, y1))
             .collect();
         for out in &outs {
-            if out.bw == 0 {
-                continue;
-            }
-            for (t, row) in out.acc.chunks(out.bw).enumerate() {
-                for (c, a) in row.iter().enumerate() {
+            let Some(sums) = &out.sums else { continue };
+            for t in 0..out.bh {
+                for c in 0..out.bw {
                     let i = (out.y0 + t) * w + out.xa + c;
                     if targets[i] {
-                        sink(i, a);
+                        sink(i, kernel.finish(sums, t * out.bw + c));
                     }
                 }
             }

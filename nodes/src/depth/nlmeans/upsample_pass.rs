@@ -152,16 +152,12 @@ pub fn cpu_upsample_pass(
         ln_alpha: job.alpha.ln(),
         ln_one_minus_alpha: (1.0 - job.alpha).ln(),
     };
-    let pass = Pass {
-        w: p.w,
-        h: p.h,
-        guide: p.guide,
-        depth: None,
-        core,
-    };
+    let pass = Pass::new((p.w, p.h), p.guide, None, core);
     let mut out = vec![None; p.w * p.h];
-    run_pass(&pass, p.targets, &kernel, progress, |i, acc| {
-        out[i] = acc.finish();
+    run_pass(&pass, p.targets, &PerPair(&kernel), progress, |i, r| {
+        if let Finish::Done(v) = r {
+            out[i] = v;
+        }
     })?;
     Ok(out)
 }
