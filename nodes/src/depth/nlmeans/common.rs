@@ -6,8 +6,11 @@ use depthgraph_graph::prelude::*;
 /// Rows per band of the parallel passes (fixed, so results do not depend on
 /// the number of threads).
 pub(super) const BAND_ROWS: usize = 32;
-/// Bands processed between two progress reports / cancellation checks.
-pub(super) const WAVE_BANDS: usize = 8;
+/// Columns per tile of the parallel passes (a band of rows is cut into
+/// tiles; tiles without a target are skipped).
+pub(super) const TILE_COLS: usize = 128;
+/// Tiles processed between two progress reports / cancellation checks.
+pub(super) const WAVE_TILES: usize = 32;
 /// `exp(-x)` is exactly 0 in f64 for `x >= EXP_CUTOFF`: per-pixel patch
 /// distances are capped at `EXP_CUTOFF / (smallest patch kernel weight)`,
 /// which changes no weight (a capped pixel alone makes the patch distance

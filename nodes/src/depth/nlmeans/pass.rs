@@ -334,7 +334,7 @@ impl PatchKernel {
     }
 }
 
-/// Computes the sums of every target pixel of rows `[y0, y1)`.
+/// Computes the sums of every target pixel of rows `[y0, y1)`, columns `[x0, x1)`.
 ///
 /// On x86-64 CPUs with AVX2 the same code is compiled a second time with
 /// those instructions (4 f64 lanes instead of SSE2's 2) and chosen at run
@@ -346,15 +346,15 @@ pub(super) fn band<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
     kernel: &K,
-    y0: usize,
-    y1: usize,
+    (y0, y1): (usize, usize),
+    (x0, x1): (usize, usize),
 ) -> BandOut<K::Sums> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: `band_avx2` only needs AVX2, which the CPU was just found to have.
-        return unsafe { band_avx2(pass, targets, kernel, y0, y1) };
+        return unsafe { band_avx2(pass, targets, kernel, (y0, y1), (x0, x1)) };
     }
-    band_body(pass, targets, kernel, y0, y1)
+    band_body(pass, targets, kernel, (y0, y1), (x0, x1))
 }
 
 /// [`band_body`] compiled with AVX2.
@@ -364,10 +364,10 @@ unsafe fn band_avx2<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
     kernel: &K,
-    y0: usize,
-    y1: usize,
+    (y0, y1): (usize, usize),
+    (x0, x1): (usize, usize),
 ) -> BandOut<K::Sums> {
-    band_body(pass, targets, kernel, y0, y1)
+    band_body(pass, targets, kernel, (y0, y1), (x0, x1))
 }
 
 /// The work of [`band`].
@@ -376,18 +376,18 @@ fn band_body<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
     kernel: &K,
-    y0: usize,
-    y1: usize,
+    (y0, y1): (usize, usize),
+    (x0, x1): (usize, usize),
 ) -> BandOut<K::Sums> {
     let (w, h) = (pass.w, pass.h);
-    let (mut xa, mut xb) = (w, 0);
+    let (mut xa, mut xb) = (x1, x0);
     for y in y0..y1 {
-        let row = &targets[y * w..(y + 1) * w];
+        let row = &targets[y * w + x0..y * w + x1];
         if let Some(first) = row.iter().position(|t| *t) {
-            xa = xa.min(first);
+            xa = xa.min(x0 + first);
         }
         if let Some(last) = row.iter().rposition(|t| *t) {
-            xb = xb.max(last + 1);
+            xb = xb.max(x0 + last + 1);
         }
     }
     if xa >= xb {
@@ -544,16 +544,27 @@ pub(super) fn run_pass<K: RowKernel>(
     if w == 0 || h == 0 {
         return Ok(());
     }
-    let bands: Vec<(usize, usize)> = (0..h)
+    // Tiles of BAND_ROWS x TILE_COLS holding a target: the scattered holes
+    // of an inpainting pass cost only the tiles around them. A pixel's sums
+    // do not depend on its tile (its patch distances are box sums of its own
+    // patch), so neither do the results.
+    let tiles: Vec<((usize, usize), (usize, usize))> = (0..h)
         .step_by(BAND_ROWS)
-        .map(|y0| (y0, (y0 + BAND_ROWS).min(h)))
-        .filter(|&(y0, y1)| targets[y0 * w..y1 * w].iter().any(|t| *t))
+        .flat_map(|y0| {
+            let rows = (y0, (y0 + BAND_ROWS).min(h));
+            (0..w)
+                .step_by(TILE_COLS)
+                .map(move |x0| (rows, (x0, (x0 + TILE_COLS).min(w))))
+        })
+        .filter(|&((y0, y1), (x0, x1))| {
+            (y0..y1).any(|y| targets[y * w + x0..y * w + x1].iter().any(|t| *t))
+        })
         .collect();
-    let waves = bands.len().div_ceil(WAVE_BANDS).max(1);
-    for (k, wave) in bands.chunks(WAVE_BANDS).enumerate() {
+    let waves = tiles.len().div_ceil(WAVE_TILES).max(1);
+    for (k, wave) in tiles.chunks(WAVE_TILES).enumerate() {
         let outs: Vec<BandOut<K::Sums>> = wave
             .par_iter()
-            .map(|&(y0, y1)| band(pass, targets, kernel, y0, y1))
+            .map(|&(rows, cols)| band(pass, targets, kernel, rows, cols))
             .collect();
         for out in &outs {
             let Some(sums) = &out.sums else { continue };
