@@ -159,15 +159,22 @@ fn check_job(
 /// The guide features on the device, uploaded on first use: every pass of a
 /// node (the upsampling's and each inpainting iteration's) reads the same.
 fn guide_on_device<'g>(
-    slot: &'g mut Option<PooledBuffer>,
+    slot: &'g mut Option<(usize, PooledBuffer)>,
     s: &mut Session,
     guide: &[[f32; 3]],
 ) -> Result<&'g PooledBuffer, NodeError> {
+    // a kept guide of another pixel count is another image's
+    if slot.as_ref().is_some_and(|(n, _)| *n != guide.len()) {
+        return Err(NodeError::Internal(
+            "an NL-means pass met a guide of another size than the one on the device".into(),
+        ));
+    }
     if slot.is_none() {
         let g: Vec<[f32; 4]> = guide.iter().map(|g| [g[0], g[1], g[2], 0.0]).collect();
-        *slot = Some(s.upload(bytes_of(&g))?);
+        *slot = Some((guide.len(), s.upload(bytes_of(&g))?));
     }
     slot.as_ref()
+        .map(|(_, b)| b)
         .ok_or_else(|| NodeError::Internal("no guide on the device".into()))
 }
 
@@ -196,10 +203,15 @@ fn one_pass(
 /// The passes on the device; the guide is uploaded once for all of them.
 struct DeviceRunner<'s, 'c> {
     s: &'s mut Session<'c>,
-    guide: Option<PooledBuffer>,
+    /// The guide's pixel count and its buffer.
+    guide: Option<(usize, PooledBuffer)>,
 }
 
 impl PassRunner for DeviceRunner<'_, '_> {
+    fn new_guide(&mut self) {
+        self.guide = None;
+    }
+
     fn run(
         &mut self,
         job: &PassJob,

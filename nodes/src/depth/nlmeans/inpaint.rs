@@ -51,6 +51,11 @@ pub trait PassRunner {
     ) -> Result<Vec<Option<(f32, f32)>>, NodeError> {
         cpu_upsample_pass(job, progress)
     }
+
+    /// The guide of the passes that follow differs from the earlier ones'
+    /// (the next scale of a multi-scale upsampling): a runner that keeps
+    /// the guide between passes must drop it.
+    fn new_guide(&mut self) {}
 }
 
 /// The NL-means pass on the CPU (bands of rows in parallel, box sums).

@@ -241,10 +241,11 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "NLMeansUpsample",
-        1,
+        2,
         "Joint NL-means upsampling of low-resolution depth guided by high-resolution color (depth blur eq. 4).\n\
          Low-resolution samples are placed on the color grid and averaged with weights blending low-resolution \
-         depth similarity and high-resolution color similarity (alpha); remaining holes are inpainted (eq. 5).",
+         depth similarity and high-resolution color similarity (alpha); remaining holes are inpainted (eq. 5). \
+         Factors above 2 run in steps of 2 (multiscale), each guided by the colour at its size.",
         eval_upsample,
     ))?;
     reg.register(PortedNode::new(
@@ -585,6 +586,78 @@ mod tests {
             at_edges(&nn)
         );
         assert!(all(&d) < 0.85 * all(&bl), "{} vs {}", all(&d), all(&bl));
+    }
+
+    #[test]
+    fn scale_steps_are_equal_and_end_at_the_target() {
+        assert_eq!(scale_steps((320, 240), (640, 480), 2.0), vec![(640, 480)]);
+        assert_eq!(
+            scale_steps((160, 120), (640, 480), 2.0),
+            vec![(320, 240), (640, 480)]
+        );
+        assert_eq!(
+            scale_steps((80, 60), (640, 480), 2.0),
+            vec![(160, 120), (320, 240), (640, 480)]
+        );
+        assert_eq!(scale_steps((160, 120), (640, 480), 4.0), vec![(640, 480)]);
+        // x8 in steps of at most 4: two of sqrt(8)
+        assert_eq!(
+            scale_steps((80, 60), (640, 480), 4.0),
+            vec![(226, 170), (640, 480)]
+        );
+        // rounded sizes just over a power stay that power
+        assert_eq!(scale_steps((173, 139), (1390, 1110), 2.0).len(), 3);
+        assert_eq!(scale_steps((64, 64), (64, 64), 2.0), vec![(64, 64)]);
+        assert_eq!(scale_steps((10, 10), (80, 80), 0.0), vec![(80, 80)]);
+        assert_eq!(scale_steps((0, 0), (8, 8), 2.0).last(), Some(&(8, 8)));
+    }
+
+    #[test]
+    fn area_downsampling_keeps_the_mean() {
+        let c = ColorImage::from_fn(9, 6, |x, y| [x as f32, y as f32, 1.0]);
+        let d = area_downsample(&c, 3, 2);
+        assert_eq!(d.dims(), (3, 2));
+        // output (1, 1) averages x in 3..6, y in 3..6
+        assert_eq!(*d.get(1, 1), [4.0, 4.0, 1.0]);
+        let mean = |img: &ColorImage| {
+            img.as_slice().iter().map(|p| p[0] as f64).sum::<f64>() / img.len() as f64
+        };
+        assert!((mean(&c) - mean(&d)).abs() < 1e-9);
+        // non-finite samples are left out
+        let mut n = c.clone();
+        *n.get_mut(0, 0) = [f32::NAN, 0.0, 0.0];
+        assert!(area_downsample(&n, 3, 2).get(0, 0)[0].is_finite());
+    }
+
+    #[test]
+    fn multiscale_upsampling_wins_at_a_factor_of_eight() {
+        let gt = tabletop(320, 240);
+        let tof = ToFParams {
+            width: 40,
+            height: 30,
+            noise_m: 0.02,
+            noise_rel: 0.01,
+            outlier_rate: 0.0,
+            ..Default::default()
+        };
+        let (low, k_low) = simulate_tof(&gt.depth, &gt.intrinsics, &tof).unwrap();
+        let run = |max_step_factor: f64| {
+            let p = NLMeansUpsampleParams {
+                max_step_factor,
+                ..Default::default()
+            };
+            nlmeans_upsample(&low, &k_low, &gt.color, &p).unwrap().0
+        };
+        let edges = edge_mask(&gt.depth, 2);
+        let at_edges = |e: &DepthMap| rmse(e, &gt.depth, |i| edges[i]).0;
+        let all = |d: &DepthMap| rmse(d, &gt.depth, |_| true).0;
+        let (one, steps) = (run(0.0), run(4.0));
+        let bl = bilinear_up(&low, 320, 240);
+        assert_eq!(steps.hole_count(), 0);
+        // Measured: whole image 0.097 (steps) / 0.099 (one step) / 0.106 m
+        // (bilinear); at the edges 0.310 / 0.327 / 0.354 m.
+        assert!(all(&steps) < all(&one) && all(&steps) < all(&bl));
+        assert!(at_edges(&steps) < 0.97 * at_edges(&one));
     }
 
     #[test]

@@ -86,6 +86,12 @@ node_params! {
         /// without an estimate (holes of the low-resolution depth, windows
         /// without samples); 0 leaves them as holes.
         pub iterations: usize = 16usize, ParamKind::Int { min: 0, max: 10000 };
+        /// Largest upsampling factor of one step: a larger factor runs in
+        /// equal steps of at most this, each eq. 4 guided by the colour
+        /// averaged down to that step's size, so every search window holds
+        /// samples at any factor. 0 = one step at the full factor (the
+        /// paper's scheme).
+        pub max_step_factor: f64 = 4.0, ParamKind::Float { min: 0.0, max: 64.0 };
     }
 }
 

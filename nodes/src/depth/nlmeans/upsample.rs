@@ -1,6 +1,6 @@
 //! Joint upsampling of low-resolution depth on the color grid (eq. 4).
 
-use crate::kit::checks::fits_intrinsics;
+use crate::kit::checks::{fits_intrinsics, param_within};
 use depthgraph_graph::prelude::*;
 
 use super::common::*;
@@ -117,6 +117,12 @@ pub fn nlmeans_upsample_with(
 /// one through [`PassRunner::run_upsample`], the inpainting's through
 /// [`PassRunner::run`]): the placement of the samples, the targets and the
 /// stopping rule stay here, so every backend decides alike.
+///
+/// With a colour image more than `p.max_step_factor` times the depth's
+/// size, the upsampling runs in equal steps ([`scale_steps`]): each step is
+/// the scheme above from the previous step's result, guided by the colour
+/// averaged down to that step's size ([`area_downsample`]); the pruning
+/// runs on the input only. The last step's confidence is returned.
 pub fn nlmeans_upsample_on(
     low_depth: &DepthMap,
     low_k: &Intrinsics,
@@ -124,6 +130,143 @@ pub fn nlmeans_upsample_on(
     color_k: Option<&Intrinsics>,
     p: &NLMeansUpsampleParams,
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+    runner: &mut dyn PassRunner,
+) -> Result<(DepthMap, Confidence, Intrinsics), NodeError> {
+    let (w, h) = guide_color_high.dims();
+    param_within("max_step_factor", p.max_step_factor, 0.0, 64.0)?;
+    let (lw, lh) = low_depth.dims();
+    let steps = if p.max_step_factor > 0.0 {
+        scale_steps((lw, lh), (w, h), p.max_step_factor)
+    } else {
+        vec![(w, h)]
+    };
+    if steps.len() <= 1 || w == 0 || h == 0 || lw == 0 || lh == 0 {
+        return upsample_step(
+            low_depth,
+            low_k,
+            guide_color_high,
+            color_k,
+            p,
+            &mut on_progress,
+            runner,
+        );
+    }
+    // The checks of the full-size call first, so a bad input fails before any work.
+    Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
+    fits_intrinsics("intrinsics", low_k, "depth map", low_depth.dims())?;
+    let high_k = match color_k {
+        Some(k) => {
+            fits_intrinsics("color_intrinsics", k, "color image", (w, h))?;
+            *k
+        }
+        None => low_k.scaled_to(w, h),
+    };
+    let n = steps.len();
+    let mut depth = low_depth.clone();
+    let mut k_now = *low_k;
+    let mut conf = None;
+    for (s, &(sw, sh)) in steps.iter().enumerate() {
+        let last = s + 1 == n;
+        let guide = if last {
+            guide_color_high.clone()
+        } else {
+            area_downsample(guide_color_high, sw, sh)
+        };
+        let step_k = high_k.scaled_to(sw, sh);
+        let sp = NLMeansUpsampleParams {
+            prune: p.prune && s == 0,
+            ..p.clone()
+        };
+        runner.new_guide();
+        // Guard: n >= 2 here.
+        let (lo, span) = (s as f32 / n as f32, 1.0 / n as f32);
+        let (d, c, _) = upsample_step(
+            &depth,
+            &k_now,
+            &guide,
+            Some(&step_k),
+            &sp,
+            &mut |f| on_progress(lo + span * f),
+            runner,
+        )?;
+        depth = d;
+        conf = Some(c);
+        k_now = step_k;
+    }
+    let conf = conf.ok_or_else(|| NodeError::Internal("no upsampling step ran".into()))?;
+    Ok((depth, conf, high_k))
+}
+
+/// The sizes of the steps of a multi-scale upsampling from `low` to
+/// `high` with at most `max_step` per step: for the largest axis ratio `r`,
+/// `n = ceil(log(r) / log(max_step))` steps (a few per cent over a power of
+/// `max_step` still counts as that power: sizes are rounded), the step `k`
+/// of `n` at `high / r^((n - k) / n)` (rounded, at least 1), the last at
+/// `high` exactly. `max_step <= 1` or a ratio up to `max_step` is one step.
+pub fn scale_steps(
+    low: (usize, usize),
+    high: (usize, usize),
+    max_step: f64,
+) -> Vec<(usize, usize)> {
+    let ratio = |h: usize, l: usize| h as f64 / l.max(1) as f64;
+    let r = ratio(high.0, low.0).max(ratio(high.1, low.1));
+    if !(max_step > 1.0 && r > max_step * 1.025) {
+        return vec![high];
+    }
+    // guard: max_step > 1, so its logarithm is positive
+    let n = ((r / 1.025).ln() / max_step.ln()).ceil().clamp(1.0, 16.0) as i32;
+    (1..=n)
+        .map(|k| {
+            let f = r.powf((n - k) as f64 / n as f64);
+            let side = |v: usize| ((v as f64 / f).round() as usize).max(1);
+            (side(high.0), side(high.1))
+        })
+        .collect()
+}
+
+/// `color` averaged down to `w` x `h`: each output pixel is the mean of
+/// the input pixels whose centre falls in it (linear RGB, so the mean is
+/// the light the larger pixel would have gathered). Non-finite samples
+/// are left out; a pixel with none is 0.
+pub fn area_downsample(color: &ColorImage, w: usize, h: usize) -> ColorImage {
+    let (cw, ch) = color.dims();
+    let mut sum = vec![[0.0f64; 3]; w * h];
+    let mut count = vec![0u32; w * h];
+    if cw > 0 && ch > 0 {
+        for y in 0..ch {
+            let oy = (y * h / ch).min(h.saturating_sub(1));
+            for x in 0..cw {
+                let ox = (x * w / cw).min(w.saturating_sub(1));
+                let c = color.get(x, y);
+                if c.iter().all(|v| v.is_finite()) {
+                    let o = oy * w + ox;
+                    for k in 0..3 {
+                        sum[o][k] += c[k] as f64;
+                    }
+                    count[o] += 1;
+                }
+            }
+        }
+    }
+    ColorImage::from_fn(w, h, |x, y| {
+        let o = y * w + x;
+        // Guard: count > 0, else 0.
+        if count[o] == 0 {
+            [0.0; 3]
+        } else {
+            sum[o].map(|v| (v / count[o] as f64) as f32)
+        }
+    })
+}
+
+/// One step of [`nlmeans_upsample_on`]: eq. 4 at the full factor.
+fn upsample_step(
+    low_depth: &DepthMap,
+    low_k: &Intrinsics,
+    guide_color_high: &ColorImage,
+    color_k: Option<&Intrinsics>,
+    p: &NLMeansUpsampleParams,
+    on_progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,
     runner: &mut dyn PassRunner,
 ) -> Result<(DepthMap, Confidence, Intrinsics), NodeError> {
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
