@@ -39,6 +39,18 @@ def main(d):
         timing["opencv_jbf_only"] = ms
         out, ms = timed(lambda: cv2.ximgproc.guidedFilter(guide, filled, 5, 1e-4 * 255 * 255), 3)
         res["opencv_telea_guided"], timing["opencv_telea_guided"] = out, ms + timing["opencv_telea"]
+        # fastGlobalSmootherFilter as a hole filler: the smoothed depth x mask over the
+        # smoothed mask (normalised convolution), the known pixels kept as measured
+        m = (holes == 0).astype(np.float32)
+        zf = np.where(holes > 0, 0, depth).astype(np.float32)
+        guide8 = cv2.cvtColor(color, cv2.COLOR_RGB2BGR)
+
+        def fgs_fill():
+            num = cv2.ximgproc.fastGlobalSmootherFilter(guide8, zf, 500.0, 10.0)
+            den = cv2.ximgproc.fastGlobalSmootherFilter(guide8, m, 500.0, 10.0)
+            out = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0).astype(np.float32)
+            return np.where(holes > 0, out, zf)
+        res["opencv_fgs"], timing["opencv_fgs"] = timed(fgs_fill, 3)
         for k, v in res.items():
             np.asarray(v, dtype="<f4").tofile(os.path.join(d, f"{case}.{k}.f32"))
         json.dump({"ms": timing, "opencv": cv2.__version__}, open(os.path.join(d, case + ".peers.json"), "w"))

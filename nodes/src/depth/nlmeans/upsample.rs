@@ -167,10 +167,12 @@ pub fn nlmeans_upsample_on(
     let mut conf = None;
     for (s, &(sw, sh)) in steps.iter().enumerate() {
         let last = s + 1 == n;
+        let small;
         let guide = if last {
-            guide_color_high.clone()
+            guide_color_high
         } else {
-            area_downsample(guide_color_high, sw, sh)
+            small = area_downsample(guide_color_high, sw, sh);
+            &small
         };
         let step_k = high_k.scaled_to(sw, sh);
         let sp = NLMeansUpsampleParams {
@@ -183,7 +185,7 @@ pub fn nlmeans_upsample_on(
         let (d, c, _) = upsample_step(
             &depth,
             &k_now,
-            &guide,
+            guide,
             Some(&step_k),
             &sp,
             &mut |f| on_progress(lo + span * f),
