@@ -371,6 +371,50 @@ mod tests {
     }
 
     #[test]
+    fn the_avx2_band_equals_the_plain_band_bit_for_bit() {
+        let (w, h) = (45, 21);
+        let mut rng = SplitMix64(21);
+        let guide: Vec<[f32; 3]> = (0..w * h)
+            .map(|_| [0, 1, 2].map(|_| rng.uniform() as f32 * 0.9))
+            .collect();
+        let z: Vec<f32> = (0..w * h)
+            .map(|i| {
+                if i % 7 == 0 {
+                    0.0
+                } else {
+                    1.0 + rng.uniform() as f32
+                }
+            })
+            .collect();
+        let c: Vec<f32> = z.iter().map(|z| if *z > 0.0 { 0.9 } else { 0.0 }).collect();
+        let core = Core::new(4, 2, 0.1, 0.05).unwrap();
+        let pass = Pass::new((w, h), &guide, Some((&z, &c)), core);
+        let lm = window_max(&z, &c, w, h, core.search);
+        let kernel = DepthKernel {
+            z: &z,
+            c: &c,
+            inv_hd2: core.inv_hd2,
+            far: Some(0.5),
+            background: Some((50.0, 0.05, lm.as_slice())),
+        };
+        let targets = vec![true; w * h];
+        let (a, b) = (
+            band(&pass, &targets, &kernel, (0, h), (0, w)),
+            band_body(&pass, &targets, &kernel, (0, h), (0, w)),
+        );
+        let (sa, sb) = (a.sums.unwrap(), b.sums.unwrap());
+        let bits = |f: Finish| match f {
+            Finish::Done(Some((v, c))) => (v.to_bits(), c.to_bits()),
+            _ => (0, 0),
+        };
+        let differ = (0..w * h)
+            .filter(|&k| bits(kernel.finish(&sa, k)) != bits(kernel.finish(&sb, k)))
+            .count();
+        assert_eq!(differ, 0);
+        assert!((0..w * h).all(|k| kernel.finish(&sa, k) != Finish::Exact));
+    }
+
+    #[test]
     fn a_perturbed_kernel_fails_the_comparison() {
         let ((mut fast, slow), _) = both(19, 13, 0.1, 0.3, false, false, 3);
         let (dz, _) = worst(&fast, &slow);

@@ -340,8 +340,8 @@ impl PatchKernel {
 /// those instructions (4 f64 lanes instead of SSE2's 2) and chosen at run
 /// time. Each lane computes what the scalar code computes, in the same
 /// order (Rust never fuses a multiply and an add on its own, and no sum
-/// runs across lanes), so both versions should give the same bits; only
-/// the AVX2 one runs on the machines the tests ran on.
+/// runs across lanes), so both versions give the same bits (tested against
+/// [`band_body`] called plainly).
 pub(super) fn band<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
@@ -372,7 +372,7 @@ unsafe fn band_avx2<K: RowKernel>(
 
 /// The work of [`band`].
 #[inline(always)]
-fn band_body<K: RowKernel>(
+pub(super) fn band_body<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],
     kernel: &K,
