@@ -523,7 +523,6 @@ fn scaling(repeats: usize) -> String {
     s
 }
 
-/// Bilinear upsampling of `low` to `w` x `h` (pixel centres aligned), ignoring holes.
 /// Joint bilateral upsampling (Kopf et al. 2007, eq. 2): each
 /// high-resolution pixel is the mean of the low-resolution samples within
 /// `radius` low-resolution pixels of its position, weighted by a spatial
@@ -592,6 +591,7 @@ fn joint_bilateral_up(low: &DepthMap, color: &ColorImage, p: &JbuParams) -> Dept
     Image::from_vec(w, h, rows.concat()).unwrap_or_else(|_| Image::filled(w, h, 0.0))
 }
 
+/// Bilinear upsampling of `low` to `w` x `h` (pixel centres aligned), ignoring holes.
 fn bilinear_up(low: &DepthMap, w: usize, h: usize) -> DepthMap {
     let (lw, lh) = low.dims();
     Image::from_fn(w, h, |x, y| {

@@ -8,9 +8,10 @@
 //! - the similarity sums `sum_j s(i, j)` always hold the target itself
 //!   (search offset 0: patch distance exactly 0, discontinuity term 0),
 //!   whose exponent 0 is the largest, so they equal [`Acc`]'s;
-//! - the weights `Z_i` of eq. 1 have the same largest term 1 wherever the
-//!   target is a source itself (denoising). Elsewhere (a hole being
-//!   inpainted) all of them may be tiny: when `Z_i` is below
+//! - the weights `Z_i` of eq. 1 hold the target's own term (its confidence
+//!   times its prior, 1 in clean data) wherever the target is a source
+//!   itself (denoising). Elsewhere (a hole being inpainted, a target of
+//!   tiny confidence) all of them may be tiny: when `Z_i` is below
 //!   [`EXACT_BELOW`], far above the subnormal range, the target is handed
 //!   back ([`Finish::Exact`]) and run again with [`Acc`]'s running maximum.
 //!

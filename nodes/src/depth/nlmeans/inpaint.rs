@@ -101,11 +101,18 @@ impl PassRunner for CpuPass {
             }
         })?;
         if any_exact {
-            run_pass(&pass, &exact, &PerPair(&kernel), &mut |_| Ok(()), |i, r| {
-                if let Finish::Done(v) = r {
-                    out[i] = v;
-                }
-            })?;
+            // progress stays at 1; cancellation is still checked every wave
+            run_pass(
+                &pass,
+                &exact,
+                &PerPair(&kernel),
+                &mut |_| progress(1.0),
+                |i, r| {
+                    if let Finish::Done(v) = r {
+                        out[i] = v;
+                    }
+                },
+            )?;
         }
         Ok(out)
     }

@@ -245,7 +245,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
         "Joint NL-means upsampling of low-resolution depth guided by high-resolution color (depth blur eq. 4).\n\
          Low-resolution samples are placed on the color grid and averaged with weights blending low-resolution \
          depth similarity and high-resolution color similarity (alpha); remaining holes are inpainted (eq. 5). \
-         Factors above 2 run in steps of 2 (multiscale), each guided by the colour at its size.",
+         Factors above max_step_factor (4) run in equal steps, each guided by the colour at its size.",
         eval_upsample,
     ))?;
     reg.register(PortedNode::new(
@@ -609,6 +609,10 @@ mod tests {
         assert_eq!(scale_steps((173, 139), (1390, 1110), 2.0).len(), 3);
         assert_eq!(scale_steps((64, 64), (64, 64), 2.0), vec![(64, 64)]);
         assert_eq!(scale_steps((10, 10), (80, 80), 0.0), vec![(80, 80)]);
+        // each axis by its own ratio: the wide depth's columns are never thinned
+        let steps = scale_steps((100, 10), (800, 800), 4.0);
+        assert_eq!(steps.len(), 4);
+        assert!(steps.iter().all(|s| s.0 >= 100), "{steps:?}");
         assert_eq!(scale_steps((0, 0), (8, 8), 2.0).last(), Some(&(8, 8)));
     }
 

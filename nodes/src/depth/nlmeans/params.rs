@@ -242,11 +242,25 @@ impl Core {
         if !(h_depth.is_finite() && h_depth > 0.0) {
             return Err(NodeError::param("h_depth", "must be finite and positive"));
         }
+        let (inv_hc2, inv_hd2) = (1.0 / (h_color * h_color), 1.0 / (h_depth * h_depth));
+        // h so small that 1 / h^2 overflows would turn a zero term into NaN
+        if !inv_hc2.is_finite() {
+            return Err(NodeError::param(
+                "h_color",
+                "is too small (1 / h^2 overflows)",
+            ));
+        }
+        if !inv_hd2.is_finite() {
+            return Err(NodeError::param(
+                "h_depth",
+                "is too small (1 / h^2 overflows)",
+            ));
+        }
         Ok(Self {
             search,
             patch,
-            inv_hc2: 1.0 / (h_color * h_color),
-            inv_hd2: 1.0 / (h_depth * h_depth),
+            inv_hc2,
+            inv_hd2,
         })
     }
 }

@@ -530,9 +530,9 @@ pub(super) fn band_body<K: RowKernel>(
     }
 }
 
-/// Runs a pass over every target pixel and hands each target's sums to
-/// `sink` (row by row, in order), reporting progress in `[0, 1]` after every
-/// wave of bands.
+/// Runs a pass over every target pixel and hands each target's result to
+/// `sink` (tile by tile, in a fixed order), reporting progress in `[0, 1]`
+/// after every wave of tiles.
 pub(super) fn run_pass<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],

@@ -142,7 +142,7 @@ pub fn nlmeans_upsample_on(
     };
     if steps.len() <= 1 || w == 0 || h == 0 || lw == 0 || lh == 0 {
         return upsample_step(
-            low_depth,
+            (low_depth, None),
             low_k,
             guide_color_high,
             color_k,
@@ -164,7 +164,7 @@ pub fn nlmeans_upsample_on(
     let n = steps.len();
     let mut depth = low_depth.clone();
     let mut k_now = *low_k;
-    let mut conf = None;
+    let mut conf: Option<Confidence> = None;
     for (s, &(sw, sh)) in steps.iter().enumerate() {
         let last = s + 1 == n;
         let small;
@@ -183,7 +183,7 @@ pub fn nlmeans_upsample_on(
         // Guard: n >= 2 here.
         let (lo, span) = (s as f32 / n as f32, 1.0 / n as f32);
         let (d, c, _) = upsample_step(
-            &depth,
+            (&depth, conf.as_ref()),
             &k_now,
             guide,
             Some(&step_k),
@@ -201,17 +201,19 @@ pub fn nlmeans_upsample_on(
 
 /// The sizes of the steps of a multi-scale upsampling from `low` to
 /// `high` with at most `max_step` per step: for the largest axis ratio `r`,
-/// `n = ceil(log(r) / log(max_step))` steps (a few per cent over a power of
-/// `max_step` still counts as that power: sizes are rounded), the step `k`
-/// of `n` at `high / r^((n - k) / n)` (rounded, at least 1), the last at
-/// `high` exactly. `max_step <= 1` or a ratio up to `max_step` is one step.
+/// `n = ceil(log(r) / log(max_step))` steps, at most 16 (a few per cent over
+/// a power of `max_step` still counts as that power: sizes are rounded),
+/// the step `k` of `n` at `high / r_axis^((n - k) / n)` on each axis with
+/// its own ratio (rounded, at least 1), the last at `high` exactly.
+/// `max_step <= 1` or a ratio up to `max_step` is one step.
 pub fn scale_steps(
     low: (usize, usize),
     high: (usize, usize),
     max_step: f64,
 ) -> Vec<(usize, usize)> {
     let ratio = |h: usize, l: usize| h as f64 / l.max(1) as f64;
-    let r = ratio(high.0, low.0).max(ratio(high.1, low.1));
+    let (rx, ry) = (ratio(high.0, low.0), ratio(high.1, low.1));
+    let r = rx.max(ry);
     if !(max_step > 1.0 && r > max_step * 1.025) {
         return vec![high];
     }
@@ -219,9 +221,11 @@ pub fn scale_steps(
     let n = ((r / 1.025).ln() / max_step.ln()).ceil().clamp(1.0, 16.0) as i32;
     (1..=n)
         .map(|k| {
-            let f = r.powf((n - k) as f64 / n as f64);
-            let side = |v: usize| ((v as f64 / f).round() as usize).max(1);
-            (side(high.0), side(high.1))
+            let t = (n - k) as f64 / n as f64;
+            // each axis by its own ratio (1 where the depth is not smaller)
+            let side =
+                |v: usize, ra: f64| ((v as f64 / ra.max(1.0).powf(t)).round() as usize).max(1);
+            (side(high.0, rx), side(high.1, ry))
         })
         .collect()
 }
@@ -236,9 +240,10 @@ pub fn area_downsample(color: &ColorImage, w: usize, h: usize) -> ColorImage {
     let mut count = vec![0u32; w * h];
     if cw > 0 && ch > 0 {
         for y in 0..ch {
-            let oy = (y * h / ch).min(h.saturating_sub(1));
+            // the output pixel the input pixel's centre falls in
+            let oy = ((2 * y + 1) * h / (2 * ch)).min(h.saturating_sub(1));
             for x in 0..cw {
-                let ox = (x * w / cw).min(w.saturating_sub(1));
+                let ox = ((2 * x + 1) * w / (2 * cw)).min(w.saturating_sub(1));
                 let c = color.get(x, y);
                 if c.iter().all(|v| v.is_finite()) {
                     let o = oy * w + ox;
@@ -262,8 +267,10 @@ pub fn area_downsample(color: &ColorImage, w: usize, h: usize) -> ColorImage {
 }
 
 /// One step of [`nlmeans_upsample_on`]: eq. 4 at the full factor.
+/// `low` is the depth and, for a later step, the previous step's
+/// confidence (so holes an earlier step inpainted keep their lower weight).
 fn upsample_step(
-    low_depth: &DepthMap,
+    (low_depth, low_conf): (&DepthMap, Option<&Confidence>),
     low_k: &Intrinsics,
     guide_color_high: &ColorImage,
     color_k: Option<&Intrinsics>,
@@ -291,11 +298,12 @@ fn upsample_step(
         None => low_k.scaled_to(w, h),
     };
     let (lw, lh) = low_depth.dims();
+    check_confidence(low_conf, low_depth)?;
     let (lz, lc) = if p.prune {
-        let (d, c) = prune_outliers(low_depth, None, &p.prune_params())?;
+        let (d, c) = prune_outliers(low_depth, low_conf, &p.prune_params())?;
         (d.into_vec(), c.into_vec())
     } else {
-        sanitize(low_depth, None)
+        sanitize(low_depth, low_conf)
     };
     let mut z = vec![0.0f32; w * h];
     let mut c = vec![0.0f32; w * h];
