@@ -617,6 +617,41 @@ mod tests {
     }
 
     #[test]
+    fn stepped_upsampling_stays_sane_on_hard_inputs() {
+        let mut rng = SplitMix64(77);
+        for (lw, lh, factor) in [(1, 1, 9), (1, 7, 6), (5, 1, 8), (6, 4, 5), (9, 7, 16)] {
+            // depths over six decades, holes, one NaN, a sub-millimetre step
+            let depth = DepthMap::from_fn(lw, lh, |x, y| match (x + 3 * y) % 5 {
+                0 => 0.0,
+                1 if x + y == 1 => f32::NAN,
+                2 => 1e-3,
+                3 => 1e3,
+                _ => 1.0 + 1e-4 * rng.uniform() as f32,
+            });
+            let (w, h) = (lw * factor, lh * factor);
+            let color = ColorImage::from_fn(w, h, |x, y| {
+                [
+                    (x % 3) as f32,
+                    (y % 2) as f32 * 1e6,
+                    if x == y { f32::INFINITY } else { 0.2 },
+                ]
+            });
+            let k = k_for(lw, lh);
+            let (lo, hi) = valid_range(&depth);
+            let (d, c) =
+                nlmeans_upsample(&depth, &k, &color, &NLMeansUpsampleParams::default()).unwrap();
+            assert_eq!(d.dims(), (w, h));
+            if lo <= hi {
+                assert_sane(&d, &c, lo, hi, &format!("{lw}x{lh} x{factor}"));
+                assert!(
+                    d.hole_count() < d.len(),
+                    "{lw}x{lh} x{factor}: nothing upsampled"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn area_downsampling_keeps_the_mean() {
         let c = ColorImage::from_fn(9, 6, |x, y| [x as f32, y as f32, 1.0]);
         let d = area_downsample(&c, 3, 2);
