@@ -640,14 +640,7 @@ fn upsampling(data: &Path) -> String {
             continue;
         };
         let (w, h) = truth.dims();
-        let k = Intrinsics {
-            fx: 3740.0,
-            fy: 3740.0,
-            cx: w as f64 / 2.0,
-            cy: h as f64 / 2.0,
-            width: w,
-            height: h,
-        };
+        let k = depthgraph::evaluation::park2011_intrinsics(w, h);
         for (level, factor) in [(1, 2), (2, 4), (3, 8)] {
             let Ok(low) = load_depth(&dir.join(format!("depth_{level}_n.png")), &p) else {
                 continue;

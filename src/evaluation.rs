@@ -91,6 +91,19 @@ pub fn middlebury2005_disparity() -> depthgraph_nodes::io::LoadDepthParams {
     }
 }
 
+/// The camera of a full-size Park 2011 scene (made from Middlebury 2005):
+/// f = 3740 px, the principal point at the image centre.
+pub fn park2011_intrinsics(width: usize, height: usize) -> Intrinsics {
+    Intrinsics {
+        fx: 3740.0,
+        fy: 3740.0,
+        cx: width as f64 / 2.0,
+        cy: height as f64 / 2.0,
+        width,
+        height,
+    }
+}
+
 /// Middlebury scenes with ground-truth disparity converted to metres with the
 /// calibration given in each SOURCE.txt. Returns the scenes found and a note
 /// for each one that is missing.

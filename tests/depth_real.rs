@@ -2,8 +2,9 @@
 //! where the data is missing the test says so on stderr and checks nothing
 //! else.
 
-use depthgraph::evaluation::{depth_errors, middlebury2005_disparity, shared_data_dir};
-use depthgraph::graph::prelude::*;
+use depthgraph::evaluation::{
+    depth_errors, middlebury2005_disparity, park2011_intrinsics, shared_data_dir,
+};
 use depthgraph::nodes::depth::nlmeans::{NLMeansUpsampleParams, nlmeans_upsample};
 use depthgraph::nodes::io::{ColorSpace, load_color, load_depth};
 
@@ -26,15 +27,7 @@ fn stepped_upsampling_wins_at_x8_on_park_books() {
         return;
     };
     let (w, h) = truth.dims();
-    let k = Intrinsics {
-        fx: 3740.0,
-        fy: 3740.0,
-        cx: w as f64 / 2.0,
-        cy: h as f64 / 2.0,
-        width: w,
-        height: h,
-    };
-    let low_k = k.scaled_to(low.width(), low.height());
+    let low_k = park2011_intrinsics(w, h).scaled_to(low.width(), low.height());
     let rmse = |max_step_factor: f64| {
         let p = NLMeansUpsampleParams {
             max_step_factor,

@@ -267,20 +267,7 @@ mod tests {
         background: bool,
         seed: u64,
     ) -> (Both, Vec<bool>) {
-        let mut rng = SplitMix64(seed);
-        let guide: Vec<[f32; 3]> = (0..w * h)
-            .map(|_| [0, 1, 2].map(|_| rng.uniform() as f32 * 0.9))
-            .collect();
-        let mut z = vec![0.0f32; w * h];
-        let mut c = vec![0.0f32; w * h];
-        for i in 0..w * h {
-            if rng.uniform() >= hole_rate {
-                // two surfaces, 1 m and 3 m, with noise
-                let base = if (i % w) < w / 2 { 1.0 } else { 3.0 };
-                z[i] = (base + 0.02 * rng.gaussian()) as f32;
-                c[i] = (0.2 + 0.8 * rng.uniform()) as f32;
-            }
-        }
+        let (guide, z, c) = scene(w, h, hole_rate, seed);
         let core = Core::new(4, 2, h_color, 0.05).unwrap();
         let pass = Pass::new((w, h), &guide, Some((&z, &c)), core);
         let lm = window_max(&z, &c, w, h, core.search);
@@ -304,6 +291,25 @@ mod tests {
         }
         let (slow, _) = collect(&pass, &targets, &PerPair(&kernel));
         ((fast, slow), redo)
+    }
+
+    /// A random guide over two noisy surfaces (1 m and 3 m) with holes at
+    /// `hole_rate`: guide, depth, confidence.
+    fn scene(w: usize, h: usize, hole_rate: f64, seed: u64) -> (Vec<[f32; 3]>, Vec<f32>, Vec<f32>) {
+        let mut rng = SplitMix64(seed);
+        let guide: Vec<[f32; 3]> = (0..w * h)
+            .map(|_| [0, 1, 2].map(|_| rng.uniform() as f32 * 0.9))
+            .collect();
+        let mut z = vec![0.0f32; w * h];
+        let mut c = vec![0.0f32; w * h];
+        for i in 0..w * h {
+            if rng.uniform() >= hole_rate {
+                let base = if (i % w) < w / 2 { 1.0 } else { 3.0 };
+                z[i] = (base + 0.02 * rng.gaussian()) as f32;
+                c[i] = (0.2 + 0.8 * rng.uniform()) as f32;
+            }
+        }
+        (guide, z, c)
     }
 
     /// A pass's results per pixel and the targets it handed back.
@@ -374,20 +380,7 @@ mod tests {
     #[test]
     fn the_avx2_band_equals_the_plain_band_bit_for_bit() {
         let (w, h) = (45, 21);
-        let mut rng = SplitMix64(21);
-        let guide: Vec<[f32; 3]> = (0..w * h)
-            .map(|_| [0, 1, 2].map(|_| rng.uniform() as f32 * 0.9))
-            .collect();
-        let z: Vec<f32> = (0..w * h)
-            .map(|i| {
-                if i % 7 == 0 {
-                    0.0
-                } else {
-                    1.0 + rng.uniform() as f32
-                }
-            })
-            .collect();
-        let c: Vec<f32> = z.iter().map(|z| if *z > 0.0 { 0.9 } else { 0.0 }).collect();
+        let (guide, z, c) = scene(w, h, 0.15, 21);
         let core = Core::new(4, 2, 0.1, 0.05).unwrap();
         let pass = Pass::new((w, h), &guide, Some((&z, &c)), core);
         let lm = window_max(&z, &c, w, h, core.search);
