@@ -1,18 +1,29 @@
-//! Slider-to-result latency of the editor (issue 8): the demo graph at
-//! 640x480, the Kinect node selected, its `noise_k` slider moved step by
-//! step. Each step times what the window waits for: the edit, the cached
-//! re-run on the background evaluator (only the Kinect node re-runs), and
-//! the conversion of its depth map into the preview picture.
+//! Latency of the editor as a user feels it (issues 8 and 21): the time from
+//! an edit to its result's preview picture, through the same background
+//! evaluator and picture code the window uses. Three gestures:
+//!
+//! - **slider**: the demo graph at 640x480, the Kinect node's `noise_k`
+//!   slider moved step by step (only the Kinect node re-runs);
+//! - **drag**: `copy_paste_relit.ron` at 640x480 with 256 VPLs, the pasted
+//!   object dragged 4 px per step (`Paste.target_pixel`, as a drag on the
+//!   preview sets it): Paste, Feather, OcclusionComposite and Relight
+//!   re-run, the relighting's scene part stays cached;
+//! - **focus**: `refocus.ron` at 640x480 with 64 lens samples, a click on the
+//!   picture sets `focus_m` to the depth under the pointer (only Refocus
+//!   re-runs).
 //!
 //!   cargo bench -p depthgraph-editor --bench latency
 //!
 //! The peer in the same run is the same request with a cold cache (every
 //! node runs), which is what an editor without the cache would wait for.
+//! `DEPTHGRAPH_LATENCY_PARTS=slider,drag,focus` picks the gestures.
 
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use depthgraph_editor::focus::{FOCUS_WINDOW_RADIUS, focus_depth};
+use depthgraph_editor::placement::dragged_target;
 use depthgraph_editor::preview::picture;
 use depthgraph_editor::{EditorModel, Evaluator};
 use depthgraph_graph::prelude::*;
@@ -25,68 +36,215 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)]
 }
 
-fn main() -> Result<(), String> {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/demo.ron");
-    let reg = Arc::new(depthgraph_nodes::registry().map_err(|e| e.to_string())?);
-    let mut model = EditorModel::load(&path, reg)?;
-    let targets = vec!["kinect".to_string(), "scene".to_string()];
-    let out = std::env::temp_dir().join("depthgraph-latency-bench");
-    let timeout = Duration::from_secs(120);
+/// One request: edit already made, run, wait, build the preview picture of
+/// `shown`. Returns the milliseconds, the trace and the values.
+fn step(
+    ev: &mut Evaluator,
+    model: &EditorModel,
+    targets: &[String],
+    shown: &str,
+) -> Result<(f64, Trace, std::collections::BTreeMap<String, Value>), String> {
+    let t0 = Instant::now();
+    ev.start(
+        model
+            .pipeline_for(Some(targets))
+            .map_err(|e| e.join("\n"))?,
+        vec![],
+    );
+    let outcome = ev
+        .wait(Duration::from_secs(600))
+        .ok_or("no result within 600 s")?;
+    let (trace, values) = outcome.result?;
+    let v = values.get(shown).ok_or_else(|| format!("no {shown}"))?;
+    let pic = picture(v).ok_or_else(|| format!("{shown} has no picture"))?;
+    std::hint::black_box(pic.image.pixels.len());
+    Ok((t0.elapsed().as_secs_f64() * 1e3, trace, values))
+}
 
-    let step = |ev: &mut Evaluator, model: &EditorModel| -> Result<(f64, Trace), String> {
-        let t0 = Instant::now();
-        ev.start(
-            model
-                .pipeline_for(Some(&targets))
-                .map_err(|e| e.join("\n"))?,
-            vec![],
-        );
-        let outcome = ev.wait(timeout).ok_or("no result within 120 s")?;
-        let (trace, values) = outcome.result?;
-        let depth = values.get("kinect.depth").ok_or("no kinect.depth")?;
-        let pic = picture(depth).ok_or("depth has no picture")?;
-        std::hint::black_box(pic.image.pixels.len());
-        Ok((t0.elapsed().as_secs_f64() * 1e3, trace))
-    };
+/// Makes edit `i` of a gesture (reading the first warm run's values).
+type Edit = dyn FnMut(usize, &mut EditorModel, &Values) -> Result<(), String>;
+type Values = std::collections::BTreeMap<String, Value>;
 
-    // Cold: a fresh engine, every node runs (the peer).
+struct Gesture {
+    name: &'static str,
+    what: &'static str,
+    model: EditorModel,
+    targets: Vec<String>,
+    shown: &'static str,
+    /// Nodes that must come from the cache in a warm step.
+    cached: &'static [&'static str],
+    steps: usize,
+    cold_runs: usize,
+    /// Makes edit `i` (after a first warm run whose values it may read).
+    edit: Box<Edit>,
+}
+
+fn measure(mut g: Gesture, out: &std::path::Path) -> Result<String, String> {
     let mut cold = Vec::new();
-    for _ in 0..5 {
-        let mut ev = Evaluator::new(EngineOptions::default(), out.clone())?;
-        cold.push(step(&mut ev, &model)?.0);
+    for _ in 0..g.cold_runs {
+        let mut ev = Evaluator::new(EngineOptions::default(), out.to_path_buf())?;
+        cold.push(step(&mut ev, &g.model, &g.targets, g.shown)?.0);
     }
     cold.sort_by(f64::total_cmp);
-
-    // Warm: one engine, the slider moves.
-    let mut ev = Evaluator::new(EngineOptions::default(), out)?;
-    step(&mut ev, &model)?;
+    let mut ev = Evaluator::new(EngineOptions::default(), out.to_path_buf())?;
+    let (_, _, values) = step(&mut ev, &g.model, &g.targets, g.shown)?;
     let mut warm = Vec::new();
-    for i in 0..40 {
-        let noise = 0.001 + 0.0001 * f64::from(i);
-        model.set_param("kinect", "noise_k", ParamValue::Float(noise))?;
-        let (ms, trace) = step(&mut ev, &model)?;
-        let scene = trace.get("scene").map(|r| r.status);
-        if scene != Some(Status::Cached) {
-            return Err(format!(
-                "the scene should be cached after a Kinect edit, got {scene:?}"
-            ));
+    for i in 0..g.steps {
+        (g.edit)(i, &mut g.model, &values)?;
+        let (ms, trace, _) = step(&mut ev, &g.model, &g.targets, g.shown)?;
+        for n in g.cached {
+            let s = trace.get(n).map(|r| r.status);
+            if s != Some(Status::Cached) {
+                return Err(format!("{}: {n} should be cached, got {s:?}", g.name));
+            }
         }
         warm.push(ms);
     }
     warm.sort_by(f64::total_cmp);
     let (cm, wm) = (percentile(&cold, 0.5), percentile(&warm, 0.5));
-    println!("demo graph 640x480, Kinect noise_k slider, edit -> re-run -> preview picture");
-    println!(
-        "  cached (editor): median {wm:.1} ms, p90 {:.1} ms, max {:.1} ms over {} steps",
-        percentile(&warm, 0.9),
-        warm.last().copied().unwrap_or(f64::NAN),
-        warm.len()
-    );
-    println!(
-        "  cold (peer, every node runs): median {cm:.1} ms over {} runs",
-        cold.len()
-    );
     // Guard: a zero median (impossible in practice) prints inf.
-    println!("  ratio cold / cached: {:.1}", cm / wm.max(1e-9));
+    Ok(format!(
+        "| {} | {} | {wm:.1} | {:.1} | {} | {cm:.1} | {:.1} |",
+        g.name,
+        g.what,
+        percentile(&warm, 0.9),
+        warm.len(),
+        cm / wm.max(1e-9)
+    ))
+}
+
+fn graph(file: &str) -> Result<EditorModel, String> {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../graphs")
+        .join(file);
+    let reg = Arc::new(depthgraph_nodes::registry().map_err(|e| e.to_string())?);
+    EditorModel::load(&path, reg)
+}
+
+fn slider() -> Result<Gesture, String> {
+    Ok(Gesture {
+        name: "slider",
+        what: "demo 640x480, Kinect `noise_k`",
+        model: graph("demo.ron")?,
+        targets: vec!["kinect".into(), "scene".into()],
+        shown: "kinect.depth",
+        cached: &["scene"],
+        steps: 40,
+        cold_runs: 5,
+        edit: Box::new(|i, m, _| {
+            m.set_param(
+                "kinect",
+                "noise_k",
+                ParamValue::Float(0.001 + 0.0001 * i as f64),
+            )
+        }),
+    })
+}
+
+fn drag() -> Result<Gesture, String> {
+    let mut m = graph("copy_paste_relit.ron")?;
+    for n in ["source", "target"] {
+        m.set_param(n, "width", ParamValue::Int(640))?;
+        m.set_param(n, "height", ParamValue::Int(480))?;
+    }
+    let double = |p: ParamValue| match p {
+        ParamValue::Points(p) => Ok(ParamValue::Points(
+            p.iter().map(|q| [q[0] * 2.0, q[1] * 2.0]).collect(),
+        )),
+        other => Err(format!("expected points, got {other:?}")),
+    };
+    let clicks = double(m.param_value("lasso", "clicks")?)?;
+    m.set_param("lasso", "clicks", clicks)?;
+    let tp = double(m.param_value("paste", "target_pixel")?)?;
+    let start = match &tp {
+        ParamValue::Points(p) => p[0],
+        _ => [0.0, 0.0],
+    };
+    m.set_param("paste", "target_pixel", tp)?;
+    m.set_param("vpl", "count", ParamValue::Int(256))?;
+    Ok(Gesture {
+        name: "drag",
+        what: "copy_paste_relit 640x480, 256 VPLs, pasted object dragged 4 px a step",
+        model: m,
+        targets: vec!["relight".into(), "paste".into(), "target".into()],
+        shown: "relight.color",
+        cached: &["source", "target", "lasso", "vpl"],
+        steps: 20,
+        cold_runs: 3,
+        edit: Box::new(move |i, m, _| {
+            m.begin_gesture();
+            let r = m.set_param(
+                "paste",
+                "target_pixel",
+                ParamValue::Points(vec![dragged_target(
+                    start,
+                    [4.0 * (i + 1) as f64, -(i as f64)],
+                    [640, 480],
+                )]),
+            );
+            m.end_gesture();
+            r
+        }),
+    })
+}
+
+fn focus() -> Result<Gesture, String> {
+    let mut m = graph("refocus.ron")?;
+    m.set_param("refocus", "samples", ParamValue::Int(64))?;
+    Ok(Gesture {
+        name: "focus",
+        what: "refocus 640x480, 64 lens samples, click to focus",
+        model: m,
+        targets: vec!["refocus".into(), "fill".into()],
+        shown: "refocus.color",
+        cached: &["fill", "hdr"],
+        steps: 20,
+        cold_runs: 3,
+        edit: Box::new(|i, m, values| {
+            let Some(Value::Depth(d)) = values.get("fill.depth") else {
+                return Err("no fill.depth".into());
+            };
+            // Clicks along a diagonal of the picture.
+            let t = (i as f64 + 0.5) / 20.0;
+            let px = [40.0 + 560.0 * t, 60.0 + 360.0 * t];
+            let z = focus_depth(d, px, FOCUS_WINDOW_RADIUS).ok_or("a hole under the click")?;
+            // Distinct values, so every click is a new request.
+            m.set_param("refocus", "focus_m", ParamValue::Float(z + 1e-4 * i as f64))
+        }),
+    })
+}
+
+fn main() -> Result<(), String> {
+    let parts = std::env::var("DEPTHGRAPH_LATENCY_PARTS")
+        .unwrap_or_else(|_| "slider,drag,focus".to_string());
+    let out = std::env::temp_dir().join("depthgraph-latency-bench");
+    println!(
+        "Edit -> re-run -> preview picture, ms ({} threads, {} profile)",
+        rayon_threads(),
+        if cfg!(debug_assertions) {
+            "dev"
+        } else {
+            "release"
+        }
+    );
+    println!();
+    println!(
+        "| gesture | setting | cached median | cached p90 | steps | cold median (peer) | cold / cached |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|");
+    for part in parts.split(',').map(str::trim) {
+        let g = match part {
+            "slider" => slider()?,
+            "drag" => drag()?,
+            "focus" => focus()?,
+            "" => continue,
+            other => return Err(format!("unknown part `{other}`: slider, drag or focus")),
+        };
+        println!("{}", measure(g, &out)?);
+    }
     Ok(())
+}
+
+fn rayon_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
 }

@@ -12,9 +12,10 @@ use eframe::egui::{self, Color32, ColorImage, TextureHandle, TextureOptions};
 use egui_snarl::ui::{PinInfo, SnarlStyle, SnarlViewer};
 use egui_snarl::{InPin, InPinId, NodeId, OutPin, OutPinId, Snarl};
 
-use crate::eval::Evaluator;
+use crate::eval::{Evaluator, NodeProgress};
 use crate::model::EditorModel;
 use crate::preview::{self, DepthLegend, ImageFrame};
+use crate::{focus, placement};
 
 /// Pin colour of a value type.
 pub fn type_color(ty: ValueType) -> Color32 {
@@ -43,6 +44,10 @@ pub struct PanelState {
     pub error: Option<String>,
     /// The file browser open for a path parameter: "node.param" and the folder shown.
     pub browse: Option<(String, PathBuf)>,
+    /// Nodes whose sliders update on release (slow nodes).
+    pub on_release: std::collections::BTreeSet<String>,
+    /// A slider being dragged on such a node: "node.param" and the value shown.
+    pub dragging: BTreeMap<String, f64>,
 }
 
 /// The entries of `dir` for the file browser: folders first, then files,
@@ -107,8 +112,9 @@ fn file_browser(ui: &mut egui::Ui, state: &mut PanelState) -> Option<String> {
     picked
 }
 
-/// Parameter widgets of `node`, generated from its kind's schema. Changes go
-/// through [`EditorModel::set_param`]; a refusal is kept in `state.error`.
+/// Parameter widgets of `node`, generated from its kind's schema, under its
+/// kind's documentation. Changes go through [`EditorModel::set_param`]; a
+/// refusal is kept in `state.error`.
 pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state: &mut PanelState) {
     let imp = match model.node_impl(node) {
         Ok(i) => i,
@@ -120,137 +126,199 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
     let schema = imp.schema();
     ui.heading(node);
     ui.label(format!("kind: {}", schema.kind));
+    let (first, rest) = schema.doc.split_once('\n').unwrap_or((schema.doc, ""));
+    if !first.is_empty() {
+        ui.add(egui::Label::new(egui::RichText::new(first).small()).wrap());
+    }
+    if !rest.trim().is_empty() {
+        egui::CollapsingHeader::new("more about this node")
+            .id_salt(("doc", node))
+            .show(ui, |ui| {
+                ui.add(egui::Label::new(egui::RichText::new(rest.trim()).small()).wrap());
+            });
+    }
+    let mut release = state.on_release.contains(node);
+    if ui
+        .checkbox(&mut release, "update on release")
+        .on_hover_text(
+            "sliders of this node re-run it when let go, not while dragged (for slow nodes)",
+        )
+        .changed()
+    {
+        if release {
+            state.on_release.insert(node.to_string());
+        } else {
+            state.on_release.remove(node);
+        }
+    }
     ui.separator();
     for spec in &schema.params {
-        let name = spec.name;
-        let current = match model.param_value(node, name) {
-            Ok(v) => v,
-            Err(e) => {
-                ui.colored_label(Color32::RED, e);
-                spec.default.clone()
-            }
-        };
-        let mut new_value: Option<ParamValue> = None;
-        let mut new_text: Option<String> = None;
-        ui.horizontal(|ui| {
-            // A checkbox carries its own name (clickable); others get a label.
-            let label_id = if matches!(spec.kind, ParamKind::Bool) {
-                egui::Id::NULL
-            } else {
-                ui.label(name).on_hover_text(spec.doc).id
-            };
-            match (&spec.kind, &current) {
-                (ParamKind::Float { min, max }, ParamValue::Float(x)) => {
-                    let mut v = *x;
-                    let r = if min.is_finite() && max.is_finite() {
-                        ui.add(
-                            egui::Slider::new(&mut v, *min..=*max)
-                                .logarithmic(*min >= 0.0 && *max / min.max(1e-9) > 1e3),
-                        )
-                    } else {
-                        ui.add(egui::DragValue::new(&mut v).speed(0.01))
-                    };
-                    if r.labelled_by(label_id).changed() {
-                        new_value = Some(ParamValue::Float(v));
-                    }
-                }
-                (ParamKind::Int { min, max }, ParamValue::Int(x)) => {
-                    let mut v = *x;
-                    let r = if max.saturating_sub(*min) <= 100_000 {
-                        ui.add(
-                            egui::Slider::new(&mut v, *min..=*max)
-                                .logarithmic(*min >= 0 && max.saturating_sub(*min) > 1000),
-                        )
-                    } else {
-                        ui.add(egui::DragValue::new(&mut v).range(*min..=*max))
-                    };
-                    if r.labelled_by(label_id).changed() {
-                        new_value = Some(ParamValue::Int(v));
-                    }
-                }
-                (ParamKind::Bool, ParamValue::Bool(b)) => {
-                    let mut v = *b;
-                    if ui.checkbox(&mut v, name).on_hover_text(spec.doc).changed() {
-                        new_value = Some(ParamValue::Bool(v));
-                    }
-                }
-                (ParamKind::Choice(choices), ParamValue::Text(s)) => {
-                    let mut v = s.clone();
-                    egui::ComboBox::from_id_salt(("param", node, name))
-                        .selected_text(v.clone())
-                        .show_ui(ui, |ui| {
-                            for c in choices.iter() {
-                                ui.selectable_value(&mut v, c.to_string(), *c);
-                            }
-                        })
-                        .response
-                        .labelled_by(label_id);
-                    if v != *s {
-                        new_value = Some(ParamValue::Text(v));
-                    }
-                }
-                (
-                    ParamKind::Text | ParamKind::InputPath | ParamKind::OutputPath,
-                    ParamValue::Text(s),
-                ) => {
-                    let mut v = s.clone();
-                    if ui
-                        .text_edit_singleline(&mut v)
-                        .labelled_by(label_id)
-                        .changed()
-                    {
-                        new_value = Some(ParamValue::Text(v));
-                    }
-                    if matches!(spec.kind, ParamKind::InputPath | ParamKind::OutputPath)
-                        && ui.button("…").on_hover_text("choose a file").clicked()
-                    {
-                        // Start in the folder of the current value (or the working directory).
-                        let start = Path::new(s.as_str())
-                            .parent()
-                            .filter(|p| p.is_dir())
-                            .map(Path::to_path_buf)
-                            .unwrap_or_else(|| PathBuf::from("."));
-                        state.browse = Some((format!("{node}.{name}"), start));
-                    }
-                }
-                _ => {
-                    // Points, Floats, Vec3: edited as RON text, applied on Enter.
-                    let key = format!("{node}.{name}");
-                    let buf = state
-                        .edits
-                        .entry(key.clone())
-                        .or_insert_with(|| current.to_ron());
-                    let r = ui.text_edit_singleline(buf).labelled_by(label_id);
-                    if r.lost_focus() {
-                        new_text = Some(buf.clone());
-                        state.edits.remove(&key);
-                    }
-                }
-            }
-        });
-        if state
-            .browse
-            .as_ref()
-            .is_some_and(|(k, _)| *k == format!("{node}.{name}"))
-        {
-            if let Some(path) = file_browser(ui, state) {
-                new_value = Some(ParamValue::Text(path));
-            }
-        }
-        let result = match (new_value, new_text) {
-            (Some(v), _) => Some(model.set_param(node, name, v)),
-            (None, Some(t)) => Some(model.set_param_text(node, name, &t)),
-            _ => None,
-        };
-        match result {
-            Some(Err(e)) => state.error = Some(e),
-            Some(Ok(())) => state.error = None,
-            None => {}
-        }
+        param_row(ui, model, node, spec, state, "panel");
     }
     if let Some(e) = &state.error {
         ui.colored_label(Color32::RED, e);
     }
+}
+
+/// The widget of one parameter (`salt` tells apart two widgets of the same
+/// parameter in one frame, e.g. the side panel's and the preview's).
+pub fn param_row(
+    ui: &mut egui::Ui,
+    model: &mut EditorModel,
+    node: &str,
+    spec: &depthgraph_graph::params::ParamSpec,
+    state: &mut PanelState,
+    salt: &str,
+) {
+    let name = spec.name;
+    let current = match model.param_value(node, name) {
+        Ok(v) => v,
+        Err(e) => {
+            ui.colored_label(Color32::RED, e);
+            spec.default.clone()
+        }
+    };
+    let on_release = state.on_release.contains(node);
+    let key = format!("{node}.{name}");
+    let mut new_value: Option<ParamValue> = None;
+    let mut new_text: Option<String> = None;
+    ui.horizontal(|ui| {
+        // A checkbox carries its own name (clickable); others get a label.
+        let label_id = if matches!(spec.kind, ParamKind::Bool) {
+            egui::Id::NULL
+        } else {
+            ui.label(name).on_hover_text(spec.doc).id
+        };
+        match (&spec.kind, &current) {
+            (ParamKind::Float { min, max }, ParamValue::Float(x)) => {
+                let mut v = state.dragging.get(&key).copied().unwrap_or(*x);
+                let r = if min.is_finite() && max.is_finite() {
+                    ui.add(
+                        egui::Slider::new(&mut v, *min..=*max)
+                            .logarithmic(*min >= 0.0 && *max / min.max(1e-9) > 1e3),
+                    )
+                } else {
+                    ui.add(egui::DragValue::new(&mut v).speed(0.01))
+                };
+                let r = r.labelled_by(label_id);
+                if let Some(v) = released(state, &key, on_release, &r, v) {
+                    new_value = Some(ParamValue::Float(v));
+                }
+            }
+            (ParamKind::Int { min, max }, ParamValue::Int(x)) => {
+                let mut v = state.dragging.get(&key).map_or(*x, |f| f.round() as i64);
+                let r = if max.saturating_sub(*min) <= 100_000 {
+                    ui.add(
+                        egui::Slider::new(&mut v, *min..=*max)
+                            .logarithmic(*min >= 0 && max.saturating_sub(*min) > 1000),
+                    )
+                } else {
+                    ui.add(egui::DragValue::new(&mut v).range(*min..=*max))
+                };
+                let r = r.labelled_by(label_id);
+                if let Some(v) = released(state, &key, on_release, &r, v as f64) {
+                    new_value = Some(ParamValue::Int(v.round() as i64));
+                }
+            }
+            (ParamKind::Bool, ParamValue::Bool(b)) => {
+                let mut v = *b;
+                if ui.checkbox(&mut v, name).on_hover_text(spec.doc).changed() {
+                    new_value = Some(ParamValue::Bool(v));
+                }
+            }
+            (ParamKind::Choice(choices), ParamValue::Text(s)) => {
+                let mut v = s.clone();
+                egui::ComboBox::from_id_salt(("param", salt, node, name))
+                    .selected_text(v.clone())
+                    .show_ui(ui, |ui| {
+                        for c in choices.iter() {
+                            ui.selectable_value(&mut v, c.to_string(), *c);
+                        }
+                    })
+                    .response
+                    .labelled_by(label_id);
+                if v != *s {
+                    new_value = Some(ParamValue::Text(v));
+                }
+            }
+            (
+                ParamKind::Text | ParamKind::InputPath | ParamKind::OutputPath,
+                ParamValue::Text(s),
+            ) => {
+                let mut v = s.clone();
+                if ui
+                    .text_edit_singleline(&mut v)
+                    .labelled_by(label_id)
+                    .changed()
+                {
+                    new_value = Some(ParamValue::Text(v));
+                }
+                if matches!(spec.kind, ParamKind::InputPath | ParamKind::OutputPath)
+                    && ui.button("…").on_hover_text("choose a file").clicked()
+                {
+                    // Start in the folder of the current value (or the working directory).
+                    let start = Path::new(s.as_str())
+                        .parent()
+                        .filter(|p| p.is_dir())
+                        .map(Path::to_path_buf)
+                        .unwrap_or_else(|| PathBuf::from("."));
+                    state.browse = Some((key.clone(), start));
+                }
+            }
+            _ => {
+                // Points, Floats, Vec3: edited as RON text, applied on Enter.
+                let buf = state
+                    .edits
+                    .entry(key.clone())
+                    .or_insert_with(|| current.to_ron());
+                let r = ui.text_edit_singleline(buf).labelled_by(label_id);
+                if r.lost_focus() {
+                    new_text = Some(buf.clone());
+                    state.edits.remove(&key);
+                }
+            }
+        }
+    });
+    if state.browse.as_ref().is_some_and(|(k, _)| *k == key) {
+        if let Some(path) = file_browser(ui, state) {
+            new_value = Some(ParamValue::Text(path));
+        }
+    }
+    let result = match (new_value, new_text) {
+        (Some(v), _) => Some(model.set_param(node, name, v)),
+        (None, Some(t)) => Some(model.set_param_text(node, name, &t)),
+        _ => None,
+    };
+    match result {
+        Some(Err(e)) => state.error = Some(e),
+        Some(Ok(())) => state.error = None,
+        None => {}
+    }
+}
+
+/// The value a slider hands to the document this frame: every change, or
+/// with `on_release` only when the drag ends (the value shown meanwhile is
+/// kept in `state.dragging`); a click or a key changes it at once.
+fn released(
+    state: &mut PanelState,
+    key: &str,
+    on_release: bool,
+    r: &egui::Response,
+    v: f64,
+) -> Option<f64> {
+    if !on_release {
+        return r.changed().then_some(v);
+    }
+    if r.drag_stopped() {
+        state.dragging.remove(key);
+        return Some(v);
+    }
+    if r.dragged() {
+        state.dragging.insert(key.to_string(), v);
+        return None;
+    }
+    state.dragging.remove(key);
+    r.changed().then_some(v)
 }
 
 /// What the canvas asks the app to do after drawing.
@@ -258,7 +326,27 @@ pub fn param_panel(ui: &mut egui::Ui, model: &mut EditorModel, node: &str, state
 struct CanvasActions {
     select: Option<String>,
     message: Option<String>,
+    /// A node's cancel button was pressed.
+    cancel: bool,
 }
+
+/// The header colour of a pipeline stage (dark enough for light text).
+pub fn stage_color(stage: &str) -> Color32 {
+    match stage {
+        "input/output" => Color32::from_rgb(70, 70, 90),
+        "simulation" => Color32::from_rgb(60, 90, 60),
+        "camera" => Color32::from_rgb(110, 70, 40),
+        "depth" => Color32::from_rgb(40, 70, 120),
+        "image" => Color32::from_rgb(90, 90, 50),
+        "selection" => Color32::from_rgb(110, 50, 90),
+        "relighting" => Color32::from_rgb(120, 90, 20),
+        _ => Color32::from_rgb(70, 70, 70),
+    }
+}
+
+/// The smallest canvas zoom: node titles (14 pt text) stay at least 12 px
+/// high; a graph larger than the window is scrolled instead.
+pub const MIN_CANVAS_SCALE: f32 = 12.0 / 14.0;
 
 struct GraphViewer<'a> {
     model: &'a mut EditorModel,
@@ -268,6 +356,14 @@ struct GraphViewer<'a> {
     errors: &'a [(Option<String>, String)],
     /// Filter text of the add-node menu.
     search: &'a mut String,
+    /// Nodes of the run in flight that started and have not finished.
+    running: &'a BTreeMap<String, NodeProgress>,
+    /// Each node's time when it last ran (ms).
+    last_ms: &'a BTreeMap<String, f64>,
+    /// Nodes that were running when the run was cancelled.
+    cancelled: &'a std::collections::BTreeSet<String>,
+    /// The pipeline stage of each node kind.
+    stages: &'a BTreeMap<String, &'static str>,
     actions: CanvasActions,
 }
 
@@ -354,7 +450,27 @@ impl SnarlViewer<String> for GraphViewer<'_> {
     ) {
         let name = snarl.get_node(node).cloned().unwrap_or_default();
         ui.vertical(|ui| {
-            if let Some(rec) = self.trace.and_then(|t| t.get(&name)) {
+            if let Some(p) = self.running.get(&name) {
+                let secs = p.started.elapsed().as_secs_f32();
+                let bar = egui::ProgressBar::new(p.fraction)
+                    .desired_width(150.0)
+                    .text(format!("{:.0} % · {secs:.1} s", p.fraction * 100.0));
+                // A node that reports nothing but its start gets a moving bar.
+                ui.add(if p.fraction <= 0.0 {
+                    bar.animate(true)
+                } else {
+                    bar
+                });
+                if ui
+                    .button("cancel")
+                    .on_hover_text("stop the run in flight")
+                    .clicked()
+                {
+                    self.actions.cancel = true;
+                }
+            } else if self.cancelled.contains(&name) {
+                ui.colored_label(Color32::from_rgb(255, 170, 60), "cancelled");
+            } else if let Some(rec) = self.trace.and_then(|t| t.get(&name)) {
                 let color = match rec.status {
                     Status::Ran => Color32::LIGHT_GREEN,
                     Status::Cached => Color32::LIGHT_BLUE,
@@ -371,6 +487,13 @@ impl SnarlViewer<String> for GraphViewer<'_> {
                 if let Some(reason) = &rec.reason {
                     ui.small(reason.as_str());
                 }
+            }
+            let ran_now = self
+                .trace
+                .and_then(|t| t.get(&name))
+                .is_some_and(|r| matches!(r.status, Status::Ran | Status::Passthrough));
+            if let (Some(ms), false) = (self.last_ms.get(&name), ran_now) {
+                ui.small(format!("last run {ms:.1} ms"));
             }
             for (_, e) in self
                 .errors
@@ -427,6 +550,24 @@ impl SnarlViewer<String> for GraphViewer<'_> {
                 let r = self.model.disconnect(&dst, ip);
                 self.report(r);
             }
+        }
+    }
+
+    fn header_frame(
+        &mut self,
+        default: egui::Frame,
+        node: NodeId,
+        _inputs: &[InPin],
+        _outputs: &[OutPin],
+        snarl: &Snarl<String>,
+    ) -> egui::Frame {
+        let stage = snarl
+            .get_node(node)
+            .and_then(|n| self.model.document().node(n))
+            .and_then(|d| self.stages.get(&d.kind.value));
+        match stage {
+            Some(stage) => default.fill(stage_color(stage)),
+            None => default,
         }
     }
 
@@ -498,6 +639,9 @@ pub struct AutoShot {
     pub timeout: Duration,
     /// The outcome, filled in before the window closes.
     pub outcome: Arc<Mutex<Option<Result<(), String>>>>,
+    /// Move the pasted object of the selected preview by this many image
+    /// pixels once it is shown (as a drag does), then wait for the result.
+    pub drag: Option<[f64; 2]>,
 }
 
 struct ShotState {
@@ -506,6 +650,8 @@ struct ShotState {
     ready_frames: u32,
     requested: bool,
     done: bool,
+    /// The `drag` has been applied.
+    dragged: bool,
 }
 
 /// Writes an egui screenshot as an RGBA PNG.
@@ -578,6 +724,40 @@ pub struct EditorApp {
     search: String,
     notify_set: bool,
     shot: Option<ShotState>,
+    /// Each node kind's pipeline stage (the canvas's header colours).
+    stages: BTreeMap<String, &'static str>,
+    /// Each node's time when it last ran (ms).
+    last_ms: BTreeMap<String, f64>,
+    /// Nodes that were running when the last run was cancelled.
+    cancelled: std::collections::BTreeSet<String>,
+    /// The running nodes of the request in flight (refreshed each frame).
+    running: BTreeMap<String, NodeProgress>,
+    /// The node whose picture the preview texture shows.
+    texture_node: Option<String>,
+    /// The `Paste` node a drag on the selected node's preview moves.
+    paste: Option<String>,
+    /// The depth ("node.port") under a focus preview (Refocus's input).
+    focus_depth: Option<String>,
+    /// The placement drag in progress.
+    place: Option<PlaceDrag>,
+    /// A Ctrl + wheel scale gesture is open.
+    wheel_gesture: bool,
+}
+
+/// A drag on the preview that places the pasted object.
+#[derive(Debug, Clone, Copy)]
+struct PlaceDrag {
+    /// Where the pointer was pressed (screen).
+    origin: egui::Pos2,
+    what: PlaceWhat,
+}
+
+#[derive(Debug, Clone, Copy)]
+enum PlaceWhat {
+    /// Moving the object: `Paste.target_pixel` when the drag began.
+    Move { start: [f64; 2] },
+    /// Turning it with the ring: `Paste.rotation_deg` when the drag began.
+    Rotate { start: [f64; 3] },
 }
 
 impl EditorApp {
@@ -620,6 +800,23 @@ impl EditorApp {
             search: String::new(),
             notify_set: false,
             shot: None,
+            stages: depthgraph_nodes::stages()
+                .map(|list| {
+                    list.into_iter()
+                        .flat_map(|(stage, kinds)| {
+                            kinds.into_iter().map(move |k| (k.to_string(), stage))
+                        })
+                        .collect()
+                })
+                .unwrap_or_default(),
+            last_ms: BTreeMap::new(),
+            cancelled: std::collections::BTreeSet::new(),
+            running: BTreeMap::new(),
+            texture_node: None,
+            paste: None,
+            focus_depth: None,
+            place: None,
+            wheel_gesture: false,
         }
     }
 
@@ -632,6 +829,7 @@ impl EditorApp {
             ready_frames: 0,
             requested: false,
             done: false,
+            dragged: false,
         });
         self
     }
@@ -722,12 +920,27 @@ impl EditorApp {
             return;
         };
         self.background = upstream_color(&self.model, &sel);
+        self.paste = placement::paste_upstream(&self.model, &sel);
+        let focus_kind = self
+            .selected_kind()
+            .is_some_and(|k| focus::FOCUS_KINDS.contains(&k.as_str()));
+        self.focus_depth = if focus_kind {
+            self.model
+                .input_source(&sel, "depth")
+                .map(|(n, p)| format!("{n}.{p}"))
+        } else {
+            None
+        };
         let mut targets = vec![sel];
-        if let Some(bg) = &self.background {
-            if let Some((node, _)) = bg.split_once('.') {
+        for key in [&self.background, &self.focus_depth].into_iter().flatten() {
+            if let Some((node, _)) = key.split_once('.') {
                 targets.push(node.to_string());
             }
         }
+        // The pasted object's mask, where a drag can grab it.
+        targets.extend(self.paste.clone());
+        targets.dedup();
+        let gesture = self.model.in_gesture();
         let Some(ev) = self.evaluator.as_mut() else {
             return;
         };
@@ -738,8 +951,17 @@ impl EditorApp {
         }
         match self.model.pipeline_for(Some(&targets)) {
             Ok(p) => {
-                ev.start(p, vec![self.path.clone()]);
-                self.request_started = Some(Instant::now());
+                // A drag lets the run in flight finish (each step is shown)
+                // and replaces only the request waiting behind it.
+                if gesture {
+                    ev.start_queued(p, vec![self.path.clone()]);
+                } else {
+                    ev.start(p, vec![self.path.clone()]);
+                }
+                self.cancelled.clear();
+                if self.request_started.is_none() || !gesture {
+                    self.request_started = Some(Instant::now());
+                }
                 ctx.request_repaint();
             }
             Err(errs) => self.eval_error = Some(errs.join("\n")),
@@ -750,22 +972,124 @@ impl EditorApp {
         let Some(ev) = self.evaluator.as_mut() else {
             return;
         };
-        if let Some(outcome) = ev.poll() {
+        let outcome = ev.poll();
+        let pending = ev.pending();
+        let running = ev.running();
+        if let Some(outcome) = outcome {
             match outcome.result {
                 Ok((trace, values)) => {
+                    for rec in &trace.nodes {
+                        if rec.status == Status::Ran || rec.status == Status::Passthrough {
+                            self.last_ms.insert(rec.node.clone(), rec.ms);
+                        }
+                    }
                     self.trace = Some(trace);
                     self.values = values;
                     self.eval_error = None;
+                    self.cancelled.clear();
                     self.rebuild_preview(ctx);
-                    if let Some(t) = self.request_started.take() {
-                        self.last_latency_ms = Some(t.elapsed().as_secs_f64() * 1e3);
+                    // A drag's intermediate step: the newest is still coming.
+                    if !pending {
+                        if let Some(t) = self.request_started.take() {
+                            self.last_latency_ms = Some(t.elapsed().as_secs_f64() * 1e3);
+                        }
                     }
                 }
                 Err(e) => {
                     self.request_started = None;
-                    self.eval_error = Some(e);
+                    if outcome.cancelled {
+                        self.cancelled = running.keys().cloned().collect();
+                        self.eval_error = Some(format!(
+                            "run cancelled{}",
+                            if self.cancelled.is_empty() {
+                                String::new()
+                            } else {
+                                format!(
+                                    " while {} ran",
+                                    self.cancelled
+                                        .iter()
+                                        .cloned()
+                                        .collect::<Vec<_>>()
+                                        .join(", ")
+                                )
+                            }
+                        ));
+                    } else {
+                        self.eval_error = Some(e);
+                    }
                 }
             }
+        }
+        self.running = if self.request_started.is_some() {
+            running
+        } else {
+            BTreeMap::new()
+        };
+        if !self.running.is_empty() {
+            // Keep the progress bars moving.
+            ctx.request_repaint_after(Duration::from_millis(100));
+        }
+    }
+
+    /// Cancels the run in flight (the nodes it was running say
+    /// "cancelled"); false when nothing was running.
+    pub fn cancel_run(&mut self) -> bool {
+        if !self.busy() {
+            return false;
+        }
+        self.evaluator.as_mut().is_some_and(Evaluator::cancel)
+    }
+
+    /// Nodes that were running when the last run was cancelled.
+    pub fn cancelled_nodes(&self) -> &std::collections::BTreeSet<String> {
+        &self.cancelled
+    }
+
+    /// The nodes of the run in flight that have started and not finished.
+    pub fn running_nodes(&self) -> &BTreeMap<String, NodeProgress> {
+        &self.running
+    }
+
+    /// The run's error or cancellation, as shown under the canvas.
+    pub fn run_error(&self) -> Option<&str> {
+        self.eval_error.as_deref()
+    }
+
+    /// Moves the pasted object of the selected node's preview by `delta`
+    /// image pixels, as one drag does (one undoable edit): the screenshot
+    /// mode's `--drag` and scripts use it.
+    pub fn move_pasted(&mut self, delta: [f64; 2]) -> Result<(), String> {
+        let sel = self.selected.clone().ok_or("no node is selected")?;
+        let paste = placement::paste_upstream(&self.model, &sel)
+            .ok_or_else(|| format!("node `{sel}` is not downstream of a Paste"))?;
+        let mask = match self.values.get(&format!("{paste}.mask")) {
+            Some(Value::Mask(m)) => m.clone(),
+            _ => return Err(format!("`{paste}.mask` has not been computed yet")),
+        };
+        let (w, h) = mask.dims();
+        let start = self.placement_start(&paste, &mask)?;
+        self.model.begin_gesture();
+        let r = self.model.set_param(
+            &paste,
+            "target_pixel",
+            ParamValue::Points(vec![placement::dragged_target(start, delta, [w, h])]),
+        );
+        self.model.end_gesture();
+        r
+    }
+
+    /// `Paste.target_pixel` where a move starts: its value, or (when the
+    /// object is placed by translation alone) the object's centroid.
+    fn placement_start(
+        &self,
+        paste: &str,
+        mask: &depthgraph_graph::prelude::Mask,
+    ) -> Result<[f64; 2], String> {
+        match self.model.param_value(paste, "target_pixel")? {
+            ParamValue::Points(p) if !p.is_empty() => Ok(p[0]),
+            _ => placement::object_view(mask)
+                .map(|v| v.centroid)
+                .ok_or_else(|| format!("`{paste}` placed nothing in the picture")),
         }
     }
 
@@ -792,6 +1116,7 @@ impl EditorApp {
     /// Builds the preview texture from the latest values.
     fn rebuild_preview(&mut self, ctx: &egui::Context) {
         self.texture = None;
+        self.texture_node = None;
         self.legend = None;
         self.preview_hash = None;
         self.image_frame = None;
@@ -864,13 +1189,14 @@ impl EditorApp {
             }
             self.preview_hash = Some(std::hash::Hasher::finish(&h));
             self.texture = Some(ctx.load_texture("preview", p.image, TextureOptions::NEAREST));
+            self.texture_node = Some(sel.clone());
         }
     }
 
     /// The preview pane: output choice, zoom, the picture (with hover
     /// values), a depth legend, and lasso clicks for a Lasso node.
     fn preview_pane(&mut self, ui: &mut egui::Ui, sel: &str) {
-        ui.strong("preview");
+        ui.strong(format!("preview of {sel}"));
         let ports = self.image_ports();
         let mut rebuild = false;
         ui.horizontal(|ui| {
@@ -908,8 +1234,33 @@ impl EditorApp {
         if rebuild {
             self.rebuild_preview(ui.ctx());
         }
-        if let Some(ms) = self.last_latency_ms {
-            ui.small(format!("result shown {ms:.0} ms after the change"));
+        // One status row, always there, so the picture never moves under
+        // the pointer when a run starts or ends.
+        ui.horizontal(|ui| {
+            ui.set_min_height(22.0);
+            if self.busy() {
+                ui.add(egui::Spinner::new());
+                ui.small("computing… (the previous result is shown dimmed)");
+                if ui.small_button("cancel run").clicked() {
+                    self.cancel_run();
+                }
+            } else if let Some(ms) = self.last_latency_ms {
+                ui.small(format!("result shown {ms:.0} ms after the change"));
+            }
+        });
+        let focus_kind = self.focus_depth.is_some();
+        if focus_kind {
+            ui.small("Click on the picture to focus there; the circle shows the blur of the pixel under the pointer.");
+            if let Ok(imp) = self.model.node_impl(sel) {
+                for name in ["focus_m", "f_number", "aperture"] {
+                    if let Some(spec) = imp.schema().param(name) {
+                        param_row(ui, &mut self.model, sel, spec, &mut self.panel, "preview");
+                    }
+                }
+            }
+        }
+        if self.paste.is_some() && !focus_kind {
+            ui.small("Drag the pasted object to move it, Ctrl + wheel to scale it, drag the ring to turn it.");
         }
         let lasso = self.selected_kind().as_deref() == Some("Lasso");
         let mut clicks = match self.model.param_value(sel, "clicks") {
@@ -955,8 +1306,13 @@ impl EditorApp {
                 .or_else(|| ports.first().map(|p| p.to_string()))
                 .unwrap_or_default()
         );
+        // The picture is stale while a new one computes (or it is another
+        // node's): shown dimmed.
+        let stale = self.busy() || self.texture_node.as_deref() != Some(sel);
+        let max_height = (ui.available_height() * 0.6).clamp(160.0, 560.0);
         egui::ScrollArea::both()
-            .max_height(560.0)
+            .id_salt("preview-scroll")
+            .max_height(max_height)
             .auto_shrink([false, true])
             .show(ui, |ui| {
                 let scale = match self.zoom {
@@ -965,13 +1321,26 @@ impl EditorApp {
                     None if size.x > 0.0 => (ui.available_width() / size.x).max(0.01),
                     None => 1.0,
                 };
-                let resp =
-                    ui.add(egui::Image::new((tex.id(), size * scale)).sense(egui::Sense::click()));
+                let tint = if stale {
+                    Color32::from_gray(110)
+                } else {
+                    Color32::WHITE
+                };
+                let resp = ui.add(
+                    egui::Image::new((tex.id(), size * scale))
+                        .tint(tint)
+                        .sense(egui::Sense::click_and_drag()),
+                );
                 let frame = ImageFrame {
                     rect: resp.rect,
                     size: pixels,
                 };
                 self.image_frame = Some(frame);
+                if focus_kind {
+                    self.focus_interaction(ui, &resp, frame, sel);
+                } else if self.paste.is_some() {
+                    self.place_interaction(ui, &resp, frame);
+                }
                 if let Some(c) = clicks.as_mut() {
                     if resp.clicked() {
                         if let Some(px) =
@@ -1049,6 +1418,190 @@ impl EditorApp {
                 if let Err(e) = self.model.set_param(sel, "clicks", ParamValue::Points(c)) {
                     self.message = Some(e);
                 }
+            }
+        }
+    }
+
+    /// Drag to place on a preview downstream of `Paste` (see
+    /// [`placement`]): the ring gizmo, a drag on the object (move) or on
+    /// the ring (turn), Ctrl + wheel (scale). Each gesture is one undoable
+    /// edit; its steps are evaluated latest-wins.
+    fn place_interaction(&mut self, ui: &egui::Ui, resp: &egui::Response, frame: ImageFrame) {
+        let Some(paste) = self.paste.clone() else {
+            return;
+        };
+        let mask = match self.values.get(&format!("{paste}.mask")) {
+            Some(Value::Mask(m)) if m.dims() == (frame.size[0], frame.size[1]) => m.clone(),
+            _ => return,
+        };
+        let s = frame.scale();
+        let view = placement::object_view(&mask);
+        let ring = view.map(|v| (frame.to_screen(v.centroid), v.radius as f32 * s + 12.0));
+        let rotation = match self.model.param_value(&paste, "rotation_deg") {
+            Ok(ParamValue::Vec3(r)) => r,
+            _ => [0.0; 3],
+        };
+        if let Some((c, r)) = ring {
+            let painter = ui.painter_at(resp.rect);
+            painter.circle_stroke(
+                c,
+                r,
+                egui::Stroke::new(2.0, Color32::from_rgba_unmultiplied(255, 255, 255, 150)),
+            );
+            let yaw = rotation[0].to_radians() as f32;
+            painter.circle_filled(
+                c + r * egui::vec2(yaw.sin(), -yaw.cos()),
+                5.0,
+                Color32::YELLOW,
+            );
+        }
+        if resp.drag_started() {
+            let origin = ui.input(|i| i.pointer.press_origin());
+            if let Some((origin, px)) = origin.and_then(|o| frame.to_pixel(o).map(|p| (o, p))) {
+                let on_ring = ring.is_some_and(|(c, r)| ((origin - c).length() - r).abs() <= 10.0);
+                let what = if placement::on_object(&mask, px) {
+                    self.placement_start(&paste, &mask)
+                        .ok()
+                        .map(|start| PlaceWhat::Move { start })
+                } else if on_ring {
+                    Some(PlaceWhat::Rotate { start: rotation })
+                } else {
+                    None
+                };
+                if let Some(what) = what {
+                    self.model.begin_gesture();
+                    self.place = Some(PlaceDrag { origin, what });
+                }
+            }
+        }
+        if let Some(drag) = self.place {
+            let pos = resp
+                .interact_pointer_pos()
+                .or_else(|| ui.input(|i| i.pointer.latest_pos()));
+            if let (Some(pos), true) = (pos, resp.dragged() || resp.drag_stopped()) {
+                let d = pos - drag.origin;
+                let r = match drag.what {
+                    PlaceWhat::Move { start } => {
+                        // Guard: the frame's scale is > 0 (ImageFrame::scale).
+                        let delta = [f64::from(d.x / s), f64::from(d.y / s)];
+                        self.model.set_param(
+                            &paste,
+                            "target_pixel",
+                            ParamValue::Points(vec![placement::dragged_target(
+                                start, delta, frame.size,
+                            )]),
+                        )
+                    }
+                    PlaceWhat::Rotate { start } => self.model.set_param(
+                        &paste,
+                        "rotation_deg",
+                        ParamValue::Vec3(placement::rotated(
+                            start,
+                            [f64::from(d.x), f64::from(d.y)],
+                        )),
+                    ),
+                };
+                if let Err(e) = r {
+                    self.message = Some(e);
+                }
+            }
+            if resp.drag_stopped() || !ui.input(|i| i.pointer.any_down()) {
+                self.place = None;
+                self.model.end_gesture();
+            }
+        }
+        let (zoom, ctrl) = ui.input(|i| (i.zoom_delta(), i.modifiers.ctrl || i.modifiers.command));
+        if resp.hovered() && zoom != 1.0 {
+            if let Ok(ParamValue::Float(scale)) = self.model.param_value(&paste, "scale") {
+                if !self.wheel_gesture {
+                    self.model.begin_gesture();
+                    self.wheel_gesture = true;
+                }
+                let v = placement::zoomed_scale(scale, f64::from(zoom));
+                if let Err(e) = self.model.set_param(&paste, "scale", ParamValue::Float(v)) {
+                    self.message = Some(e);
+                }
+            }
+        }
+        if self.wheel_gesture && !ctrl {
+            self.wheel_gesture = false;
+            if self.place.is_none() {
+                self.model.end_gesture();
+            }
+        }
+    }
+
+    /// Click to focus on a Refocus / ReverseMappedDof preview (see
+    /// [`focus`]): a click sets `focus_m` to the median depth of a small
+    /// window under the pointer; hovering draws the pixel's circle of
+    /// confusion under the node's lens.
+    fn focus_interaction(
+        &mut self,
+        ui: &egui::Ui,
+        resp: &egui::Response,
+        frame: ImageFrame,
+        sel: &str,
+    ) {
+        let Some(key) = self.focus_depth.clone() else {
+            return;
+        };
+        let depth = match self.values.get(&key) {
+            Some(Value::Depth(d)) => d.clone(),
+            _ => return,
+        };
+        let (dw, dh) = depth.dims();
+        // Image pixel -> depth pixel, scaled when the sizes differ. Guard:
+        // an empty frame maps to 0.
+        let to_depth = |px: [f64; 2]| {
+            let sx = if frame.size[0] > 0 {
+                dw as f64 / frame.size[0] as f64
+            } else {
+                0.0
+            };
+            let sy = if frame.size[1] > 0 {
+                dh as f64 / frame.size[1] as f64
+            } else {
+                0.0
+            };
+            [px[0] * sx, px[1] * sy]
+        };
+        if resp.clicked() {
+            if let Some(px) = resp.interact_pointer_pos().and_then(|p| frame.to_pixel(p)) {
+                match focus::focus_depth(&depth, to_depth(px), focus::FOCUS_WINDOW_RADIUS) {
+                    Some(z) => {
+                        let z = (z * 1e4).round() / 1e4;
+                        match self.model.set_param(sel, "focus_m", ParamValue::Float(z)) {
+                            Ok(()) => self.message = Some(format!("focus at {z:.3} m")),
+                            Err(e) => self.message = Some(e),
+                        }
+                    }
+                    None => {
+                        self.message = Some("no depth under the pointer: focus unchanged".into())
+                    }
+                }
+            }
+        }
+        if let Some(pos) = resp.hover_pos() {
+            let Some(px) = frame.to_pixel(pos) else {
+                return;
+            };
+            let Some(z) = focus::focus_depth(&depth, to_depth(px), 0) else {
+                return;
+            };
+            let Ok(lens) = focus::node_lens(&self.model, sel) else {
+                return;
+            };
+            if let Some(coc) = focus::coc_px(&lens, frame.size[0], z as f32) {
+                let painter = ui.painter_at(resp.rect);
+                let r = (coc as f32 * frame.scale() * 0.5).max(1.5);
+                painter.circle_stroke(pos, r, egui::Stroke::new(1.5, Color32::YELLOW));
+                painter.text(
+                    pos + egui::vec2(r + 6.0, -r - 6.0),
+                    egui::Align2::LEFT_BOTTOM,
+                    format!("{z:.2} m · blur {coc:.1} px"),
+                    egui::FontId::proportional(13.0),
+                    Color32::YELLOW,
+                );
             }
         }
     }
@@ -1131,6 +1684,26 @@ impl EditorApp {
         if ready {
             shot.ready_frames += 1;
         }
+        let apply_drag = match (shot.cfg.drag, shot.dragged, shot.ready_frames >= 3) {
+            (Some(delta), false, true) => {
+                shot.dragged = true;
+                shot.ready_frames = 0;
+                Some(delta)
+            }
+            _ => None,
+        };
+        if let Some(delta) = apply_drag {
+            if let Err(e) = self.move_pasted(delta) {
+                if let Some(shot) = self.shot.as_mut() {
+                    finish(shot, Err(format!("--drag: {e}")));
+                }
+            }
+            ctx.request_repaint();
+            return;
+        }
+        let Some(shot) = self.shot.as_mut() else {
+            return;
+        };
         if shot.ready_frames >= 5 && !shot.requested {
             ctx.send_viewport_cmd(egui::ViewportCommand::Screenshot(egui::UserData::default()));
             shot.requested = true;
@@ -1201,20 +1774,46 @@ impl EditorApp {
                 }
             });
         }
-        egui::Panel::right("side").min_size(340.0).show(ui, |ui| {
-            egui::ScrollArea::vertical()
-                .id_salt("side-scroll")
-                .show(ui, |ui| match self.selected.clone() {
-                    Some(sel) if self.model.document().node(&sel).is_some() => {
-                        param_panel(ui, &mut self.model, &sel, &mut self.panel);
-                        ui.separator();
-                        self.preview_pane(ui, &sel);
-                    }
-                    _ => {
-                        ui.label("Click `preview` on a node to edit its parameters.");
-                    }
-                });
-        });
+        egui::Panel::right("side")
+            .min_size(340.0)
+            .default_size(520.0)
+            .show(ui, |ui| {
+                // The picture first (it is what a drag or a click works on),
+                // the parameters below it, scrolled.
+                let sel = self
+                    .selected
+                    .clone()
+                    .filter(|s| self.model.document().node(s).is_some());
+                if let Some(sel) = &sel {
+                    self.preview_pane(ui, sel);
+                    ui.separator();
+                }
+                egui::ScrollArea::vertical()
+                    .id_salt("side-scroll")
+                    .show(ui, |ui| match sel {
+                        Some(sel) => {
+                            param_panel(ui, &mut self.model, &sel, &mut self.panel);
+                        }
+                        _ => {
+                            ui.label("Click `preview` on a node to edit its parameters.");
+                            ui.separator();
+                            ui.strong("stages");
+                            let mut names: Vec<&str> = self.stages.values().copied().collect();
+                            names.sort_unstable();
+                            names.dedup();
+                            for stage in names {
+                                ui.horizontal(|ui| {
+                                    let (rect, _) = ui.allocate_exact_size(
+                                        egui::vec2(14.0, 14.0),
+                                        egui::Sense::hover(),
+                                    );
+                                    ui.painter().rect_filled(rect, 2.0, stage_color(stage));
+                                    ui.label(stage);
+                                });
+                            }
+                        }
+                    });
+            });
         egui::CentralPanel::default().show(ui, |ui| {
             let mut viewer = GraphViewer {
                 model: &mut self.model,
@@ -1222,13 +1821,22 @@ impl EditorApp {
                 selected: self.selected.as_deref(),
                 errors: &self.check_errors,
                 search: &mut self.search,
+                running: &self.running,
+                last_ms: &self.last_ms,
+                cancelled: &self.cancelled,
+                stages: &self.stages,
                 actions: CanvasActions::default(),
             };
+            let mut style = SnarlStyle::new();
+            style.min_scale = Some(MIN_CANVAS_SCALE);
             self.snarl
-                .show(&mut viewer, &SnarlStyle::new(), "depthgraph-canvas", ui);
+                .show(&mut viewer, &style, "depthgraph-canvas", ui);
             let actions = viewer.actions;
             if let Some(s) = actions.select {
                 self.select(&s);
+            }
+            if actions.cancel {
+                self.cancel_run();
             }
             if let Some(m) = actions.message {
                 self.message = Some(m);

@@ -1,13 +1,18 @@
 //! # depthgraph-editor
 //!
 //! An egui node-graph editor for depthgraph pipelines. [`model`] is the
-//! window-free logic (edits, undo, save), [`eval`] runs pipelines on a
-//! background thread, [`preview`] turns values into
-//! pictures, [`app`] is the eframe user interface.
+//! window-free logic (edits, undo, save), [`layout`] places a graph without
+//! a saved layout, [`eval`] runs pipelines on a background thread,
+//! [`preview`] turns values into pictures, [`placement`] and [`focus`] are
+//! the arithmetic of dragging the pasted object and clicking to focus, and
+//! [`app`] is the eframe user interface.
 
 pub mod app;
 pub mod eval;
+pub mod focus;
+pub mod layout;
 pub mod model;
+pub mod placement;
 pub mod preview;
 
 pub use eval::{EvalOutcome, Evaluator};

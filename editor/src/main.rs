@@ -33,6 +33,10 @@ struct Args {
     /// Window size in points, WIDTHxHEIGHT.
     #[arg(long, default_value = "1280x800")]
     size: String,
+    /// Screenshot mode: move the pasted object of the selected preview by
+    /// DX,DY image pixels (as a drag on it does) before the screenshot.
+    #[arg(long, value_name = "DX,DY")]
+    drag: Option<String>,
     /// Screenshot mode gives up after this many seconds.
     #[arg(long, default_value_t = 300.0)]
     timeout_s: f64,
@@ -75,6 +79,17 @@ fn registry(
     }
 }
 
+fn parse_drag(s: &str) -> Result<[f64; 2], String> {
+    let bad = || format!("--drag `{s}`: expected DX,DY in image pixels, e.g. 40,-10");
+    let (x, y) = s.split_once(',').ok_or_else(bad)?;
+    let x: f64 = x.trim().parse().map_err(|_| bad())?;
+    let y: f64 = y.trim().parse().map_err(|_| bad())?;
+    if !(x.is_finite() && y.is_finite()) {
+        return Err(bad());
+    }
+    Ok([x, y])
+}
+
 fn parse_size(s: &str) -> Result<[f32; 2], String> {
     let bad = || format!("--size `{s}`: expected WIDTHxHEIGHT, e.g. 1280x800");
     let (w, h) = s.split_once('x').ok_or_else(bad)?;
@@ -99,6 +114,10 @@ fn main() -> ExitCode {
 
 fn run(args: Args) -> Result<(), String> {
     let size = parse_size(&args.size)?;
+    let drag = args.drag.as_deref().map(parse_drag).transpose()?;
+    if drag.is_some() && (args.screenshot.is_none() || args.select.is_none()) {
+        return Err("--drag needs --screenshot and --select (the preview to drag on)".into());
+    }
     if !(args.timeout_s.is_finite() && args.timeout_s > 0.0) {
         return Err(format!("--timeout-s {}: must be > 0", args.timeout_s));
     }
@@ -139,6 +158,7 @@ fn run(args: Args) -> Result<(), String> {
             select: args.select.clone(),
             timeout: Duration::from_secs_f64(args.timeout_s),
             outcome: outcome.clone(),
+            drag,
         });
     }
     let title = format!("depthgraph editor - {}", path.display());

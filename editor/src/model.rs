@@ -11,10 +11,7 @@ use depthgraph_graph::pipeline::{OutputRef, convert};
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::ron_text::{self, Pos, RonValue, Spanned};
 
-/// Horizontal distance between layout columns.
-pub const COLUMN_WIDTH: f64 = 320.0;
-/// Vertical distance between nodes of one column.
-pub const ROW_HEIGHT: f64 = 170.0;
+pub use crate::layout::COLUMN_WIDTH;
 
 /// What undo/redo restore: the document and the node positions.
 #[derive(Debug, Clone, PartialEq)]
@@ -32,6 +29,9 @@ pub struct EditorModel {
     redo: Vec<Snapshot>,
     /// Bumped on every structural or parameter change (the UI resyncs on it).
     revision: u64,
+    /// Inside a gesture ([`EditorModel::begin_gesture`]): whether its first
+    /// change has recorded the undo step yet.
+    gesture: Option<bool>,
 }
 
 fn spanned<T>(value: T) -> Spanned<T> {
@@ -52,6 +52,7 @@ impl EditorModel {
             undo: Vec::new(),
             redo: Vec::new(),
             revision: 0,
+            gesture: None,
         };
         m.positions = m.auto_layout();
         for (name, p) in &m.doc.layout {
@@ -168,11 +169,37 @@ impl EditorModel {
         }
     }
 
-    /// Records the current state for undo before a change.
+    /// Records the current state for undo before a change (inside a
+    /// gesture only before its first change).
     fn push_undo(&mut self) {
-        self.undo.push(self.snapshot());
-        self.redo.clear();
+        if self.gesture != Some(true) {
+            self.undo.push(self.snapshot());
+            self.redo.clear();
+        }
+        if self.gesture.is_some() {
+            self.gesture = Some(true);
+        }
         self.revision += 1;
+    }
+
+    /// Starts a gesture (a drag of the pasted object, a wheel of scale
+    /// steps): every change until [`end_gesture`](Self::end_gesture) is one
+    /// undoable edit. A gesture already open stays open.
+    pub fn begin_gesture(&mut self) {
+        if self.gesture.is_none() {
+            self.gesture = Some(false);
+        }
+    }
+
+    /// Ends the gesture begun by [`begin_gesture`](Self::begin_gesture).
+    pub fn end_gesture(&mut self) {
+        self.gesture = None;
+    }
+
+    /// True between [`begin_gesture`](Self::begin_gesture) and
+    /// [`end_gesture`](Self::end_gesture).
+    pub fn in_gesture(&self) -> bool {
+        self.gesture.is_some()
     }
 
     /// Sets a parameter, type- and range-checked exactly as a value written in
@@ -425,6 +452,7 @@ impl EditorModel {
 
     /// Restores the state before the last change; false when there is none.
     pub fn undo(&mut self) -> bool {
+        self.gesture = None;
         match self.undo.pop() {
             Some(s) => {
                 let now = self.snapshot();
@@ -438,6 +466,7 @@ impl EditorModel {
 
     /// Re-applies the last undone change; false when there is none.
     pub fn redo(&mut self) -> bool {
+        self.gesture = None;
         match self.redo.pop() {
             Some(s) => {
                 let now = self.snapshot();
@@ -483,44 +512,51 @@ impl EditorModel {
         Ok(p)
     }
 
-    /// Layered layout: column = longest path from a source, row = order in
-    /// the file within the column.
+    /// The automatic layered layout ([`crate::layout::best_layered`]):
+    /// column = longest path from a source, rows ordered and placed to keep
+    /// wires short, each node given the height its ports need.
     pub fn auto_layout(&self) -> BTreeMap<String, [f64; 2]> {
+        self.layout_with(None)
+    }
+
+    /// [`auto_layout`](Self::auto_layout) with explicit layout parameters
+    /// (`None`: the best of several, [`crate::layout::best_layered`]).
+    pub fn layout_with(
+        &self,
+        params: Option<&crate::layout::LayoutParams>,
+    ) -> BTreeMap<String, [f64; 2]> {
         let names = self.node_names();
-        let mut depth: BTreeMap<String, usize> = BTreeMap::new();
-        // Iterate to a fixpoint (bounded by node count, so cycles end too).
-        for _ in 0..=names.len() {
-            let mut changed = false;
-            for d in &self.doc.nodes {
-                let mut col = 0;
-                for (_, src) in &d.inputs {
-                    if let Some((up, _)) = split_ref(&src.value) {
-                        if self.doc.node(up).is_some() && up != d.name.value {
-                            col = col.max(depth.get(up).copied().unwrap_or(0) + 1);
+        let index: BTreeMap<&str, usize> = names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.as_str(), i))
+            .collect();
+        let mut edges = Vec::new();
+        for (to, d) in self.doc.nodes.iter().enumerate() {
+            for (_, src) in &d.inputs {
+                if let Some((up, _)) = split_ref(&src.value) {
+                    if let Some(&from) = index.get(up) {
+                        if from != to {
+                            edges.push((from, to));
                         }
                     }
                 }
-                col = col.min(names.len());
-                if depth.get(&d.name.value) != Some(&col) {
-                    depth.insert(d.name.value.clone(), col);
-                    changed = true;
-                }
-            }
-            if !changed {
-                break;
             }
         }
-        let mut rows: BTreeMap<usize, usize> = BTreeMap::new();
-        let mut out = BTreeMap::new();
-        for n in &names {
-            let col = depth.get(n).copied().unwrap_or(0);
-            let row = rows.entry(col).or_insert(0);
-            out.insert(
-                n.clone(),
-                [col as f64 * COLUMN_WIDTH, *row as f64 * ROW_HEIGHT],
-            );
-            *row += 1;
-        }
-        out
+        let heights: Vec<f64> = names
+            .iter()
+            .map(|n| {
+                let ports = self.node_impl(n).map_or(1, |imp| {
+                    let s = imp.schema();
+                    s.inputs.len().max(s.outputs.len())
+                });
+                crate::layout::node_height(ports)
+            })
+            .collect();
+        let pos = match params {
+            Some(p) => crate::layout::layered(names.len(), &edges, &heights, p),
+            None => crate::layout::best_layered(names.len(), &edges, &heights),
+        };
+        names.into_iter().zip(pos).collect()
     }
 }

@@ -198,3 +198,108 @@ fn auto_layout_columns_follow_longest_path() {
     assert!(col("save_points") > col("points"));
     assert!(m.check().is_ok());
 }
+
+#[test]
+fn a_gesture_is_one_undoable_edit() {
+    let mut m = demo();
+    let before = m.to_ron();
+    let undo_depth_before = m.can_undo();
+    assert!(!undo_depth_before);
+    m.begin_gesture();
+    assert!(m.in_gesture());
+    for k in 1..=5 {
+        m.set_param("kinect", "noise_k", ParamValue::Float(0.001 * f64::from(k)))
+            .expect("noise_k");
+    }
+    m.end_gesture();
+    assert!(!m.in_gesture());
+    let after = m.to_ron();
+    assert_ne!(before, after);
+    assert!(m.undo(), "the gesture is undoable");
+    assert_eq!(m.to_ron(), before, "one undo takes the whole gesture back");
+    assert!(!m.can_undo(), "the five steps made one edit");
+    assert!(m.redo());
+    assert_eq!(m.to_ron(), after);
+    // Outside a gesture every change is its own edit again.
+    m.set_param("kinect", "noise_k", ParamValue::Float(0.01))
+        .expect("noise_k");
+    m.set_param("kinect", "noise_k", ParamValue::Float(0.02))
+        .expect("noise_k");
+    assert!(m.undo() && m.undo());
+    assert_eq!(m.to_ron(), after);
+}
+
+#[test]
+fn the_automatic_layout_keeps_wires_shorter_than_file_order_on_every_graph() {
+    use depthgraph_editor::layout::{LayoutParams, crossings, wire_length};
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("graphs/")
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "ron"))
+        .collect();
+    files.sort();
+    assert!(files.len() >= 5, "{files:?}");
+    let reg = Arc::new(depthgraph_nodes::registry().expect("registry"));
+    let (mut total_naive, mut total_good) = (0.0, 0.0);
+    for f in &files {
+        let m = EditorModel::load(f, reg.clone()).expect("load");
+        let names = m.node_names();
+        let idx = |n: &str| names.iter().position(|x| x == n);
+        let mut edges = Vec::new();
+        for d in &m.document().nodes {
+            let Some(to) = idx(&d.name.value) else {
+                continue;
+            };
+            let Ok(imp) = m.node_impl(&d.name.value) else {
+                continue;
+            };
+            for p in &imp.schema().inputs {
+                if let Some((src, _)) = m.input_source(&d.name.value, p.name) {
+                    if let Some(from) = idx(&src) {
+                        edges.push((from, to));
+                    }
+                }
+            }
+        }
+        let heights: Vec<f64> = names
+            .iter()
+            .map(|n| {
+                let imp = m.node_impl(n).expect("kind");
+                let s = imp.schema();
+                depthgraph_editor::layout::node_height(s.inputs.len().max(s.outputs.len()))
+            })
+            .collect();
+        let as_vec = |l: &std::collections::BTreeMap<String, [f64; 2]>| {
+            names.iter().map(|n| l[n]).collect::<Vec<_>>()
+        };
+        let naive = as_vec(&m.layout_with(Some(&LayoutParams {
+            sweeps: 0,
+            align: false,
+        })));
+        let good = as_vec(&m.auto_layout());
+        let (ln, lg) = (
+            wire_length(&naive, &edges, &heights),
+            wire_length(&good, &edges, &heights),
+        );
+        assert!(
+            lg <= ln + 1e-6,
+            "{}: wire length {lg} with the layout, {ln} in file order",
+            f.display()
+        );
+        assert!(
+            crossings(&good, &edges) <= crossings(&naive, &edges),
+            "{}: more crossings than file order",
+            f.display()
+        );
+        total_naive += ln;
+        total_good += lg;
+    }
+    eprintln!(
+        "wire length over all graphs: {total_good:.0} laid out, {total_naive:.0} in file order"
+    );
+    assert!(
+        total_good < 0.9 * total_naive,
+        "over all graphs: {total_good} against {total_naive} in file order"
+    );
+}

@@ -103,3 +103,73 @@ fn window_under_xvfb_shows_the_graph_and_the_preview() {
         "preview colours: {cg} with the graph, {ce} without (variance {vg:.0} vs {ve:.0})"
     );
 }
+
+/// Runs the editor under Xvfb expecting failure; returns its stderr.
+fn failing(dir: &Path, args: &[&str]) -> String {
+    let xvfb = find_in_path("xvfb-run").expect("xvfb-run (see .ci/run)");
+    let runtime = dir.join("xdg-fail");
+    std::fs::create_dir_all(&runtime).expect("runtime dir");
+    let mut cmd = Command::new(xvfb);
+    cmd.args(["-a", "-s", "-screen 0 1280x800x24"])
+        .arg(env!("CARGO_BIN_EXE_depthgraph-editor"))
+        .args(args)
+        .args(["--size", "1280x800", "--timeout-s", "240"])
+        .current_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(".."));
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        cmd.env("XDG_RUNTIME_DIR", &runtime);
+    }
+    let result = cmd.output().expect("xvfb-run starts");
+    assert!(!result.status.success(), "expected a failure for {args:?}");
+    String::from_utf8_lossy(&result.stderr).into_owned()
+}
+
+#[test]
+fn a_drag_in_screenshot_mode_moves_the_pasted_object_or_says_why_not() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("out");
+    let out = out.to_str().expect("utf-8 temp path");
+    let moved = screenshot(
+        dir.path(),
+        "drag.png",
+        &[
+            "graphs/copy_paste_relit.ron",
+            "--select",
+            "composite",
+            "--drag",
+            "40,-10",
+            "--out",
+            out,
+        ],
+    );
+    assert!(luma_variance(&moved) > 100.0, "the window is not blank");
+    let shot = dir.path().join("x.png");
+    let shot = shot.to_str().expect("utf-8 temp path");
+    let e = failing(
+        dir.path(),
+        &[
+            "graphs/copy_paste_relit.ron",
+            "--select",
+            "composite",
+            "--drag",
+            "40",
+            "--screenshot",
+            shot,
+        ],
+    );
+    assert!(e.contains("expected DX,DY"), "{e}");
+    let e = failing(
+        dir.path(),
+        &[
+            "graphs/copy_paste_relit.ron",
+            "--select",
+            "source",
+            "--drag",
+            "40,0",
+            "--screenshot",
+            shot,
+            "--out",
+            out,
+        ],
+    );
+    assert!(e.contains("not downstream of a Paste"), "{e}");
+}

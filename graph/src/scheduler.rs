@@ -440,6 +440,9 @@ impl Engine {
             derivations: Some(&derivations),
             max_pixels: opts.max_pixels.unwrap_or(crate::node::DEFAULT_MAX_PIXELS),
         };
+        // A start report (0), so a listener knows which nodes run, also
+        // those that never report progress themselves.
+        ctx.progress(0.0);
         let t = Instant::now();
         let out = node
             .node

@@ -1,0 +1,266 @@
+//! Headless tests of editing as the papers' users do (egui_kittest, no
+//! window): dragging the pasted object on a preview, clicking a refocused
+//! picture to focus, and cancelling a slow run.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use depthgraph_editor::EditorModel;
+use depthgraph_editor::app::EditorApp;
+use depthgraph_editor::placement::{object_view, on_object};
+use depthgraph_graph::prelude::*;
+use eframe::egui::{self, Event, Modifiers, PointerButton};
+use egui_kittest::Harness;
+use egui_kittest::kittest::Queryable;
+
+fn load(file: &str) -> EditorModel {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../graphs")
+        .join(file);
+    let reg = Arc::new(depthgraph_nodes::registry().expect("registry"));
+    EditorModel::load(&path, reg).expect("load the graph")
+}
+
+fn harness(app: EditorApp) -> Harness<'static, EditorApp> {
+    Harness::builder()
+        .with_size(egui::vec2(1400.0, 1400.0))
+        .build_ui_state(|ui, app: &mut EditorApp| app.show(ui), app)
+}
+
+/// Steps the harness until the requested evaluation is back and shown.
+fn settle(h: &mut Harness<'_, EditorApp>) {
+    let deadline = Instant::now() + Duration::from_secs(300);
+    loop {
+        h.step();
+        if !h.state().busy() && h.state().preview_fingerprint().is_some() {
+            h.run_steps(2);
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no preview within 300 s: {:?}",
+            h.state().run_error()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+fn button(h: &Harness<'_, EditorApp>, pos: egui::Pos2, pressed: bool) {
+    h.event(Event::PointerButton {
+        pos,
+        button: PointerButton::Primary,
+        pressed,
+        modifiers: Modifiers::default(),
+    });
+}
+
+#[test]
+fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/copy_paste_relit.ron");
+    let mut m = load("copy_paste_relit.ron");
+    m.set_param("vpl", "count", ParamValue::Int(16))
+        .expect("vpls");
+    let start = match m.param_value("paste", "target_pixel") {
+        Ok(ParamValue::Points(p)) => p[0],
+        other => panic!("target_pixel: {other:?}"),
+    };
+    let mut app = EditorApp::new(m, path);
+    app.select("relight");
+    let mut h = harness(app);
+    settle(&mut h);
+    let Some(Value::Mask(mask)) = h.state().value("paste.mask").cloned() else {
+        panic!("the Paste mask is evaluated with a preview downstream of it");
+    };
+    let view = object_view(&mask).expect("the object is in the picture");
+    let grab = if on_object(&mask, view.centroid) {
+        view.centroid
+    } else {
+        let (w, h) = mask.dims();
+        let i = mask
+            .as_slice()
+            .iter()
+            .position(|a| *a >= 0.5)
+            .expect("a pixel");
+        [(i % w) as f64 + 0.5, (i / w) as f64 + 0.5].map(|v| v.min((w.max(h)) as f64))
+    };
+    let frame = h.state().preview_frame().expect("the preview is on screen");
+    let delta = [30.0, -10.0];
+    let from = frame.to_screen(grab);
+    let to = frame.to_screen([grab[0] + delta[0], grab[1] + delta[1]]);
+    let undo_before = h.state().model.can_undo();
+    h.hover_at(from);
+    h.run_steps(1);
+    button(&h, from, true);
+    h.run_steps(1);
+    for k in 1..=6 {
+        let t = k as f32 / 6.0;
+        h.hover_at(from + (to - from) * t);
+        h.run_steps(1);
+    }
+    button(&h, to, false);
+    h.run_steps(2);
+    settle(&mut h);
+
+    let got = match h.state().model.param_value("paste", "target_pixel") {
+        Ok(ParamValue::Points(p)) => p[0],
+        other => panic!("target_pixel: {other:?}"),
+    };
+    for a in 0..2 {
+        assert!(
+            (got[a] - (start[a] + delta[a])).abs() <= 1.0,
+            "target pixel {got:?}, expected {start:?} + {delta:?}"
+        );
+    }
+    let t = h.state().trace().expect("a trace");
+    for n in ["source", "target", "edges", "lasso", "env", "vpl"] {
+        let s = t.get(n).map(|r| r.status);
+        assert!(
+            matches!(s, Some(Status::Cached | Status::NotNeeded)),
+            "{n} is upstream of the placement: cached or not needed, got {s:?}"
+        );
+    }
+    for n in ["paste", "feather", "composite", "relight"] {
+        assert_eq!(t.get(n).map(|r| r.status), Some(Status::Ran), "{n} re-ran");
+    }
+    let relight = t.get("relight").expect("relight's record");
+    let scene = relight
+        .derived
+        .iter()
+        .find(|d| d.name == "relight scene")
+        .expect("the scene part is a derived value");
+    assert_eq!(
+        scene.status,
+        Status::Cached,
+        "the relighting's scene part stays cached"
+    );
+    // The whole drag is one undoable edit.
+    assert!(!undo_before || h.state().model.can_undo());
+    h.state_mut().model.undo();
+    assert_eq!(
+        h.state().model.param_value("paste", "target_pixel"),
+        Ok(ParamValue::Points(vec![start])),
+        "one undo takes the whole drag back"
+    );
+}
+
+#[test]
+fn a_click_on_the_refocus_preview_focuses_on_the_depth_under_the_pointer() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/refocus.ron");
+    let mut m = load("refocus.ron");
+    for n in ["scene", "tof_view"] {
+        m.set_param(n, "width", ParamValue::Int(320))
+            .expect("width");
+        m.set_param(n, "height", ParamValue::Int(240))
+            .expect("height");
+    }
+    for n in ["tof", "to_color"] {
+        m.set_param(n, "width", ParamValue::Int(80)).expect("width");
+        m.set_param(n, "height", ParamValue::Int(60))
+            .expect("height");
+    }
+    m.set_param("refocus", "samples", ParamValue::Int(16))
+        .expect("samples");
+    let mut app = EditorApp::new(m, path);
+    app.select("refocus");
+    let mut h = harness(app);
+    settle(&mut h);
+    let Some(Value::Depth(depth)) = h.state().value("fill.depth").cloned() else {
+        panic!("the depth under the refocused picture is evaluated");
+    };
+    let (w, hh) = depth.dims();
+    // A pixel on a flat stretch (its 5x5 window within 0.5 %) well away
+    // from the current focus, searched from the centre outwards.
+    let flat = |x: usize, y: usize| {
+        let mut lo = f32::INFINITY;
+        let mut hi = 0.0f32;
+        for yy in y - 2..=y + 2 {
+            for xx in x - 2..=x + 2 {
+                let z = *depth.get(xx, yy);
+                lo = lo.min(z);
+                hi = hi.max(z);
+            }
+        }
+        lo > 0.0 && hi < lo * 1.005
+    };
+    let mut pick = None;
+    'search: for r in 0..(w.min(hh) / 2 - 3) {
+        for (x, y) in [
+            (w / 2 + r, hh / 2),
+            (w / 2, hh / 2 + r),
+            (w / 2 - r, hh / 2 - r / 2),
+        ] {
+            if flat(x, y) && (f64::from(*depth.get(x, y)) - 0.95).abs() > 0.1 {
+                pick = Some((x, y));
+                break 'search;
+            }
+        }
+    }
+    let (x, y) = pick.expect("a flat stretch of the tabletop");
+    let want = f64::from(*depth.get(x, y));
+    let frame = h.state().preview_frame().expect("the preview is on screen");
+    let pos = frame.to_screen([x as f64 + 0.5, y as f64 + 0.5]);
+    h.hover_at(pos);
+    h.run_steps(1);
+    button(&h, pos, true);
+    button(&h, pos, false);
+    h.run_steps(2);
+    let got = match h.state().model.param_value("refocus", "focus_m") {
+        Ok(ParamValue::Float(f)) => f,
+        other => panic!("focus_m: {other:?}"),
+    };
+    assert!(
+        (got - want).abs() <= 0.01 * want,
+        "focus {got} m, depth under the pointer {want} m"
+    );
+    settle(&mut h);
+    let t = h.state().trace().expect("a trace");
+    assert_eq!(t.get("refocus").map(|r| r.status), Some(Status::Ran));
+    assert_eq!(t.get("fill").map(|r| r.status), Some(Status::Cached));
+}
+
+#[test]
+fn cancel_stops_the_running_node_and_its_status_says_so() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/refocus.ron");
+    let m = load("refocus.ron");
+    let mut app = EditorApp::new(m, path);
+    app.select("refocus");
+    let mut h = harness(app);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while h.state().running_nodes().is_empty() {
+        h.step();
+        assert!(Instant::now() < deadline, "no node started within 120 s");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // The node's progress bar and the preview's cancel button are shown.
+    h.run_steps(1);
+    let running: Vec<String> = h.state().running_nodes().keys().cloned().collect();
+    assert!(!running.is_empty());
+    h.get_by_label("cancel run").click();
+    h.run_steps(1);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while h.state().busy() {
+        h.step();
+        assert!(
+            Instant::now() < deadline,
+            "the run did not stop within 120 s"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    h.run_steps(2);
+    let cancelled = h.state().cancelled_nodes().clone();
+    assert!(
+        !cancelled.is_empty(),
+        "the nodes that were running are marked"
+    );
+    let err = h.state().run_error().unwrap_or_default().to_string();
+    assert!(err.contains("cancelled"), "the run's status: {err}");
+    assert!(
+        h.state().value("refocus.color").is_none(),
+        "the cancelled run produced no result"
+    );
+    assert!(
+        h.state().trace().is_none(),
+        "no node finished a run that was cancelled"
+    );
+}
