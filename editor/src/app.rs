@@ -734,14 +734,17 @@ pub struct EditorApp {
     running: BTreeMap<String, NodeProgress>,
     /// The node whose picture the preview texture shows.
     texture_node: Option<String>,
+    /// The document revision of the newest request and of the result shown.
+    request_revision: u64,
+    shown_revision: Option<u64>,
     /// The `Paste` node a drag on the selected node's preview moves.
     paste: Option<String>,
     /// The depth ("node.port") under a focus preview (Refocus's input).
     focus_depth: Option<String>,
     /// The placement drag in progress.
     place: Option<PlaceDrag>,
-    /// A Ctrl + wheel scale gesture is open.
-    wheel_gesture: bool,
+    /// A Ctrl + wheel scale gesture is open: when the wheel last moved.
+    wheel_gesture: Option<Instant>,
 }
 
 /// A drag on the preview that places the pasted object.
@@ -813,10 +816,12 @@ impl EditorApp {
             cancelled: std::collections::BTreeSet::new(),
             running: BTreeMap::new(),
             texture_node: None,
+            request_revision: 0,
+            shown_revision: None,
             paste: None,
             focus_depth: None,
             place: None,
-            wheel_gesture: false,
+            wheel_gesture: None,
         }
     }
 
@@ -959,6 +964,7 @@ impl EditorApp {
                     ev.start(p, vec![self.path.clone()]);
                 }
                 self.cancelled.clear();
+                self.request_revision = self.model.revision();
                 if self.request_started.is_none() || !gesture {
                     self.request_started = Some(Instant::now());
                 }
@@ -990,6 +996,7 @@ impl EditorApp {
                     self.rebuild_preview(ctx);
                     // A drag's intermediate step: the newest is still coming.
                     if !pending {
+                        self.shown_revision = Some(self.request_revision);
                         if let Some(t) = self.request_started.take() {
                             self.last_latency_ms = Some(t.elapsed().as_secs_f64() * 1e3);
                         }
@@ -1244,6 +1251,11 @@ impl EditorApp {
                 if ui.small_button("cancel run").clicked() {
                     self.cancel_run();
                 }
+            } else if self.shown_revision != Some(self.model.revision()) {
+                ui.small("not up to date (the last run did not finish)");
+                if ui.small_button("run again").clicked() {
+                    self.requested = None;
+                }
             } else if let Some(ms) = self.last_latency_ms {
                 ui.small(format!("result shown {ms:.0} ms after the change"));
             }
@@ -1308,7 +1320,8 @@ impl EditorApp {
         );
         // The picture is stale while a new one computes (or it is another
         // node's): shown dimmed.
-        let stale = self.busy() || self.texture_node.as_deref() != Some(sel);
+        let current = self.texture_node.as_deref() == Some(sel);
+        let stale = self.busy() || !current || self.shown_revision != Some(self.model.revision());
         let max_height = (ui.available_height() * 0.6).clamp(160.0, 560.0);
         egui::ScrollArea::both()
             .id_salt("preview-scroll")
@@ -1336,9 +1349,11 @@ impl EditorApp {
                     size: pixels,
                 };
                 self.image_frame = Some(frame);
-                if focus_kind {
+                // Only on this node's own picture (not the previous
+                // selection's, still shown while this one computes).
+                if current && focus_kind {
                     self.focus_interaction(ui, &resp, frame, sel);
-                } else if self.paste.is_some() {
+                } else if current && self.paste.is_some() {
                     self.place_interaction(ui, &resp, frame);
                 }
                 if let Some(c) = clicks.as_mut() {
@@ -1507,27 +1522,50 @@ impl EditorApp {
             }
             if resp.drag_stopped() || !ui.input(|i| i.pointer.any_down()) {
                 self.place = None;
-                self.model.end_gesture();
             }
         }
-        let (zoom, ctrl) = ui.input(|i| (i.zoom_delta(), i.modifiers.ctrl || i.modifiers.command));
+        let zoom = ui.input(|i| i.zoom_delta());
         if resp.hovered() && zoom != 1.0 {
             if let Ok(ParamValue::Float(scale)) = self.model.param_value(&paste, "scale") {
-                if !self.wheel_gesture {
-                    self.model.begin_gesture();
-                    self.wheel_gesture = true;
-                }
+                self.model.begin_gesture();
+                self.wheel_gesture = Some(Instant::now());
                 let v = placement::zoomed_scale(scale, f64::from(zoom));
                 if let Err(e) = self.model.set_param(&paste, "scale", ParamValue::Float(v)) {
                     self.message = Some(e);
                 }
             }
         }
-        if self.wheel_gesture && !ctrl {
-            self.wheel_gesture = false;
-            if self.place.is_none() {
-                self.model.end_gesture();
+    }
+
+    /// Ends the placement gestures that are over, whatever is on screen
+    /// now: a drag once no button is down, a scale gesture once Ctrl is
+    /// released and the wheel has rested for 300 ms (so a pinch without Ctrl
+    /// is one step too); and forgets them when the model's gesture was
+    /// ended elsewhere (an undo). Called every frame.
+    fn end_finished_gestures(&mut self, ctx: &egui::Context) {
+        if !self.model.in_gesture() {
+            self.place = None;
+            self.wheel_gesture = None;
+            return;
+        }
+        let (down, ctrl) = ctx.input(|i| {
+            (
+                i.pointer.any_down(),
+                i.modifiers.ctrl || i.modifiers.command,
+            )
+        });
+        if self.place.is_some() && !down {
+            self.place = None;
+        }
+        if let Some(t) = self.wheel_gesture {
+            if ctrl || t.elapsed() < Duration::from_millis(300) {
+                ctx.request_repaint_after(Duration::from_millis(100));
+            } else {
+                self.wheel_gesture = None;
             }
+        }
+        if self.place.is_none() && self.wheel_gesture.is_none() {
+            self.model.end_gesture();
         }
     }
 
@@ -1723,6 +1761,10 @@ impl EditorApp {
     pub fn select(&mut self, node: &str) {
         if self.selected.as_deref() != Some(node) {
             self.preview_port = None;
+            // A gesture belongs to the preview it began on.
+            self.place = None;
+            self.wheel_gesture = None;
+            self.model.end_gesture();
         }
         self.selected = Some(node.to_string());
     }
@@ -1852,6 +1894,7 @@ impl EditorApp {
             self.model
                 .set_position(&name, [f64::from(pos.x), f64::from(pos.y)]);
         }
+        self.end_finished_gestures(&ctx);
         self.maybe_evaluate(&ctx);
         if self.shot.is_some() {
             self.drive_shot(&ctx);

