@@ -5,8 +5,9 @@
 //! - **slider**: the demo graph at 640x480, the Kinect node's `noise_k`
 //!   slider moved step by step (only the Kinect node re-runs);
 //! - **drag**: `copy_paste_relit.ron` at 640x480 with 256 VPLs, the pasted
-//!   object dragged 4 px per step (`Paste.target_pixel`, as a drag on the
-//!   preview sets it): Paste, Feather, OcclusionComposite and Relight
+//!   object dragged left 4 px per step along the back wall
+//!   (`Paste.target_pixel`, as a drag on the preview sets it; it stays the
+//!   size the graph gives it): Paste, Feather, OcclusionComposite and Relight
 //!   re-run, the relighting's scene part stays cached;
 //! - **focus**: `refocus.ron` at 640x480 with 64 lens samples, a click on the
 //!   picture sets `focus_m` to the depth under the pointer (only Refocus
@@ -89,6 +90,7 @@ fn measure(mut g: Gesture, out: &std::path::Path) -> Result<String, String> {
     let mut ev = Evaluator::new(EngineOptions::default(), out.to_path_buf())?;
     let (_, _, values) = step(&mut ev, &g.model, &g.targets, g.shown)?;
     let mut warm = Vec::new();
+    let mut last = None;
     for i in 0..g.steps {
         (g.edit)(i, &mut g.model, &values)?;
         let (ms, trace, _) = step(&mut ev, &g.model, &g.targets, g.shown)?;
@@ -99,6 +101,16 @@ fn measure(mut g: Gesture, out: &std::path::Path) -> Result<String, String> {
             }
         }
         warm.push(ms);
+        last = Some(trace);
+    }
+    if let Some(t) = &last {
+        let ran: Vec<String> = t
+            .nodes
+            .iter()
+            .filter(|r| r.status == Status::Ran)
+            .map(|r| format!("{} {:.1}", r.node, r.ms))
+            .collect();
+        eprintln!("{}: last step's nodes (ms): {}", g.name, ran.join(", "));
     }
     warm.sort_by(f64::total_cmp);
     let (cm, wm) = (percentile(&cold, 0.5), percentile(&warm, 0.5));
@@ -164,7 +176,7 @@ fn drag() -> Result<Gesture, String> {
     m.set_param("vpl", "count", ParamValue::Int(256))?;
     Ok(Gesture {
         name: "drag",
-        what: "copy_paste_relit 640x480, 256 VPLs, pasted object dragged 4 px a step",
+        what: "copy_paste_relit 640x480, 256 VPLs, pasted object dragged left 4 px a step",
         model: m,
         targets: vec!["relight".into(), "paste".into(), "target".into()],
         shown: "relight.color",
@@ -178,7 +190,7 @@ fn drag() -> Result<Gesture, String> {
                 "target_pixel",
                 ParamValue::Points(vec![dragged_target(
                     start,
-                    [4.0 * (i + 1) as f64, -(i as f64)],
+                    [-4.0 * (i + 1) as f64, 0.0],
                     [640, 480],
                 )]),
             );
