@@ -8,7 +8,8 @@ use std::time::{Duration, Instant};
 
 use depthgraph_editor::EditorModel;
 use depthgraph_editor::app::EditorApp;
-use depthgraph_editor::placement::{object_view, on_object};
+use depthgraph_editor::placement::{ObjectView, object_view, on_object};
+use depthgraph_editor::preview::ImageFrame;
 use depthgraph_graph::prelude::*;
 use eframe::egui::{self, Event, Modifiers, PointerButton};
 use egui_kittest::Harness;
@@ -55,6 +56,30 @@ fn button(h: &Harness<'_, EditorApp>, pos: egui::Pos2, pressed: bool) {
     });
 }
 
+/// A primary-button drag from `from` to `to` in `steps` pointer moves.
+fn drag(h: &mut Harness<'_, EditorApp>, from: egui::Pos2, to: egui::Pos2, steps: usize) {
+    h.hover_at(from);
+    h.run_steps(1);
+    button(h, from, true);
+    h.run_steps(1);
+    for k in 1..=steps {
+        h.hover_at(from + (to - from) * (k as f32 / steps as f32));
+        h.run_steps(1);
+    }
+    button(h, to, false);
+    h.run_steps(2);
+}
+
+/// The pasted object in the preview (`Paste.mask`) and the picture's frame.
+fn object_on_screen(h: &Harness<'_, EditorApp>) -> (ObjectView, ImageFrame) {
+    let Some(Value::Mask(mask)) = h.state().value("paste.mask") else {
+        panic!("the Paste mask is evaluated with a preview downstream of it");
+    };
+    let view = object_view(mask).expect("the object is in the picture");
+    let frame = h.state().preview_frame().expect("the preview is on screen");
+    (view, frame)
+}
+
 #[test]
 fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream() {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/copy_paste_relit.ron");
@@ -89,17 +114,7 @@ fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream(
     let from = frame.to_screen(grab);
     let to = frame.to_screen([grab[0] + delta[0], grab[1] + delta[1]]);
     let undo_before = h.state().model.can_undo();
-    h.hover_at(from);
-    h.run_steps(1);
-    button(&h, from, true);
-    h.run_steps(1);
-    for k in 1..=6 {
-        let t = k as f32 / 6.0;
-        h.hover_at(from + (to - from) * t);
-        h.run_steps(1);
-    }
-    button(&h, to, false);
-    h.run_steps(2);
+    drag(&mut h, from, to, 6);
     settle(&mut h);
 
     let got = match h.state().model.param_value("paste", "target_pixel") {
@@ -263,5 +278,74 @@ fn cancel_stops_the_running_node_and_its_status_says_so() {
     assert!(
         h.state().trace().is_none(),
         "no node finished a run that was cancelled"
+    );
+}
+
+#[test]
+fn ctrl_wheel_scales_and_the_ring_turns_the_pasted_object_each_one_undo_step() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/copy_paste.ron");
+    let m = load("copy_paste.ron");
+    let scale0 = match m.param_value("paste", "scale") {
+        Ok(ParamValue::Float(s)) => s,
+        other => panic!("scale: {other:?}"),
+    };
+    let mut app = EditorApp::new(m, path);
+    app.select("composite");
+    let mut h = harness(app);
+    settle(&mut h);
+    let (view, frame) = object_on_screen(&h);
+    let centre = frame.to_screen(view.centroid);
+
+    // Two wheel notches with Ctrl over the picture: scale x 1.1 x 1.1.
+    h.hover_at(centre);
+    h.run_steps(1);
+    for _ in 0..2 {
+        h.event(Event::Zoom(1.1));
+        h.run_steps(1);
+    }
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while h.state().model.in_gesture() {
+        h.step();
+        assert!(Instant::now() < deadline, "the wheel gesture never ended");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let scale = match h.state().model.param_value("paste", "scale") {
+        Ok(ParamValue::Float(s)) => s,
+        other => panic!("scale: {other:?}"),
+    };
+    let want = scale0 * 1.1f64 * 1.1f64;
+    assert!(
+        (scale - want).abs() < 1e-6 * want,
+        "scale {scale}, expected {want}"
+    );
+    settle(&mut h);
+
+    // A drag on the ring to the right of the object: yaw follows the
+    // horizontal motion at 0.5 degrees per screen point.
+    let (view, frame) = object_on_screen(&h);
+    let centre = frame.to_screen(view.centroid);
+    let ring = view.radius as f32 * frame.scale() + 12.0;
+    let from = centre + egui::vec2(ring, 0.0);
+    let to = from + egui::vec2(40.0, 0.0);
+    drag(&mut h, from, to, 4);
+    let rot = match h.state().model.param_value("paste", "rotation_deg") {
+        Ok(ParamValue::Vec3(r)) => r,
+        other => panic!("rotation_deg: {other:?}"),
+    };
+    assert!((rot[0] - 20.0).abs() <= 0.5, "yaw {rot:?}, expected 20");
+    assert!(rot[1].abs() <= 0.5 && rot[2] == 0.0, "{rot:?}");
+    assert!(!h.state().model.in_gesture());
+    settle(&mut h);
+
+    // Each gesture is one undo step: turn back, then scale back.
+    h.state_mut().model.undo();
+    assert_eq!(
+        h.state().model.param_value("paste", "rotation_deg"),
+        Ok(ParamValue::Vec3([0.0, 0.0, 0.0]))
+    );
+    h.state_mut().model.undo();
+    assert_eq!(
+        h.state().model.param_value("paste", "scale"),
+        Ok(ParamValue::Float(scale0))
     );
 }
