@@ -944,6 +944,7 @@ impl EditorApp {
         }
         // The pasted object's mask, where a drag can grab it.
         targets.extend(self.paste.clone());
+        targets.sort_unstable();
         targets.dedup();
         let gesture = self.model.in_gesture();
         let Some(ev) = self.evaluator.as_mut() else {
