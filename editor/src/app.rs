@@ -63,26 +63,14 @@ pub fn save_png(image: &ColorImage, path: &Path) -> Result<(), String> {
 /// The first Color output upstream of `node` (breadth first over its
 /// inputs), as a "node.port" key: the photograph a mask is drawn over.
 pub fn upstream_color(model: &EditorModel, node: &str) -> Option<String> {
-    let mut queue = std::collections::VecDeque::from([node.to_string()]);
-    let mut seen = std::collections::BTreeSet::new();
-    while let Some(n) = queue.pop_front() {
-        if !seen.insert(n.clone()) {
-            continue;
-        }
-        let Ok(imp) = model.node_impl(&n) else {
-            continue;
-        };
-        for input in &imp.schema().inputs {
-            let Some((src, port)) = model.input_source(&n, input.name) else {
-                continue;
-            };
-            if model.port_type(&src, &port, true) == Ok(ValueType::Color) {
-                return Some(format!("{src}.{port}"));
-            }
-            queue.push_back(src);
-        }
-    }
-    None
+    model.upstream(node).iter().find_map(|n| {
+        let imp = model.node_impl(n).ok()?;
+        imp.schema().inputs.iter().find_map(|input| {
+            let (src, port) = model.input_source(n, input.name)?;
+            (model.port_type(&src, &port, true) == Ok(ValueType::Color))
+                .then(|| format!("{src}.{port}"))
+        })
+    })
 }
 
 /// The editor window's state.
@@ -133,6 +121,9 @@ pub struct EditorApp {
     shown_revision: Option<u64>,
     /// The `Paste` node a drag on the selected node's preview moves.
     paste: Option<String>,
+    /// Where its object is in the latest result (found once per result,
+    /// not per frame).
+    object: Option<placement::ObjectView>,
     /// The depth ("node.port") under a focus preview (Refocus's input).
     focus_depth: Option<String>,
     /// The placement drag in progress.
@@ -213,6 +204,7 @@ impl EditorApp {
             request_revision: 0,
             shown_revision: None,
             paste: None,
+            object: None,
             focus_depth: None,
             place: None,
             wheel_gesture: None,
@@ -386,6 +378,14 @@ impl EditorApp {
                     }
                     self.trace = Some(trace);
                     self.values = values;
+                    self.object = match self
+                        .paste
+                        .as_ref()
+                        .and_then(|p| self.values.get(&format!("{p}.mask")))
+                    {
+                        Some(Value::Mask(m)) => placement::object_view(m),
+                        _ => None,
+                    };
                     self.eval_error = None;
                     self.cancelled.clear();
                     self.rebuild_preview(ctx);
@@ -845,8 +845,9 @@ impl EditorApp {
             _ => return,
         };
         let s = frame.scale();
-        let view = placement::object_view(&mask);
-        let ring = view.map(|v| (frame.to_screen(v.centroid), v.radius as f32 * s + 12.0));
+        let ring = self
+            .object
+            .map(|v| (frame.to_screen(v.centroid), v.radius as f32 * s + 12.0));
         let rotation = match self.model.param_value(&paste, "rotation_deg") {
             Ok(ParamValue::Vec3(r)) => r,
             _ => [0.0; 3],

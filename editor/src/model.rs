@@ -381,6 +381,29 @@ impl EditorModel {
         Ok(())
     }
 
+    /// `node` and every node upstream of it, each once, breadth first over
+    /// the inputs in schema order: where the editor looks for the photograph
+    /// under a mask and for the `Paste` a drag moves.
+    pub fn upstream(&self, node: &str) -> Vec<String> {
+        let mut order = Vec::new();
+        let mut seen = std::collections::BTreeSet::new();
+        let mut queue = std::collections::VecDeque::from([node.to_string()]);
+        while let Some(n) = queue.pop_front() {
+            if !seen.insert(n.clone()) {
+                continue;
+            }
+            if let Ok(imp) = self.node_impl(&n) {
+                for input in &imp.schema().inputs {
+                    if let Some((src, _)) = self.input_source(&n, input.name) {
+                        queue.push_back(src);
+                    }
+                }
+                order.push(n);
+            }
+        }
+        order
+    }
+
     /// The source (`"node.port"`) feeding `node.input`, if wired.
     pub fn input_source(&self, node: &str, input: &str) -> Option<(String, String)> {
         let d = self.doc.node(node)?;

@@ -8,8 +8,6 @@
 //! `Paste.rotation_deg` (yaw with the horizontal motion, pitch with the
 //! vertical).
 
-use std::collections::{BTreeSet, VecDeque};
-
 use depthgraph_graph::prelude::Mask;
 
 use crate::model::EditorModel;
@@ -23,26 +21,12 @@ pub const SCALE_RANGE: (f64, f64) = (1e-3, 1e3);
 /// `node` itself when it is a `Paste`, else the nearest one upstream
 /// (breadth first over its inputs).
 pub fn paste_upstream(model: &EditorModel, node: &str) -> Option<String> {
-    let mut queue = VecDeque::from([node.to_string()]);
-    let mut seen = BTreeSet::new();
-    while let Some(n) = queue.pop_front() {
-        if !seen.insert(n.clone()) {
-            continue;
-        }
-        let decl = model.document().node(&n)?;
-        if decl.kind.value == "Paste" {
-            return Some(n);
-        }
-        let Ok(imp) = model.node_impl(&n) else {
-            continue;
-        };
-        for input in &imp.schema().inputs {
-            if let Some((src, _)) = model.input_source(&n, input.name) {
-                queue.push_back(src);
-            }
-        }
-    }
-    None
+    model.upstream(node).into_iter().find(|n| {
+        model
+            .document()
+            .node(n)
+            .is_some_and(|d| d.kind.value == "Paste")
+    })
 }
 
 /// Where the pasted object is in target pixels.

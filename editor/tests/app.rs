@@ -4,13 +4,15 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
 
 use depthgraph_editor::EditorModel;
 use depthgraph_editor::app::EditorApp;
 use depthgraph_graph::prelude::*;
 use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
+
+mod common;
+use common::settle;
 
 fn small_demo() -> EditorApp {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/demo.ron");
@@ -21,20 +23,6 @@ fn small_demo() -> EditorApp {
     m.set_param("scene", "height", ParamValue::Int(120))
         .expect("height");
     EditorApp::new(m, path)
-}
-
-/// Steps the harness until the requested evaluation is back and shown.
-fn settle(h: &mut Harness<'_, EditorApp>) {
-    let deadline = Instant::now() + Duration::from_secs(120);
-    loop {
-        h.step();
-        if !h.state().busy() && h.state().preview_fingerprint().is_some() {
-            h.run_steps(2);
-            return;
-        }
-        assert!(Instant::now() < deadline, "no preview within 120 s");
-        std::thread::sleep(Duration::from_millis(10));
-    }
 }
 
 #[test]

@@ -2,8 +2,6 @@
 //! window): dragging the pasted object on a preview, clicking a refocused
 //! picture to focus, and cancelling a slow run.
 
-use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use depthgraph_editor::EditorModel;
@@ -15,13 +13,8 @@ use eframe::egui::{self, Event, Modifiers, PointerButton};
 use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
 
-fn load(file: &str) -> EditorModel {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../graphs")
-        .join(file);
-    let reg = Arc::new(depthgraph_nodes::registry().expect("registry"));
-    EditorModel::load(&path, reg).expect("load the graph")
-}
+mod common;
+use common::{graph_path, load, settle};
 
 fn harness(app: EditorApp) -> Harness<'static, EditorApp> {
     Harness::builder()
@@ -29,21 +22,21 @@ fn harness(app: EditorApp) -> Harness<'static, EditorApp> {
         .build_ui_state(|ui, app: &mut EditorApp| app.show(ui), app)
 }
 
-/// Steps the harness until the requested evaluation is back and shown.
-fn settle(h: &mut Harness<'_, EditorApp>) {
-    let deadline = Instant::now() + Duration::from_secs(300);
-    loop {
-        h.step();
-        if !h.state().busy() && h.state().preview_fingerprint().is_some() {
-            h.run_steps(2);
-            return;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "no preview within 300 s: {:?}",
-            h.state().run_error()
-        );
-        std::thread::sleep(Duration::from_millis(10));
+/// An editor on `m` (read from `graphs/<file>`) with `select` previewed,
+/// once its first result is shown.
+fn open(m: EditorModel, file: &str, select: &str) -> Harness<'static, EditorApp> {
+    let mut app = EditorApp::new(m, graph_path(file));
+    app.select(select);
+    let mut h = harness(app);
+    settle(&mut h);
+    h
+}
+
+/// A float parameter's current value.
+fn float(h: &Harness<'_, EditorApp>, node: &str, param: &str) -> f64 {
+    match h.state().model.param_value(node, param) {
+        Ok(ParamValue::Float(v)) => v,
+        other => panic!("{node}.{param}: {other:?}"),
     }
 }
 
@@ -82,7 +75,6 @@ fn object_on_screen(h: &Harness<'_, EditorApp>) -> (ObjectView, ImageFrame) {
 
 #[test]
 fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream() {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/copy_paste_relit.ron");
     let mut m = load("copy_paste_relit.ron");
     m.set_param("vpl", "count", ParamValue::Int(16))
         .expect("vpls");
@@ -90,10 +82,7 @@ fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream(
         Ok(ParamValue::Points(p)) => p[0],
         other => panic!("target_pixel: {other:?}"),
     };
-    let mut app = EditorApp::new(m, path);
-    app.select("relight");
-    let mut h = harness(app);
-    settle(&mut h);
+    let mut h = open(m, "copy_paste_relit.ron", "relight");
     let Some(Value::Mask(mask)) = h.state().value("paste.mask").cloned() else {
         panic!("the Paste mask is evaluated with a preview downstream of it");
     };
@@ -162,7 +151,6 @@ fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream(
 
 #[test]
 fn a_click_on_the_refocus_preview_focuses_on_the_depth_under_the_pointer() {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/refocus.ron");
     let mut m = load("refocus.ron");
     for n in ["scene", "tof_view"] {
         m.set_param(n, "width", ParamValue::Int(320))
@@ -177,10 +165,7 @@ fn a_click_on_the_refocus_preview_focuses_on_the_depth_under_the_pointer() {
     }
     m.set_param("refocus", "samples", ParamValue::Int(16))
         .expect("samples");
-    let mut app = EditorApp::new(m, path);
-    app.select("refocus");
-    let mut h = harness(app);
-    settle(&mut h);
+    let mut h = open(m, "refocus.ron", "refocus");
     let Some(Value::Depth(depth)) = h.state().value("fill.depth").cloned() else {
         panic!("the depth under the refocused picture is evaluated");
     };
@@ -221,10 +206,7 @@ fn a_click_on_the_refocus_preview_focuses_on_the_depth_under_the_pointer() {
     button(&h, pos, true);
     button(&h, pos, false);
     h.run_steps(2);
-    let got = match h.state().model.param_value("refocus", "focus_m") {
-        Ok(ParamValue::Float(f)) => f,
-        other => panic!("focus_m: {other:?}"),
-    };
+    let got = float(&h, "refocus", "focus_m");
     assert!(
         (got - want).abs() <= 0.01 * want,
         "focus {got} m, depth under the pointer {want} m"
@@ -237,9 +219,8 @@ fn a_click_on_the_refocus_preview_focuses_on_the_depth_under_the_pointer() {
 
 #[test]
 fn cancel_stops_the_running_node_and_its_status_says_so() {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/refocus.ron");
     let m = load("refocus.ron");
-    let mut app = EditorApp::new(m, path);
+    let mut app = EditorApp::new(m, graph_path("refocus.ron"));
     app.select("refocus");
     let mut h = harness(app);
     let deadline = Instant::now() + Duration::from_secs(120);
@@ -291,16 +272,12 @@ fn cancel_stops_the_running_node_and_its_status_says_so() {
 
 #[test]
 fn ctrl_wheel_scales_and_the_ring_turns_the_pasted_object_each_one_undo_step() {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/copy_paste.ron");
     let m = load("copy_paste.ron");
     let scale0 = match m.param_value("paste", "scale") {
         Ok(ParamValue::Float(s)) => s,
         other => panic!("scale: {other:?}"),
     };
-    let mut app = EditorApp::new(m, path);
-    app.select("composite");
-    let mut h = harness(app);
-    settle(&mut h);
+    let mut h = open(m, "copy_paste.ron", "composite");
     let (view, frame) = object_on_screen(&h);
     let centre = frame.to_screen(view.centroid);
 
@@ -317,10 +294,7 @@ fn ctrl_wheel_scales_and_the_ring_turns_the_pasted_object_each_one_undo_step() {
         assert!(Instant::now() < deadline, "the wheel gesture never ended");
         std::thread::sleep(Duration::from_millis(20));
     }
-    let scale = match h.state().model.param_value("paste", "scale") {
-        Ok(ParamValue::Float(s)) => s,
-        other => panic!("scale: {other:?}"),
-    };
+    let scale = float(&h, "paste", "scale");
     let want = scale0 * 1.1f64 * 1.1f64;
     assert!(
         (scale - want).abs() < 1e-6 * want,

@@ -16,26 +16,33 @@ fn find_in_path(name: &str) -> Option<PathBuf> {
     })
 }
 
-/// Runs the editor under Xvfb with `args` and returns the screenshot's RGBA pixels.
-fn screenshot(dir: &Path, name: &str, args: &[&str]) -> image::RgbaImage {
+/// Runs the editor under Xvfb with `args` (in the repository root, a
+/// 1280x800 window); `XDG_RUNTIME_DIR` under `dir` when the caller has none.
+fn run_editor(dir: &Path, args: &[&str]) -> std::process::Output {
     let xvfb = find_in_path("xvfb-run").unwrap_or_else(|| {
         panic!("xvfb-run not found: install the Debian packages xvfb and xauth (see .ci/run)")
     });
-    let out = dir.join(name);
     let runtime = dir.join("xdg");
     std::fs::create_dir_all(&runtime).expect("runtime dir");
     let mut cmd = Command::new(xvfb);
     cmd.args(["-a", "-s", "-screen 0 1280x800x24"])
         .arg(env!("CARGO_BIN_EXE_depthgraph-editor"))
         .args(args)
-        .arg("--screenshot")
-        .arg(&out)
         .args(["--size", "1280x800", "--timeout-s", "240"])
         .current_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(".."));
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
         cmd.env("XDG_RUNTIME_DIR", &runtime);
     }
-    let result = cmd.output().expect("xvfb-run starts");
+    cmd.output().expect("xvfb-run starts")
+}
+
+/// Runs the editor under Xvfb with `args` and returns the screenshot's RGBA pixels.
+fn screenshot(dir: &Path, name: &str, args: &[&str]) -> image::RgbaImage {
+    let out = dir.join(name);
+    let out_arg = out.to_str().expect("utf-8 temp path");
+    let mut all = args.to_vec();
+    all.extend(["--screenshot", out_arg]);
+    let result = run_editor(dir, &all);
     assert!(
         result.status.success(),
         "editor under Xvfb failed ({}):\n{}\n{}",
@@ -106,19 +113,7 @@ fn window_under_xvfb_shows_the_graph_and_the_preview() {
 
 /// Runs the editor under Xvfb expecting failure; returns its stderr.
 fn failing(dir: &Path, args: &[&str]) -> String {
-    let xvfb = find_in_path("xvfb-run").expect("xvfb-run (see .ci/run)");
-    let runtime = dir.join("xdg-fail");
-    std::fs::create_dir_all(&runtime).expect("runtime dir");
-    let mut cmd = Command::new(xvfb);
-    cmd.args(["-a", "-s", "-screen 0 1280x800x24"])
-        .arg(env!("CARGO_BIN_EXE_depthgraph-editor"))
-        .args(args)
-        .args(["--size", "1280x800", "--timeout-s", "240"])
-        .current_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(".."));
-    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        cmd.env("XDG_RUNTIME_DIR", &runtime);
-    }
-    let result = cmd.output().expect("xvfb-run starts");
+    let result = run_editor(dir, args);
     assert!(!result.status.success(), "expected a failure for {args:?}");
     String::from_utf8_lossy(&result.stderr).into_owned()
 }
