@@ -415,6 +415,11 @@ impl ShadowMap {
         DVec3::new(p.dot(self.eu), p.dot(self.ev), p.dot(self.dir))
     }
 
+    /// The point at continuous texel coordinates `(u, v)` and `t = 0`.
+    pub fn texel_point(&self, u: f64, v: f64) -> DVec3 {
+        self.eu * (self.u0 + u * self.texel_m) + self.ev * (self.v0 + v * self.texel_m)
+    }
+
     /// Whether `other` has the same direction and frame.
     pub fn same_frame(&self, other: &ShadowMap) -> bool {
         self.dir == other.dir && self.eu == other.eu && self.ev == other.ev
@@ -883,7 +888,7 @@ fn disc_spans(u: f64, v: f64, r: f64, res: usize, mut put: impl FnMut(std::ops::
 }
 
 /// The texel grid of a map over a window: one texel of margin each side.
-struct Grid {
+pub(crate) struct Grid {
     dir: DVec3,
     eu: DVec3,
     ev: DVec3,
@@ -891,11 +896,12 @@ struct Grid {
     v0: f64,
     texel_m: f64,
     inv_texel: f64,
-    res: usize,
+    pub(crate) res: usize,
 }
 
 impl Grid {
-    fn new(win: &Window, resolution: usize) -> Option<Self> {
+    /// The grid of `resolution`² texels over `win`; `None` for an empty window.
+    pub(crate) fn new(win: &Window, resolution: usize) -> Option<Self> {
         let Window {
             dir,
             eu,
@@ -924,7 +930,20 @@ impl Grid {
         })
     }
 
-    fn map(&self, t: Vec<f32>) -> ShadowMap {
+    /// The frame in f32: per axis (`u`, `v`, then `t`) the unit vector, the
+    /// offset and the scale, so that a coordinate is `(p·e - offset) · scale`
+    /// (`t`: offset 0, scale 1).
+    pub(crate) fn frame_f32(&self) -> [(glam::Vec3, f32, f32); 3] {
+        let inv = self.inv_texel as f32;
+        [
+            (self.eu.as_vec3(), self.u0 as f32, inv),
+            (self.ev.as_vec3(), self.v0 as f32, inv),
+            (self.dir.as_vec3(), 0.0, 1.0),
+        ]
+    }
+
+    /// The map of the texels `t` (`res`², row by row) on this grid.
+    pub(crate) fn map(&self, t: Vec<f32>) -> ShadowMap {
         ShadowMap {
             dir: self.dir,
             eu: self.eu,

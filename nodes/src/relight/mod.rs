@@ -7,6 +7,7 @@ pub mod envmap;
 pub mod ism;
 pub mod lighting;
 pub mod node;
+pub mod object_mesh;
 pub mod paired;
 pub mod raycast;
 pub mod reference;

@@ -52,8 +52,6 @@ node_params! {
         pub visibility: Visibility = Visibility::SceneCached, ParamKind::Choice(Visibility::NAMES);
         /// Texels per side of the object's own maps (scene_cached).
         pub object_ism_resolution: usize = 64usize, ParamKind::Int { min: 4, max: 2048 };
-        /// Object samples splatted into each of its maps (scene_cached).
-        pub object_ism_points: usize = 2048usize, ParamKind::Int { min: 16, max: 1 << 22 };
         /// Close the object's unseen back (its front mirrored about the silhouette plane) for its shadows.
         pub close_back: bool = true, ParamKind::Bool;
         /// Keep the scene's bounce in the object's shadow: remove only the light the object blocks, direct and bounced.

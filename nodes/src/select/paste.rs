@@ -960,7 +960,7 @@ fn eval(_: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>, 
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Paste",
-        1,
+        2,
         "Places a selected object into a target RGB-D image (3d-editing §III.C): unproject, turn about the \
          solid's centroid (rotation_deg), scale about the centroid, translate (or put on a target pixel's ray), \
          reproject through the target camera as a crack-free z-buffered mesh. With close_back its unseen back \
