@@ -218,6 +218,7 @@ fn main() {
                 &VplParams {
                     count: 256,
                     seed: 1,
+                    ..Default::default()
                 },
             );
             let est_r = score(&case, &relit(&vpls));

@@ -154,7 +154,11 @@ pub struct RelightCase {
 impl RelightCase {
     /// `count` directional VPLs of the case's map (seed 1).
     pub fn vpls(&self, count: usize) -> Vec<crate::relight::vpl::Vpl> {
-        let p = crate::relight::vpl::VplParams { count, seed: 1 };
+        let p = crate::relight::vpl::VplParams {
+            count,
+            seed: 1,
+            ..Default::default()
+        };
         crate::relight::vpl::sample_vpls(&self.env, &p)
     }
 
