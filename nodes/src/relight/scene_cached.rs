@@ -429,6 +429,13 @@ fn object_maps(mesh: &ObjectMesh, dirs: &[DVec3], p: &RelightParams) -> ObjectMa
     }
 }
 
+/// The fill light (the scene's own bounce and what of it the object
+/// blocks) is evaluated once per block of this many pixels a side: it
+/// varies over centimetres (a sum over the scene's bounce VPLs, metres
+/// away), and each evaluation tests every such VPL against the object's
+/// volume.
+const FILL_BLOCK: usize = 4;
+
 /// Pixels per mesh cell of the object (at least 1): about two texels of
 /// its maps (a cell's setup costs more than a texel's test; a cell of two
 /// texels on a curved surface is still flat to a fraction of a
@@ -798,15 +805,16 @@ pub fn relight_moved(
                     }
                 }
             }
-            // the fill is smooth: one evaluation per 2x2 block of the
-            // tile serves the block's pixels on the same surface (normals
-            // within 18°, positions within 5 % of their depth)
+            // the fill is smooth: one evaluation per FILL_BLOCK² block of
+            // the tile serves the block's pixels on the same surface
+            // (normals within 18°, positions within 5 % of their depth)
             type Fill = (DVec3, DVec3, ([f64; 3], [f64; 3]));
-            let mut fills: [Option<Fill>; Tile::SIDE * Tile::SIDE / 4] =
-                [None; Tile::SIDE * Tile::SIDE / 4];
+            const PER_SIDE: usize = Tile::SIDE / FILL_BLOCK;
+            let mut fills: [Option<Fill>; PER_SIDE * PER_SIDE] = [None; PER_SIDE * PER_SIDE];
             let mut fill_at = |i: usize, s: &Surf| {
                 let (x, y) = (i % w, i / w);
-                let slot = ((y % Tile::SIDE) / 2) * (Tile::SIDE / 2) + (x % Tile::SIDE) / 2;
+                let slot =
+                    ((y % Tile::SIDE) / FILL_BLOCK) * PER_SIDE + (x % Tile::SIDE) / FILL_BLOCK;
                 if let Some((n0, p0, f)) = fills[slot] {
                     if n0.dot(s.n) > 0.95 && (p0 - s.pos).length() <= 0.05 * s.pos.z.abs() {
                         return f;
