@@ -28,7 +28,7 @@
 //!   **patch**: the parallelogram of the pixel's footprint on its surface
 //!   (`P ± ∂P/∂x/2 ± ∂P/∂y/2`, one-sided differences on the same surface,
 //!   fronto-parallel where it has no neighbour, each edge at most
-//!   [`MAX_SLANT`] pixel sides long), grown by [`PATCH_GROWTH`]
+//!   [`MAX_PATCH_EDGE`] pixel sides long), grown by [`PATCH_GROWTH`]
 //!   so that patches and cells overlap.
 //!
 //! The front and the back meet at the silhouette (the back is never in
@@ -44,13 +44,21 @@
 use depthgraph_graph::prelude::*;
 use glam::DVec3;
 
-use crate::relight::ism::{Grid, MAX_SLANT, ShadowMap, Window};
+use crate::relight::ism::{Grid, ShadowMap, Window};
 
 /// Two neighbouring pixels are on one surface when their depths differ by
 /// at most this fraction (the test of [`crate::relight::ism::pixel_area`]);
 /// a cell of `b` pixels when its corners differ by at most `b` times it.
 /// Steeper steps are depth jumps, never bridged.
 pub const SAME_SURFACE: f64 = 0.1;
+
+/// A patch's edge is at most this many pixel sides long (a surface seen
+/// at 83° from its normal): a steep step to the neighbour (a sphere's rim,
+/// seen edge-on) does not stretch the patch far beyond its pixel. Against
+/// the path-traced rooms a cap of 20 sides (`pixel_area`'s) scored the
+/// cylinder behind a box 2 dB lower and the others the same; 4 sides left
+/// holes in a box's steep faces.
+pub const MAX_PATCH_EDGE: f64 = 8.0;
 
 /// Patches are grown by this fraction of their footprint: their edges then
 /// overlap the cells' and each other's (no light leaks between them), at
@@ -226,7 +234,7 @@ impl ObjectMesh {
 /// The half edges of pixel `(x, y)`'s patch on a valid depth (module
 /// docs): `∂P/∂x / 2` and `∂P/∂y / 2` from the neighbours on the same
 /// surface (one-sided differences; fronto-parallel without one), each
-/// edge at most [`MAX_SLANT`] pixel sides long, grown by [`PATCH_GROWTH`].
+/// edge at most [`MAX_PATCH_EDGE`] pixel sides long, grown by [`PATCH_GROWTH`].
 fn half_edges(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (DVec3, DVec3) {
     let (w, h) = depth.dims();
     let at = |x: usize, y: usize| {
@@ -255,9 +263,8 @@ fn half_edges(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (DVec3, D
     } else {
         k.unproject(x as f64 + 0.5, y as f64 + 1.5, z) - p
     };
-    // an edge at most MAX_SLANT pixel sides long (the bound of
-    // `pixel_area`: a surface seen at about 87 degrees from its normal)
-    let cap = MAX_SLANT * side;
+    // an edge at most MAX_PATCH_EDGE pixel sides long
+    let cap = MAX_PATCH_EDGE * side;
     let clamp = |e: DVec3| {
         let l = e.length();
         // guard: divide only an edge longer than the cap (> 0)
