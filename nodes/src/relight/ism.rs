@@ -95,6 +95,11 @@ pub fn importance(p: DVec3, centres: &[DVec3], min_d: f64) -> f64 {
 /// (a surface seen at about 87 degrees from its normal).
 pub const MAX_SLANT: f64 = 20.0;
 
+/// Two neighbouring pixels are on one surface when their depths differ by
+/// at most this fraction ([`pixel_area`], [`surface_steps`], the object's
+/// mesh).
+pub const SAME_SURFACE: f64 = 0.1;
+
 /// Surface area (m²) of pixel `(x, y)` of a valid depth: `|∂P/∂u × ∂P/∂v|`
 /// from the unprojected neighbours on the same surface (depth ratio within
 /// 10 %, forward or backward differences), clamped to
@@ -105,13 +110,35 @@ pub fn pixel_area(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (f64,
     let z = *depth.get(x, y) as f64;
     // guard: k is sane (checked by the caller), fx fy > 0
     let a0 = z * z / (k.fx * k.fy);
+    let (_, du, dv) = surface_steps(depth, k, x, y);
+    let side = a0.sqrt();
+    match (du, dv) {
+        (Some(a), Some(b)) => (
+            a.cross(b).length().clamp(a0, MAX_SLANT * a0),
+            a.length().max(b.length()).min(MAX_SLANT * side),
+        ),
+        _ => (a0, side),
+    }
+}
+
+/// Pixel `(x, y)` of a valid depth unprojected, and its steps to the next
+/// pixel along x and along y on the same surface (depth ratio within
+/// 10 %): the forward difference, else the backward one, else `None`.
+/// `k` must be sane.
+pub(crate) fn surface_steps(
+    depth: &DepthMap,
+    k: &Intrinsics,
+    x: usize,
+    y: usize,
+) -> (DVec3, Option<DVec3>, Option<DVec3>) {
+    let z = *depth.get(x, y) as f64;
     let at = |xx: usize, yy: usize| {
         k.unproject(xx as f64 + 0.5, yy as f64 + 0.5, *depth.get(xx, yy) as f64)
     };
     let same = |xx: usize, yy: usize| {
         let zz = *depth.get(xx, yy) as f64;
         // guard: both depths > 0 when valid
-        DepthMap::is_valid(zz as f32) && zz.max(z) / zz.min(z) <= 1.1
+        DepthMap::is_valid(zz as f32) && zz.max(z) / zz.min(z) <= 1.0 + SAME_SURFACE
     };
     let (w, h) = depth.dims();
     let p = at(x, y);
@@ -129,14 +156,7 @@ pub fn pixel_area(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (f64,
     } else {
         None
     };
-    let side = a0.sqrt();
-    match (du, dv) {
-        (Some(a), Some(b)) => (
-            a.cross(b).length().clamp(a0, MAX_SLANT * a0),
-            a.length().max(b.length()).min(MAX_SLANT * side),
-        ),
-        _ => (a0, side),
-    }
+    (p, du, dv)
 }
 
 /// The surface elements of the scene, with their sampling CDF.

@@ -20,7 +20,8 @@
 //! the object's bounding box:
 //!
 //! - a **cell** whose four corner samples are valid and on one surface
-//!   (depths within `1 + b` [`SAME_SURFACE`] of each other) becomes two
+//!   (depths within `1 + b` [`SAME_SURFACE`] of each other; steeper steps
+//!   are depth jumps, never bridged) becomes two
 //!   triangles through the corners' unprojected pixel centres: cells share
 //!   corners, so their union has no cracks;
 //! - a valid pixel whose square the full cells do not cover (the half
@@ -44,13 +45,7 @@
 use depthgraph_graph::prelude::*;
 use glam::DVec3;
 
-use crate::relight::ism::{Grid, ShadowMap, Window};
-
-/// Two neighbouring pixels are on one surface when their depths differ by
-/// at most this fraction (the test of [`crate::relight::ism::pixel_area`]);
-/// a cell of `b` pixels when its corners differ by at most `b` times it.
-/// Steeper steps are depth jumps, never bridged.
-pub const SAME_SURFACE: f64 = 0.1;
+use crate::relight::ism::{Grid, SAME_SURFACE, ShadowMap, Window, surface_steps};
 
 /// A patch's edge is at most this many pixel sides long (a surface seen
 /// at 83° from its normal): a steep step to the neighbour (a sphere's rim,
@@ -236,33 +231,12 @@ impl ObjectMesh {
 /// surface (one-sided differences; fronto-parallel without one), each
 /// edge at most [`MAX_PATCH_EDGE`] pixel sides long, grown by [`PATCH_GROWTH`].
 fn half_edges(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (DVec3, DVec3) {
-    let (w, h) = depth.dims();
-    let at = |x: usize, y: usize| {
-        k.unproject(x as f64 + 0.5, y as f64 + 0.5, f64::from(*depth.get(x, y)))
-    };
     // guard: sane intrinsics have fx > 0; a pixel at depth z spans z / fx
     let side = f64::from(*depth.get(x, y)) / k.fx;
-    let p = at(x, y);
+    let (p, du, dv) = surface_steps(depth, k, x, y);
     let z = p.z;
-    let same = |x: usize, y: usize| {
-        let zz = f64::from(*depth.get(x, y));
-        // guard: both depths > 0 when valid
-        DepthMap::is_valid(zz as f32) && zz.max(z) / zz.min(z) <= 1.0 + SAME_SURFACE
-    };
-    let du = if x + 1 < w && same(x + 1, y) {
-        at(x + 1, y) - p
-    } else if x > 0 && same(x - 1, y) {
-        p - at(x - 1, y)
-    } else {
-        k.unproject(x as f64 + 1.5, y as f64 + 0.5, z) - p
-    };
-    let dv = if y + 1 < h && same(x, y + 1) {
-        at(x, y + 1) - p
-    } else if y > 0 && same(x, y - 1) {
-        p - at(x, y - 1)
-    } else {
-        k.unproject(x as f64 + 0.5, y as f64 + 1.5, z) - p
-    };
+    let du = du.unwrap_or_else(|| k.unproject(x as f64 + 1.5, y as f64 + 0.5, z) - p);
+    let dv = dv.unwrap_or_else(|| k.unproject(x as f64 + 0.5, y as f64 + 1.5, z) - p);
     // an edge at most MAX_PATCH_EDGE pixel sides long
     let cap = MAX_PATCH_EDGE * side;
     let clamp = |e: DVec3| {
