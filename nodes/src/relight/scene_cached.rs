@@ -532,8 +532,33 @@ pub fn relight_moved(
     if let Some(b) = &back {
         layers.push((b, true));
     }
-    let oset = PointSet::new(&layers, k, &[], p.min_distance_m);
-    let (c, radius) = centre_and_radius(&oset.positions);
+    // the samples' set (areas, importance, CDF) only for the bounce's
+    // paraboloid maps; the centre and reach from the points alone
+    let oset = scene
+        .pool
+        .as_ref()
+        .map(|_| PointSet::new(&layers, k, &[], p.min_distance_m));
+    let unprojected: Vec<DVec3>;
+    let positions: &[DVec3] = match &oset {
+        Some(set) => &set.positions,
+        None => {
+            unprojected = layers
+                .iter()
+                .flat_map(|(d, _)| {
+                    let w = d.width();
+                    d.as_slice()
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, z)| DepthMap::is_valid(**z))
+                        .map(move |(i, z)| {
+                            k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, f64::from(*z))
+                        })
+                })
+                .collect();
+            &unprojected
+        }
+    };
+    let (c, radius) = centre_and_radius(positions);
     let volume = inp.volume(back.as_ref(), c, radius);
     let stride = object_stride(radius, c.z, k, p.object_ism_resolution);
     let mesh = ObjectMesh::new(inp.pasted_depth, back.as_ref(), k, stride);
@@ -677,27 +702,27 @@ pub fn relight_moved(
     // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
     // samples, each with its own radius
     let m_obj = (p.bounce_ism_points / 4).max(16);
-    let (r_scene, r_obj) = match &scene.pool {
-        Some(pool) => (
+    let (r_scene, r_obj) = match (&scene.pool, &oset) {
+        (Some(pool), Some(oset)) => (
             BOUNCE_SPLAT_SCALE * pool.base_radius(p.bounce_ism_points),
             BOUNCE_SPLAT_SCALE * oset.base_radius(m_obj),
         ),
-        None => (0.0, 0.0),
+        _ => (0.0, 0.0),
     };
-    let bounce_samples: Vec<ParaboloidSamples> = match &scene.pool {
-        Some(pool) => vec![
+    let bounce_samples: Vec<ParaboloidSamples> = match (&scene.pool, &oset) {
+        (Some(pool), Some(oset)) => vec![
             ParaboloidSamples {
                 set: pool,
                 m: p.bounce_ism_points,
                 radius_scale: BOUNCE_SPLAT_SCALE,
             },
             ParaboloidSamples {
-                set: &oset,
+                set: oset,
                 m: m_obj,
                 radius_scale: BOUNCE_SPLAT_SCALE,
             },
         ],
-        None => Vec::new(),
+        _ => Vec::new(),
     };
     let scene_shadows = PointVplShadows::new(&scene_vpls, &bounce_samples, p, p.seed ^ 0x5EC0);
     let obj_rad: Vec<Rgb> = obj_idx
