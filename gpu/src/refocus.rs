@@ -19,9 +19,9 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::camera::lens::Aperture;
+use depthgraph_nodes::camera::lens::{Aperture, apply_image_effects};
 use depthgraph_nodes::camera::refocus::{
-    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, sharp_reason,
+    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, produced,
 };
 
 use crate::session::{Bind, Session, bytes_of, entry, f32s, u32s, uniform_blocks};
@@ -91,14 +91,15 @@ pub fn eval(
         Aperture::from_params(p.aperture, p.blades, p.rotation_deg, i.aperture.as_deref())?;
     let (color, report) = match plan(&i.color, &i.depth, &aperture, p)? {
         Plan::Sharp(out, report) => (out, report),
+        Plan::Blur(b) if b.effects.in_views() => {
+            return Err(s.too_large(
+                "spherical and longitudinal chromatic aberration and optical vignetting \
+                 (per-view channel shifts, the barrel clip) are not on the device yet",
+            ));
+        }
         Plan::Blur(b) => render(s, ctx, &i.color, &b, p)?,
     };
-    let out = RefocusOut { color };
-    if report.samples == 0 {
-        let why = sharp_reason(p, &report);
-        return Ok(Produced::passthrough(out, why));
-    }
-    Ok(out.into())
+    Ok(produced(RefocusOut { color }, p, &report))
 }
 
 /// Renders `plan`'s views on the device.
@@ -266,6 +267,10 @@ pub fn render(
                 }
             }
             let img = Image::from_vec(w, h, data)?;
+            // The image-wide lens effects (magnification per channel,
+            // breathing, natural vignetting) on the host, as the CPU does.
+            let changed = changed || plan.effects.in_image(&plan.lens);
+            let img = apply_image_effects(img, &plan.effects, &plan.lens);
             // The device copy is the value only if nothing was corrected.
             if !changed {
                 s.keep("color", out.clone(), 12 * n as u64);

@@ -198,3 +198,57 @@ fn too_large_for_the_device_runs_on_the_cpu_and_says_so() {
     let b = eval_on(&dev, "Refocus", &inputs(c, d), &p.to_values()).unwrap();
     assert_eq!(b.origin.unwrap().backend, "wgpu");
 }
+
+/// The image-wide lens effects (magnification per channel, breathing,
+/// natural vignetting) run on the host after the device's views: the same
+/// result within the bound. The effects that change the views themselves
+/// (spherical and longitudinal chromatic aberration, the barrel) run on the
+/// CPU, and the outputs say so.
+#[test]
+fn lens_effects_agree_or_run_on_the_cpu_and_say_so() {
+    let (c, d) = scene(120, 90);
+    let image_wide = RefocusParams {
+        chromatic_lateral: 0.02,
+        natural_vignetting: 1.0,
+        focus_breathing: true,
+        ..cases().remove(0)
+    };
+    let (cpu, dev) = both(
+        "Refocus",
+        &inputs(c.clone(), d.clone()),
+        &image_wide.to_values(),
+    );
+    let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+    // resampling mixes moved and unmoved pixels: none is held to its bits
+    let none = vec![false; c.len()];
+    color_within(&a, &b, &none, MIN_PSNR_DB).unwrap();
+    assert_eq!(dev.origin.as_ref().unwrap().backend, "wgpu");
+    // without the effects the device result differs (so the check can fail)
+    let plain = both(
+        "Refocus",
+        &inputs(c.clone(), d.clone()),
+        &cases()[0].to_values(),
+    )
+    .1;
+    assert!(color_within(&a, &color_of(&plain, "color"), &none, MIN_PSNR_DB).is_err());
+    for p in [
+        RefocusParams {
+            spherical_aberration_d: 0.5,
+            ..cases().remove(0)
+        },
+        RefocusParams {
+            barrel_distance_mm: 40.0,
+            ..cases().remove(0)
+        },
+    ] {
+        let (cpu_reg, dev_reg) = registries();
+        let i = inputs(c.clone(), d.clone());
+        let cpu = eval_on(&cpu_reg, "Refocus", &i, &p.to_values()).unwrap();
+        let dev = eval_on(&dev_reg, "Refocus", &i, &p.to_values()).unwrap();
+        assert_eq!(*color_of(&cpu, "color"), *color_of(&dev, "color"));
+        let origin = dev.origin.unwrap();
+        assert_eq!(origin.backend, "cpu");
+        let note = origin.note.unwrap_or_default();
+        assert!(note.contains("not on the device yet"), "{note}");
+    }
+}

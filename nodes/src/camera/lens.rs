@@ -34,6 +34,8 @@
 //! they are the sky.
 
 use depthgraph_graph::prelude::*;
+use depthgraph_graph::value::Rgb;
+use rayon::prelude::*;
 
 use crate::kit::rng::splitmix64;
 
@@ -146,6 +148,296 @@ impl ThinLens {
         let magnification = 1.0 / (1.0 - f_m * self.inv_focus());
         f_px * aperture_m * magnification
     }
+}
+
+/// Per-channel sign of the chromatic aberrations: red focuses (and is
+/// magnified) one way, blue the other, green is the reference.
+pub const CHANNEL_SIGN: [f64; 3] = [1.0, 0.0, -1.0];
+
+/// What a real lens adds to the perfect thin lens (the depth-blur paper's
+/// future work: "include several other optical effects of real cameras (e.g.
+/// spherical and chromatic aberrations)"). Every effect is off at its zero
+/// value and then costs nothing. The model, shared by `Refocus` and the
+/// ray-traced truth ([`crate::sim::synthetic::render_thin_lens`]):
+///
+/// - **Focus per aperture point and channel.** The ray from aperture point
+///   `s` (aperture diameters, radius `r = 2|s|`, 1 at a disc's rim) in
+///   channel `c` focuses at inverse distance
+///   `1/u_c(s) = 1/u + S r^2 + k_c L`  (dioptres),
+///   with `S` = `spherical_d` (spherical aberration: the focus moves with the
+///   radius on the aperture), `L` = `chromatic_longitudinal_d` (longitudinal
+///   chromatic aberration) and `k = (+1, 0, -1)` for red, green, blue
+///   ([`CHANNEL_SIGN`]). A point at inverse depth `v` then moves by
+///   `C s (1/u_c(s) - v)` pixels (the module docs' `d(s, z)` with the
+///   per-ray focus), so `S` and `L` add a constant shift per view and
+///   channel: `C s (S r^2 + k_c L)`.
+/// - **Optical vignetting.** A lens barrel (a circular opening of diameter
+///   `B` = `barrel_diameter_mm`, the aperture's diameter `A` when 0) sits
+///   `l` = `barrel_distance_mm` in front of the stop. The ray from `s`
+///   towards the focus point of the image point `x` crosses it at
+///   `s (1 - l/u) + (l / A) t(x)` aperture diameters, `t(x) = (x - centre) /
+///   f_px` (the field angle's tangent, from the virtual lens); the ray passes
+///   when that lies within `B / 2A`. Off the axis the open part of the
+///   aperture is the lens-shaped overlap of two discs: cat's-eye bokeh,
+///   long across the radius, and corners darker by the closed fraction.
+/// - **Natural vignetting.** Irradiance falls off as `cos^4` of the field
+///   angle: the image is multiplied by `(1 + |t(x)|^2)^(-2 k)`, `k` =
+///   `natural_vignetting` (1 is the physical law).
+/// - **Magnification per channel and focus breathing.** Channel `c` is
+///   magnified about the image centre by `M_c = b (1 + k_c m)`, `m` =
+///   `chromatic_lateral` (lateral chromatic aberration), `b = u / (u - f)`
+///   with `focus_breathing` (a lens that focuses by moving away from the
+///   sensor: the input's field of view is the lens's at infinity and
+///   focusing nearer narrows it) and `b = 1` without (the field of view stays
+///   the input's at every focus distance, today's model). The value at output
+///   pixel `x` is the unmagnified image at `centre + (x - centre) / M_c`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LensEffects {
+    /// `S`: inverse focus shift at the aperture's rim, dioptres (1/m);
+    /// positive: the rim focuses nearer (under-corrected, like a simple lens).
+    pub spherical_d: f64,
+    /// `L`: red focuses at `1/u + L`, blue at `1/u - L`, dioptres.
+    pub chromatic_longitudinal_d: f64,
+    /// `m`: red is magnified by `1 + m`, blue by `1 - m`.
+    pub chromatic_lateral: f64,
+    /// `l`: distance of the barrel in front of the stop, mm; 0 = no optical
+    /// vignetting.
+    pub barrel_distance_mm: f64,
+    /// `B`: the barrel's diameter, mm; 0 = the aperture's diameter.
+    pub barrel_diameter_mm: f64,
+    /// `k` of the `cos^(4k)` falloff; 0 = none, 1 = physical.
+    pub natural_vignetting: f64,
+    /// Field of view narrowing as the focus comes nearer (see above).
+    pub focus_breathing: bool,
+}
+
+/// The barrel clip of [`LensEffects`] for one image: whether the ray from an
+/// aperture point to an image point passes the barrel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Barrel {
+    /// Image centre, continuous pixel coordinates.
+    pub centre: [f64; 2],
+    /// `1 - l/u`: the aperture point's weight where the ray crosses.
+    pub along: f64,
+    /// `l / (A f_px)`: aperture diameters per pixel off the centre.
+    pub per_px: f64,
+    /// Squared radius of the barrel in aperture diameters, `(B / 2A)^2`.
+    pub radius2: f64,
+}
+
+impl Barrel {
+    /// True when the ray from aperture point `s` towards continuous image
+    /// point `(x, y)` passes the barrel.
+    #[inline]
+    pub fn open(&self, s: [f64; 2], x: f64, y: f64) -> bool {
+        let px = s[0] * self.along + self.per_px * (x - self.centre[0]);
+        let py = s[1] * self.along + self.per_px * (y - self.centre[1]);
+        px * px + py * py <= self.radius2
+    }
+}
+
+impl LensEffects {
+    /// Checks the effects: finite values, a non-negative barrel and falloff,
+    /// magnifications that stay positive. Errors name the parameter.
+    pub fn validate(&self) -> Result<(), NodeError> {
+        let finite = |name: &str, v: f64| {
+            if v.is_finite() {
+                Ok(())
+            } else {
+                Err(NodeError::param(
+                    name,
+                    format!("must be a finite number, got {v}"),
+                ))
+            }
+        };
+        finite("spherical_aberration_d", self.spherical_d)?;
+        finite("chromatic_longitudinal_d", self.chromatic_longitudinal_d)?;
+        finite("chromatic_lateral", self.chromatic_lateral)?;
+        for (name, v) in [
+            ("barrel_distance_mm", self.barrel_distance_mm),
+            ("barrel_diameter_mm", self.barrel_diameter_mm),
+            ("natural_vignetting", self.natural_vignetting),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(NodeError::param(
+                    name,
+                    format!("must be zero or a positive number, got {v}"),
+                ));
+            }
+        }
+        if self.chromatic_lateral.abs() >= 0.5 {
+            return Err(NodeError::param(
+                "chromatic_lateral",
+                format!(
+                    "must lie within (-0.5, 0.5): red and blue are magnified by 1 +- this, got {}",
+                    self.chromatic_lateral
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// True when some effect changes the views themselves (the focus per
+    /// aperture point or channel, or the barrel), not only the final image.
+    pub fn in_views(&self) -> bool {
+        self.spherical_d != 0.0
+            || self.chromatic_longitudinal_d != 0.0
+            || self.barrel_distance_mm > 0.0
+    }
+
+    /// True when the final image is resampled or darkened (magnification
+    /// per channel, breathing, natural vignetting).
+    pub fn in_image(&self, lens: &ThinLens) -> bool {
+        self.natural_vignetting > 0.0 || (0..3).any(|c| self.magnification(lens, c) != 1.0)
+    }
+
+    /// The inverse-focus offset `S r^2 + k_c L` (dioptres) of aperture point
+    /// `s` in channel `c` (see the type's docs).
+    #[inline]
+    pub fn focus_offset(&self, s: [f64; 2], c: usize) -> f64 {
+        let r2 = 4.0 * (s[0] * s[0] + s[1] * s[1]);
+        self.spherical_d * r2 + CHANNEL_SIGN[c] * self.chromatic_longitudinal_d
+    }
+
+    /// The largest `|S r^2 + k_c L|` over an aperture whose points lie
+    /// within `extent` aperture diameters of its centre.
+    pub fn max_focus_offset(&self, extent: f64) -> f64 {
+        let r2 = 4.0 * extent * extent;
+        self.spherical_d.abs() * r2 + self.chromatic_longitudinal_d.abs()
+    }
+
+    /// `M_c`, the magnification of channel `c` (see the type's docs).
+    pub fn magnification(&self, lens: &ThinLens, c: usize) -> f64 {
+        let f_m = lens.focal_length_mm * 1e-3;
+        // u / (u - f) = 1 / (1 - f/u); f/u < 1 for a validated lens.
+        let breathing = if self.focus_breathing {
+            1.0 / (1.0 - f_m * lens.inv_focus())
+        } else {
+            1.0
+        };
+        breathing * (1.0 + CHANNEL_SIGN[c] * self.chromatic_lateral)
+    }
+
+    /// The focal length of the virtual lens in pixels of an image `width`
+    /// wide.
+    fn f_px(lens: &ThinLens, width: usize) -> f64 {
+        // Guard: sensor_width_mm > 0 for a validated lens.
+        lens.focal_length_mm * width as f64 / lens.sensor_width_mm
+    }
+
+    /// The barrel clip for a `width` x `height` image, `None` without one.
+    pub fn barrel(&self, lens: &ThinLens, width: usize, height: usize) -> Option<Barrel> {
+        if self.barrel_distance_mm <= 0.0 {
+            return None;
+        }
+        // Guard: f_number > 0 for a validated lens, so A > 0.
+        let a_mm = lens.focal_length_mm / lens.f_number;
+        let b_mm = if self.barrel_diameter_mm > 0.0 {
+            self.barrel_diameter_mm
+        } else {
+            a_mm
+        };
+        let f_px = Self::f_px(lens, width).max(f64::MIN_POSITIVE);
+        let r = b_mm / (2.0 * a_mm);
+        Some(Barrel {
+            centre: [width as f64 / 2.0, height as f64 / 2.0],
+            along: 1.0 - self.barrel_distance_mm * 1e-3 * lens.inv_focus(),
+            // Guard: a_mm > 0 and f_px > 0.
+            per_px: self.barrel_distance_mm / (a_mm * f_px),
+            radius2: r * r,
+        })
+    }
+
+    /// The natural vignetting factor `(1 + |t|^2)^(-2k)` at continuous image
+    /// point `(x, y)` of a `width` x `height` image.
+    pub fn natural_factor(
+        &self,
+        lens: &ThinLens,
+        width: usize,
+        height: usize,
+        x: f64,
+        y: f64,
+    ) -> f64 {
+        if self.natural_vignetting <= 0.0 {
+            return 1.0;
+        }
+        let f_px = Self::f_px(lens, width).max(f64::MIN_POSITIVE);
+        // Guard: f_px > 0.
+        let tx = (x - width as f64 / 2.0) / f_px;
+        let ty = (y - height as f64 / 2.0) / f_px;
+        (1.0 + tx * tx + ty * ty).powf(-2.0 * self.natural_vignetting)
+    }
+
+    /// One line per effect that is off, in the words `explain` shows.
+    pub fn skipped(&self, lens: &ThinLens) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.spherical_d == 0.0 {
+            out.push("no spherical aberration: spherical_aberration_d 0".to_string());
+        }
+        if self.chromatic_longitudinal_d == 0.0 && self.chromatic_lateral == 0.0 {
+            out.push("no chromatic aberration: lateral and longitudinal 0".to_string());
+        }
+        if self.barrel_distance_mm <= 0.0 {
+            out.push("no optical vignetting: barrel_distance_mm 0".to_string());
+        }
+        if self.natural_vignetting <= 0.0 {
+            out.push("no natural vignetting: natural_vignetting 0".to_string());
+        }
+        if !self.focus_breathing || self.magnification(lens, 1) == 1.0 {
+            out.push("no focus breathing: the field of view stays the input's".to_string());
+        }
+        out
+    }
+}
+
+/// Bilinear interpolation at pixel-index point `(x, y)` (pixel centres at
+/// integers) of the values `at(index)` of a non-empty `w` x `h` image,
+/// edges clamped.
+pub fn bilinear(w: usize, h: usize, x: f64, y: f64, at: impl Fn(usize) -> f32) -> f64 {
+    let x = x.clamp(0.0, w.saturating_sub(1) as f64);
+    let y = y.clamp(0.0, h.saturating_sub(1) as f64);
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (ax, ay) = (x - x0 as f64, y - y0 as f64);
+    let v = |i: usize, j: usize| at(j * w + i) as f64;
+    (v(x0, y0) * (1.0 - ax) + v(x1, y0) * ax) * (1.0 - ay)
+        + (v(x0, y1) * (1.0 - ax) + v(x1, y1) * ax) * ay
+}
+
+/// Applies the image-wide effects of [`LensEffects`] to a rendered `image`
+/// in place of the unmagnified one: each channel resampled (bilinear, edges
+/// clamped) at `centre + (x - centre) / M_c`, then the natural vignetting.
+/// Returns the image unchanged (bit for bit) when neither is on.
+pub fn apply_image_effects(image: ColorImage, fx: &LensEffects, lens: &ThinLens) -> ColorImage {
+    if !fx.in_image(lens) || image.is_empty() {
+        return image;
+    }
+    let (w, h) = image.dims();
+    let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+    let inv_m: [f64; 3] = std::array::from_fn(|c| {
+        // Guard: M_c > 0 (|chromatic_lateral| < 1/2 by validate, breathing >= 1).
+        1.0 / fx.magnification(lens, c)
+    });
+    let src = image.as_slice();
+    let resample = (0..3).any(|c| inv_m[c] != 1.0);
+    let data: Vec<Rgb> = (0..w * h)
+        .into_par_iter()
+        .map(|t| {
+            let (px, py) = ((t % w) as f64 + 0.5, (t / w) as f64 + 0.5);
+            let v = fx.natural_factor(lens, w, h, px, py);
+            std::array::from_fn(|c| {
+                let raw = if resample && inv_m[c] != 1.0 {
+                    let qx = cx + (px - cx) * inv_m[c] - 0.5;
+                    let qy = cy + (py - cy) * inv_m[c] - 0.5;
+                    bilinear(w, h, qx, qy, |j| src[j][c])
+                } else {
+                    src[t][c] as f64
+                };
+                (raw * v) as f32
+            })
+        })
+        .collect();
+    Image::from_vec(w, h, data).unwrap_or(image)
 }
 
 /// `1 / z` of a depth sample, 0 for no measurement (treated as infinitely

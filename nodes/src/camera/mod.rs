@@ -4,6 +4,7 @@
 pub mod hdr;
 pub mod intrinsics;
 pub mod lens;
+mod lens_effects_tests;
 pub mod refocus;
 pub mod response;
 

@@ -42,7 +42,10 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
-use crate::camera::lens::{Aperture, ApertureShape, ThinLens, effective_f_number, inv_depth};
+use crate::camera::lens::{
+    Aperture, ApertureShape, Barrel, LensEffects, ThinLens, apply_image_effects, bilinear,
+    effective_f_number, inv_depth,
+};
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
 pub const TILE: usize = 16;
@@ -95,6 +98,20 @@ node_params! {
         /// Fill disocclusions from the background (the far-depth prior of
         /// Sec. 2.3); off blends both sides by distance.
         pub far_prior: bool = true, ParamKind::Bool;
+        /// Spherical aberration: the aperture's rim focuses this many dioptres (1/m) nearer than its centre, in between with the squared radius (soft-edged bokeh on one side of the focus, bright-rimmed on the other); 0 = none (Refocus only).
+        pub spherical_aberration_d: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
+        /// Longitudinal chromatic aberration: red focuses this many dioptres nearer, blue as many farther; 0 = none (Refocus only).
+        pub chromatic_longitudinal_d: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
+        /// Lateral chromatic aberration: red magnified by 1 + this about the image centre, blue by 1 - this (colour fringes growing toward the edges); 0 = none (Refocus only).
+        pub chromatic_lateral: f64 = 0.0, ParamKind::Float { min: -0.25, max: 0.25 };
+        /// Optical vignetting: distance in mm of the lens barrel in front of the aperture stop; off the axis it clips the aperture (cat's-eye bokeh, darker corners); 0 = none (Refocus only).
+        pub barrel_distance_mm: f64 = 0.0, ParamKind::Float { min: 0.0, max: 10000.0 };
+        /// Diameter of the lens barrel in mm; 0 = the aperture's diameter (Refocus only).
+        pub barrel_diameter_mm: f64 = 0.0, ParamKind::Float { min: 0.0, max: 10000.0 };
+        /// Natural vignetting: the image times cos^(4 k) of the field angle, k this value (1 = the physical cos^4 law); 0 = none (Refocus only).
+        pub natural_vignetting: f64 = 0.0, ParamKind::Float { min: 0.0, max: 8.0 };
+        /// Focus breathing: on, the input's field of view is the lens's at infinity and focusing at u magnifies by u / (u - f); off, the field of view stays the input's at every focus (Refocus only).
+        pub focus_breathing: bool = false, ParamKind::Bool;
     }
 }
 
@@ -110,6 +127,19 @@ impl RefocusParams {
             ),
             focus_m: self.focus_m,
             sensor_width_mm: self.sensor_width_mm,
+        }
+    }
+
+    /// The lens effects the parameters ask for (not yet validated).
+    pub fn effects(&self) -> LensEffects {
+        LensEffects {
+            spherical_d: self.spherical_aberration_d,
+            chromatic_longitudinal_d: self.chromatic_longitudinal_d,
+            chromatic_lateral: self.chromatic_lateral,
+            barrel_distance_mm: self.barrel_distance_mm,
+            barrel_diameter_mm: self.barrel_diameter_mm,
+            natural_vignetting: self.natural_vignetting,
+            focus_breathing: self.focus_breathing,
         }
     }
 }
@@ -220,7 +250,7 @@ pub enum Plan {
     /// No circle of confusion reaches half a pixel: the exposed input.
     Sharp(ColorImage, RefocusReport),
     /// Views to render and average.
-    Blur(BlurPlan),
+    Blur(Box<BlurPlan>),
 }
 
 /// The views of a blurred [`Plan`].
@@ -249,8 +279,15 @@ pub struct BlurPlan {
     pub sources: Vec<(u32, u64)>,
     /// `2^exposure_stops`.
     pub gain: f64,
-    /// Largest circle of confusion, pixels.
+    /// Largest circle of confusion, pixels (with the blur the lens effects
+    /// add to every pixel).
     pub max_coc: f64,
+    /// The lens (for the image-wide effects after the views).
+    pub lens: ThinLens,
+    /// The lens effects beyond the thin lens.
+    pub effects: LensEffects,
+    /// The barrel clip of optical vignetting, if on.
+    pub barrel: Option<Barrel>,
 }
 
 impl BlurPlan {
@@ -297,12 +334,29 @@ pub fn plan(
     check_inputs(color, depth)?;
     let lens = p.lens();
     let coc = crate::camera::lens::coc_map(depth, &lens)?;
+    let fx = p.effects();
+    fx.validate()?;
+    let (w, h) = color.dims();
+    // The per-ray focus offsets (spherical, longitudinal chromatic) blur
+    // every pixel by up to C max|S r^2 + k_c L| more.
+    let extra = lens.coc_scale(w) * fx.max_focus_offset(aperture.extent());
+    let coc = if extra > 0.0 {
+        coc.map(|&c| (c as f64 + extra) as f32)
+    } else {
+        coc
+    };
     let gain = 2f64.powf(p.exposure_stops);
     let max_coc = coc.as_slice().iter().fold(0.0f64, |m, &c| m.max(c as f64));
     let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
+    let barrel = fx.barrel(&lens, w, h);
     if max_coc < MIN_COC_PX || color.is_empty() {
+        let mut out = color.map(|&c| exposed(c));
+        if let Some(b) = &barrel {
+            let pts = aperture.samples(FRACTION_SAMPLES, p.seed)?;
+            darken_by_barrel(&mut out, b, &pts, None);
+        }
         return Ok(Plan::Sharp(
-            color.map(|&c| exposed(c)),
+            apply_image_effects(out, &fx, &lens),
             RefocusReport {
                 max_coc_px: max_coc,
                 samples: 0,
@@ -317,7 +371,6 @@ pub fn plan(
         p.samples
     };
     let points = aperture.samples(n, p.seed)?;
-    let (w, h) = color.dims();
     let (active, n_active) = active_pixels(&coc, aperture.extent());
     let src_inv_z: Vec<f64> = depth.as_slice().iter().map(|&z| inv_depth(z)).collect();
     let src_color: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
@@ -336,7 +389,7 @@ pub fn plan(
             (i as u32, ((z.to_bits() as u64) << 32) | i as u64)
         })
         .collect();
-    Ok(Plan::Blur(BlurPlan {
+    Ok(Plan::Blur(Box::new(BlurPlan {
         w,
         h,
         points,
@@ -349,7 +402,46 @@ pub fn plan(
         sources,
         gain,
         max_coc,
-    }))
+        lens,
+        effects: fx,
+        barrel,
+    })))
+}
+
+/// Aperture points for the open fraction of a pixel that no view moves
+/// (optical vignetting without blur): at least this many.
+pub const FRACTION_SAMPLES: usize = 256;
+
+/// Multiplies every pixel of `image` (every pixel whose `only` flag is
+/// false, when given) by the fraction of `points` whose ray passes the
+/// barrel: what optical vignetting leaves of a pixel that does not move.
+pub fn darken_by_barrel(
+    image: &mut ColorImage,
+    barrel: &Barrel,
+    points: &[[f64; 2]],
+    only: Option<&[bool]>,
+) {
+    let w = image.width();
+    // Guard: an empty point set leaves the image as is.
+    if points.is_empty() {
+        return;
+    }
+    let inv_n = 1.0 / points.len() as f64;
+    image
+        .as_mut_slice()
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(t, px)| {
+            if only.is_some_and(|a| a[t]) {
+                return;
+            }
+            let (x, y) = ((t % w) as f64 + 0.5, (t / w) as f64 + 0.5);
+            let open = points.iter().filter(|s| barrel.open(**s, x, y)).count();
+            if open != points.len() {
+                let f = open as f64 * inv_n;
+                *px = px.map(|v| (v as f64 * f) as f32);
+            }
+        });
 }
 
 /// Why `Refocus` passed its input through (`report.samples == 0`); both
@@ -393,7 +485,7 @@ pub fn refocus(
 ) -> Result<(ColorImage, RefocusReport), NodeError> {
     let plan = match plan(color, depth, aperture, p)? {
         Plan::Sharp(out, report) => return Ok((out, report)),
-        Plan::Blur(b) => b,
+        Plan::Blur(b) => *b,
     };
     let BlurPlan {
         w,
@@ -415,9 +507,16 @@ pub fn refocus(
         conf: vec![0.0; w * h],
     };
     let mut holes_total = 0usize;
+    let fx = plan.effects;
+    let in_views = fx.in_views();
     for (k, s) in points.iter().enumerate() {
         let dx = c_scale * s[0];
         let dy = c_scale * s[1];
+        // The lens effects' focus offset of green moves the whole view, in
+        // the warp (exact, and +0 when off: the same bits); red and blue
+        // move by their difference from green, in the accumulation.
+        let off_g = fx.focus_offset(*s, 1);
+        let (gx, gy) = (dx * off_g, dy * off_g);
         // (The z-buffer is EMPTY here: it starts so and the gather below
         // resets every entry it reads.)
         // Forward warp with a z-buffer (nearest depth wins, then the lower
@@ -427,8 +526,8 @@ pub fn refocus(
                 let i = i as usize;
                 let (x, y) = ((i % w) as f64, (i / w) as f64);
                 let m = inv_u - src_inv_z[i];
-                let tx = (x + dx * m).round();
-                let ty = (y + dy * m).round();
+                let tx = (x + dx * m + gx).round();
+                let ty = (y + dy * m + gy).round();
                 if tx < 0.0 || ty < 0.0 || tx >= w as f64 || ty >= h as f64 {
                     continue;
                 }
@@ -468,13 +567,41 @@ pub fn refocus(
             .collect();
         holes_total += holes.len();
         fill_holes(&mut view, w, h, holes, [dx, dy], p);
-        acc.par_iter_mut().enumerate().for_each(|(t, a)| {
-            if active[t] {
-                for (a, c) in a.iter_mut().zip(view.color[t]) {
-                    *a += c as f64;
+        if in_views {
+            let e: [[f64; 2]; 3] = std::array::from_fn(|c| {
+                let d = fx.focus_offset(*s, c) - off_g;
+                [dx * d, dy * d]
+            });
+            let barrel = plan.barrel;
+            let vc = &view.color;
+            acc.par_iter_mut().enumerate().for_each(|(t, a)| {
+                if !active[t] {
+                    return;
                 }
-            }
-        });
+                let (x, y) = ((t % w) as f64, (t / w) as f64);
+                if barrel.is_some_and(|b| !b.open(*s, x + 0.5, y + 0.5)) {
+                    return;
+                }
+                for (c, a) in a.iter_mut().enumerate() {
+                    *a += if e[c] == [0.0, 0.0] {
+                        vc[t][c] as f64
+                    } else {
+                        let at = |j: usize| {
+                            if active[j] { vc[j][c] } else { src_color[j][c] }
+                        };
+                        bilinear(w, h, x - e[c][0], y - e[c][1], at)
+                    };
+                }
+            });
+        } else {
+            acc.par_iter_mut().enumerate().for_each(|(t, a)| {
+                if active[t] {
+                    for (a, c) in a.iter_mut().zip(view.color[t]) {
+                        *a += c as f64;
+                    }
+                }
+            });
+        }
         if k % 8 == 7 {
             // Guard: points is non-empty inside the loop.
             on_progress((k + 1) as f32 / points.len() as f32)?;
@@ -492,7 +619,18 @@ pub fn refocus(
             }
         })
         .collect();
-    let out = Image::from_vec(w, h, data)?;
+    let mut out = Image::from_vec(w, h, data)?;
+    if let Some(b) = &plan.barrel {
+        let more;
+        let pts = if points.len() >= FRACTION_SAMPLES {
+            points
+        } else {
+            more = aperture.samples(FRACTION_SAMPLES, p.seed)?;
+            &more
+        };
+        darken_by_barrel(&mut out, b, pts, Some(active));
+    }
+    let out = apply_image_effects(out, &fx, &plan.lens);
     Ok((out, plan.report(holes_total)))
 }
 
@@ -758,12 +896,36 @@ fn eval_refocus(
         ctx.progress(f);
         ctx.check_cancelled()
     })?;
-    let out = RefocusOut { color };
-    if report.samples == 0 {
-        let why = sharp_reason(p, &report);
-        return Ok(Produced::passthrough(out, why));
+    Ok(produced(RefocusOut { color }, p, &report))
+}
+
+/// `Refocus`'s outputs with what `explain` shows: the pass-through reason
+/// when nothing was blurred and no lens effect changed the image, and the
+/// lens effects that were off (each costs nothing then). Both backends
+/// report in these words.
+pub fn produced(
+    out: RefocusOut,
+    p: &RefocusParams,
+    report: &RefocusReport,
+) -> Produced<RefocusOut> {
+    let (lens, fx) = (p.lens(), p.effects());
+    let skipped = fx.skipped(&lens);
+    let applied = fx.in_image(&lens) || fx.barrel_distance_mm > 0.0;
+    let passthrough = (report.samples == 0 && !applied).then(|| sharp_reason(p, report));
+    let mut lines = Vec::new();
+    if report.samples == 0 && applied {
+        lines.push(format!(
+            "no blur (circle of confusion below {MIN_COC_PX} px everywhere, largest {:.3} px): \
+             only the lens's vignetting and magnification applied",
+            report.max_coc_px
+        ));
     }
-    Ok(out.into())
+    lines.extend(skipped);
+    Produced {
+        out,
+        passthrough,
+        report: (!lines.is_empty()).then(|| lines.join("; ")),
+    }
 }
 
 fn eval_reverse(
@@ -1203,6 +1365,7 @@ mod ground_truth {
                     aperture: Aperture::Disc,
                     samples: 256,
                     seed: 9,
+                    effects: Default::default(),
                 },
                 |_| Ok(()),
             )

@@ -23,7 +23,7 @@ use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::camera::lens::{Aperture, ApertureShape, ThinLens, effective_f_number};
+use crate::camera::lens::{Aperture, ApertureShape, LensEffects, ThinLens, effective_f_number};
 
 depthgraph_graph::param_choice! {
     /// The built-in scenes (the `preset` parameter).
@@ -1077,6 +1077,10 @@ pub struct ThinLensRender {
     pub samples: usize,
     /// Seed of the per-pixel aperture samples.
     pub seed: u64,
+    /// What the lens adds to the thin lens (aberrations, vignetting,
+    /// breathing; all off by default), the model of
+    /// [`crate::camera::lens::LensEffects`].
+    pub effects: LensEffects,
 }
 
 /// Renders `scene` through a thin lens by distributed ray tracing: for each
@@ -1112,6 +1116,49 @@ pub fn render_thin_lens(
     let (sx, sy) = (c / k.fx, c / k.fy);
     // Guard: samples >= 1 (checked above).
     let inv_n = 1.0 / lens.samples as f64;
+    let fx = &lens.effects;
+    fx.validate()?;
+    let plain = !fx.in_views() && !fx.in_image(&lens.lens);
+    let barrel = fx.barrel(&lens.lens, w, h);
+    let mag: [f64; 3] = std::array::from_fn(|ch| fx.magnification(&lens.lens, ch));
+    // One ray per aperture point serves all three channels unless they
+    // focus or magnify differently.
+    let per_channel = fx.chromatic_longitudinal_d != 0.0 || mag[0] != mag[1] || mag[2] != mag[1];
+    let centre = [w as f64 / 2.0, h as f64 / 2.0];
+    // The pixel through the lens with the effects: channel group `chans`
+    // seen from output pixel (x, y) (see LensEffects for the model).
+    let effect_pixel = |x: usize, y: usize, points: &[[f64; 2]]| -> Rgb {
+        let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+        let mut acc = [0.0f64; 3];
+        let groups: &[&[usize]] = if per_channel {
+            &[&[0], &[1], &[2]]
+        } else {
+            &[&[0, 1, 2]]
+        };
+        for chans in groups {
+            let ch = chans[0];
+            // Guard: magnifications are positive (validate).
+            let qx = centre[0] + (px - centre[0]) / mag[ch];
+            let qy = centre[1] + (py - centre[1]) / mag[ch];
+            let d0 = scene.ray(qx, qy);
+            for s in points {
+                if barrel.is_some_and(|b| !b.open(*s, qx, qy)) {
+                    continue;
+                }
+                let origin = DVec3::new(s[0] * sx, s[1] * sy, 0.0);
+                // Towards the point where this ray focuses: inverse
+                // distance 1/u + S r^2 + k_c L (any sign: beyond infinity
+                // the rays diverge).
+                let inv = inv_u + fx.focus_offset(*s, if per_channel { ch } else { 1 });
+                let r = scene.radiance_from(origin, d0 - origin * inv);
+                for &c in chans.iter() {
+                    acc[c] += r[c] as f64;
+                }
+            }
+        }
+        let v = fx.natural_factor(&lens.lens, w, h, px, py);
+        acc.map(|a| (a * inv_n * v) as f32)
+    };
     let mut color = ColorImage::filled(w, h, [0.0; 3]);
     let mut y0 = 0;
     while y0 < h {
@@ -1125,6 +1172,9 @@ pub fn render_thin_lens(
                             lens.seed ^ ((y * w + x) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
                         );
                         let points = lens.aperture.samples(lens.samples, pixel_seed)?;
+                        if !plain {
+                            return Ok(effect_pixel(x, y, &points));
+                        }
                         let d0 = scene.ray(x as f64 + 0.5, y as f64 + 0.5);
                         let mut acc = [0.0f64; 3];
                         for s in &points {
@@ -1191,6 +1241,20 @@ node_params! {
         pub lens_samples: usize = 256usize, ParamKind::Int { min: 1, max: 65536 };
         /// Seed of the aperture samples.
         pub seed: u64 = 0u64, ParamKind::Int { min: 0, max: i64::MAX };
+        /// Spherical aberration in dioptres at the aperture's rim (as Refocus).
+        pub spherical_aberration_d: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
+        /// Longitudinal chromatic aberration in dioptres (as Refocus).
+        pub chromatic_longitudinal_d: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
+        /// Lateral chromatic aberration, relative magnification (as Refocus).
+        pub chromatic_lateral: f64 = 0.0, ParamKind::Float { min: -0.25, max: 0.25 };
+        /// Distance of the lens barrel in front of the stop, mm (as Refocus).
+        pub barrel_distance_mm: f64 = 0.0, ParamKind::Float { min: 0.0, max: 10000.0 };
+        /// Diameter of the lens barrel, mm; 0 = the aperture's (as Refocus).
+        pub barrel_diameter_mm: f64 = 0.0, ParamKind::Float { min: 0.0, max: 10000.0 };
+        /// Natural vignetting exponent k of cos^(4k) (as Refocus).
+        pub natural_vignetting: f64 = 0.0, ParamKind::Float { min: 0.0, max: 8.0 };
+        /// Focus breathing (as Refocus).
+        pub focus_breathing: bool = false, ParamKind::Bool;
     }
 }
 
@@ -1227,6 +1291,15 @@ fn eval_thin_lens(
         aperture: Aperture::from_params(p.aperture, p.blades, p.rotation_deg, None)?,
         samples: p.lens_samples,
         seed: p.seed,
+        effects: LensEffects {
+            spherical_d: p.spherical_aberration_d,
+            chromatic_longitudinal_d: p.chromatic_longitudinal_d,
+            chromatic_lateral: p.chromatic_lateral,
+            barrel_distance_mm: p.barrel_distance_mm,
+            barrel_diameter_mm: p.barrel_diameter_mm,
+            natural_vignetting: p.natural_vignetting,
+            focus_breathing: p.focus_breathing,
+        },
     };
     let color = render_thin_lens(&scene, &lens, |f| {
         ctx.progress(f);
@@ -1769,6 +1842,7 @@ mod tests {
             aperture: Aperture::Disc,
             samples: 16,
             seed: 3,
+            effects: Default::default(),
         };
         // f/1000: the aperture is 0.05 mm, every CoC far below a pixel.
         let tiny = render_thin_lens(&scene, &lens(1000.0, 2.0), |_| Ok(())).unwrap();
