@@ -416,23 +416,23 @@ fn lens_effects(doc: &mut String, repeats: usize, gt_rays: usize, out_dir: &Path
     // bokeh grids: far points at the centre, edges and corners
     writeln!(
         doc,
-        "\nBokeh grids (bright points on a black wall at 8 m, focus 1 m, 240x180): \
+        "\nBokeh grids (bright points on a black wall at 8 m, focus 1 m, 320x240, 4096 samples): \
          [thin lens](refocus/bokeh_off.png)"
     )
     .ok();
-    let (gw, gh) = (240, 180);
+    let (gw, gh) = (320, 240);
     let mut grid = ColorImage::filled(gw, gh, [0.0; 3]);
-    for gy in [20, gh / 2, gh - 20] {
-        for gx in [20, gw / 2, gw - 20] {
-            *grid.get_mut(gx, gy) = [3.0e3; 3];
+    for gy in [24, gh / 2, gh - 24] {
+        for gx in [24, gw / 2, gw - 24] {
+            *grid.get_mut(gx, gy) = [400.0; 3];
         }
     }
     let wall = DepthMap::filled(gw, gh, 8.0);
     let gbase = RefocusParams {
         focus_m: 1.0,
         f_number: 2.0,
-        sensor_width_mm: 9.0,
-        samples: 1024,
+        sensor_width_mm: 12.0,
+        samples: 4096,
         ..Default::default()
     };
     let shot = |p: &RefocusParams| {
@@ -443,18 +443,18 @@ fn lens_effects(doc: &mut String, repeats: usize, gt_rays: usize, out_dir: &Path
     save_png(&out_dir.join("bokeh_off.png"), &shot(&gbase));
     let grid_cases = [
         (
-            "spherical, +1.5 D (soft)",
+            "spherical, +0.5 D (soft)",
             "bokeh_spherical_soft",
             RefocusParams {
-                spherical_aberration_d: 1.5,
+                spherical_aberration_d: 0.5,
                 ..gbase.clone()
             },
         ),
         (
-            "spherical, -1.5 D (bright rim)",
+            "spherical, -0.5 D (bright rim)",
             "bokeh_spherical_rim",
             RefocusParams {
-                spherical_aberration_d: -1.5,
+                spherical_aberration_d: -0.5,
                 ..gbase.clone()
             },
         ),

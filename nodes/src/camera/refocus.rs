@@ -572,24 +572,52 @@ pub fn refocus(
                 let d = fx.focus_offset(*s, c) - off_g;
                 [dx * d, dy * d]
             });
+            // A channel read at (x, y) - e: the integer offset of its upper
+            // left tap and the bilinear weights, the same for every pixel.
+            let taps: [(isize, isize, f64, f64); 3] = std::array::from_fn(|c| {
+                let (qx, qy) = (-e[c][0], -e[c][1]);
+                let (fx0, fy0) = (qx.floor(), qy.floor());
+                (fx0 as isize, fy0 as isize, qx - fx0, qy - fy0)
+            });
+            if e.iter().any(|v| *v != [0.0, 0.0]) {
+                // Unmoved pixels hold the input in every view: put it in
+                // the view (nothing reads theirs after the fill), so a
+                // shifted read needs no test.
+                view.color
+                    .par_iter_mut()
+                    .zip(active.par_iter())
+                    .zip(src_color.par_iter())
+                    .for_each(|((c, &a), src)| {
+                        if !a {
+                            *c = *src;
+                        }
+                    });
+            }
             let barrel = plan.barrel;
             let vc = &view.color;
             acc.par_iter_mut().enumerate().for_each(|(t, a)| {
                 if !active[t] {
                     return;
                 }
-                let (x, y) = ((t % w) as f64, (t / w) as f64);
-                if barrel.is_some_and(|b| !b.open(*s, x + 0.5, y + 0.5)) {
+                let (x, y) = (t % w, t / w);
+                if barrel.is_some_and(|b| !b.open(*s, x as f64 + 0.5, y as f64 + 0.5)) {
                     return;
                 }
                 for (c, a) in a.iter_mut().enumerate() {
                     *a += if e[c] == [0.0, 0.0] {
                         vc[t][c] as f64
                     } else {
-                        let at = |j: usize| {
-                            if active[j] { vc[j][c] } else { src_color[j][c] }
-                        };
-                        bilinear(w, h, x - e[c][0], y - e[c][1], at)
+                        let (ox, oy, ax, ay) = taps[c];
+                        let (x0, y0) = (x as isize + ox, y as isize + oy);
+                        if x0 >= 0 && y0 >= 0 && x0 + 1 < w as isize && y0 + 1 < h as isize {
+                            let j = y0 as usize * w + x0 as usize;
+                            let v = |k: usize| vc[k][c] as f64;
+                            (v(j) * (1.0 - ax) + v(j + 1) * ax) * (1.0 - ay)
+                                + (v(j + w) * (1.0 - ax) + v(j + w + 1) * ax) * ay
+                        } else {
+                            // at the border: clamped
+                            bilinear(w, h, x as f64 - e[c][0], y as f64 - e[c][1], |j| vc[j][c])
+                        }
                     };
                 }
             });
