@@ -366,6 +366,20 @@ fn sweep_writes_csv_and_plot() {
     );
 }
 
+/// `depthgraph explain FILE --json --quiet --out OUT --cache-dir CACHE`
+/// with `--set` for each of `sets`: the rows, after asserting success.
+fn explain_graph(file: &Path, out: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
+    let mut args = vec!["explain", file.to_str().unwrap(), "--json", "--quiet"];
+    args.extend(["--out", out.to_str().unwrap()]);
+    args.extend(["--cache-dir", cache.to_str().unwrap()]);
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    serde_json::from_slice(&r.stdout).unwrap()
+}
+
 /// Pipeline B (`graphs/refocus.ron`) end to end at a small size: a bracket
 /// and a ToF beside the color camera to a refocused image, and the
 /// pass-through when the lens blurs nothing.
@@ -375,9 +389,6 @@ fn refocus_pipeline_runs_and_passes_through_without_blur() {
     let cache = tempfile::tempdir().unwrap();
     let file = graph("refocus.ron");
     let run = |extra: &[&str]| -> Vec<serde_json::Value> {
-        let mut args = vec!["explain", file.to_str().unwrap(), "--json", "--quiet"];
-        args.extend(["--out", out.path().to_str().unwrap()]);
-        args.extend(["--cache-dir", cache.path().to_str().unwrap()]);
         let sets = [
             "scene.width=160",
             "scene.height=120",
@@ -389,12 +400,8 @@ fn refocus_pipeline_runs_and_passes_through_without_blur() {
             "to_color.height=30",
             "refocus.samples=16",
         ];
-        for s in sets.iter().chain(extra) {
-            args.extend(["--set", s]);
-        }
-        let r = cli(&args);
-        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-        serde_json::from_slice(&r.stdout).unwrap()
+        let all: Vec<&str> = sets.iter().chain(extra).copied().collect();
+        explain_graph(&file, out.path(), cache.path(), &all)
     };
     let rows = run(&[]);
     for n in ["hdr", "to_color", "upsample", "refocus"] {
@@ -602,9 +609,6 @@ fn refocus_lens_pipeline_matches_its_ray_traced_lens() {
     let cache = tempfile::tempdir().unwrap();
     let file = graph("refocus_lens.ron");
     let run = |extra: &[&str]| -> Vec<serde_json::Value> {
-        let mut args = vec!["explain", file.to_str().unwrap(), "--json", "--quiet"];
-        args.extend(["--out", out.path().to_str().unwrap()]);
-        args.extend(["--cache-dir", cache.path().to_str().unwrap()]);
         let sets = [
             "scene.width=160",
             "scene.height=120",
@@ -615,12 +619,8 @@ fn refocus_lens_pipeline_matches_its_ray_traced_lens() {
             "truth.lens_samples=128",
             "refocus.samples=128",
         ];
-        for s in sets.iter().chain(extra) {
-            args.extend(["--set", s]);
-        }
-        let r = cli(&args);
-        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-        serde_json::from_slice(&r.stdout).unwrap()
+        let all: Vec<&str> = sets.iter().chain(extra).copied().collect();
+        explain_graph(&file, out.path(), cache.path(), &all)
     };
     let load = |name: &str| {
         depthgraph::nodes::io::load_color(

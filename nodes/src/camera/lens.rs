@@ -134,6 +134,12 @@ impl ThinLens {
         }
     }
 
+    /// The focal length in pixels of an image `width_px` wide (the sensor
+    /// spans the width). Guard: `sensor_width_mm > 0` for a validated lens.
+    pub fn f_px(&self, width_px: usize) -> f64 {
+        self.focal_length_mm * width_px as f64 / self.sensor_width_mm
+    }
+
     /// The constant `C` (pixel metres) of `coc_px(z) = C |1/z - 1/u|` for
     /// an image `width_px` wide (see the module docs). Call
     /// [`validate`](Self::validate) first.
@@ -141,7 +147,7 @@ impl ThinLens {
         let f_m = self.focal_length_mm * 1e-3;
         // Guards: sensor_width_mm > 0 and f_number > 0 (validate); width 0
         // gives C = 0 (an empty image has no blur).
-        let f_px = self.focal_length_mm * width_px as f64 / self.sensor_width_mm;
+        let f_px = self.f_px(width_px);
         let aperture_m = f_m / self.f_number;
         // u / (u - f) = 1 / (1 - f/u); f/u < 1 by validate, so the
         // denominator is positive.
@@ -318,13 +324,6 @@ impl LensEffects {
         breathing * (1.0 + CHANNEL_SIGN[c] * self.chromatic_lateral)
     }
 
-    /// The focal length of the virtual lens in pixels of an image `width`
-    /// wide.
-    fn f_px(lens: &ThinLens, width: usize) -> f64 {
-        // Guard: sensor_width_mm > 0 for a validated lens.
-        lens.focal_length_mm * width as f64 / lens.sensor_width_mm
-    }
-
     /// The barrel clip for a `width` x `height` image, `None` without one.
     pub fn barrel(&self, lens: &ThinLens, width: usize, height: usize) -> Option<Barrel> {
         if self.barrel_distance_mm <= 0.0 {
@@ -337,7 +336,7 @@ impl LensEffects {
         } else {
             a_mm
         };
-        let f_px = Self::f_px(lens, width).max(f64::MIN_POSITIVE);
+        let f_px = lens.f_px(width).max(f64::MIN_POSITIVE);
         let r = b_mm / (2.0 * a_mm);
         Some(Barrel {
             centre: [width as f64 / 2.0, height as f64 / 2.0],
@@ -361,7 +360,7 @@ impl LensEffects {
         if self.natural_vignetting <= 0.0 {
             return 1.0;
         }
-        let f_px = Self::f_px(lens, width).max(f64::MIN_POSITIVE);
+        let f_px = lens.f_px(width).max(f64::MIN_POSITIVE);
         // Guard: f_px > 0.
         let tx = (x - width as f64 / 2.0) / f_px;
         let ty = (y - height as f64 / 2.0) / f_px;
