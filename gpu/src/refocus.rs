@@ -97,6 +97,11 @@ pub fn eval(
                  (per-view channel shifts, the barrel clip) are not on the device yet",
             ));
         }
+        Plan::Blur(b) if !b.layer.is_empty() => {
+            return Err(
+                s.too_large("the background layer (partial occlusion) is not on the device yet")
+            );
+        }
         Plan::Blur(b) => render(s, ctx, &i.color, &b, p)?,
     };
     Ok(produced(RefocusOut { color }, p, &report))

@@ -202,8 +202,8 @@ fn too_large_for_the_device_runs_on_the_cpu_and_says_so() {
 /// The image-wide lens effects (magnification per channel, breathing,
 /// natural vignetting) run on the host after the device's views: the same
 /// result within the bound. The effects that change the views themselves
-/// (spherical and longitudinal chromatic aberration, the barrel) run on the
-/// CPU, and the outputs say so.
+/// (spherical and longitudinal chromatic aberration, the barrel) and the
+/// background layer run on the CPU, and the outputs say so.
 #[test]
 fn lens_effects_agree_or_run_on_the_cpu_and_say_so() {
     let (c, d) = scene(120, 90);
@@ -238,6 +238,10 @@ fn lens_effects_agree_or_run_on_the_cpu_and_say_so() {
         },
         RefocusParams {
             barrel_distance_mm: 40.0,
+            ..cases().remove(0)
+        },
+        RefocusParams {
+            background_layer: true,
             ..cases().remove(0)
         },
     ] {

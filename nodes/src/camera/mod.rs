@@ -5,6 +5,7 @@ pub mod hdr;
 pub mod intrinsics;
 pub mod lens;
 mod lens_effects_tests;
+pub mod occlusion;
 pub mod refocus;
 pub mod response;
 

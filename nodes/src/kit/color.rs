@@ -95,6 +95,19 @@ pub fn display_mse(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
     }
 }
 
+/// [`display_mse`] over the pixels whose `mask` flag is set (0 when none
+/// is).
+pub fn display_mse_masked(a: &[[f32; 3]], b: &[[f32; 3]], mask: &[bool]) -> f64 {
+    let pick = |img: &[[f32; 3]]| -> Vec<[f32; 3]> {
+        img.iter()
+            .zip(mask)
+            .filter(|(_, m)| **m)
+            .map(|(c, _)| *c)
+            .collect()
+    };
+    display_mse(&pick(a), &pick(b))
+}
+
 /// PSNR in dB (peak 1) of a mean squared error; infinite for 0.
 pub fn psnr_of_mse(mse: f64) -> f64 {
     // Guard: mse > 0 in the logarithm.

@@ -18,7 +18,7 @@
 //!   differ only by noise that meets the object).
 //!
 //! [`score`] measures a composite in two regions, as display PSNR (sRGB,
-//! [`display_mse`]): the **influence** region (outside the object, where
+//! [`crate::kit::color::display_mse`]): the **influence** region (outside the object, where
 //! truth and photo differ by more than [`INFLUENCE_THRESHOLD`] in some
 //! display channel: the shadow and the bounce) and the **object** (alpha
 //! 1), beside the naive paste (the object's pixels over the photo).
@@ -27,7 +27,7 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::value::Rgb;
 use glam::DVec3;
 
-use crate::kit::color::{display_mse, linear_to_srgb, psnr_of_mse};
+use crate::kit::color::{display_mse_masked, linear_to_srgb, psnr_of_mse};
 use crate::relight::envmap::{EnvMapParams, environment_map, pixel_direction};
 use crate::sim::pathtrace::{EnvLight, PathTraceParams, path_trace};
 use crate::sim::synthetic::{
@@ -484,16 +484,8 @@ pub fn score(case: &RelightCase, composite: &ColorImage) -> Scores {
     let infl = influence_region(case);
     let obj: Vec<bool> = case.alpha.as_slice().iter().map(|a| *a >= 1.0).collect();
     let naive = naive_paste(case);
-    let pick = |img: &ColorImage, m: &[bool]| -> Vec<Rgb> {
-        img.as_slice()
-            .iter()
-            .zip(m)
-            .filter(|(_, k)| **k)
-            .map(|(c, _)| *c)
-            .collect()
-    };
     let db = |img: &ColorImage, m: &[bool]| {
-        psnr_of_mse(display_mse(&pick(img, m), &pick(&case.truth, m)))
+        psnr_of_mse(display_mse_masked(img.as_slice(), case.truth.as_slice(), m))
     };
     Scores {
         influence_px: infl.iter().filter(|b| **b).count(),
@@ -523,7 +515,10 @@ mod tests {
         };
         let a = relight_case(Room::Open, None, 64, 48, 128, &pt(1)).unwrap();
         let b = relight_case(Room::Open, None, 64, 48, 128, &pt(2)).unwrap();
-        let db = psnr_of_mse(display_mse(a.truth.as_slice(), b.truth.as_slice()));
+        let db = psnr_of_mse(crate::kit::color::display_mse(
+            a.truth.as_slice(),
+            b.truth.as_slice(),
+        ));
         assert!(db >= 40.0, "two seeds agree to {db:.1} dB");
         let s = score(&a, &naive_paste(&a));
         assert!(s.influence_px > 20 && s.object_px > 20, "{s:?}");

@@ -1,0 +1,333 @@
+//! Partial occlusion at depth edges: a second, background layer behind the
+//! foreground edges of an RGB-D image, for [`crate::camera::refocus`].
+//!
+//! # Why a second layer
+//!
+//! A lens of finite aperture sees around what is in front: a pixel on a
+//! blurred foreground edge receives, through part of the aperture, light
+//! from the background behind that edge (the blurred edge becomes a
+//! semi-transparent veil over the background), and a blurred background
+//! shows through the gaps around thin in-focus structures. One depth layer
+//! has nothing behind its foreground. `Refocus` renders the image from
+//! points `s` of the aperture; in the view from `s` a pixel of inverse depth
+//! `v` moves by `C s (1/u - v)` (see [`crate::camera::lens`]), so against a
+//! farther pixel of inverse depth `v_b` a foreground pixel moves by
+//! `C |s| (v - v_b)` more: the background behind the foreground is revealed
+//! up to
+//!
+//! `reach(v, v_b) = C e (v - v_b)`  pixels  (`e` = the aperture's extent,
+//! 1/2 for a disc)
+//!
+//! inside the foreground's edge. The depth-blur paper fills what a view
+//! reveals by inpainting from the background ("holes that occur due to a
+//! changed viewpoint are most probably to be filled extending the adjacent
+//! background", Sec. 2.3, with eq. 5's weights scaled by the squared depth).
+//! Done per view (the per-view fill of `Refocus`) every view invents its own
+//! background, streaked along its own direction. This module inpaints it
+//! once, before any view: the layer holds, for every foreground pixel within
+//! `reach` of a farther surface, a colour and a depth inpainted from that
+//! surface's side only, and every view warps it with the image through the
+//! same z-buffer, where the foreground covers it except where it has moved
+//! away. Every view then sees the same background behind an edge, as a real
+//! lens does.
+//!
+//! # The inpainting
+//!
+//! For a pixel `p` (inverse depth `v_p`) the layer marches [`DIRECTIONS`]
+//! directions outward to the first pixel `q` that is farther by more than
+//! the relative threshold `fill_h` (as `Refocus`'s hole fill:
+//! `(v_p - v_q) / (v_p + v_q) > fill_h`), passing over nearer or equal
+//! pixels. A `q` found within `reach(v_p, v_q) + 1` pixels is a background
+//! sample, weighted with the far-depth prior of eq. 5 and by inverse
+//! distance, `w = (v_far / v_q)^2 / d`, where `d` is the distance marched
+//! and `v_far` the smallest inverse depth among the samples (the farthest
+//! background dominates). The layer's colour and inverse depth are the
+//! weighted means (f64). A pixel without a sample has no layer entry.
+//! Inverse-distance weights interpolate between the two sides of a thin
+//! structure linearly (`(L/a + R/b) / (1/a + 1/b)` is the linear
+//! interpolation at distances `a` and `b`), so a smooth background is
+//! continued behind it; `1/d^2` and uniform weights measured worse (the
+//! `refocus` bench's partial-occlusion table and the two-plane test in
+//! `refocus`).
+
+use depthgraph_graph::value::Rgb;
+use rayon::prelude::*;
+
+/// Directions marched from every candidate pixel (evenly spaced angles).
+pub const DIRECTIONS: usize = 16;
+/// Largest reach in pixels that the layer extends behind an edge (a bound
+/// on the work of a huge circle of confusion; beyond it the per-view fill
+/// of `Refocus` takes over).
+pub const MAX_REACH_PX: usize = 256;
+
+/// Inputs of [`background_layer`] besides the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LayerParams {
+    /// `C e` of `reach(v, v_b) = C e (v - v_b)`: pixel metres (the circle of
+    /// confusion's scale times the aperture's extent).
+    pub reach_scale: f64,
+    /// Relative inverse-depth step that separates a foreground from a
+    /// background (`Refocus`'s `fill_h`).
+    pub fill_h: f64,
+}
+
+/// The background layer: the pixels that have something behind them.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BackgroundLayer {
+    /// Pixel index (`y * w + x`) of each entry, increasing.
+    pub pixels: Vec<u32>,
+    /// Inpainted linear colour of each entry.
+    pub color: Vec<Rgb>,
+    /// Inpainted inverse depth of each entry (1/m; 0 = infinitely far).
+    pub inv_z: Vec<f64>,
+}
+
+impl BackgroundLayer {
+    /// Number of entries.
+    pub fn len(&self) -> usize {
+        self.pixels.len()
+    }
+
+    /// True when no pixel has a background entry.
+    pub fn is_empty(&self) -> bool {
+        self.pixels.is_empty()
+    }
+}
+
+/// True when `v_b` is a background to `v` (see the module docs).
+fn farther(v: f64, v_b: f64, fill_h: f64) -> bool {
+    let s = v + v_b;
+    // Guard: s > 0 whenever v > v_b >= 0.
+    v > v_b && s > 0.0 && (v - v_b) / s > fill_h
+}
+
+/// Minimum of `v` over a `(2r+1)^2` square around every pixel (separable).
+fn window_min(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
+    let rows: Vec<f64> = v
+        .par_chunks(w)
+        .flat_map_iter(|row| {
+            (0..w).map(move |x| {
+                row[x.saturating_sub(r)..(x + r + 1).min(w)]
+                    .iter()
+                    .fold(f64::INFINITY, |m, &a| m.min(a))
+            })
+        })
+        .collect();
+    (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            (y.saturating_sub(r)..(y + r + 1).min(h))
+                .fold(f64::INFINITY, |m, yy| m.min(rows[yy * w + x]))
+        })
+        .collect()
+}
+
+/// The background layer of an image (see the module docs), for the pixels
+/// whose `want` flag is set. `color` and `inv_z` are `w * h` long, row by
+/// row; inverse depths are finite and `>= 0`.
+pub fn background_layer(
+    w: usize,
+    h: usize,
+    color: &[Rgb],
+    inv_z: &[f64],
+    want: &[bool],
+    p: &LayerParams,
+) -> BackgroundLayer {
+    let n = w * h;
+    if n == 0 || color.len() != n || inv_z.len() != n || want.len() != n {
+        return BackgroundLayer::default();
+    }
+    let (v_min, v_max) = inv_z.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &v| {
+        (lo.min(v), hi.max(v))
+    });
+    let span = p.reach_scale * (v_max - v_min);
+    if span.is_nan() || span < 0.5 || !p.reach_scale.is_finite() {
+        // No edge can reveal half a pixel (or the scale is unusable).
+        return BackgroundLayer::default();
+    }
+    let r = (span.ceil() as usize + 1).min(MAX_REACH_PX);
+    // Candidates: some pixel within the window is a background and the
+    // step reveals at least half a pixel.
+    let near_min = window_min(inv_z, w, h, r);
+    let dirs: Vec<[f64; 2]> = (0..DIRECTIONS)
+        .map(|k| {
+            let a = std::f64::consts::TAU * k as f64 / DIRECTIONS as f64;
+            let (c, s) = (a.cos(), a.sin());
+            // Unit step along the major axis (a DDA); max(|c|, |s|) >= 1/sqrt 2.
+            let m = c.abs().max(s.abs());
+            [c / m, s / m]
+        })
+        .collect();
+    let entries: Vec<(u32, Rgb, f64)> = (0..n)
+        .into_par_iter()
+        .filter(|&i| {
+            want[i]
+                && farther(inv_z[i], near_min[i], p.fill_h)
+                && p.reach_scale * (inv_z[i] - near_min[i]) >= 0.5
+        })
+        .filter_map(|i| {
+            let v = inv_z[i];
+            let (x, y) = ((i % w) as f64, (i / w) as f64);
+            // A background at inverse depth >= 0 is revealed at most this far.
+            let limit = (p.reach_scale * v + 1.0).min(r as f64 + 1.0);
+            let mut samples: Vec<(usize, f64)> = Vec::with_capacity(DIRECTIONS);
+            for d in &dirs {
+                let len = (d[0] * d[0] + d[1] * d[1]).sqrt();
+                let mut k = 1.0;
+                while k * len <= limit {
+                    let (qx, qy) = ((x + k * d[0]).round(), (y + k * d[1]).round());
+                    if qx < 0.0 || qy < 0.0 || qx >= w as f64 || qy >= h as f64 {
+                        break;
+                    }
+                    let q = qy as usize * w + qx as usize;
+                    if farther(v, inv_z[q], p.fill_h) {
+                        let dist = k * len;
+                        if dist <= p.reach_scale * (v - inv_z[q]) + 1.0 {
+                            samples.push((q, dist));
+                        }
+                        break;
+                    }
+                    k += 1.0;
+                }
+            }
+            if samples.is_empty() {
+                return None;
+            }
+            let v_far = samples
+                .iter()
+                .map(|&(q, _)| inv_z[q])
+                .fold(f64::INFINITY, f64::min);
+            let (mut ws, mut cs, mut zs) = (0.0f64, [0.0f64; 3], 0.0f64);
+            for &(q, dist) in &samples {
+                let vq = inv_z[q];
+                // Guards: dist >= 1 (the march starts a step out); vq > 0 in
+                // the division, and the sky (vq = 0) is as far as it gets.
+                let prior = if vq > 0.0 { (v_far / vq).powi(2) } else { 1.0 };
+                let wt = prior / dist;
+                ws += wt;
+                for (a, c) in cs.iter_mut().zip(color[q]) {
+                    *a += wt * c as f64;
+                }
+                zs += wt * vq;
+            }
+            // Guard: the farthest sample has prior 1 and dist <= limit, so
+            // ws >= 1 / limit > 0; a non-finite sum keeps no entry.
+            if !(ws > 0.0 && ws.is_finite()) {
+                return None;
+            }
+            Some((i as u32, cs.map(|a| (a / ws) as f32), zs / ws))
+        })
+        .collect();
+    let mut layer = BackgroundLayer {
+        pixels: Vec::with_capacity(entries.len()),
+        color: Vec::with_capacity(entries.len()),
+        inv_z: Vec::with_capacity(entries.len()),
+    };
+    for (i, c, v) in entries {
+        layer.pixels.push(i);
+        layer.color.push(c);
+        layer.inv_z.push(v);
+    }
+    layer
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A near bar (columns 10..14, 1 m) over a far wall (2 m) whose columns
+    /// are coloured by their x.
+    fn bar_scene(w: usize, h: usize) -> (Vec<Rgb>, Vec<f64>) {
+        let mut color = vec![[0.0f32; 3]; w * h];
+        let mut inv_z = vec![0.5f64; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if (10..14).contains(&x) {
+                    color[i] = [1.0, 0.0, 0.0];
+                    inv_z[i] = 1.0;
+                } else {
+                    color[i] = [0.0, x as f32 / w as f32, 0.5];
+                }
+            }
+        }
+        (color, inv_z)
+    }
+
+    /// The layer of the bar scene with every pixel wanted.
+    fn bar_layer(reach_scale: f64) -> (usize, BackgroundLayer) {
+        let (w, h) = (30, 8);
+        let (color, inv_z) = bar_scene(w, h);
+        let p = LayerParams {
+            reach_scale,
+            fill_h: 0.05,
+        };
+        (
+            w,
+            background_layer(w, h, &color, &inv_z, &vec![true; w * h], &p),
+        )
+    }
+
+    #[test]
+    fn a_thin_bar_gets_the_background_of_both_sides() {
+        // reach = 20 * 0.5 = 10 px: the whole bar is within reach.
+        let (w, layer) = bar_layer(20.0);
+        let h = 8;
+        // Exactly the bar's pixels, each with the wall's depth and no red.
+        assert_eq!(layer.len(), 4 * h);
+        for (k, &i) in layer.pixels.iter().enumerate() {
+            let x = i as usize % w;
+            assert!((10..14).contains(&x), "entry at x = {x}");
+            assert!((layer.inv_z[k] - 0.5).abs() < 1e-12);
+            assert_eq!(layer.color[k][0], 0.0, "foreground colour leaked in");
+            // Green lies between the two sides' green (9 / 30 and 14 / 30),
+            // nearer the closer side.
+            let g = layer.color[k][1] as f64;
+            assert!(g > 9.0 / 30.0 - 1e-6 && g < 14.0 / 30.0 + 1e-6, "g = {g}");
+            if x == 10 {
+                assert!(g < 11.5 / 30.0, "x = 10 should lean left: {g}");
+            }
+            if x == 13 {
+                assert!(g > 11.5 / 30.0, "x = 13 should lean right: {g}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_layer_reaches_only_as_far_as_a_view_reveals() {
+        let h = 8;
+        // reach = 2 * 0.5 = 1 px, + 1 px of rounding: columns 10..14 are at
+        // 1 or 2 px from the wall.
+        let (w, layer) = bar_layer(2.0);
+        let xs: Vec<usize> = layer.pixels.iter().map(|&i| i as usize % w).collect();
+        assert!(xs.iter().all(|x| (10..14).contains(x)));
+        assert_eq!(layer.len(), 4 * h);
+        // reach 0.6 + 1 = 1.6 px: only the bar's edge columns.
+        let (w, layer) = bar_layer(1.2);
+        let xs: Vec<usize> = layer.pixels.iter().map(|&i| i as usize % w).collect();
+        assert_eq!(layer.len(), 2 * h);
+        assert!(xs.iter().all(|&x| x == 10 || x == 13));
+    }
+
+    #[test]
+    fn a_flat_image_or_a_tiny_reach_has_no_layer() {
+        let (w, h) = (12, 6);
+        let color = vec![[0.5f32; 3]; w * h];
+        let flat = vec![0.5f64; w * h];
+        let want = vec![true; w * h];
+        let p = LayerParams {
+            reach_scale: 50.0,
+            fill_h: 0.05,
+        };
+        assert!(background_layer(w, h, &color, &flat, &want, &p).is_empty());
+        let (color, inv_z) = bar_scene(30, 8);
+        let p = LayerParams {
+            reach_scale: 0.1,
+            fill_h: 0.05,
+        };
+        assert!(background_layer(30, 8, &color, &inv_z, &vec![true; 240], &p).is_empty());
+        // Mismatched lengths: no layer rather than a panic.
+        assert!(background_layer(30, 8, &color, &inv_z[..10], &vec![true; 240], &p).is_empty());
+    }
+}
