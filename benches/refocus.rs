@@ -11,7 +11,10 @@
 //! channels and SSIM of the luma.
 //!
 //! Environment: `DEPTHGRAPH_REFOCUS_GT_RAYS` (default 512) rays per pixel of
-//! the ground truth; `DEPTHGRAPH_REPEATS` (default 3) timed repeats.
+//! the ground truth; `DEPTHGRAPH_REPEATS` (default 3) timed repeats;
+//! `DEPTHGRAPH_REFOCUS_ONLY=speed` (the 640x480 time alone) or `=occlusion`
+//! (the partial-occlusion table alone, images to the temp dir) print one
+//! section and leave the docs alone.
 
 mod common;
 use common::{env_usize, timed};
@@ -39,6 +42,22 @@ fn lens_params(width: usize, focus_m: f64, samples: usize) -> RefocusParams {
         samples,
         ..Default::default()
     }
+}
+
+/// The tabletop at 640x480 focused near (f/1.4, 256 samples): its pinhole
+/// render, the lens, and the median times (ms) of the reverse-mapped blur
+/// and of Refocus in one run.
+fn speed_640(repeats: usize) -> (RenderOutput, RefocusParams, f64, f64) {
+    let scene = Scene::preset("tabletop", 640, 480).expect("preset");
+    let pin = render(&scene, &RenderOptions::default());
+    let p = lens_params(640, 0.95, 256);
+    let (_, ms_rev) = timed(repeats, || {
+        reverse_mapped_dof(&pin.color, &pin.depth, &Aperture::Disc, &p).expect("reverse")
+    });
+    let (_, ms) = timed(repeats, || {
+        refocus(&pin.color, &pin.depth, &Aperture::Disc, &p, |_| Ok(())).expect("refocus")
+    });
+    (pin, p, ms_rev, ms)
 }
 
 fn save_png(path: &Path, img: &ColorImage) {
@@ -75,6 +94,13 @@ fn main() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let img_dir = root.join("docs/refocus");
     let mut doc = String::new();
+    if std::env::var("DEPTHGRAPH_REFOCUS_ONLY").as_deref() == Ok("speed") {
+        // The 640x480, 256-sample time alone (effects off), beside the
+        // reverse-mapped blur in the same run.
+        let (_, _, ms_rev, ms) = speed_640(repeats);
+        println!("Refocus 640x480, 256 samples: {ms:.0} ms; reverse-mapped {ms_rev:.0} ms");
+        return;
+    }
     if std::env::var("DEPTHGRAPH_REFOCUS_ONLY").as_deref() == Ok("occlusion") {
         // One section alone, printed, docs untouched (for tuning).
         partial_occlusion(&mut doc, repeats, rays, &std::env::temp_dir());
@@ -199,15 +225,7 @@ fn main() {
          | method | time (ms) | ratio to reverse-mapped |\n|---|---|---|"
     )
     .ok();
-    let scene = Scene::preset("tabletop", 640, 480).expect("preset");
-    let pin = render(&scene, &RenderOptions::default());
-    let p = lens_params(640, 0.95, 256);
-    let (_, ms_rev) = timed(repeats, || {
-        reverse_mapped_dof(&pin.color, &pin.depth, &Aperture::Disc, &p).expect("reverse")
-    });
-    let (_, ms_256) = timed(repeats, || {
-        refocus(&pin.color, &pin.depth, &Aperture::Disc, &p, |_| Ok(())).expect("refocus")
-    });
+    let (pin, p, ms_rev, ms_256) = speed_640(repeats);
     writeln!(doc, "| reverse-mapped z-buffer DoF | {ms_rev:.0} | 1.00 |").ok();
     writeln!(
         doc,

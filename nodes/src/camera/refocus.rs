@@ -544,6 +544,15 @@ pub fn refocus(
         ..
     } = plan;
     let inv_u = plan.inv_u;
+    let layer = &plan.layer;
+    // What every view's warp reads, computed once.
+    let warp: Vec<WarpSource> = sources
+        .par_iter()
+        .map(|&(i, key)| WarpSource::new(i as usize, w, inv_u - src_inv_z[i as usize], key))
+        .chain(plan.layer_sources.par_iter().enumerate().map(|(k, &key)| {
+            WarpSource::new(layer.pixels[k] as usize, w, inv_u - layer.inv_z[k], key)
+        }))
+        .collect();
     let mut acc = vec![[0.0f64; 3]; w * h];
     let mut view = View {
         zbuf: (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect(),
@@ -567,30 +576,20 @@ pub fn refocus(
         // resets every entry it reads.)
         // Forward warp with a z-buffer (nearest depth wins, then the lower
         // source index).
-        sources.par_chunks(4096).for_each(|chunk| {
-            for &(i, key) in chunk {
-                let i = i as usize;
-                if let Some(t) = warp_target(i, inv_u - src_inv_z[i], w, h, move_by) {
-                    view.zbuf[t].fetch_min(key, Ordering::Relaxed);
+        // The background layer's entries take part alike: their keys are
+        // farther than the foreground above them.
+        warp.par_chunks(4096).for_each(|chunk| {
+            for src in chunk {
+                if let Some(t) = src.target(w, h, move_by) {
+                    view.zbuf[t].fetch_min(src.key, Ordering::Relaxed);
                 }
             }
         });
-        // The background layer through the same z-buffer (its keys are
-        // farther than the foreground above it).
-        let layer = &plan.layer;
-        plan.layer_sources
-            .par_chunks(4096)
-            .enumerate()
-            .for_each(|(c, chunk)| {
-                for (k, &key) in (c * 4096..).zip(chunk) {
-                    let i = layer.pixels[k] as usize;
-                    if let Some(t) = warp_target(i, inv_u - layer.inv_z[k], w, h, move_by) {
-                        view.zbuf[t].fetch_min(key, Ordering::Relaxed);
-                    }
-                }
-            });
-        // Gather the winners.
-        {
+        // Gather the winners, list the holes and, when no channel moves on
+        // its own, accumulate every active pixel that is not a hole (in
+        // the same pass: the same sums, in the same order, as a pass of its
+        // own after the fill).
+        let holes: Vec<usize> = {
             let View {
                 zbuf,
                 color: vc,
@@ -600,33 +599,45 @@ pub fn refocus(
             vc.par_iter_mut()
                 .zip(inv_z.par_iter_mut())
                 .zip(conf.par_iter_mut())
+                .zip(acc.par_iter_mut())
                 .enumerate()
-                .for_each(|(t, ((c, iz), cf))| {
+                .filter_map(|(t, (((c, iz), cf), a))| {
                     let key = zbuf[t].swap(EMPTY, Ordering::Relaxed);
                     if key == EMPTY {
                         *c = [0.0; 3];
                         *iz = 0.0;
                         *cf = 0.0;
-                    } else {
-                        let i = (key & 0xffff_ffff) as usize;
-                        if i < w * h {
-                            *c = src_color[i];
-                            *iz = src_inv_z[i] as f32;
-                        } else {
-                            // A background layer entry.
-                            *c = layer.color[i - w * h];
-                            *iz = layer.inv_z[i - w * h] as f32;
-                        }
-                        *cf = 1.0;
+                        return active[t].then_some(t);
                     }
-                });
-        }
-        let holes: Vec<usize> = (0..w * h)
-            .into_par_iter()
-            .filter(|&t| active[t] && view.conf[t] == 0.0)
-            .collect();
+                    let i = (key & 0xffff_ffff) as usize;
+                    if i < w * h {
+                        *c = src_color[i];
+                        *iz = src_inv_z[i] as f32;
+                    } else {
+                        // A background layer entry.
+                        *c = layer.color[i - w * h];
+                        *iz = layer.inv_z[i - w * h] as f32;
+                    }
+                    *cf = 1.0;
+                    if !in_views && active[t] {
+                        for (a, v) in a.iter_mut().zip(*c) {
+                            *a += v as f64;
+                        }
+                    }
+                    None
+                })
+                .collect()
+        };
         holes_total += holes.len();
-        fill_holes(&mut view, w, h, holes, [dx, dy], p);
+        fill_holes(&mut view, w, h, &holes, [dx, dy], p);
+        if !in_views {
+            // The holes' share of the accumulation, after their fill.
+            for &t in &holes {
+                for (a, v) in acc[t].iter_mut().zip(view.color[t]) {
+                    *a += v as f64;
+                }
+            }
+        }
         if in_views {
             let e: [[f64; 2]; 3] = std::array::from_fn(|c| {
                 let d = fx.focus_offset(*s, c) - off_g;
@@ -681,14 +692,6 @@ pub fn refocus(
                     };
                 }
             });
-        } else {
-            acc.par_iter_mut().enumerate().for_each(|(t, a)| {
-                if active[t] {
-                    for (a, c) in a.iter_mut().zip(view.color[t]) {
-                        *a += c as f64;
-                    }
-                }
-            });
         }
         if k % 8 == 7 {
             // Guard: points is non-empty inside the loop.
@@ -722,19 +725,39 @@ pub fn refocus(
     Ok((out, plan.report(holes_total)))
 }
 
-/// Where the forward warp of a view puts pixel `i` (`y * w + x`) whose
-/// `1/u - 1/z` is `m`: `(x, y) + m (dx, dy) + (gx, gy)` rounded, for
-/// `move_by = [dx, dy, gx, gy]`; `None` off the image.
-#[inline]
-fn warp_target(i: usize, m: f64, w: usize, h: usize, move_by: [f64; 4]) -> Option<usize> {
-    let [dx, dy, gx, gy] = move_by;
-    let (x, y) = ((i % w) as f64, (i / w) as f64);
-    let tx = (x + dx * m + gx).round();
-    let ty = (y + dy * m + gy).round();
-    if tx < 0.0 || ty < 0.0 || tx >= w as f64 || ty >= h as f64 {
-        None
-    } else {
-        Some(ty as usize * w + tx as usize)
+/// A source pixel of the forward warp with what every view needs of it:
+/// its position (exact in f32: images are under 2^24 pixels a side), its
+/// `m = 1/u - 1/z` and its z-buffer key (24 bytes, the same memory as the
+/// index, key and depth the warp read before, and no division per view).
+struct WarpSource {
+    x: f32,
+    y: f32,
+    m: f64,
+    key: u64,
+}
+
+impl WarpSource {
+    fn new(i: usize, w: usize, m: f64, key: u64) -> WarpSource {
+        WarpSource {
+            x: (i % w) as f32,
+            y: (i / w) as f32,
+            m,
+            key,
+        }
+    }
+
+    /// Where a view puts the pixel: `(x, y) + m (dx, dy) + (gx, gy)`
+    /// rounded, for `move_by = [dx, dy, gx, gy]`; `None` off the image.
+    #[inline]
+    fn target(&self, w: usize, h: usize, move_by: [f64; 4]) -> Option<usize> {
+        let [dx, dy, gx, gy] = move_by;
+        let tx = (self.x as f64 + dx * self.m + gx).round();
+        let ty = (self.y as f64 + dy * self.m + gy).round();
+        if tx < 0.0 || ty < 0.0 || tx >= w as f64 || ty >= h as f64 {
+            None
+        } else {
+            Some(ty as usize * w + tx as usize)
+        }
     }
 }
 
@@ -764,7 +787,7 @@ fn fill_holes(
     view: &mut View,
     w: usize,
     h: usize,
-    holes: Vec<usize>,
+    holes: &[usize],
     dir: [f64; 2],
     p: &RefocusParams,
 ) {
