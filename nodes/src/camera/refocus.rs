@@ -554,15 +554,20 @@ pub fn refocus(
         }))
         .collect();
     let mut acc = vec![[0.0f64; 3]; w * h];
-    let mut view = View {
-        zbuf: (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect(),
-        color: vec![[0.0; 3]; w * h],
-        inv_z: vec![0.0; w * h],
-        conf: vec![0.0; w * h],
-    };
     let mut holes_total = 0usize;
     let fx = plan.effects;
     let in_views = fx.in_views();
+    // The view's colour, depth and certainty are copied out only when the
+    // channels read their neighbours (per-view lens effects); otherwise the
+    // winning keys are the view.
+    let copied = if in_views { w * h } else { 0 };
+    let mut view = View {
+        zbuf: (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect(),
+        color: vec![[0.0; 3]; copied],
+        inv_z: vec![0.0; copied],
+        conf: vec![0.0; copied],
+    };
+    let mut keys = vec![EMPTY; if in_views { 0 } else { w * h }];
     for (k, s) in points.iter().enumerate() {
         let dx = c_scale * s[0];
         let dy = c_scale * s[1];
@@ -585,58 +590,93 @@ pub fn refocus(
                 }
             }
         });
-        // Gather the winners, list the holes and, when no channel moves on
-        // its own, accumulate every active pixel that is not a hole (in
-        // the same pass: the same sums, in the same order, as a pass of its
-        // own after the fill).
-        let holes: Vec<usize> = {
-            let View {
-                zbuf,
-                color: vc,
-                inv_z,
-                conf,
-            } = &mut view;
-            vc.par_iter_mut()
-                .zip(inv_z.par_iter_mut())
-                .zip(conf.par_iter_mut())
+        if !in_views {
+            // Take the winning keys (resetting the z-buffer), list the holes
+            // and accumulate every active pixel that is not a hole; then the
+            // holes' share, after their fill. The same sums in the same
+            // order as copying the view out first, with a third of the
+            // memory traffic.
+            let holes: Vec<usize> = keys
+                .par_iter_mut()
                 .zip(acc.par_iter_mut())
                 .enumerate()
-                .filter_map(|(t, (((c, iz), cf), a))| {
-                    let key = zbuf[t].swap(EMPTY, Ordering::Relaxed);
+                .filter_map(|(t, (k, a))| {
+                    let key = view.zbuf[t].swap(EMPTY, Ordering::Relaxed);
+                    *k = key;
+                    if !active[t] {
+                        return None;
+                    }
                     if key == EMPTY {
-                        *c = [0.0; 3];
-                        *iz = 0.0;
-                        *cf = 0.0;
-                        return active[t].then_some(t);
+                        return Some(t);
                     }
                     let i = (key & 0xffff_ffff) as usize;
-                    if i < w * h {
-                        *c = src_color[i];
-                        *iz = src_inv_z[i] as f32;
+                    let c = if i < w * h {
+                        src_color[i]
                     } else {
-                        // A background layer entry.
-                        *c = layer.color[i - w * h];
-                        *iz = layer.inv_z[i - w * h] as f32;
-                    }
-                    *cf = 1.0;
-                    if !in_views && active[t] {
-                        for (a, v) in a.iter_mut().zip(*c) {
-                            *a += v as f64;
-                        }
+                        layer.color[i - w * h]
+                    };
+                    for (a, v) in a.iter_mut().zip(c) {
+                        *a += v as f64;
                     }
                     None
                 })
-                .collect()
-        };
-        holes_total += holes.len();
-        fill_holes(&mut view, w, h, &holes, [dx, dy], p);
-        if !in_views {
-            // The holes' share of the accumulation, after their fill.
-            for &t in &holes {
-                for (a, v) in acc[t].iter_mut().zip(view.color[t]) {
+                .collect();
+            holes_total += holes.len();
+            let keyed = Keyed {
+                keys: &keys,
+                n: w * h,
+                src_color,
+                src_inv_z,
+                layer,
+            };
+            let step = BlurPlan::fill_step([dx, dy]);
+            let fills: Vec<Rgb> = holes
+                .par_iter()
+                .map(|&t| fill_one(&keyed, w, h, t, step, p).0)
+                .collect();
+            for (&t, c) in holes.iter().zip(fills) {
+                for (a, v) in acc[t].iter_mut().zip(c) {
                     *a += v as f64;
                 }
             }
+        } else {
+            // Gather the winners into the view (the channels read their
+            // neighbours), list the holes and fill them.
+            let holes: Vec<usize> = {
+                let View {
+                    zbuf,
+                    color: vc,
+                    inv_z,
+                    conf,
+                } = &mut view;
+                vc.par_iter_mut()
+                    .zip(inv_z.par_iter_mut())
+                    .zip(conf.par_iter_mut())
+                    .enumerate()
+                    .filter_map(|(t, ((c, iz), cf))| {
+                        let key = zbuf[t].swap(EMPTY, Ordering::Relaxed);
+                        if key == EMPTY {
+                            *c = [0.0; 3];
+                            *iz = 0.0;
+                            *cf = 0.0;
+                            return active[t].then_some(t);
+                        }
+                        let i = (key & 0xffff_ffff) as usize;
+                        if i < w * h {
+                            *c = src_color[i];
+                            *iz = src_inv_z[i] as f32;
+                        } else {
+                            // A background layer entry.
+                            *c = layer.color[i - w * h];
+                            *iz = layer.inv_z[i - w * h] as f32;
+                        }
+                        *cf = 1.0;
+                        None
+                    })
+                    .collect()
+            };
+            holes_total += holes.len();
+            fill_holes(&mut view, w, h, &holes, [dx, dy], p);
         }
         if in_views {
             let e: [[f64; 2]; 3] = std::array::from_fn(|c| {
@@ -761,6 +801,66 @@ impl WarpSource {
     }
 }
 
+/// What the hole fill reads of one view: the pixels some source landed on
+/// (before any hole is filled).
+trait Warped: Sync {
+    /// True when a source landed on pixel `j`.
+    fn is_warped(&self, j: usize) -> bool;
+    /// Colour, inverse depth and certainty of a warped pixel `j`.
+    fn warped(&self, j: usize) -> (Rgb, f32, f32);
+    /// Inverse depth of a warped pixel `j`.
+    fn inv_z(&self, j: usize) -> f32 {
+        self.warped(j).1
+    }
+}
+
+impl Warped for View {
+    fn is_warped(&self, j: usize) -> bool {
+        self.conf[j] > 0.0
+    }
+    fn warped(&self, j: usize) -> (Rgb, f32, f32) {
+        (self.color[j], self.inv_z[j], self.conf[j])
+    }
+    fn inv_z(&self, j: usize) -> f32 {
+        self.inv_z[j]
+    }
+}
+
+/// A view held as its z-buffer's winning keys only (what the accumulation
+/// needs when no channel moves on its own): the colour and depth are read
+/// from the source the key names, exactly as the gather would copy them.
+struct Keyed<'a> {
+    keys: &'a [u64],
+    n: usize,
+    src_color: &'a [Rgb],
+    src_inv_z: &'a [f64],
+    layer: &'a BackgroundLayer,
+}
+
+impl Keyed<'_> {
+    /// Colour and inverse depth of source `i` (a layer entry at `n + k`).
+    fn source(&self, i: usize) -> (Rgb, f32) {
+        if i < self.n {
+            (self.src_color[i], self.src_inv_z[i] as f32)
+        } else {
+            (
+                self.layer.color[i - self.n],
+                self.layer.inv_z[i - self.n] as f32,
+            )
+        }
+    }
+}
+
+impl Warped for Keyed<'_> {
+    fn is_warped(&self, j: usize) -> bool {
+        self.keys[j] != EMPTY
+    }
+    fn warped(&self, j: usize) -> (Rgb, f32, f32) {
+        let (c, v) = self.source((self.keys[j] & 0xffff_ffff) as usize);
+        (c, v, 1.0)
+    }
+}
+
 /// Fills the holes of one view with the far-depth prior of Sec. 2.3
 /// ("holes that occur due to a changed viewpoint are most probably to be
 /// filled extending the adjacent background").
@@ -806,7 +906,7 @@ fn fill_holes(
 
 /// The first known pixel from `t` along `step` (not `t` itself), with its
 /// distance in steps.
-fn march(view: &View, w: usize, h: usize, t: usize, step: [f64; 2]) -> Option<(usize, f64)> {
+fn march(view: &impl Warped, w: usize, h: usize, t: usize, step: [f64; 2]) -> Option<(usize, f64)> {
     let (x, y) = ((t % w) as f64, (t / w) as f64);
     let mut k = 1.0;
     loop {
@@ -815,7 +915,7 @@ fn march(view: &View, w: usize, h: usize, t: usize, step: [f64; 2]) -> Option<(u
             return None;
         }
         let j = py as usize * w + px as usize;
-        if view.conf[j] > 0.0 {
+        if view.is_warped(j) {
             return Some((j, k));
         }
         k += 1.0;
@@ -823,7 +923,7 @@ fn march(view: &View, w: usize, h: usize, t: usize, step: [f64; 2]) -> Option<(u
 }
 
 fn fill_one(
-    view: &View,
+    view: &impl Warped,
     w: usize,
     h: usize,
     t: usize,
@@ -836,7 +936,7 @@ fn fill_one(
         (None, None) => return ([0.0; 3], 0.0, 0.0),
         (Some(e), None) | (None, Some(e)) => vec![e],
         (Some(ea), Some(eb)) => {
-            let (va, vb) = (view.inv_z[ea.0] as f64, view.inv_z[eb.0] as f64);
+            let (va, vb) = (view.inv_z(ea.0) as f64, view.inv_z(eb.0) as f64);
             let s = va + vb;
             // Guard: two sky ends (s = 0) are the same depth.
             let rel = if s > 0.0 { (va - vb).abs() / s } else { 0.0 };
@@ -850,12 +950,12 @@ fn fill_one(
     };
     let v_far = ends
         .iter()
-        .map(|e| view.inv_z[e.0] as f64)
+        .map(|e| view.inv_z(e.0) as f64)
         .fold(f64::INFINITY, f64::min);
     let (mut wsum, mut csum, mut zsum, mut fsum) = (0.0f64, [0.0f64; 3], 0.0f64, 0.0f64);
     for &(j, dist) in &ends {
-        let zeta = view.conf[j] as f64;
-        let vj = view.inv_z[j] as f64;
+        let (cj, vj, zeta) = view.warped(j);
+        let (vj, zeta) = (vj as f64, zeta as f64);
         let wt = if p.far_prior {
             // (z_j / z_far)^2 = (v_far / v_j)^2 in [0, 1]; the sky (v = 0)
             // is as far as it gets. Guard: vj > 0 in the division.
@@ -865,7 +965,7 @@ fn fill_one(
             zeta / dist
         };
         wsum += wt;
-        for (a, c) in csum.iter_mut().zip(view.color[j]) {
+        for (a, c) in csum.iter_mut().zip(cj) {
             *a += wt * c as f64;
         }
         zsum += wt * vj;
@@ -881,12 +981,8 @@ fn fill_one(
     } else {
         // Every end has certainty > 0 and the prior of the farthest end is 1,
         // so this is unreachable; a defined fallback all the same.
-        let j = ends[0].0;
-        (
-            view.color[j],
-            view.inv_z[j],
-            (FILL_DECAY * view.conf[j] as f64) as f32,
-        )
+        let (c, v, zeta) = view.warped(ends[0].0);
+        (c, v, (FILL_DECAY * zeta as f64) as f32)
     }
 }
 
