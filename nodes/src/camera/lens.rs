@@ -291,6 +291,12 @@ impl LensEffects {
             || self.barrel_distance_mm > 0.0
     }
 
+    /// True when the channels focus apart (longitudinal chromatic
+    /// aberration): each view's channels are read at their own offsets.
+    pub fn channels_split(&self) -> bool {
+        self.chromatic_longitudinal_d != 0.0
+    }
+
     /// True when the final image is resampled or darkened (magnification
     /// per channel, breathing, natural vignetting).
     pub fn in_image(&self, lens: &ThinLens) -> bool {

@@ -556,18 +556,20 @@ pub fn refocus(
     let mut acc = vec![[0.0f64; 3]; w * h];
     let mut holes_total = 0usize;
     let fx = plan.effects;
-    let in_views = fx.in_views();
     // The view's colour, depth and certainty are copied out only when the
-    // channels read their neighbours (per-view lens effects); otherwise the
-    // winning keys are the view.
-    let copied = if in_views { w * h } else { 0 };
+    // channels read their neighbours (longitudinal chromatic aberration);
+    // otherwise the winning keys are the view. (Spherical aberration moves
+    // the whole view in the warp; the barrel only masks the accumulation.)
+    let split = fx.channels_split();
+    let barrel = plan.barrel;
+    let copied = if split { w * h } else { 0 };
     let mut view = View {
         zbuf: (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect(),
         color: vec![[0.0; 3]; copied],
         inv_z: vec![0.0; copied],
         conf: vec![0.0; copied],
     };
-    let mut keys = vec![EMPTY; if in_views { 0 } else { w * h }];
+    let mut keys = vec![EMPTY; if split { 0 } else { w * h }];
     for (k, s) in points.iter().enumerate() {
         let dx = c_scale * s[0];
         let dy = c_scale * s[1];
@@ -590,7 +592,11 @@ pub fn refocus(
                 }
             }
         });
-        if !in_views {
+        // The barrel passes the ray from aperture point s to pixel t.
+        let open = |t: usize| {
+            barrel.is_none_or(|b| b.open(*s, (t % w) as f64 + 0.5, (t / w) as f64 + 0.5))
+        };
+        if !split {
             // Take the winning keys (resetting the z-buffer), list the holes
             // and accumulate every active pixel that is not a hole; then the
             // holes' share, after their fill. The same sums in the same
@@ -608,6 +614,9 @@ pub fn refocus(
                     }
                     if key == EMPTY {
                         return Some(t);
+                    }
+                    if !open(t) {
+                        return None;
                     }
                     let i = (key & 0xffff_ffff) as usize;
                     let c = if i < w * h {
@@ -630,11 +639,12 @@ pub fn refocus(
                 layer,
             };
             let step = BlurPlan::fill_step([dx, dy]);
-            let fills: Vec<Rgb> = holes
+            let open_holes: Vec<usize> = holes.into_iter().filter(|&t| open(t)).collect();
+            let fills: Vec<Rgb> = open_holes
                 .par_iter()
                 .map(|&t| fill_one(&keyed, w, h, t, step, p).0)
                 .collect();
-            for (&t, c) in holes.iter().zip(fills) {
+            for (&t, c) in open_holes.iter().zip(fills) {
                 for (a, v) in acc[t].iter_mut().zip(c) {
                     *a += v as f64;
                 }
@@ -678,7 +688,7 @@ pub fn refocus(
             holes_total += holes.len();
             fill_holes(&mut view, w, h, &holes, [dx, dy], p);
         }
-        if in_views {
+        if split {
             let e: [[f64; 2]; 3] = std::array::from_fn(|c| {
                 let d = fx.focus_offset(*s, c) - off_g;
                 [dx * d, dy * d]
@@ -704,16 +714,12 @@ pub fn refocus(
                         }
                     });
             }
-            let barrel = plan.barrel;
             let vc = &view.color;
             acc.par_iter_mut().enumerate().for_each(|(t, a)| {
-                if !active[t] {
+                if !active[t] || !open(t) {
                     return;
                 }
                 let (x, y) = (t % w, t / w);
-                if barrel.is_some_and(|b| !b.open(*s, x as f64 + 0.5, y as f64 + 0.5)) {
-                    return;
-                }
                 for (c, a) in a.iter_mut().enumerate() {
                     *a += if e[c] == [0.0, 0.0] {
                         vc[t][c] as f64
