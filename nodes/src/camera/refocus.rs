@@ -1536,6 +1536,20 @@ mod tests {
                     .flatten()
                     .all(|v| v.is_finite() && *v >= 0.0)
             );
+            // The background layer over the same hard depths (1 mm beside
+            // the sky: the largest reach there is).
+            let layered = RefocusParams {
+                background_layer: true,
+                ..p.clone()
+            };
+            let (out, _) = refocus(&c, &d, &Aperture::Disc, &layered, |_| Ok(())).unwrap();
+            assert!(
+                out.as_slice()
+                    .iter()
+                    .flatten()
+                    .all(|v| v.is_finite() && *v >= 0.0),
+                "focus {focus}, f/{n}, with the background layer"
+            );
             let rev = reverse_mapped_dof(&c, &d, &Aperture::Disc, &p).unwrap();
             assert!(
                 rev.as_slice()
