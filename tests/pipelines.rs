@@ -367,12 +367,19 @@ fn sweep_writes_csv_and_plot() {
 }
 
 /// `depthgraph explain FILE --json --quiet --out OUT --cache-dir CACHE`
-/// with `--set` for each of `sets`: the rows, after asserting success.
-fn explain_graph(file: &Path, out: &Path, cache: &Path, sets: &[&str]) -> Vec<serde_json::Value> {
+/// with `--set` for each of `sets` then of `extra`: the rows, after
+/// asserting success.
+fn explain_graph(
+    file: &Path,
+    out: &Path,
+    cache: &Path,
+    sets: &[&str],
+    extra: &[&str],
+) -> Vec<serde_json::Value> {
     let mut args = vec!["explain", file.to_str().unwrap(), "--json", "--quiet"];
     args.extend(["--out", out.to_str().unwrap()]);
     args.extend(["--cache-dir", cache.to_str().unwrap()]);
-    for s in sets {
+    for s in sets.iter().chain(extra) {
         args.extend(["--set", s]);
     }
     let r = cli(&args);
@@ -400,8 +407,7 @@ fn refocus_pipeline_runs_and_passes_through_without_blur() {
             "to_color.height=30",
             "refocus.samples=16",
         ];
-        let all: Vec<&str> = sets.iter().chain(extra).copied().collect();
-        explain_graph(&file, out.path(), cache.path(), &all)
+        explain_graph(&file, out.path(), cache.path(), &sets, extra)
     };
     let rows = run(&[]);
     for n in ["hdr", "to_color", "upsample", "refocus"] {
@@ -619,8 +625,7 @@ fn refocus_lens_pipeline_matches_its_ray_traced_lens() {
             "truth.lens_samples=128",
             "refocus.samples=128",
         ];
-        let all: Vec<&str> = sets.iter().chain(extra).copied().collect();
-        explain_graph(&file, out.path(), cache.path(), &all)
+        explain_graph(&file, out.path(), cache.path(), &sets, extra)
     };
     let load = |name: &str| {
         depthgraph::nodes::io::load_color(

@@ -298,8 +298,19 @@ pub struct BlurPlan {
     /// `background_layer` is off or nothing is behind anything). Its entry
     /// `k` takes part in the z-buffer as source index `w * h + k`.
     pub layer: BackgroundLayer,
-    /// Layer entries as z-buffer keys (as `sources`, index `w * h + k`).
-    pub layer_sources: Vec<u64>,
+}
+
+/// The z-buffer key of a source of inverse depth `v` and index `i`: the
+/// high half the depth's f32 bits (positive floats order like their bits;
+/// +inf for the sky, `v = 0`), the low half the index.
+fn zkey(v: f64, i: usize) -> u64 {
+    // Guard: v > 0 in the division.
+    let z = if v > 0.0 {
+        (1.0 / v) as f32
+    } else {
+        f32::INFINITY
+    };
+    ((z.to_bits() as u64) << 32) | i as u64
 }
 
 impl BlurPlan {
@@ -393,15 +404,7 @@ pub fn plan(
     // floats order like their bits; +inf for the sky) then the source index.
     let sources: Vec<(u32, u64)> = (0..w * h)
         .filter(|&i| active[i])
-        .map(|i| {
-            let z = if src_inv_z[i] > 0.0 {
-                // Guard: src_inv_z[i] > 0.
-                (1.0 / src_inv_z[i]) as f32
-            } else {
-                f32::INFINITY
-            };
-            (i as u32, ((z.to_bits() as u64) << 32) | i as u64)
-        })
+        .map(|i| (i as u32, zkey(src_inv_z[i], i)))
         .collect();
     let layer = if p.background_layer {
         background_layer(
@@ -418,20 +421,6 @@ pub fn plan(
     } else {
         BackgroundLayer::default()
     };
-    let layer_sources: Vec<u64> = layer
-        .inv_z
-        .iter()
-        .enumerate()
-        .map(|(k, &v)| {
-            // Guard: v > 0 in the division; 0 is the sky.
-            let z = if v > 0.0 {
-                (1.0 / v) as f32
-            } else {
-                f32::INFINITY
-            };
-            ((z.to_bits() as u64) << 32) | (w * h + k) as u64
-        })
-        .collect();
     Ok(Plan::Blur(Box::new(BlurPlan {
         w,
         h,
@@ -449,7 +438,6 @@ pub fn plan(
         effects: fx,
         barrel,
         layer,
-        layer_sources,
     })))
 }
 
@@ -549,10 +537,17 @@ pub fn refocus(
     let warp: Vec<WarpSource> = sources
         .par_iter()
         .map(|&(i, key)| WarpSource::new(i as usize, w, inv_u - src_inv_z[i as usize], key))
-        .chain(plan.layer_sources.par_iter().enumerate().map(|(k, &key)| {
-            WarpSource::new(layer.pixels[k] as usize, w, inv_u - layer.inv_z[k], key)
+        .chain(layer.pixels.par_iter().enumerate().map(|(k, &i)| {
+            let v = layer.inv_z[k];
+            WarpSource::new(i as usize, w, inv_u - v, zkey(v, w * h + k))
         }))
         .collect();
+    let named = Sources {
+        n: w * h,
+        src_color,
+        src_inv_z,
+        layer,
+    };
     let mut acc = vec![[0.0f64; 3]; w * h];
     let mut holes_total = 0usize;
     let fx = plan.effects;
@@ -618,12 +613,7 @@ pub fn refocus(
                     if !open(t) {
                         return None;
                     }
-                    let i = (key & 0xffff_ffff) as usize;
-                    let c = if i < w * h {
-                        src_color[i]
-                    } else {
-                        layer.color[i - w * h]
-                    };
+                    let (c, _) = named.source((key & 0xffff_ffff) as usize);
                     for (a, v) in a.iter_mut().zip(c) {
                         *a += v as f64;
                     }
@@ -633,10 +623,7 @@ pub fn refocus(
             holes_total += holes.len();
             let keyed = Keyed {
                 keys: &keys,
-                n: w * h,
-                src_color,
-                src_inv_z,
-                layer,
+                sources: &named,
             };
             let step = BlurPlan::fill_step([dx, dy]);
             let open_holes: Vec<usize> = holes.into_iter().filter(|&t| open(t)).collect();
@@ -671,15 +658,7 @@ pub fn refocus(
                             *cf = 0.0;
                             return active[t].then_some(t);
                         }
-                        let i = (key & 0xffff_ffff) as usize;
-                        if i < w * h {
-                            *c = src_color[i];
-                            *iz = src_inv_z[i] as f32;
-                        } else {
-                            // A background layer entry.
-                            *c = layer.color[i - w * h];
-                            *iz = layer.inv_z[i - w * h] as f32;
-                        }
+                        (*c, *iz) = named.source((key & 0xffff_ffff) as usize);
                         *cf = 1.0;
                         None
                     })
@@ -837,13 +816,19 @@ impl Warped for View {
 /// from the source the key names, exactly as the gather would copy them.
 struct Keyed<'a> {
     keys: &'a [u64],
+    sources: &'a Sources<'a>,
+}
+
+/// The sources a z-buffer key can name: the image's pixels, then the
+/// background layer's entries from index `n = w * h`.
+struct Sources<'a> {
     n: usize,
     src_color: &'a [Rgb],
     src_inv_z: &'a [f64],
     layer: &'a BackgroundLayer,
 }
 
-impl Keyed<'_> {
+impl Sources<'_> {
     /// Colour and inverse depth of source `i` (a layer entry at `n + k`).
     fn source(&self, i: usize) -> (Rgb, f32) {
         if i < self.n {
@@ -862,7 +847,7 @@ impl Warped for Keyed<'_> {
         self.keys[j] != EMPTY
     }
     fn warped(&self, j: usize) -> (Rgb, f32, f32) {
-        let (c, v) = self.source((self.keys[j] & 0xffff_ffff) as usize);
+        let (c, v) = self.sources.source((self.keys[j] & 0xffff_ffff) as usize);
         (c, v, 1.0)
     }
 }
