@@ -1,7 +1,8 @@
 //! CPU against GPU on the same inputs in one run: `cargo bench -p
 //! depthgraph-gpu --bench gpu`. Per node (PullPush, DualPullPush, Feather,
-//! JointBilateral r = 7, Refocus at
-//! 256 and, with `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at 576 samples) and
+//! JointBilateral r = 7, Refocus 640x480 at 256 samples without and with
+//! the background layer and, with `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at
+//! 576 samples) and
 //! per pipeline (`depth_fill.ron`, `refocus.ron`, no cache): cold (first
 //! evaluation, pipeline compilation included) and warm medians, and the
 //! device's upload / kernel / download split. The adapter and driver are
@@ -335,6 +336,18 @@ fn main() {
         "Refocus",
         &ri,
         &rp(256, 640).to_values(),
+        repeats,
+    ));
+    let layered = RefocusParams {
+        background_layer: true,
+        ..rp(256, 640)
+    };
+    rows.push(node_row(
+        "Refocus 640x480 256 samples, background layer",
+        &regs,
+        "Refocus",
+        &ri,
+        &layered.to_values(),
         repeats,
     ));
     if std::env::var_os("DEPTHGRAPH_BENCH_FULL").is_some() {

@@ -1,8 +1,10 @@
 //! `Refocus` on the device: every aperture view rendered on the device from
 //! one upload of the inputs and one download of the result
 //! (`shaders/refocus.wgsl`). The plan (pass-through, sample count and
-//! points, active tiles, the sources and their z-buffer keys) is the CPU's
-//! [`plan`], so both backends decide alike.
+//! points, active tiles, the sources and their z-buffer keys, the
+//! background layer) is the CPU's [`plan`], so both backends decide alike;
+//! the layer's entries join the warp as sources keyed `w h + k`, placed at
+//! their pixel, exactly as on the CPU.
 //!
 //! **Agreement with the CPU** (checked by the parity tests): the display
 //! image's PSNR against the CPU's is at least [`MIN_PSNR_DB`], and pixels
@@ -19,9 +21,9 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::camera::lens::{Aperture, apply_image_effects};
+use depthgraph_nodes::camera::lens::Aperture;
 use depthgraph_nodes::camera::refocus::{
-    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, produced,
+    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, produced, zkey,
 };
 
 use crate::session::{Bind, Session, bytes_of, entry, f32s, u32s, uniform_blocks};
@@ -45,6 +47,10 @@ struct Globals {
     gain: f32,
     fill_h: f32,
     far_prior: u32,
+    barrel: u32,
+    per_px: f32,
+    radius2: f32,
+    _pad: u32,
 }
 
 #[repr(C)]
@@ -54,6 +60,10 @@ struct ViewParams {
     dy: f32,
     sx: f32,
     sy: f32,
+    gx: f32,
+    gy: f32,
+    bx: f32,
+    by: f32,
     k: u32,
     _pad: [u32; 3],
 }
@@ -69,6 +79,7 @@ const BINDS: &[Bind] = &[
     Bind::ReadWrite,
     Bind::ReadWrite,
     Bind::ReadWrite,
+    Bind::Read,
 ];
 
 /// A 1-D dispatch of `n` invocations (workgroups of 256) folded into 2-D
@@ -91,18 +102,13 @@ pub fn eval(
         Aperture::from_params(p.aperture, p.blades, p.rotation_deg, i.aperture.as_deref())?;
     let (color, report) = match plan(&i.color, &i.depth, &aperture, p)? {
         Plan::Sharp(out, report) => (out, report),
-        Plan::Blur(b) if b.effects.in_views() => {
+        Plan::Blur(b) if b.effects.channels_split() => {
             return Err(s.too_large(
-                "spherical and longitudinal chromatic aberration and optical vignetting \
-                 (per-view channel shifts, the barrel clip) are not on the device yet",
+                "longitudinal chromatic aberration (each view's channels read apart) \
+                 is not on the device yet",
             ));
         }
-        Plan::Blur(b) if !b.layer.is_empty() => {
-            return Err(
-                s.too_large("the background layer (partial occlusion) is not on the device yet")
-            );
-        }
-        Plan::Blur(b) => render(s, ctx, &i.color, &b, p)?,
+        Plan::Blur(b) => render(s, ctx, &i.color, &b, &aperture, p)?,
     };
     Ok(produced(RefocusOut { color }, p, &report))
 }
@@ -113,6 +119,7 @@ pub fn render(
     ctx: &EvalCtx,
     color: &Arc<ColorImage>,
     plan: &BlurPlan,
+    aperture: &Aperture,
     p: &RefocusParams,
 ) -> Result<(ColorImage, RefocusReport), NodeError> {
     let (w, h) = (plan.w, plan.h);
@@ -121,7 +128,8 @@ pub fn render(
     let limits = s.ctx().limits();
     let max_dim = limits.max_compute_workgroups_per_dimension;
     let (px_x, px_y, px_row) = fold(n, max_dim);
-    let (src_x, src_y, src_row) = fold(plan.sources.len(), max_dim);
+    let n_src = plan.sources.len() + plan.layer.len();
+    let (src_x, src_y, src_row) = fold(n_src, max_dim);
     // Both kinds of kernel index with one row length: a fold that needs a
     // second dimension has the full row (256 max_dim), and the other then
     // runs with one row of groups, so the larger row serves both.
@@ -129,13 +137,17 @@ pub fn render(
     let globals = Globals {
         w: w as u32,
         h: h as u32,
-        n_src: plan.sources.len() as u32,
+        n_src: n_src as u32,
         row,
         // Guard: views >= 1 in a blur plan.
         scale: (plan.gain / views.max(1) as f64) as f32,
         gain: plan.gain as f32,
         fill_h: p.fill_h as f32,
         far_prior: u32::from(p.far_prior),
+        barrel: u32::from(plan.barrel.is_some()),
+        per_px: plan.barrel.map_or(0.0, |b| b.per_px as f32),
+        radius2: plan.barrel.map_or(0.0, |b| b.radius2 as f32),
+        _pad: 0,
     };
     // Per-view parameters at the uniform offset alignment.
     let blocks: Vec<ViewParams> = plan
@@ -145,25 +157,60 @@ pub fn render(
         .map(|(k, pt)| {
             let dir = plan.shift(*pt);
             let step = BlurPlan::fill_step(dir);
+            let g = plan.green_shift(*pt);
+            // the barrel's test at pixel centre (x, y) is |b + per_px (x, y)|²
+            // <= radius²: the view's part in f64 here
+            let b = plan.barrel.map_or([0.0; 2], |b| {
+                [
+                    pt[0] * b.along - b.per_px * b.centre[0],
+                    pt[1] * b.along - b.per_px * b.centre[1],
+                ]
+            });
             ViewParams {
                 dx: dir[0] as f32,
                 dy: dir[1] as f32,
                 sx: step[0] as f32,
                 sy: step[1] as f32,
+                gx: g[0] as f32,
+                gy: g[1] as f32,
+                bx: b[0] as f32,
+                by: b[1] as f32,
                 k: k as u32,
                 _pad: [0; 3],
             }
         })
         .collect();
     let (view_bytes, stride) = uniform_blocks(&blocks, limits.min_uniform_buffer_offset_alignment);
+    // (key index, depth bits, m, pixel): the image's sources, then the
+    // background layer's entries (key index n + k, at their pixel), as
+    // the CPU's warp lists them
+    let layer = &plan.layer;
     let src: Vec<[u32; 4]> = plan
         .sources
         .iter()
         .map(|&(i, key)| {
             let m = (plan.inv_u - plan.src_inv_z[i as usize]) as f32;
-            [i, (key >> 32) as u32, m.to_bits(), 0]
+            [i, (key >> 32) as u32, m.to_bits(), i]
         })
+        .chain(layer.pixels.iter().enumerate().map(|(k, &i)| {
+            let v = layer.inv_z[k];
+            let m = (plan.inv_u - v) as f32;
+            let key = zkey(v, n + k);
+            [(n + k) as u32, (key >> 32) as u32, m.to_bits(), i]
+        }))
         .collect();
+    // the layer's colour and inverse depth (one unused entry when empty:
+    // a binding is never empty)
+    let layer_px: Vec<[f32; 4]> = if layer.is_empty() {
+        vec![[0.0; 4]]
+    } else {
+        layer
+            .color
+            .iter()
+            .zip(&layer.inv_z)
+            .map(|(c, &v)| [c[0], c[1], c[2], v as f32])
+            .collect()
+    };
     let pix: Vec<[f32; 2]> = plan
         .src_inv_z
         .iter()
@@ -176,6 +223,7 @@ pub fn render(
     let src_buf = s.upload(bytes_of(&src))?;
     let color_buf = s.image(color, bytes_of(color.as_slice()))?;
     let pix_buf = s.upload(bytes_of(&pix))?;
+    let layer_buf = s.upload(bytes_of(&layer_px))?;
     let zbuf = s.scratch(8 * n as u64)?;
     let view = s.scratch(32 * n as u64)?;
     let acc = s.scratch(32 * n as u64)?;
@@ -215,6 +263,7 @@ pub fn render(
                 entry(7, &acc, None),
                 entry(8, &holes, None),
                 entry(9, &out, None),
+                entry(10, &layer_buf, None),
             ],
         });
 
@@ -272,10 +321,11 @@ pub fn render(
                 }
             }
             let img = Image::from_vec(w, h, data)?;
-            // The image-wide lens effects (magnification per channel,
-            // breathing, natural vignetting) on the host, as the CPU does.
-            let changed = changed || plan.effects.in_image(&plan.lens);
-            let img = apply_image_effects(img, &plan.effects, &plan.lens);
+            // The barrel's share of the unmoved pixels and the image-wide
+            // lens effects (magnification per channel, breathing, natural
+            // vignetting) on the host, as the CPU does.
+            let changed = changed || plan.effects.in_image(&plan.lens) || plan.barrel.is_some();
+            let img = plan.finish_image(img, aperture, p)?;
             // The device copy is the value only if nothing was corrected.
             if !changed {
                 s.keep("color", out.clone(), 12 * n as u64);

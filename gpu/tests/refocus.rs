@@ -101,6 +101,40 @@ fn refocus_agrees_with_the_cpu_within_its_stated_bound() {
     }
 }
 
+/// The background layer (partial occlusion) on the device: the entries
+/// behind the card's edges warp with the image's sources, under the same
+/// keys, and the result agrees with the CPU's within the stated bound, at
+/// the near and the far focus. The layer changes the result by more than
+/// that bound, so the check could fail.
+#[test]
+fn the_background_layer_agrees_with_the_cpu() {
+    let (c, d) = scene(300, 170);
+    for base in [cases().remove(0), cases().remove(1)] {
+        let p = RefocusParams {
+            background_layer: true,
+            ..base.clone()
+        };
+        let a = Aperture::from_params(p.aperture, p.blades, p.rotation_deg, None).unwrap();
+        let Plan::Blur(b) = plan(&c, &d, &a, &p).unwrap() else {
+            panic!("the case blurs")
+        };
+        assert!(b.layer.len() > 100, "{} layer entries", b.layer.len());
+        let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+        assert_eq!(dev.origin.as_ref().unwrap().backend, "wgpu");
+        let (x, y) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+        let fixed = fixed_pixels(&c, &d, &p);
+        let psnr = color_within(&x, &y, &fixed, MIN_PSNR_DB)
+            .unwrap_or_else(|e| panic!("focus {}: {e}", p.focus_m));
+        eprintln!("layer, focus {}: PSNR {psnr:.1} dB", p.focus_m);
+        let off = both("Refocus", &inputs(c.clone(), d.clone()), &base.to_values()).1;
+        assert!(
+            color_within(&x, &color_of(&off, "color"), &fixed, MIN_PSNR_DB).is_err(),
+            "focus {}: the layer changes nothing the check sees",
+            p.focus_m
+        );
+    }
+}
+
 #[test]
 fn the_refocus_check_fails_on_a_perturbed_result() {
     let (c, d) = scene(120, 90);
@@ -201,9 +235,11 @@ fn too_large_for_the_device_runs_on_the_cpu_and_says_so() {
 
 /// The image-wide lens effects (magnification per channel, breathing,
 /// natural vignetting) run on the host after the device's views: the same
-/// result within the bound. The effects that change the views themselves
-/// (spherical and longitudinal chromatic aberration, the barrel) and the
-/// background layer run on the CPU, and the outputs say so.
+/// result within the bound. Spherical aberration (every source's extra
+/// shift in the warp) and the barrel (a per-view clip of the accumulation)
+/// run on the device, within the bound too, and each changes the result by
+/// more than it. Longitudinal chromatic aberration (each view's channels
+/// read apart) runs on the CPU, and the outputs say so.
 #[test]
 fn lens_effects_agree_or_run_on_the_cpu_and_say_so() {
     let (c, d) = scene(120, 90);
@@ -237,14 +273,50 @@ fn lens_effects_agree_or_run_on_the_cpu_and_say_so() {
             ..cases().remove(0)
         },
         RefocusParams {
+            spherical_aberration_d: -0.8,
+            ..cases().remove(1)
+        },
+        RefocusParams {
             barrel_distance_mm: 40.0,
             ..cases().remove(0)
         },
         RefocusParams {
+            barrel_distance_mm: 60.0,
             background_layer: true,
-            ..cases().remove(0)
+            ..cases().remove(1)
         },
     ] {
+        let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+        assert_eq!(dev.origin.as_ref().unwrap().backend, "wgpu");
+        let (x, y) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+        let fixed = fixed_pixels(&c, &d, &p);
+        let psnr =
+            color_within(&x, &y, &fixed, MIN_PSNR_DB).unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        eprintln!(
+            "spherical {} barrel {} mm: PSNR {psnr:.1} dB",
+            p.spherical_aberration_d, p.barrel_distance_mm
+        );
+        let without = RefocusParams {
+            spherical_aberration_d: 0.0,
+            barrel_distance_mm: 0.0,
+            ..p.clone()
+        };
+        let off = both(
+            "Refocus",
+            &inputs(c.clone(), d.clone()),
+            &without.to_values(),
+        )
+        .1;
+        assert!(
+            color_within(&x, &color_of(&off, "color"), &fixed, MIN_PSNR_DB).is_err(),
+            "{p:?}: the effect changes nothing the check sees"
+        );
+    }
+    {
+        let p = RefocusParams {
+            chromatic_longitudinal_d: 0.3,
+            ..cases().remove(0)
+        };
         let (cpu_reg, dev_reg) = registries();
         let i = inputs(c.clone(), d.clone());
         let cpu = eval_on(&cpu_reg, "Refocus", &i, &p.to_values()).unwrap();

@@ -22,6 +22,12 @@ struct Globals {
     gain: f32,
     fill_h: f32,
     far_prior: u32,
+    // the lens barrel (optical vignetting): on, aperture diameters per
+    // pixel, squared radius
+    barrel: u32,
+    per_px: f32,
+    radius2: f32,
+    _pad: u32,
 }
 
 struct ViewParams {
@@ -31,12 +37,20 @@ struct ViewParams {
     // the hole fill's unit march step
     sx: f32,
     sy: f32,
+    // every source's extra shift (spherical aberration's green focus), px
+    gx: f32,
+    gy: f32,
+    // the barrel test's per-view term: s along - per_px centre
+    bx: f32,
+    by: f32,
     k: u32,
 }
 
 @group(0) @binding(0) var<uniform> G: Globals;
 @group(0) @binding(1) var<uniform> V: ViewParams;
-// (index, depth bits, bits of m = 1/u - 1/z, unused) per active source
+// (key index, depth bits, bits of m = 1/u - 1/z, pixel index) per source:
+// the active pixels (key index = pixel), then the background layer's
+// entries (key index n + k)
 @group(0) @binding(2) var<storage, read> src: array<vec4<u32>>;
 // raw linear color, 3 floats per pixel (sanitised here like the CPU's sane())
 @group(0) @binding(3) var<storage, read> color: array<f32>;
@@ -52,6 +66,8 @@ struct ViewParams {
 @group(0) @binding(8) var<storage, read_write> holes: array<atomic<u32>>;
 // the result, 3 floats per pixel
 @group(0) @binding(9) var<storage, read_write> out_rgb: array<f32>;
+// (r, g, b, 1/z) of the background layer's entry k
+@group(0) @binding(10) var<storage, read> layer: array<vec4<f32>>;
 
 const EMPTY: u32 = 0xffffffffu;
 const FILL_DECAY: f32 = 0.9;
@@ -80,12 +96,12 @@ fn n_px() -> u32 {
 
 // The target pixel of source s in this view, or EMPTY when it leaves the image.
 fn warp_target(s: vec4<u32>) -> u32 {
-    let i = s.x;
+    let i = s.w;
     let m = bitcast<f32>(s.z);
     let x = f32(i % G.w);
     let y = f32(i / G.w);
-    let tx = round_away(x + V.dx * m);
-    let ty = round_away(y + V.dy * m);
+    let tx = round_away(x + V.dx * m + V.gx);
+    let ty = round_away(y + V.dy * m + V.gy);
     if (tx < 0.0 || ty < 0.0 || tx >= f32(G.w) || ty >= f32(G.h)) {
         return EMPTY;
     }
@@ -149,6 +165,9 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (i == EMPTY) {
         view[t] = vec4<f32>(0.0);
         view[n + t] = vec4<f32>(0.0);
+    } else if (i >= n) {
+        view[t] = layer[i - n];
+        view[n + t] = vec4<f32>(1.0, 0.0, 0.0, 0.0);
     } else {
         view[t] = vec4<f32>(src_color(i), pix[i].x);
         view[n + t] = vec4<f32>(1.0, 0.0, 0.0, 0.0);
@@ -258,17 +277,35 @@ fn fill(t: u32) -> vec3<f32> {
     return view[b.j].xyz;
 }
 
+// Whether the ray from this view's aperture point to pixel t passes the
+// lens barrel (always without one).
+fn barrel_open(t: u32) -> bool {
+    if (G.barrel == 0u) {
+        return true;
+    }
+    let px = V.bx + G.per_px * (f32(t % G.w) + 0.5);
+    let py = V.by + G.per_px * (f32(t / G.w) + 0.5);
+    return px * px + py * py <= G.radius2;
+}
+
 @compute @workgroup_size(256)
 fn fill_accumulate(@builtin(global_invocation_id) gid: vec3<u32>) {
     let t = src_id(gid);
     if (t >= n_px() || pix[t].y == 0.0) {
         return;
     }
+    let warped = view[n_px() + t].x > 0.0;
+    if (!warped) {
+        atomicAdd(&holes[V.k], 1u);
+    }
+    // the barrel blocks this view's ray: the pixel gets nothing from it
+    if (!barrel_open(t)) {
+        return;
+    }
     var c: vec3<f32>;
-    if (view[n_px() + t].x > 0.0) {
+    if (warped) {
         c = view[t].xyz;
     } else {
-        atomicAdd(&holes[V.k], 1u);
         c = fill(t);
     }
     // Compensated sum of the views (see common.wgsl's bound).

@@ -302,8 +302,9 @@ pub struct BlurPlan {
 
 /// The z-buffer key of a source of inverse depth `v` and index `i`: the
 /// high half the depth's f32 bits (positive floats order like their bits;
-/// +inf for the sky, `v = 0`), the low half the index.
-fn zkey(v: f64, i: usize) -> u64 {
+/// +inf for the sky, `v = 0`), the low half the index. The device backend
+/// keys its warp with the same bits.
+pub fn zkey(v: f64, i: usize) -> u64 {
     // Guard: v > 0 in the division.
     let z = if v > 0.0 {
         (1.0 / v) as f32
@@ -317,6 +318,37 @@ impl BlurPlan {
     /// The shift of view `s` in pixels per unit of `1/u - 1/z`.
     pub fn shift(&self, s: [f64; 2]) -> [f64; 2] {
         [self.c_scale * s[0], self.c_scale * s[1]]
+    }
+
+    /// What both backends do to the averaged views: the barrel's share of
+    /// the pixels no view moves (optical vignetting without blur), then
+    /// the image-wide lens effects (magnification per channel, breathing,
+    /// natural vignetting).
+    pub fn finish_image(
+        &self,
+        mut out: ColorImage,
+        aperture: &Aperture,
+        p: &RefocusParams,
+    ) -> Result<ColorImage, NodeError> {
+        if let Some(b) = &self.barrel {
+            let more;
+            let pts = if self.points.len() >= FRACTION_SAMPLES {
+                &self.points
+            } else {
+                more = aperture.samples(FRACTION_SAMPLES, p.seed)?;
+                &more
+            };
+            darken_by_barrel(&mut out, b, pts, Some(&self.active));
+        }
+        Ok(apply_image_effects(out, &self.effects, &self.lens))
+    }
+
+    /// The green channel's extra shift of view `s` (spherical
+    /// aberration; +0 without it): every source moves by it in the warp.
+    pub fn green_shift(&self, s: [f64; 2]) -> [f64; 2] {
+        let [dx, dy] = self.shift(s);
+        let off = self.effects.focus_offset(s, 1);
+        [dx * off, dy * off]
     }
 
     /// The unit march step of the hole fill along a view's shift (the major
@@ -572,7 +604,7 @@ pub fn refocus(
         // the warp (exact, and +0 when off: the same bits); red and blue
         // move by their difference from green, in the accumulation.
         let off_g = fx.focus_offset(*s, 1);
-        let (gx, gy) = (dx * off_g, dy * off_g);
+        let [gx, gy] = plan.green_shift(*s);
         let move_by = [dx, dy, gx, gy];
         // (The z-buffer is EMPTY here: it starts so and the gather below
         // resets every entry it reads.)
@@ -735,18 +767,7 @@ pub fn refocus(
             }
         })
         .collect();
-    let mut out = Image::from_vec(w, h, data)?;
-    if let Some(b) = &plan.barrel {
-        let more;
-        let pts = if points.len() >= FRACTION_SAMPLES {
-            points
-        } else {
-            more = aperture.samples(FRACTION_SAMPLES, p.seed)?;
-            &more
-        };
-        darken_by_barrel(&mut out, b, pts, Some(active));
-    }
-    let out = apply_image_effects(out, &fx, &plan.lens);
+    let out = plan.finish_image(Image::from_vec(w, h, data)?, aperture, p)?;
     Ok((out, plan.report(holes_total)))
 }
 
