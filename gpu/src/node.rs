@@ -61,6 +61,7 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for DeviceNode<I, O, P> 
         };
         let mut out = r.out.into_outputs();
         out.passthrough = r.passthrough;
+        out.report = r.report;
         out.transfers = session.register_outputs(&out);
         out.origin = Some(Origin {
             backend: "wgpu".to_string(),

@@ -4,7 +4,13 @@
 //! points, active tiles, the sources and their z-buffer keys, the
 //! background layer) is the CPU's [`plan`], so both backends decide alike;
 //! the layer's entries join the warp as sources keyed `w h + k`, placed at
-//! their pixel, exactly as on the CPU.
+//! their pixel, exactly as on the CPU. The lens effects: spherical
+//! aberration moves every source by green's extra shift in the warp; the
+//! barrel clips each view's accumulation per pixel; longitudinal chromatic
+//! aberration stores each view's fills and then reads red and blue at
+//! their offsets (bilinear, edges clamped), as the CPU's split path does.
+//! The unmoved pixels' barrel share and the image-wide effects run on the
+//! host after the download ([`BlurPlan::finish_image`]).
 //!
 //! **Agreement with the CPU** (checked by the parity tests): the display
 //! image's PSNR against the CPU's is at least [`MIN_PSNR_DB`], and pixels
@@ -64,6 +70,10 @@ struct ViewParams {
     gy: f32,
     bx: f32,
     by: f32,
+    erx: f32,
+    ery: f32,
+    ebx: f32,
+    eby: f32,
     k: u32,
     _pad: [u32; 3],
 }
@@ -102,12 +112,6 @@ pub fn eval(
         Aperture::from_params(p.aperture, p.blades, p.rotation_deg, i.aperture.as_deref())?;
     let (color, report) = match plan(&i.color, &i.depth, &aperture, p)? {
         Plan::Sharp(out, report) => (out, report),
-        Plan::Blur(b) if b.effects.channels_split() => {
-            return Err(s.too_large(
-                "longitudinal chromatic aberration (each view's channels read apart) \
-                 is not on the device yet",
-            ));
-        }
         Plan::Blur(b) => render(s, ctx, &i.color, &b, &aperture, p)?,
     };
     Ok(produced(RefocusOut { color }, p, &report))
@@ -166,7 +170,19 @@ pub fn render(
                     pt[1] * b.along - b.per_px * b.centre[1],
                 ]
             });
+            // red's and blue's read offsets (longitudinal chromatic
+            // aberration): their focus offset's difference from green's
+            let off_g = plan.effects.focus_offset(*pt, 1);
+            let e = |c: usize| {
+                let d = plan.effects.focus_offset(*pt, c) - off_g;
+                [(dir[0] * d) as f32, (dir[1] * d) as f32]
+            };
+            let (er, eb) = (e(0), e(2));
             ViewParams {
+                erx: er[0],
+                ery: er[1],
+                ebx: eb[0],
+                eby: eb[1],
                 dx: dir[0] as f32,
                 dy: dir[1] as f32,
                 sx: step[0] as f32,
@@ -230,21 +246,18 @@ pub fn render(
     let holes = s.upload(&vec![0u8; 4 * views.max(1)])?;
     let out = Arc::new(s.scratch(12 * n as u64)?);
 
-    let clear = s
-        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_CLEAR)?
-        .0;
-    let warp_depth = s
-        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_WARP_DEPTH)?
-        .0;
-    let warp_index = s
-        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_WARP_INDEX)?
-        .0;
-    let gather = s
-        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_GATHER)?
-        .0;
-    let fill = s
-        .kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_FILL)?
-        .0;
+    // every kernel of refocus.wgsl, one layout
+    let kernel = |k| s.kernel_in("refocus.wgsl", BINDS, k).map(|(p, _)| p);
+    let clear = kernel(&shaders::REFOCUS_CLEAR)?;
+    let warp_depth = kernel(&shaders::REFOCUS_WARP_DEPTH)?;
+    let warp_index = kernel(&shaders::REFOCUS_WARP_INDEX)?;
+    let gather = kernel(&shaders::REFOCUS_GATHER)?;
+    let fill = kernel(&shaders::REFOCUS_FILL)?;
+    // each view's channels read apart (longitudinal chromatic aberration):
+    // the fills stored, then the channels gathered from their offsets
+    let split = plan.effects.channels_split();
+    let fill_store = kernel(&shaders::REFOCUS_FILL_STORE)?;
+    let accumulate_split = kernel(&shaders::REFOCUS_ACCUMULATE_SPLIT)?;
     let (finish, layout) = s.kernel_in("refocus.wgsl", BINDS, &shaders::REFOCUS_FINISH)?;
     let bg = s
         .ctx()
@@ -290,7 +303,13 @@ pub fn render(
                 }
                 pass.set_pipeline(&gather);
                 pass.dispatch_workgroups(px_x, px_y, 1);
-                pass.set_pipeline(&fill);
+                if split {
+                    pass.set_pipeline(&fill_store);
+                    pass.dispatch_workgroups(px_x, px_y, 1);
+                    pass.set_pipeline(&accumulate_split);
+                } else {
+                    pass.set_pipeline(&fill);
+                }
                 pass.dispatch_workgroups(px_x, px_y, 1);
             }
             if k1 == views {

@@ -46,6 +46,8 @@ kernel!(REFOCUS_WARP_DEPTH, "refocus.wgsl", "warp_depth");
 kernel!(REFOCUS_WARP_INDEX, "refocus.wgsl", "warp_index");
 kernel!(REFOCUS_GATHER, "refocus.wgsl", "gather");
 kernel!(REFOCUS_FILL, "refocus.wgsl", "fill_accumulate");
+kernel!(REFOCUS_FILL_STORE, "refocus.wgsl", "fill_store");
+kernel!(REFOCUS_ACCUMULATE_SPLIT, "refocus.wgsl", "accumulate_split");
 kernel!(REFOCUS_FINISH, "refocus.wgsl", "finish");
 kernel!(PULL_PUSH_INIT, "pull_push.wgsl", "init");
 kernel!(PULL_PUSH_PULL, "pull_push.wgsl", "pull");
@@ -72,6 +74,8 @@ pub const ALL: &[Kernel] = &[
     REFOCUS_WARP_INDEX,
     REFOCUS_GATHER,
     REFOCUS_FILL,
+    REFOCUS_FILL_STORE,
+    REFOCUS_ACCUMULATE_SPLIT,
     REFOCUS_FINISH,
     PULL_PUSH_INIT,
     PULL_PUSH_PULL,

@@ -43,6 +43,12 @@ struct ViewParams {
     // the barrel test's per-view term: s along - per_px centre
     bx: f32,
     by: f32,
+    // longitudinal chromatic aberration: red and blue read the view at
+    // (x, y) - e_c, pixels (0 without it)
+    erx: f32,
+    ery: f32,
+    ebx: f32,
+    eby: f32,
     k: u32,
 }
 
@@ -288,6 +294,79 @@ fn barrel_open(t: u32) -> bool {
     return px * px + py * py <= G.radius2;
 }
 
+// Adds view colour c to pixel t's running sum (compensated, see
+// common.wgsl's bound).
+fn accumulate(t: u32, c: vec3<f32>) {
+    let s = acc[t].xyz;
+    let comp = acc[n_px() + t].xyz;
+    let y = c - comp;
+    let sum = s + y;
+    acc[n_px() + t] = vec4<f32>((sum - s) - y, 0.0);
+    acc[t] = vec4<f32>(sum, 0.0);
+}
+
+// Longitudinal chromatic aberration (the CPU's split path), first kernel:
+// every active hole's fill written into the view's colour. Its certainty
+// stays 0, and the fills read only certain pixels, so no fill sees another.
+@compute @workgroup_size(256)
+fn fill_store(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let t = src_id(gid);
+    if (t >= n_px() || pix[t].y == 0.0 || view[n_px() + t].x > 0.0) {
+        return;
+    }
+    atomicAdd(&holes[V.k], 1u);
+    view[t] = vec4<f32>(fill(t), view[t].w);
+}
+
+// The colour a channel reads at pixel j of the filled view: the input at
+// pixels no view moves (they hold it in every view).
+fn view_rgb(j: u32) -> vec3<f32> {
+    if (pix[j].y == 0.0) {
+        return src_color(j);
+    }
+    return view[j].xyz;
+}
+
+// The filled view at (x, y) - e, bilinear, edges clamped (the CPU's
+// lens::bilinear).
+fn read_at(x: u32, y: u32, e: vec2<f32>) -> vec3<f32> {
+    let fx = clamp(f32(x) - e.x, 0.0, f32(G.w - 1u));
+    let fy = clamp(f32(y) - e.y, 0.0, f32(G.h - 1u));
+    let x0 = u32(floor(fx));
+    let y0 = u32(floor(fy));
+    let x1 = min(x0 + 1u, G.w - 1u);
+    let y1 = min(y0 + 1u, G.h - 1u);
+    let ax = fx - f32(x0);
+    let ay = fy - f32(y0);
+    let top = view_rgb(y0 * G.w + x0) * (1.0 - ax) + view_rgb(y0 * G.w + x1) * ax;
+    let bottom = view_rgb(y1 * G.w + x0) * (1.0 - ax) + view_rgb(y1 * G.w + x1) * ax;
+    return top * (1.0 - ay) + bottom * ay;
+}
+
+// Second kernel: each active pixel the barrel passes adds green from the
+// view at its place and red and blue from their offsets.
+@compute @workgroup_size(256)
+fn accumulate_split(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let t = src_id(gid);
+    if (t >= n_px() || pix[t].y == 0.0 || !barrel_open(t)) {
+        return;
+    }
+    let x = t % G.w;
+    let y = t / G.w;
+    let here = view[t].xyz;
+    var r = here.x;
+    var b = here.z;
+    let er = vec2<f32>(V.erx, V.ery);
+    let eb = vec2<f32>(V.ebx, V.eby);
+    if (any(er != vec2<f32>(0.0))) {
+        r = read_at(x, y, er).x;
+    }
+    if (any(eb != vec2<f32>(0.0))) {
+        b = read_at(x, y, eb).z;
+    }
+    accumulate(t, vec3<f32>(r, here.y, b));
+}
+
 @compute @workgroup_size(256)
 fn fill_accumulate(@builtin(global_invocation_id) gid: vec3<u32>) {
     let t = src_id(gid);
@@ -308,13 +387,7 @@ fn fill_accumulate(@builtin(global_invocation_id) gid: vec3<u32>) {
     } else {
         c = fill(t);
     }
-    // Compensated sum of the views (see common.wgsl's bound).
-    let s = acc[t].xyz;
-    let comp = acc[n_px() + t].xyz;
-    let y = c - comp;
-    let sum = s + y;
-    acc[n_px() + t] = vec4<f32>((sum - s) - y, 0.0);
-    acc[t] = vec4<f32>(sum, 0.0);
+    accumulate(t, c);
 }
 
 @compute @workgroup_size(256)
