@@ -1,8 +1,8 @@
 //! CPU against GPU on the same inputs in one run: `cargo bench -p
 //! depthgraph-gpu --bench gpu`. Per node (PullPush, DualPullPush, Feather,
-//! JointBilateral r = 7, Refocus 640x480 at 256 samples without and with
-//! the background layer and, with `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at
-//! 576 samples) and
+//! JointBilateral r = 7, Refocus 640x480 at 256 samples plain, with the
+//! background layer and with the per-view lens effects and, with
+//! `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at 576 samples) and
 //! per pipeline (`depth_fill.ron`, `refocus.ron`, no cache): cold (first
 //! evaluation, pipeline compilation included) and warm medians, and the
 //! device's upload / kernel / download split. The adapter and driver are
@@ -348,6 +348,21 @@ fn main() {
         "Refocus",
         &ri,
         &layered.to_values(),
+        repeats,
+    ));
+    // every per-view lens effect at once (the image-wide ones run on the host)
+    let lensed = RefocusParams {
+        spherical_aberration_d: 0.5,
+        chromatic_longitudinal_d: 0.3,
+        barrel_distance_mm: 40.0,
+        ..rp(256, 640)
+    };
+    rows.push(node_row(
+        "Refocus 640x480 256 samples, spherical + longitudinal chromatic + barrel",
+        &regs,
+        "Refocus",
+        &ri,
+        &lensed.to_values(),
         repeats,
     ));
     if std::env::var_os("DEPTHGRAPH_BENCH_FULL").is_some() {
