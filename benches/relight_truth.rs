@@ -12,6 +12,9 @@
 //! in the influence region (outside the object, where truth and photo
 //! differ by more than 2/255) and on the object, beside the naive paste,
 //! and the PSNR of a second seed's truth (the noise ceiling).
+//! `DEPTHGRAPH_TRUTH_ROOM=near` (any part of a room's name) runs only the
+//! matching rooms and prints their rows instead of rewriting the file
+//! (about 30 s a room at 128 paths per pixel on 2 cores).
 
 mod common;
 use common::{env_usize, timed};
@@ -65,7 +68,13 @@ fn main() {
         doc,
         "| scene | influence px | naive | relit | open back | no fill | ceiling | object px | naive | relit | open back | no fill | ceiling | full (ms) | move (ms) |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
+    // DEPTHGRAPH_TRUTH_ROOM: only the rooms whose name contains it, the
+    // table printed instead of written (a quick look at one room)
+    let only = std::env::var("DEPTHGRAPH_TRUTH_ROOM").ok();
     for room in Room::ALL {
+        if only.as_deref().is_some_and(|o| !room.name().contains(o)) {
+            continue;
+        }
         for sky in [None, Some(Sky::Overcast)] {
             let case = relight_case(room, sky, w, h, 256, &pt(1)).expect("case");
             let second = relight_case(room, sky, w, h, 256, &pt(2)).expect("case");
@@ -110,6 +119,10 @@ fn main() {
             );
             eprintln!("{}: {:?}", case.name, s0);
         }
+    }
+    if only.is_some() {
+        println!("{doc}");
+        return;
     }
     let root = std::env::var("DEPTHGRAPH_ROOT")
         .map(PathBuf::from)
