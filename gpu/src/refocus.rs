@@ -172,12 +172,8 @@ pub fn render(
             });
             // red's and blue's read offsets (longitudinal chromatic
             // aberration): their focus offset's difference from green's
-            let off_g = plan.effects.focus_offset(*pt, 1);
-            let e = |c: usize| {
-                let d = plan.effects.focus_offset(*pt, c) - off_g;
-                [(dir[0] * d) as f32, (dir[1] * d) as f32]
-            };
-            let (er, eb) = (e(0), e(2));
+            let e = plan.channel_offsets(*pt);
+            let (er, eb) = (e[0].map(|v| v as f32), e[2].map(|v| v as f32));
             ViewParams {
                 erx: er[0],
                 ery: er[1],

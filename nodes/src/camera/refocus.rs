@@ -351,6 +351,19 @@ impl BlurPlan {
         [dx * off, dy * off]
     }
 
+    /// Where each channel of view `s` reads the view that green's focus
+    /// warped (longitudinal chromatic aberration): at `(x, y) - e_c`, `e_c`
+    /// the view's shift times channel `c`'s focus offset less green's
+    /// (zero without the effect, and always for green).
+    pub fn channel_offsets(&self, s: [f64; 2]) -> [[f64; 2]; 3] {
+        let [dx, dy] = self.shift(s);
+        let off_g = self.effects.focus_offset(s, 1);
+        std::array::from_fn(|c| {
+            let d = self.effects.focus_offset(s, c) - off_g;
+            [dx * d, dy * d]
+        })
+    }
+
     /// The unit march step of the hole fill along a view's shift (the major
     /// axis has length 1); a zero shift (nothing moved) falls back to x.
     pub fn fill_step(dir: [f64; 2]) -> [f64; 2] {
@@ -603,7 +616,6 @@ pub fn refocus(
         // The lens effects' focus offset of green moves the whole view, in
         // the warp (exact, and +0 when off: the same bits); red and blue
         // move by their difference from green, in the accumulation.
-        let off_g = fx.focus_offset(*s, 1);
         let [gx, gy] = plan.green_shift(*s);
         let move_by = [dx, dy, gx, gy];
         // (The z-buffer is EMPTY here: it starts so and the gather below
@@ -700,10 +712,7 @@ pub fn refocus(
             fill_holes(&mut view, w, h, &holes, [dx, dy], p);
         }
         if split {
-            let e: [[f64; 2]; 3] = std::array::from_fn(|c| {
-                let d = fx.focus_offset(*s, c) - off_g;
-                [dx * d, dy * d]
-            });
+            let e = plan.channel_offsets(*s);
             // A channel read at (x, y) - e: the integer offset of its upper
             // left tap and the bilinear weights, the same for every pixel.
             let taps: [(isize, isize, f64, f64); 3] = std::array::from_fn(|c| {
