@@ -12,12 +12,14 @@
 //!
 //! Environment: `DEPTHGRAPH_REFOCUS_GT_RAYS` (default 512) rays per pixel of
 //! the ground truth; `DEPTHGRAPH_REPEATS` (default 3) timed repeats;
-//! `DEPTHGRAPH_REFOCUS_ONLY=speed` (the 640x480 time alone) or `=occlusion`
-//! (the partial-occlusion table alone, images to the temp dir) print one
-//! section and leave the docs alone.
+//! `DEPTHGRAPH_REFOCUS_ONLY=speed` (the 640x480 time alone), `=effects`
+//! (each lens effect's time beside the effects off, interleaved; only those
+//! whose name holds `DEPTHGRAPH_REFOCUS_EFFECT`) or
+//! `=occlusion` (the partial-occlusion table alone, images to the temp dir)
+//! print one section and leave the docs alone.
 
 mod common;
-use common::{env_usize, timed};
+use common::{env_usize, timed, timed_pair};
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -99,6 +101,15 @@ fn main() {
         // reverse-mapped blur in the same run.
         let (_, _, ms_rev, ms) = speed_640(repeats);
         println!("Refocus 640x480, 256 samples: {ms:.0} ms; reverse-mapped {ms_rev:.0} ms");
+        return;
+    }
+    if std::env::var("DEPTHGRAPH_REFOCUS_ONLY").as_deref() == Ok("effects") {
+        let only = std::env::var("DEPTHGRAPH_REFOCUS_EFFECT").unwrap_or_default();
+        for (name, ms_off, ms, ratio, sum) in effect_times(repeats, &only) {
+            println!(
+                "{name}: {ms:.0} ms, off {ms_off:.0} ms, ratio {ratio:.2}, checksum {sum:016x}"
+            );
+        }
         return;
     }
     if std::env::var("DEPTHGRAPH_REFOCUS_ONLY").as_deref() == Ok("occlusion") {
@@ -385,6 +396,37 @@ fn effect_cases(base: &RefocusParams) -> Vec<(&'static str, RefocusParams)> {
     ]
 }
 
+/// Each lens effect's 640x480, 256-sample time, interleaved with the
+/// effects off (`timed_pair`): name, off (ms), on (ms), their ratio and a
+/// checksum of the image (a speed-up that keeps the output keeps it).
+fn effect_times(repeats: usize, only: &str) -> Vec<(&'static str, f64, f64, f64, u64)> {
+    let big = Scene::preset("tabletop", 640, 480).expect("preset");
+    let pin = render(&big, &RenderOptions::default());
+    let base = lens_params(640, 0.95, 256);
+    let run = |p: &RefocusParams| {
+        refocus(&pin.color, &pin.depth, &Aperture::Disc, p, |_| Ok(())).expect("refocus")
+    };
+    effect_cases(&base)
+        .into_iter()
+        .filter(|(name, _)| name.contains(only))
+        .map(|(name, p)| {
+            let (off, on, ratio) = timed_pair(repeats, || run(&base), || run(&p));
+            (name, off, on, ratio, checksum(&run(&p).0))
+        })
+        .collect()
+}
+
+/// FNV-1a over the image's f32 bits.
+fn checksum(img: &ColorImage) -> u64 {
+    img.as_slice()
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_bits().to_le_bytes())
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
+        })
+}
+
 fn lens_effects(doc: &mut String, repeats: usize, gt_rays: usize, out_dir: &Path) {
     writeln!(
         doc,
@@ -392,7 +434,7 @@ fn lens_effects(doc: &mut String, repeats: usize, gt_rays: usize, out_dir: &Path
          The model (`LensEffects` in `nodes/src/camera/lens.rs`) is shared by `Refocus` and `SyntheticThinLens`, \
          which traces every ray through it. Accuracy: 320x240, focus near, against the truth rendered with the same \
          effect ({gt_rays} rays per pixel); the row \"thin lens\" is Refocus without the effect against that same truth. \
-         Time: 640x480, 256 samples, the same run, ratio to the effects off.\n\n\
+         Time: 640x480, 256 samples, each effect timed alternately with the effects off (the off row: the median of those), ratio of the two medians.\n\n\
          | effect | PSNR | PSNR without the effect | time (ms) | ratio to off |\n|---|---|---|---|---|"
     )
     .ok();
@@ -400,43 +442,20 @@ fn lens_effects(doc: &mut String, repeats: usize, gt_rays: usize, out_dir: &Path
     let scene = Scene::preset("tabletop", w, h).expect("preset");
     let pin = render(&scene, &RenderOptions::default());
     let base = lens_params(w, 0.95, 256);
-    let big = Scene::preset("tabletop", 640, 480).expect("preset");
-    let big_pin = render(&big, &RenderOptions::default());
-    let big_base = lens_params(640, 0.95, 256);
-    let (_, ms_off) = timed(repeats, || {
-        refocus(
-            &big_pin.color,
-            &big_pin.depth,
-            &Aperture::Disc,
-            &big_base,
-            |_| Ok(()),
-        )
-        .expect("refocus")
-    });
+    let times = effect_times(repeats, "");
+    let ms_off = common::median(times.iter().map(|t| t.1).collect());
     writeln!(doc, "| off (the thin lens) | | | {ms_off:.0} | 1.00 |").ok();
-    let big_cases = effect_cases(&big_base);
-    for ((name, p), (_, big_p)) in effect_cases(&base).into_iter().zip(big_cases) {
+    for ((name, p), (_, _, ms, ratio, _)) in effect_cases(&base).into_iter().zip(times) {
         let (gt, _) = truth(&scene, &p, gt_rays);
         let (ours, _) =
             refocus(&pin.color, &pin.depth, &Aperture::Disc, &p, |_| Ok(())).expect("refocus");
         let (plain, _) =
             refocus(&pin.color, &pin.depth, &Aperture::Disc, &base, |_| Ok(())).expect("refocus");
-        let (_, ms) = timed(repeats, || {
-            refocus(
-                &big_pin.color,
-                &big_pin.depth,
-                &Aperture::Disc,
-                &big_p,
-                |_| Ok(()),
-            )
-            .expect("refocus")
-        });
         writeln!(
             doc,
-            "| {name} | {:.2} | {:.2} | {ms:.0} | {:.2} |",
+            "| {name} | {:.2} | {:.2} | {ms:.0} | {ratio:.2} |",
             display_psnr(&ours, &gt).unwrap_or(f64::NAN),
             display_psnr(&plain, &gt).unwrap_or(f64::NAN),
-            ms / ms_off
         )
         .ok();
     }

@@ -35,6 +35,29 @@ pub fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
     (out, median(times))
 }
 
+/// Times `a` and `b` alternately, `repeats` times each (at least once), so
+/// that both see the same machine: the median wall times in milliseconds
+/// and the ratio `b / a` of the medians (the figure to report; one noisy
+/// stretch of the machine no longer lands on one side only).
+pub fn timed_pair<A, B>(
+    repeats: usize,
+    mut a: impl FnMut() -> A,
+    mut b: impl FnMut() -> B,
+) -> (f64, f64, f64) {
+    let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+    let (mut ta, mut tb) = (Vec::new(), Vec::new());
+    for _ in 0..repeats.max(1) {
+        let t = Instant::now();
+        std::hint::black_box(a());
+        ta.push(ms(t));
+        let t = Instant::now();
+        std::hint::black_box(b());
+        tb.push(ms(t));
+    }
+    let (ma, mb) = (median(ta), median(tb));
+    (ma, mb, mb / ma)
+}
+
 /// Writes a frame for an OpenCV peer script: `DIR/<case>.depth.f32`
 /// (little-endian f32, row-major) and `DIR/<case>.color.u8` (sRGB 8-bit RGB).
 pub fn write_peer_frame(
