@@ -9,6 +9,8 @@
 //! `fastNlMeansDenoising` 7/21 on the 8-bit colour and on the 16-bit depth,
 //! `ximgproc.jointBilateralFilter` d=9 and d=15, `inpaint` Navier-Stokes.
 //! Both sides use 2 threads (rayon's pool here, `cv2.setNumThreads(2)`).
+//! `DEPTHGRAPH_DEPTH_ONLY=Inpaint` (any part of a method's name) times only
+//! those methods and prints them, without peers or docs.
 
 mod common;
 
@@ -205,6 +207,22 @@ fn main() {
     let (frames, data_note) = frames(&data);
     let peers_on = std::env::var("DEPTHGRAPH_PEERS").map_or(true, |v| v != "0");
     let temp = tempfile::tempdir().ok();
+    // DEPTHGRAPH_DEPTH_ONLY: only the methods whose name contains it,
+    // timed and printed (no peers, the docs untouched)
+    let only = std::env::var("DEPTHGRAPH_DEPTH_ONLY").ok();
+    if let Some(o) = &only {
+        for f in &frames {
+            for (name, m) in methods()
+                .into_iter()
+                .filter(|(n, _)| n.contains(o.as_str()))
+            {
+                let _ = m(f);
+                let (_, ms) = timed(repeats, || m(f));
+                println!("{}: {name}: {ms:.1} ms", f.name);
+            }
+        }
+        return;
+    }
     let mut ours: Vec<Vec<f64>> = Vec::new();
     for (fi, f) in frames.iter().enumerate() {
         let mut row = Vec::new();

@@ -68,7 +68,14 @@ pub fn nlmeans_filter_with(
     p: &NLMeansDepthParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    filter_on(depth, confidence, guide_color, p, on_progress, &mut CpuPass)
+    filter_on(
+        depth,
+        confidence,
+        guide_color,
+        p,
+        on_progress,
+        &mut CpuPass::new(),
+    )
 }
 
 fn filter_on(
@@ -139,7 +146,14 @@ pub fn nlmeans_denoise_with(
     p: &NLMeansDepthParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    nlmeans_denoise_on(depth, confidence, guide_color, p, on_progress, &mut CpuPass)
+    nlmeans_denoise_on(
+        depth,
+        confidence,
+        guide_color,
+        p,
+        on_progress,
+        &mut CpuPass::new(),
+    )
 }
 
 /// [`nlmeans_denoise_with`] with its pass run by `runner` (another

@@ -1,7 +1,10 @@
 //! Iterative inpainting with confidence propagation (eq. 5).
 
+use std::sync::Arc;
+
 use crate::kit::checks::{param_within, same_size};
 use depthgraph_graph::prelude::*;
+use rayon::prelude::*;
 
 use super::common::*;
 use super::inputs::*;
@@ -59,10 +62,54 @@ pub trait PassRunner {
 }
 
 /// The NL-means pass on the CPU (bands of rows in parallel, box sums).
-#[derive(Debug, Clone, Copy, Default)]
-pub struct CpuPass;
+///
+/// A runner lives for one call of a stage (one inpainting, one
+/// upsampling): it keeps the guide's padded planes from one pass to the
+/// next (the iterations of eq. 5 share their guide), dropped by
+/// [`PassRunner::new_guide`] and whenever a job's guide, size or padding
+/// differs.
+#[derive(Default)]
+pub struct CpuPass {
+    guide: Option<GuideKey>,
+}
+
+/// The padded guide a [`CpuPass`] keeps, with what it was built from: the
+/// guide slice's address and length, the grid and the padding.
+struct GuideKey {
+    at: (usize, usize),
+    dims: (usize, usize),
+    planes: Arc<PaddedGuide>,
+}
+
+impl CpuPass {
+    /// A runner with nothing kept.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    fn guide(&mut self, job: &PassJob, pad: usize) -> Arc<PaddedGuide> {
+        let at = (job.guide.as_ptr() as usize, job.guide.len());
+        let dims = (job.w, job.h);
+        match &self.guide {
+            Some(k) if k.at == at && k.dims == dims && k.planes.pad() == pad => k.planes.clone(),
+            _ => {
+                let planes = Arc::new(PaddedGuide::new(dims, job.guide, pad));
+                self.guide = Some(GuideKey {
+                    at,
+                    dims,
+                    planes: planes.clone(),
+                });
+                planes
+            }
+        }
+    }
+}
 
 impl PassRunner for CpuPass {
+    fn new_guide(&mut self) {
+        self.guide = None;
+    }
+
     fn run(
         &mut self,
         job: &PassJob,
@@ -74,7 +121,8 @@ impl PassRunner for CpuPass {
             inv_hc2: job.inv_hc2,
             inv_hd2: job.inv_hd2,
         };
-        let pass = Pass::new((job.w, job.h), job.guide, Some((job.z, job.c)), core);
+        let guide = self.guide(job, core.patch + core.search);
+        let pass = Pass::with_guide((job.w, job.h), guide, Some((job.z, job.c)), core);
         let local_max = job
             .background
             .map(|_| window_max(job.z, job.c, job.w, job.h, job.search));
@@ -122,26 +170,35 @@ impl PassRunner for CpuPass {
 /// every pixel, clipped to the image (the candidates of a pass); 0 where
 /// the window holds no source. Separable: a row pass, then a column pass.
 pub(super) fn window_max(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
-    let src: Vec<f32> = z
-        .iter()
-        .zip(c)
-        .map(|(z, c)| if *c > 0.0 && z.is_finite() { *z } else { 0.0 })
-        .collect();
+    if w == 0 || h == 0 {
+        return Vec::new();
+    }
+    let src = |i: usize| {
+        if c[i] > 0.0 && z[i].is_finite() {
+            z[i]
+        } else {
+            0.0
+        }
+    };
+    // rows in parallel, then the columns of every output row in parallel
     let mut rows = vec![0.0f32; w * h];
-    for y in 0..h {
-        let row = &src[y * w..(y + 1) * w];
-        for x in 0..w {
+    rows.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
+        let row: Vec<f32> = (y * w..(y + 1) * w).map(src).collect();
+        for (x, o) in out.iter_mut().enumerate() {
             let (a, b) = (x.saturating_sub(r), (x + r + 1).min(w));
-            rows[y * w + x] = row[a..b].iter().fold(0.0f32, |m, v| m.max(*v));
+            *o = row[a..b].iter().fold(0.0f32, |m, v| m.max(*v));
         }
-    }
+    });
     let mut out = vec![0.0f32; w * h];
-    for y in 0..h {
+    out.par_chunks_mut(w).enumerate().for_each(|(y, o)| {
         let (a, b) = (y.saturating_sub(r), (y + r + 1).min(h));
-        for x in 0..w {
-            out[y * w + x] = (a..b).fold(0.0f32, |m, yy| m.max(rows[yy * w + x]));
+        o.copy_from_slice(&rows[a * w..(a + 1) * w]);
+        for yy in a + 1..b {
+            for (m, v) in o.iter_mut().zip(&rows[yy * w..(yy + 1) * w]) {
+                *m = m.max(*v);
+            }
         }
-    }
+    });
     out
 }
 
@@ -289,7 +346,14 @@ pub fn nlmeans_inpaint_with(
     p: &NLMeansInpaintParams,
     on_progress: impl FnMut(f32) -> Result<(), NodeError>,
 ) -> Result<(DepthMap, Confidence), NodeError> {
-    nlmeans_inpaint_on(depth, confidence, guide_color, p, on_progress, &mut CpuPass)
+    nlmeans_inpaint_on(
+        depth,
+        confidence,
+        guide_color,
+        p,
+        on_progress,
+        &mut CpuPass::new(),
+    )
 }
 
 /// [`nlmeans_inpaint_with`] with its passes run by `runner` (another

@@ -1,5 +1,7 @@
 //! The NL-means pass (eq. 1-3): patch distances, weights, the weighted average, in bands.
 
+use std::sync::Arc;
+
 use depthgraph_graph::prelude::*;
 use rayon::prelude::*;
 
@@ -208,14 +210,69 @@ impl<'a> Pass<'a> {
         depth: Option<(&'a [f32], &'a [f32])>,
         core: Core,
     ) -> Self {
+        let guide = Arc::new(PaddedGuide::new((w, h), guide, core.patch + core.search));
+        Self::with_guide((w, h), guide, depth, core)
+    }
+
+    /// [`Pass::new`] with the guide's planes already padded (by
+    /// `core.patch + core.search`, see [`PaddedGuide::pad`]): passes over
+    /// one guide share them.
+    pub(super) fn with_guide(
+        (w, h): (usize, usize),
+        guide: Arc<PaddedGuide>,
+        depth: Option<(&'a [f32], &'a [f32])>,
+        core: Core,
+    ) -> Self {
         Self {
             w,
             h,
             depth,
             core,
-            padded: Padded::new((w, h), guide, depth, core.patch + core.search),
+            padded: Padded::new((w, h), guide, depth),
         }
     }
+}
+
+/// The guide's channels as planes whose rows are extended by `pad` columns
+/// on each side with the border pixel's values (see [`Padded`]).
+pub(super) struct PaddedGuide {
+    pad: usize,
+    g: [Vec<f32>; 3],
+}
+
+impl PaddedGuide {
+    pub(super) fn new((w, h): (usize, usize), guide: &[[f32; 3]], pad: usize) -> Self {
+        Self {
+            pad,
+            g: [0, 1, 2].map(|k| padded_plane((w, h), pad, &|i| guide[i][k])),
+        }
+    }
+
+    /// The columns added on each side.
+    pub(super) fn pad(&self) -> usize {
+        self.pad
+    }
+}
+
+/// One plane of `w x h` values `at(i)`, each row extended by `pad` columns
+/// on each side with its border value (rows in parallel).
+fn padded_plane(
+    (w, h): (usize, usize),
+    pad: usize,
+    at: &(dyn Fn(usize) -> f32 + Sync),
+) -> Vec<f32> {
+    if w == 0 {
+        return Vec::new();
+    }
+    let stride = w + 2 * pad;
+    let mut out = vec![0.0f32; stride * h];
+    out.par_chunks_mut(stride).enumerate().for_each(|(y, row)| {
+        for (u, o) in row.iter_mut().enumerate() {
+            let x = u.saturating_sub(pad).min(w - 1);
+            *o = at(y * w + x);
+        }
+    });
+    out
 }
 
 /// The guide's channels (and depth and confidence) as planes whose rows
@@ -225,40 +282,25 @@ impl<'a> Pass<'a> {
 pub(super) struct Padded {
     pub(super) pad: usize,
     stride: usize,
-    g: [Vec<f32>; 3],
+    g: Arc<PaddedGuide>,
     z: Vec<f32>,
     c: Vec<f32>,
 }
 
 impl Padded {
-    fn new(
-        (w, h): (usize, usize),
-        guide: &[[f32; 3]],
-        depth: Option<(&[f32], &[f32])>,
-        pad: usize,
-    ) -> Self {
-        let stride = w + 2 * pad;
-        let plane = |at: &dyn Fn(usize) -> f32| -> Vec<f32> {
-            if w == 0 {
-                return Vec::new();
-            }
-            let mut out = Vec::with_capacity(stride * h);
-            for y in 0..h {
-                for u in 0..stride {
-                    let x = u.saturating_sub(pad).min(w.saturating_sub(1));
-                    out.push(at(y * w + x));
-                }
-            }
-            out
-        };
+    fn new((w, h): (usize, usize), g: Arc<PaddedGuide>, depth: Option<(&[f32], &[f32])>) -> Self {
+        let pad = g.pad;
         let (z, c) = match depth {
-            Some((z, c)) => (plane(&|i| z[i]), plane(&|i| c[i])),
+            Some((z, c)) => (
+                padded_plane((w, h), pad, &|i| z[i]),
+                padded_plane((w, h), pad, &|i| c[i]),
+            ),
             None => (Vec::new(), Vec::new()),
         };
         Self {
             pad,
-            stride,
-            g: [0, 1, 2].map(|k| plane(&|i| guide[i][k])),
+            stride: w + 2 * pad,
+            g,
             z,
             c,
         }
@@ -268,7 +310,7 @@ impl Padded {
     #[inline]
     pub(super) fn row(&self, y: usize, start: usize, len: usize) -> [&[f32]; 3] {
         let a = y * self.stride + start;
-        [0, 1, 2].map(|k| &self.g[k][a..a + len])
+        [0, 1, 2].map(|k| &self.g.g[k][a..a + len])
     }
 
     /// The depth of row `y`, padded columns `start..start + len` (a pass with depth).

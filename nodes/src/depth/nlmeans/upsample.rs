@@ -109,7 +109,7 @@ pub fn nlmeans_upsample_with(
         color_k,
         p,
         on_progress,
-        &mut CpuPass,
+        &mut CpuPass::new(),
     )
 }
 
