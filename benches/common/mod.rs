@@ -36,26 +36,34 @@ pub fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
 }
 
 /// Times `a` and `b` alternately, `repeats` times each (at least once), so
-/// that both see the same machine: the median wall times in milliseconds
-/// and the ratio `b / a` of the medians (the figure to report; one noisy
-/// stretch of the machine no longer lands on one side only).
+/// that both see the same machine: `b`'s last result, the median wall
+/// times in milliseconds and the ratio `b / a` of the medians (the figure
+/// to report; one noisy stretch of the machine no longer lands on one side
+/// only).
 pub fn timed_pair<A, B>(
     repeats: usize,
     mut a: impl FnMut() -> A,
     mut b: impl FnMut() -> B,
-) -> (f64, f64, f64) {
+) -> (B, f64, f64, f64) {
     let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
-    let (mut ta, mut tb) = (Vec::new(), Vec::new());
-    for _ in 0..repeats.max(1) {
+    let mut pair = || {
         let t = Instant::now();
         std::hint::black_box(a());
-        ta.push(ms(t));
+        let ta = ms(t);
         let t = Instant::now();
-        std::hint::black_box(b());
-        tb.push(ms(t));
+        let out = b();
+        (out, ta, ms(t))
+    };
+    let (mut last, t0a, t0b) = pair();
+    let (mut ta, mut tb) = (vec![t0a], vec![t0b]);
+    for _ in 1..repeats.max(1) {
+        let (out, x, y) = pair();
+        last = out;
+        ta.push(x);
+        tb.push(y);
     }
     let (ma, mb) = (median(ta), median(tb));
-    (ma, mb, mb / ma)
+    (last, ma, mb, mb / ma)
 }
 
 /// Writes a frame for an OpenCV peer script: `DIR/<case>.depth.f32`

@@ -76,7 +76,6 @@ struct ViewParams {
 @group(0) @binding(10) var<storage, read> layer: array<vec4<f32>>;
 
 const EMPTY: u32 = 0xffffffffu;
-const FILL_DECAY: f32 = 0.9;
 
 fn sane(v: f32) -> f32 {
     if (is_non_finite(v)) {

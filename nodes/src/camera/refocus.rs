@@ -54,9 +54,6 @@ pub const TILE: usize = 16;
 pub const AUTO_SAMPLES: (usize, usize) = (16, 1024);
 /// A CoC below this many pixels is no blur.
 pub const MIN_COC_PX: f64 = 0.5;
-/// Certainty kept by a filled pixel relative to its source (eq. 5 gives
-/// inferred pixels a lower certainty than measured ones).
-const FILL_DECAY: f64 = 0.9;
 /// Z-buffer entry of a pixel that received nothing.
 const EMPTY: u64 = u64::MAX;
 
@@ -665,7 +662,7 @@ pub fn refocus(
             let open_holes: Vec<usize> = holes.into_iter().filter(|&t| open(t)).collect();
             let fills: Vec<Rgb> = open_holes
                 .par_iter()
-                .map(|&t| fill_one(&keyed, w, h, t, step, p).0)
+                .map(|&t| fill_one(&keyed, w, h, t, step, p))
                 .collect();
             for (&t, c) in open_holes.iter().zip(fills) {
                 for (a, v) in acc[t].iter_mut().zip(c) {
@@ -702,7 +699,7 @@ pub fn refocus(
             };
             let fills: Vec<Rgb> = holes
                 .par_iter()
-                .map(|&t| fill_one(&zview, w, h, t, step, p).0)
+                .map(|&t| fill_one(&zview, w, h, t, step, p))
                 .collect();
             for (&t, c) in holes.iter().zip(fills) {
                 for (plane, v) in view_planes.iter_mut().zip(c) {
@@ -983,11 +980,11 @@ fn fill_one(
     t: usize,
     step: [f64; 2],
     p: &RefocusParams,
-) -> (Rgb, f32, f32) {
+) -> Rgb {
     let a = march(view, w, h, t, step);
     let b = march(view, w, h, t, [-step[0], -step[1]]);
     let ends: Vec<(usize, f64)> = match (a, b) {
-        (None, None) => return ([0.0; 3], 0.0, 0.0),
+        (None, None) => return [0.0; 3],
         (Some(e), None) | (None, Some(e)) => vec![e],
         (Some(ea), Some(eb)) => {
             let (va, vb) = (view.inv_z(ea.0) as f64, view.inv_z(eb.0) as f64);
@@ -1006,7 +1003,7 @@ fn fill_one(
         .iter()
         .map(|e| view.inv_z(e.0) as f64)
         .fold(f64::INFINITY, f64::min);
-    let (mut wsum, mut csum, mut zsum, mut fsum) = (0.0f64, [0.0f64; 3], 0.0f64, 0.0f64);
+    let (mut wsum, mut csum) = (0.0f64, [0.0f64; 3]);
     for &(j, dist) in &ends {
         let (cj, vj, zeta) = view.warped(j);
         let (vj, zeta) = (vj as f64, zeta as f64);
@@ -1022,21 +1019,14 @@ fn fill_one(
         for (a, c) in csum.iter_mut().zip(cj) {
             *a += wt * c as f64;
         }
-        zsum += wt * vj;
-        fsum += wt * zeta;
     }
     if wsum > 0.0 && wsum.is_finite() {
         // Guard: wsum > 0 checked.
-        (
-            csum.map(|v| (v / wsum) as f32),
-            (zsum / wsum) as f32,
-            (FILL_DECAY * fsum / wsum) as f32,
-        )
+        csum.map(|v| (v / wsum) as f32)
     } else {
         // Every end has certainty > 0 and the prior of the farthest end is 1,
         // so this is unreachable; a defined fallback all the same.
-        let (c, v, zeta) = view.warped(ends[0].0);
-        (c, v, (FILL_DECAY * zeta as f64) as f32)
+        view.warped(ends[0].0).0
     }
 }
 
