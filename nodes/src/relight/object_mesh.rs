@@ -202,7 +202,10 @@ impl ObjectMesh {
     pub fn shadow_map(&self, win: &Window, res: usize) -> Option<ShadowMap> {
         let g = Grid::new(win, res)?;
         let res = g.res;
-        let mut t = vec![f32::NEG_INFINITY; res * res];
+        // `res + BLOCK - 1` rows of as many texels: a small triangle's
+        // block at any texel stays inside the buffer (cropped below)
+        let stride = res + BLOCK - 1;
+        let mut t = vec![f32::NEG_INFINITY; stride * stride];
         // vertices in texel coordinates (u, v) and t, in f32: coordinates
         // below 2^11 texels and depths of metres keep ~1e-7 relative
         // precision, far below a texel and the visibility bias
@@ -220,8 +223,14 @@ impl ObjectMesh {
             .collect();
         for tri in &self.tris {
             let [a, b, c] = tri.map(|i| lc[i as usize]);
-            raster_triangle(a, b, c, res, &mut t);
+            raster_triangle(a, b, c, res, stride, &mut t);
         }
+        let t: Vec<f32> = t
+            .chunks_exact(stride)
+            .take(res)
+            .flat_map(|r| &r[..res])
+            .copied()
+            .collect();
         Some(g.map(t))
     }
 }
@@ -250,10 +259,25 @@ fn half_edges(depth: &DepthMap, k: &Intrinsics, x: usize, y: usize) -> (DVec3, D
     )
 }
 
-/// Writes `max(t, plane t)` into every texel of `t` (`res`²) whose centre
-/// lies in the triangle `(a, b, c)` (texel coordinates `x, y`, depth `z`),
-/// edges included. A degenerate triangle (seen edge-on) covers nothing.
-fn raster_triangle(a: [f32; 3], b: [f32; 3], c: [f32; 3], res: usize, t: &mut [f32]) {
+/// A triangle whose texel centres span at most this many columns and rows
+/// is tested texel by texel over one block of this side (a fixed-width
+/// loop the compiler vectorizes): most of the mesh's triangles cover a
+/// few texels, and their per-row intervals cost more than the tests.
+const BLOCK: usize = 4;
+
+/// Writes `max(t, plane t)` into every texel of the map `t` (`stride >=
+/// res + BLOCK - 1` rows of `stride` texels, the first `res` of the first
+/// `res` rows the map's) whose centre lies in the triangle `(a, b, c)` (texel
+/// coordinates `x, y`, depth `z`), edges included. A degenerate triangle
+/// (seen edge-on) covers nothing.
+fn raster_triangle(
+    a: [f32; 3],
+    b: [f32; 3],
+    c: [f32; 3],
+    res: usize,
+    stride: usize,
+    t: &mut [f32],
+) {
     let (ab, ac) = ([b[0] - a[0], b[1] - a[1]], [c[0] - a[0], c[1] - a[1]]);
     let area = ab[0] * ac[1] - ab[1] * ac[0];
     // NaN coordinates fail the test too
@@ -299,6 +323,35 @@ fn raster_triangle(a: [f32; 3], b: [f32; 3], c: [f32; 3], res: usize, t: &mut [f
     let (dzb, dzc) = (b[2] - a[2], c[2] - a[2]);
     // guard: each reciprocal is taken only of a non-zero β (else 0, unused)
     let recip = |beta: f32| if beta != 0.0 { 1.0 / beta } else { 0.0 };
+    if xb - xa < BLOCK && yb - ya < BLOCK {
+        // a whole block of rows ya + r and columns xa + i, every texel
+        // tested for all three weights >= eps (the rows' test below) and
+        // for the bounding box, without a branch on the data
+        let (nx, ny) = (xb - xa, yb - ya);
+        let px: [f32; BLOCK] = std::array::from_fn(|i| (xa + i) as f32 + 0.5 - a[0]);
+        let in_x: [bool; BLOCK] = std::array::from_fn(|i| i <= nx);
+        for r in 0..=ny {
+            let py = (ya + r) as f32 + 0.5 - a[1];
+            let (ab_, ac_) = (-py * ac[0] * inv, ab[0] * py * inv);
+            let aa = 1.0 - ab_ - ac_;
+            let at = (ya + r) * stride + xa;
+            let Some(row) = t
+                .get_mut(at..at + BLOCK)
+                .and_then(|r| <&mut [f32; BLOCK]>::try_from(r).ok())
+            else {
+                return;
+            };
+            let old = *row;
+            *row = std::array::from_fn(|i| {
+                let (wb, wc) = (bb * px[i] + ab_, bc * px[i] + ac_);
+                let wa = ba * px[i] + aa;
+                let z = a[2] + wb * dzb + wc * dzc;
+                let inside = in_x[i] & (wb >= eps) & (wc >= eps) & (wa >= eps);
+                if inside & (z > old[i]) { z } else { old[i] }
+            });
+        }
+        return;
+    }
     let betas = [(bb, recip(bb)), (bc, recip(bc)), (ba, recip(ba))];
     for y in ya..=yb {
         let py = y as f32 + 0.5 - a[1];
@@ -332,7 +385,7 @@ fn raster_triangle(a: [f32; 3], b: [f32; 3], c: [f32; 3], res: usize, t: &mut [f
             let px = x as f32 + 0.5 - a[0];
             let (wb, wc) = (bb * px + ab_, bc * px + ac_);
             let z = a[2] + wb * dzb + wc * dzc;
-            let cell = &mut t[y * res + x];
+            let cell = &mut t[y * stride + x];
             if z > *cell {
                 *cell = z;
             }

@@ -50,7 +50,7 @@ node_params! {
         /// "paired": scene+object maps with eq. 6 rebuilt every run (the paper's scheme);
         /// "raycast": exact shadow rays through the meshes (the reference; slow).
         pub visibility: Visibility = Visibility::SceneCached, ParamKind::Choice(Visibility::NAMES);
-        /// Texels per side of the object's own maps (scene_cached).
+        /// Texels per side of the object's own maps (scene_cached; the maps of dim groups of VPLs, under 1/64 of the power, at half).
         pub object_ism_resolution: usize = 64usize, ParamKind::Int { min: 4, max: 2048 };
         /// Close the object's unseen back (its front mirrored about the silhouette plane) for its shadows.
         pub close_back: bool = true, ParamKind::Bool;
