@@ -456,6 +456,7 @@ fn refocus_pipeline_runs_and_passes_through_without_blur() {
 /// object reuses it (from memory, and from disk in a new engine), the
 /// result equals a run that built everything afresh, `--no-cache` and a
 /// change of a parameter it depends on rebuild it, and `explain` shows it.
+/// `Paste`'s source part likewise (in memory).
 #[test]
 fn the_relight_scene_is_an_engine_cached_value() {
     let reg = depthgraph::nodes::registry().unwrap();
@@ -475,6 +476,16 @@ fn the_relight_scene_is_an_engine_cached_value() {
         assert_eq!(rec.status, Status::Ran, "{rec:?}");
         assert_eq!(rec.derived.len(), 1, "{rec:?}");
         assert_eq!(rec.derived[0].name, "relight scene");
+        assert!(rec.derived[0].bytes > 0);
+        rec.derived[0].status
+    };
+    // Paste's source part (the object points and the closed back) is one
+    // too, kept in memory
+    let paste_source_status = |r: &RunResult| {
+        let rec = r.trace.get("paste").unwrap();
+        assert_eq!(rec.status, Status::Ran, "{rec:?}");
+        assert_eq!(rec.derived.len(), 1, "{rec:?}");
+        assert_eq!(rec.derived[0].name, "paste source");
         assert!(rec.derived[0].bytes > 0);
         rec.derived[0].status
     };
@@ -505,8 +516,11 @@ fn the_relight_scene_is_an_engine_cached_value() {
     let moved = load(&["paste.target_pixel=[(80.5, 160.5)]"]);
     let again = run(&e, &moved, false);
     assert_eq!(scene_status(&again), Status::Cached);
+    assert_eq!(paste_source_status(&first), Status::Ran);
+    assert_eq!(paste_source_status(&again), Status::Cached);
     let fresh = run(&engine(false), &moved, false);
     assert_eq!(scene_status(&fresh), Status::Ran);
+    assert_eq!(paste_source_status(&fresh), Status::Ran);
     assert_eq!(color(&again), color(&fresh));
     assert_ne!(color(&again), color(&first), "the object moved");
     // a new engine (a second CLI run) reads it from the disk cache
@@ -523,6 +537,25 @@ fn the_relight_scene_is_an_engine_cached_value() {
         "relight.ism_points=2000",
     ]);
     assert_eq!(scene_status(&run(&e, &other, false)), Status::Ran);
+    // a parameter of the source part rebuilds it, one of the placement
+    // only does not
+    let threshold = load(&[
+        "paste.target_pixel=[(80.5, 160.5)]",
+        "paste.mask_threshold=0.6",
+    ]);
+    assert_eq!(
+        paste_source_status(&run(&e, &threshold, false)),
+        Status::Ran
+    );
+    let turned = load(&[
+        "paste.target_pixel=[(80.5, 160.5)]",
+        "paste.mask_threshold=0.6",
+        "paste.rotation_deg=(20.0, 0.0, 0.0)",
+    ]);
+    assert_eq!(
+        paste_source_status(&run(&e, &turned, false)),
+        Status::Cached
+    );
 }
 
 /// `graphs/copy_paste_estimated_light.ron`: the map is estimated from the

@@ -138,6 +138,15 @@ fn dragging_the_pasted_object_moves_its_target_pixel_and_reruns_only_downstream(
         Status::Cached,
         "the relighting's scene part stays cached"
     );
+    let source = t
+        .get("paste")
+        .and_then(|r| r.derived.iter().find(|d| d.name == "paste source"))
+        .expect("the paste's source part is a derived value");
+    assert_eq!(
+        source.status,
+        Status::Cached,
+        "the paste's source part stays cached"
+    );
     // The whole drag is one undoable edit, and it is over.
     assert!(undo_before, "the VPL count edit is on the undo stack");
     assert!(!h.state().model.in_gesture(), "the drag's gesture ended");

@@ -511,32 +511,84 @@ pub fn paste(
     k_tgt: &Intrinsics,
     p: &PasteParams,
 ) -> Result<Pasted, NodeError> {
+    check_same("source_color", src_color.dims(), src_depth.dims())?;
+    let source = paste_source(src_depth, src_mask, k_src, p)?;
+    paste_placed(
+        &source, src_color, src_depth, src_mask, k_src, tgt_depth, k_tgt, p,
+    )
+}
+
+/// What a paste takes from the source alone (steps 1 and 5 of the module
+/// docs): it does not depend on the placement, so `Paste` keeps it as a
+/// value the engine caches while the object is moved, turned or scaled.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PasteSource {
+    /// The object points of the selection.
+    pub obj: SourceObject,
+    /// The closed back's depth per source pixel (`close_back`), 0 off the
+    /// object.
+    pub back_z: Option<Vec<f32>>,
+    /// The solid's centroid `c_s` (step 5; `c` without the back).
+    pub pivot: DVec3,
+    /// The solid's box: its minimum corner.
+    pub solid_lo: DVec3,
+    /// The solid's box: its maximum corner.
+    pub solid_hi: DVec3,
+    /// The source pixels of the object, `(x0, x1, y0, y1)` inclusive;
+    /// `None` without object points.
+    pub rect: Option<(usize, usize, usize, usize)>,
+    /// The source's size.
+    pub dims: (usize, usize),
+}
+
+impl depthgraph_graph::value::Extension for PasteSource {
+    fn type_name(&self) -> &'static str {
+        "PasteSource"
+    }
+    fn bytes(&self) -> usize {
+        self.obj.member.len() + self.back_z.as_ref().map_or(0, |b| 4 * b.len())
+    }
+    fn encode(&self) -> Option<Vec<u8>> {
+        None
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+/// The inputs [`paste_source`] reads (the key of the cached value, with
+/// [`source_key_params`]).
+pub const SOURCE_PORTS: &[&str] = &["source_depth", "source_mask", "source_intrinsics"];
+
+/// The parameters [`paste_source`] reads, canonically encoded.
+pub fn source_key_params(p: &PasteParams) -> Vec<u8> {
+    let mut b = Vec::with_capacity(18);
+    b.extend(p.mask_threshold.to_le_bytes());
+    b.extend(p.max_depth_jump_rel.to_le_bytes());
+    b.push(u8::from(p.largest_surface_only));
+    b.push(u8::from(p.close_back));
+    b
+}
+
+/// The source part of a paste ([`PasteSource`]): the inputs' sizes and
+/// the parameters it reads checked, the object points, the closed back.
+pub fn paste_source(
+    src_depth: &DepthMap,
+    src_mask: &Mask,
+    k_src: &Intrinsics,
+    p: &PasteParams,
+) -> Result<PasteSource, NodeError> {
     let (sw, sh) = src_depth.dims();
-    check_same("source_color", src_color.dims(), (sw, sh))?;
     check_same("source_mask", src_mask.dims(), (sw, sh))?;
     fits_intrinsics("source_intrinsics", k_src, "source image", (sw, sh))?;
-    let (tw, th) = tgt_depth.dims();
-    fits_intrinsics("target_intrinsics", k_tgt, "target image", (tw, th))?;
-    if !(p.scale.is_finite() && p.scale > 0.0) {
-        return Err(NodeError::param(
-            "scale",
-            format!("{} must be finite and > 0", p.scale),
-        ));
-    }
     if !(p.max_depth_jump_rel.is_finite() && p.max_depth_jump_rel > 0.0) {
         return Err(NodeError::param(
             "max_depth_jump_rel",
             format!("{} must be finite and > 0", p.max_depth_jump_rel),
         ));
     }
-    if p.translation_m.iter().any(|v| !v.is_finite()) || !p.depth_offset_m.is_finite() {
-        return Err(NodeError::param(
-            "translation_m",
-            "translation and depth offset must be finite",
-        ));
-    }
     let n = sw * sh;
-    if n.saturating_mul(6) >= u32::MAX as usize || tw.saturating_mul(th) >= u32::MAX as usize {
+    if n.saturating_mul(6) >= u32::MAX as usize {
         return Err(NodeError::input(
             "source_depth",
             format!("{sw}x{sh} is too large to paste (at most about 1.4e9 pixels)"),
@@ -550,16 +602,6 @@ pub fn paste(
         p.max_depth_jump_rel,
         p.largest_surface_only,
     );
-    let empty = |anchor: DVec3| Pasted {
-        color: Image::filled(tw, th, [0.0; 3]),
-        depth: Image::filled(tw, th, 0.0),
-        alpha: Image::filled(tw, th, 0.0),
-        back: Image::filled(tw, th, 0.0),
-        scale: p.scale,
-        suggested_scale: 1.0,
-        anchor,
-        object_points: 0,
-    };
     // The closed back (step 5), and the pivot and box of the solid: its
     // front's with the back's points.
     let src_z = src_depth.as_slice();
@@ -576,22 +618,114 @@ pub fn paste(
             .as_slice()
             .to_vec()
     });
-    let (pivot, solid_lo, solid_hi) = match &back_z {
-        Some(bz) if obj.count > 0 => {
+    let rect = member_rect(member, sw, sh);
+    let (pivot, solid_lo, solid_hi) = match (&back_z, rect) {
+        (Some(bz), Some((x0, x1, y0, y1))) if obj.count > 0 => {
             let (mut sum, mut lo, mut hi) = (DVec3::ZERO, obj.lo, obj.hi);
-            for i in (0..n).filter(|&i| member[i]) {
-                let (x, y) = ((i % sw) as f64 + 0.5, (i / sw) as f64 + 0.5);
-                let f = k_src.unproject(x, y, f64::from(src_z[i]));
-                let b = k_src.unproject(x, y, f64::from(bz[i]));
-                sum += f + b;
-                lo = lo.min(b);
-                hi = hi.max(b);
+            for y in y0..=y1 {
+                for i in (y * sw + x0..=y * sw + x1).filter(|&i| member[i]) {
+                    let (x, y) = ((i % sw) as f64 + 0.5, (i / sw) as f64 + 0.5);
+                    let f = k_src.unproject(x, y, f64::from(src_z[i]));
+                    let b = k_src.unproject(x, y, f64::from(bz[i]));
+                    sum += f + b;
+                    lo = lo.min(b);
+                    hi = hi.max(b);
+                }
             }
             // guard: count > 0
             (sum / (2 * obj.count) as f64, lo, hi)
         }
         _ => (obj.centroid, obj.lo, obj.hi),
     };
+    Ok(PasteSource {
+        obj,
+        back_z,
+        pivot,
+        solid_lo,
+        solid_hi,
+        rect,
+        dims: (sw, sh),
+    })
+}
+
+/// The smallest rectangle `(x0, x1, y0, y1)` (inclusive) holding every
+/// `true` of `member` (`w` x `h`), `None` when there is none.
+fn member_rect(member: &[bool], w: usize, h: usize) -> Option<(usize, usize, usize, usize)> {
+    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+    for y in 0..h {
+        let row = &member[y * w..(y + 1) * w];
+        if let (Some(a), Some(b)) = (row.iter().position(|&m| m), row.iter().rposition(|&m| m)) {
+            x0 = x0.min(a);
+            x1 = x1.max(b);
+            y0 = y0.min(y);
+            y1 = y1.max(y);
+        }
+    }
+    (x0 <= x1).then_some((x0, x1, y0, y1))
+}
+
+/// The placement part of a paste (steps 2 to 5 of the module docs) with
+/// the source part `source` that [`paste_source`] made of `src_depth`,
+/// `src_mask` and `k_src` with the same parameters.
+#[allow(clippy::too_many_arguments)]
+pub fn paste_placed(
+    source: &PasteSource,
+    src_color: &ColorImage,
+    src_depth: &DepthMap,
+    src_mask: &Mask,
+    k_src: &Intrinsics,
+    tgt_depth: &DepthMap,
+    k_tgt: &Intrinsics,
+    p: &PasteParams,
+) -> Result<Pasted, NodeError> {
+    let (sw, sh) = src_depth.dims();
+    if source.dims != (sw, sh) {
+        return Err(NodeError::input(
+            "source_depth",
+            format!(
+                "is {sw}x{sh} but the source part was made of {}x{}",
+                source.dims.0, source.dims.1
+            ),
+        ));
+    }
+    check_same("source_color", src_color.dims(), (sw, sh))?;
+    check_same("source_mask", src_mask.dims(), (sw, sh))?;
+    let (tw, th) = tgt_depth.dims();
+    fits_intrinsics("target_intrinsics", k_tgt, "target image", (tw, th))?;
+    if !(p.scale.is_finite() && p.scale > 0.0) {
+        return Err(NodeError::param(
+            "scale",
+            format!("{} must be finite and > 0", p.scale),
+        ));
+    }
+    if p.translation_m.iter().any(|v| !v.is_finite()) || !p.depth_offset_m.is_finite() {
+        return Err(NodeError::param(
+            "translation_m",
+            "translation and depth offset must be finite",
+        ));
+    }
+    let n = sw * sh;
+    if tw.saturating_mul(th) >= u32::MAX as usize {
+        return Err(NodeError::input(
+            "target_depth",
+            format!("{tw}x{th} is too large to paste into (at most about 4.3e9 pixels)"),
+        ));
+    }
+    let obj = &source.obj;
+    let empty = |anchor: DVec3| Pasted {
+        color: Image::filled(tw, th, [0.0; 3]),
+        depth: Image::filled(tw, th, 0.0),
+        alpha: Image::filled(tw, th, 0.0),
+        back: Image::filled(tw, th, 0.0),
+        scale: p.scale,
+        suggested_scale: 1.0,
+        anchor,
+        object_points: 0,
+    };
+    let src_z = src_depth.as_slice();
+    let member = &obj.member;
+    let back_z = &source.back_z;
+    let (pivot, solid_lo, solid_hi) = (source.pivot, source.solid_lo, source.solid_hi);
     let t = DVec3::from_array(p.translation_m);
     // Placement (step 2).
     let anchor = match p.target_pixel.as_slice() {
@@ -628,9 +762,9 @@ pub fn paste(
             ));
         }
     };
-    if obj.count == 0 {
+    let Some((rx0, rx1, ry0, ry1)) = source.rect.filter(|_| obj.count > 0) else {
         return Ok(empty(anchor));
-    }
+    };
     if p.rotation_deg.iter().any(|v| !v.is_finite()) {
         return Err(NodeError::param("rotation_deg", "angles must be finite"));
     }
@@ -712,25 +846,29 @@ pub fn paste(
                 zmax / zmin <= 1.0 + jump
             }
         };
+        // the cells with a corner on the object: top-left corners from
+        // one left of and above its rectangle
         if sw >= 2 && sh >= 2 {
-            (0..sh - 1).into_par_iter().for_each(|y| {
-                for x in 0..sw - 1 {
-                    let i = y * sw + x;
-                    for (half, tri) in cell_triangles(member, sw, i).iter().enumerate() {
-                        let Some(tri) = tri else { continue };
-                        if !tri_ok(tri) {
-                            continue;
+            (ry0.saturating_sub(1)..=ry1.min(sh - 2))
+                .into_par_iter()
+                .for_each(|y| {
+                    for x in rx0.saturating_sub(1)..=rx1.min(sw - 2) {
+                        let i = y * sw + x;
+                        for (half, tri) in cell_triangles(member, sw, i).iter().enumerate() {
+                            let Some(tri) = tri else { continue };
+                            if !tri_ok(tri) {
+                                continue;
+                            }
+                            let tv = tri.map(|j| verts[j]);
+                            raster_triangle(&tv, tw, th, |px, py, z| {
+                                write(px, py, z, (base + 2 * i + half) as u32)
+                            });
                         }
-                        let tv = tri.map(|j| verts[j]);
-                        raster_triangle(&tv, tw, th, |px, py, z| {
-                            write(px, py, z, (base + 2 * i + half) as u32)
-                        });
                     }
-                }
-            });
+                });
         }
         // Object pixels in no drawn triangle: single-pixel splats.
-        (0..n).into_par_iter().for_each(|i| {
+        let splat = |i: usize| {
             if !usable(i) {
                 return;
             }
@@ -764,7 +902,10 @@ pub fn paste(
                     (base + 2 * n + i) as u32,
                 );
             }
-        });
+        };
+        (ry0..=ry1)
+            .into_par_iter()
+            .for_each(|y| (rx0..=rx1).for_each(|x| splat(y * sw + x)));
     };
     draw_layer(&verts, 0);
     if let Some(bv) = &back_verts {
@@ -929,8 +1070,16 @@ depthgraph_graph::ports! {
     }
 }
 
-fn eval(_: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>, NodeError> {
-    let r = paste(
+fn eval(ctx: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>, NodeError> {
+    // The source part is a value the engine keeps under the keys of the
+    // inputs it reads: moving, turning or scaling the object reuses it.
+    check_same("source_color", i.source_color.dims(), i.source_depth.dims())?;
+    let source = ctx.derived("paste source", SOURCE_PORTS, &source_key_params(p), || {
+        paste_source(&i.source_depth, &i.source_mask, &i.source_intrinsics, p)
+    })?;
+    ctx.check_cancelled()?;
+    let r = paste_placed(
+        &source,
         &i.source_color,
         &i.source_depth,
         &i.source_mask,
