@@ -471,24 +471,19 @@ fn the_relight_scene_is_an_engine_cached_value() {
         }];
         p
     };
-    let scene_status = |r: &RunResult| {
-        let rec = r.trace.get("relight").unwrap();
+    // the status of the one derived value of `node`, named `name`
+    let derived_status = |r: &RunResult, node: &str, name: &str| {
+        let rec = r.trace.get(node).unwrap();
         assert_eq!(rec.status, Status::Ran, "{rec:?}");
         assert_eq!(rec.derived.len(), 1, "{rec:?}");
-        assert_eq!(rec.derived[0].name, "relight scene");
+        assert_eq!(rec.derived[0].name, name);
         assert!(rec.derived[0].bytes > 0);
         rec.derived[0].status
     };
+    let scene_status = |r: &RunResult| derived_status(r, "relight", "relight scene");
     // Paste's source part (the object points and the closed back) is one
     // too, kept in memory
-    let paste_source_status = |r: &RunResult| {
-        let rec = r.trace.get("paste").unwrap();
-        assert_eq!(rec.status, Status::Ran, "{rec:?}");
-        assert_eq!(rec.derived.len(), 1, "{rec:?}");
-        assert_eq!(rec.derived[0].name, "paste source");
-        assert!(rec.derived[0].bytes > 0);
-        rec.derived[0].status
-    };
+    let paste_source_status = |r: &RunResult| derived_status(r, "paste", "paste source");
     let color = |r: &RunResult| r.outputs["relight.color"].clone();
     let disk = tempfile::tempdir().unwrap();
     let engine = |with_disk: bool| {

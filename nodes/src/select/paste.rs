@@ -513,9 +513,26 @@ pub fn paste(
 ) -> Result<Pasted, NodeError> {
     check_same("source_color", src_color.dims(), src_depth.dims())?;
     let source = paste_source(src_depth, src_mask, k_src, p)?;
-    paste_placed(
-        &source, src_color, src_depth, src_mask, k_src, tgt_depth, k_tgt, p,
-    )
+    let images = SourceImages {
+        color: src_color,
+        depth: src_depth,
+        mask: src_mask,
+        k: k_src,
+    };
+    paste_placed(&source, &images, tgt_depth, k_tgt, p)
+}
+
+/// The source's images, as [`paste_placed`] reads them.
+#[derive(Debug, Clone, Copy)]
+pub struct SourceImages<'a> {
+    /// Linear RGB.
+    pub color: &'a ColorImage,
+    /// Metres, hole-filled.
+    pub depth: &'a DepthMap,
+    /// The object's alpha.
+    pub mask: &'a Mask,
+    /// The source camera.
+    pub k: &'a Intrinsics,
 }
 
 /// What a paste takes from the source alone (steps 1 and 5 of the module
@@ -665,19 +682,21 @@ fn member_rect(member: &[bool], w: usize, h: usize) -> Option<(usize, usize, usi
 }
 
 /// The placement part of a paste (steps 2 to 5 of the module docs) with
-/// the source part `source` that [`paste_source`] made of `src_depth`,
-/// `src_mask` and `k_src` with the same parameters.
-#[allow(clippy::too_many_arguments)]
+/// the source part `source` that [`paste_source`] made of the same
+/// images' depth, mask and camera with the same parameters.
 pub fn paste_placed(
     source: &PasteSource,
-    src_color: &ColorImage,
-    src_depth: &DepthMap,
-    src_mask: &Mask,
-    k_src: &Intrinsics,
+    images: &SourceImages,
     tgt_depth: &DepthMap,
     k_tgt: &Intrinsics,
     p: &PasteParams,
 ) -> Result<Pasted, NodeError> {
+    let SourceImages {
+        color: src_color,
+        depth: src_depth,
+        mask: src_mask,
+        k: k_src,
+    } = *images;
     let (sw, sh) = src_depth.dims();
     if source.dims != (sw, sh) {
         return Err(NodeError::input(
@@ -1078,16 +1097,13 @@ fn eval(ctx: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>
         paste_source(&i.source_depth, &i.source_mask, &i.source_intrinsics, p)
     })?;
     ctx.check_cancelled()?;
-    let r = paste_placed(
-        &source,
-        &i.source_color,
-        &i.source_depth,
-        &i.source_mask,
-        &i.source_intrinsics,
-        &i.target_depth,
-        &i.target_intrinsics,
-        p,
-    )?;
+    let images = SourceImages {
+        color: &i.source_color,
+        depth: &i.source_depth,
+        mask: &i.source_mask,
+        k: &i.source_intrinsics,
+    };
+    let r = paste_placed(&source, &images, &i.target_depth, &i.target_intrinsics, p)?;
     let empty = r.object_points == 0;
     let out = PasteOut {
         color: r.color,
