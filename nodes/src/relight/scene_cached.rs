@@ -46,6 +46,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::kit::checks::fits_intrinsics;
+use crate::kit::color::luminance_clamped;
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, Window, build_single_in, windows,
 };
@@ -478,7 +479,7 @@ fn object_maps(
     let (firsts, of) = share_directions(dirs);
     let mut power = vec![0.0f64; firsts.len()];
     for (&g, v) in of.iter().zip(vpls) {
-        power[g] += v.power.iter().map(|&c| f64::from(c).max(0.0)).sum::<f64>();
+        power[g] += luminance_clamped(v.power);
     }
     let total: f64 = power.iter().sum();
     // every map fine when the VPLs carry no power (nothing to weigh by)

@@ -640,10 +640,11 @@ pub fn paste_source(
         (Some(bz), Some((x0, x1, y0, y1))) if obj.count > 0 => {
             let (mut sum, mut lo, mut hi) = (DVec3::ZERO, obj.lo, obj.hi);
             for y in y0..=y1 {
-                for i in (y * sw + x0..=y * sw + x1).filter(|&i| member[i]) {
-                    let (x, y) = ((i % sw) as f64 + 0.5, (i / sw) as f64 + 0.5);
-                    let f = k_src.unproject(x, y, f64::from(src_z[i]));
-                    let b = k_src.unproject(x, y, f64::from(bz[i]));
+                for x in (x0..=x1).filter(|&x| member[y * sw + x]) {
+                    let i = y * sw + x;
+                    let (u, v) = (x as f64 + 0.5, y as f64 + 0.5);
+                    let f = k_src.unproject(u, v, f64::from(src_z[i]));
+                    let b = k_src.unproject(u, v, f64::from(bz[i]));
                     sum += f + b;
                     lo = lo.min(b);
                     hi = hi.max(b);
