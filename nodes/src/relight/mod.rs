@@ -3,6 +3,7 @@
 //! maps, the paired and scene-cached schemes, the ray-cast reference
 //! with its BVH, and lighting estimated from the photo ([`lighting`]).
 pub mod closure;
+pub mod contact;
 pub mod envmap;
 pub mod ism;
 pub mod lighting;

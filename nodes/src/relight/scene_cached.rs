@@ -47,6 +47,7 @@ use rayon::prelude::*;
 
 use crate::kit::checks::fits_intrinsics;
 use crate::kit::color::luminance_clamped;
+use crate::relight::contact::{ContactParams, occluded as contact_occluded};
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, Window, build_single_in, windows,
 };
@@ -731,6 +732,23 @@ pub fn relight_moved(
             (q, nq, flux)
         })
         .collect();
+    // The scene's visibility of an object surface along `d`: the map's,
+    // except where its occluder lies within the bias of the surface (a
+    // wall a few centimetres away): there the photo's depth decides
+    // (`contact`). `occ` and `z` in the map's light coordinates.
+    let contact = ContactParams::default();
+    // The march reaches the map's occluder (`occ - z` along `d`) and a
+    // texel beyond it (the texel's extent across `d`).
+    let scene_sees = |occ: f64, z: f64, bias: f64, texel: f64, pos: DVec3, d: DVec3| -> bool {
+        if occ.is_nan() || occ <= z {
+            return true;
+        }
+        if occ > z + bias {
+            return false;
+        }
+        let reach = (occ - z + texel).min(bias);
+        !p.contact || !contact_occluded(inp.depth, k, pos, d, reach, &contact)
+    };
     // chunks of surfaces, VPL-major inside (one pair of maps in cache at a
     // time); every surface sums its VPLs in order
     const CHUNK: usize = 256;
@@ -763,14 +781,28 @@ pub fn relight_moved(
                             } else {
                                 let sl = slope(cos);
                                 let see = |occ: f64, bias: f64| occ.is_nan() || occ <= lc.z + bias;
-                                (see(oo, bias_oo[j] * sl), see(os, scene.bias_t[j] * sl))
+                                (
+                                    see(oo, bias_oo[j] * sl),
+                                    scene_sees(
+                                        os,
+                                        lc.z,
+                                        scene.bias_t[j] * sl,
+                                        a.texel_m,
+                                        s.pos,
+                                        *d,
+                                    ),
+                                )
                             }
                         }
                         _ => {
                             let sl = slope(cos);
                             (
                                 omap.is_none_or(|m| m.visible(s.pos, bias_oo[j] * sl)),
-                                sm.is_none_or(|m| m.visible(s.pos, scene.bias_t[j] * sl)),
+                                sm.is_none_or(|m| {
+                                    let lc = m.light_coords(s.pos);
+                                    let os = f64::from(m.occluder_lc(lc));
+                                    scene_sees(os, lc.z, scene.bias_t[j] * sl, m.texel_m, s.pos, *d)
+                                }),
                             )
                         }
                     };
@@ -1037,7 +1069,7 @@ pub const SCENE_PORTS: &[&str] = &["photo", "depth", "normals", "albedo", "vpls"
 
 /// Layout version of an encoded [`RelightScene`]; part of its key, so a
 /// changed layout never meets an old file.
-const SCENE_CODEC: u32 = 2;
+const SCENE_CODEC: u32 = 3;
 
 impl RelightScene {
     /// Appends the scene to `w` (after the layout version).
