@@ -576,6 +576,16 @@ mod tests {
         assert!(s.object_db > s.naive_object_db + 1.0, "{s:?}");
     }
 
+    /// The near-wall room under an overcast sky, 96x72, 48 paths, 3 bounces.
+    fn wall_overcast() -> RelightCase {
+        let pt = PathTraceParams {
+            samples: 48,
+            bounces: 3,
+            seed: 1,
+        };
+        relight_case(Room::NearWall, Some(Sky::Overcast), 96, 72, 128, &pt).unwrap()
+    }
+
     /// The scene's own bounce into the shadow stays: with the fill light
     /// the relit influence region scores better against the path-traced
     /// truth than when the differential takes the photo's light away in
@@ -583,12 +593,7 @@ mod tests {
     /// nearer the truth's.
     #[test]
     fn shadows_keep_the_scenes_bounce() {
-        let pt = PathTraceParams {
-            samples: 48,
-            bounces: 3,
-            seed: 1,
-        };
-        let case = relight_case(Room::NearWall, Some(Sky::Overcast), 96, 72, 128, &pt).unwrap();
+        let case = wall_overcast();
         let with = relit(&case, &RelightParams::default());
         let without = relit(
             &case,
@@ -622,12 +627,7 @@ mod tests {
     /// the truth.
     #[test]
     fn the_contact_march_blocks_the_sky_behind_a_wall() {
-        let pt = PathTraceParams {
-            samples: 48,
-            bounces: 3,
-            seed: 1,
-        };
-        let case = relight_case(Room::NearWall, Some(Sky::Overcast), 96, 72, 128, &pt).unwrap();
+        let case = wall_overcast();
         let obj: Vec<bool> = case.alpha.as_slice().iter().map(|a| *a >= 1.0).collect();
         let with = relit(&case, &RelightParams::default());
         let without = relit(
