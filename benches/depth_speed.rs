@@ -18,14 +18,13 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use common::{env_usize, timed, write_peer_frame};
-use depthgraph::evaluation::{shared_data_dir, synthetic_scene};
+use depthgraph::evaluation::{shared_data_dir, synthetic_scene, tum_scene};
 use depthgraph::graph::prelude::*;
 use depthgraph::nodes::depth::bilateral::{BilateralParams, joint_bilateral};
 use depthgraph::nodes::depth::nlmeans::{
     NLMeansDepthParams, NLMeansInpaintParams, nlmeans_denoise, nlmeans_inpaint,
 };
 use depthgraph::nodes::depth::pull_push::{PullPushParams, Weights, pull_push};
-use depthgraph::nodes::io::{ColorSpace, LoadDepthParams, load_color, load_depth};
 use depthgraph::nodes::sim::sensor::{KinectParams, simulate_kinect};
 
 /// One frame: colour, depth with the sensor's holes, intrinsics.
@@ -53,38 +52,15 @@ fn frames(data: &Path) -> (Vec<Frame>, String) {
             });
         }
     }
-    let tum = data.join("tum_rgbd/fr1_xyz");
-    let color = load_color(&tum.join("rgb/1305031102.175304.png"), ColorSpace::Srgb);
-    let depth = load_depth(
-        &tum.join("depth/1305031102.160407.png"),
-        &LoadDepthParams {
-            scale: 5000.0,
-            ..Default::default()
-        },
-    );
-    match (color, depth) {
-        (Ok(color), Ok(depth)) => {
-            let (w, h) = depth.dims();
-            out.push(Frame {
-                name: "TUM fr1_xyz (real Kinect)".into(),
-                color,
-                depth,
-                // TUM's published fr1 intrinsics (its SOURCE.txt)
-                k: Intrinsics {
-                    fx: 517.3,
-                    fy: 516.5,
-                    cx: 318.6,
-                    cy: 255.3,
-                    width: w,
-                    height: h,
-                },
-            })
-        }
-        _ => {
-            note = format!(
-                "The real frame was not read: {} is missing (only the synthetic frame is timed).",
-                tum.display()
-            )
+    match tum_scene(data) {
+        Ok(s) => out.push(Frame {
+            name: "TUM fr1_xyz (real Kinect)".into(),
+            color: s.color,
+            depth: s.depth,
+            k: s.intrinsics,
+        }),
+        Err(e) => {
+            note = format!("The real frame was not read: {e} (only the synthetic frame is timed).")
         }
     }
     (out, note)

@@ -178,6 +178,125 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
     (scenes, missing)
 }
 
+/// The TUM RGB-D fr1_xyz frame (its SOURCE.txt: 16-bit depth, 5000 units
+/// per metre, registered to the colour by the OpenNI driver; TUM's published
+/// fr1 intrinsics). Its "truth" is the measured depth itself, holes and
+/// noise included: a filler is scored on holes punched into it
+/// ([`punch_holes`]), where the sensor did measure.
+pub fn tum_scene(data: &Path) -> Result<TruthScene, String> {
+    use depthgraph_nodes::io::{ColorSpace, LoadDepthParams, load_color, load_depth};
+    let dir = data.join("tum_rgbd/fr1_xyz");
+    let color = load_color(&dir.join("rgb/1305031102.175304.png"), ColorSpace::Srgb)
+        .map_err(|e| format!("{} (not read: {e})", dir.display()))?;
+    let depth = load_depth(
+        &dir.join("depth/1305031102.160407.png"),
+        &LoadDepthParams {
+            scale: 5000.0,
+            ..Default::default()
+        },
+    )
+    .map_err(|e| format!("{} (not read: {e})", dir.display()))?;
+    if color.dims() != depth.dims() {
+        return Err(format!(
+            "{}: colour {:?} and depth {:?} differ in size",
+            dir.display(),
+            color.dims(),
+            depth.dims()
+        ));
+    }
+    let (w, h) = depth.dims();
+    Ok(TruthScene {
+        name: "TUM fr1_xyz (real Kinect), punched holes".into(),
+        color,
+        depth,
+        intrinsics: Intrinsics {
+            fx: 517.3,
+            fy: 516.5,
+            cx: 318.6,
+            cy: 255.3,
+            width: w,
+            height: h,
+        },
+    })
+}
+
+/// Parameters of [`punch_holes`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PunchParams {
+    /// Share of the valid pixels to remove (stops at the first disk that
+    /// reaches it).
+    pub fraction: f64,
+    /// Smallest disk radius, pixels (radii are drawn uniformly in
+    /// `min_radius..=max_radius`, each at most the image's larger side).
+    pub min_radius: usize,
+    /// Largest disk radius, pixels.
+    pub max_radius: usize,
+    /// Seed of the centres and radii (SplitMix64).
+    pub seed: u64,
+}
+
+impl Default for PunchParams {
+    fn default() -> Self {
+        Self {
+            fraction: 0.08,
+            min_radius: 2,
+            max_radius: 10,
+            seed: 7,
+        }
+    }
+}
+
+/// Holes punched into a measured depth map: disks of random radius at
+/// uniformly random centres (SplitMix64, `seed`), over the whole frame, so
+/// they fall on surfaces and across depth edges alike, until `fraction` of
+/// the valid pixels is gone. The pixels removed are those valid in `depth`
+/// and invalid in the result. Deterministic; a map without valid pixels (or
+/// `fraction <= 0`) comes back unchanged; at most `64 * pixels` disks are
+/// tried, so a fraction near 1 cannot loop forever.
+pub fn punch_holes(depth: &DepthMap, p: &PunchParams) -> DepthMap {
+    use depthgraph_nodes::kit::rng::SplitMix64;
+    let (w, h) = depth.dims();
+    let mut out = depth.clone();
+    let valid = depth
+        .as_slice()
+        .iter()
+        .filter(|z| DepthMap::is_valid(**z))
+        .count();
+    let target = (p.fraction.clamp(0.0, 1.0) * valid as f64).ceil() as usize;
+    if target == 0 || w == 0 || h == 0 {
+        return out;
+    }
+    // radii beyond the image's larger side change nothing (and stay far from overflow)
+    let side = w.max(h);
+    let (r0, r1) = (
+        p.min_radius.min(p.max_radius).min(side),
+        p.max_radius.max(p.min_radius).min(side),
+    );
+    let mut rng = SplitMix64(p.seed);
+    let mut removed = 0usize;
+    let mut tries = 0usize;
+    while removed < target && tries < 64 * w * h {
+        tries += 1;
+        let cx = rng.below(w) as isize;
+        let cy = rng.below(h) as isize;
+        let r = (r0 + rng.below(r1 - r0 + 1)) as isize;
+        for y in (cy - r).max(0)..=(cy + r).min(h as isize - 1) {
+            for x in (cx - r).max(0)..=(cx + r).min(w as isize - 1) {
+                if (x - cx).pow(2) + (y - cy).pow(2) > r * r {
+                    continue;
+                }
+                let i = y as usize * w + x as usize;
+                let z = &mut out.as_mut_slice()[i];
+                if DepthMap::is_valid(*z) {
+                    *z = 0.0;
+                    removed += 1;
+                }
+            }
+        }
+    }
+    out
+}
+
 /// A synthetic preset rendered with exact ground truth.
 pub fn synthetic_scene(preset: &str, width: usize, height: usize) -> Option<TruthScene> {
     use depthgraph_nodes::sim::synthetic::{RenderOptions, Scene, render};
@@ -218,5 +337,46 @@ mod tests {
         let s = synthetic_scene("tabletop", 64, 48).unwrap();
         assert_eq!(s.depth.hole_count(), 0);
         assert!(synthetic_scene("nope", 8, 8).is_none());
+    }
+
+    /// Punching removes at least the asked share of the valid pixels and at
+    /// most one disk more, touches only valid pixels (original holes stay,
+    /// kept pixels keep their value), and is the same for the same seed.
+    #[test]
+    fn punched_holes_remove_the_asked_share_and_nothing_else() {
+        let (w, h) = (120usize, 90usize);
+        // a ramp with a band of original holes
+        let z: Vec<f32> = (0..w * h)
+            .map(|i| {
+                if (i / w) % 30 < 3 {
+                    0.0
+                } else {
+                    1.0 + (i % w) as f32 * 0.01
+                }
+            })
+            .collect();
+        let d = Image::from_vec(w, h, z).unwrap();
+        let valid = w * h - d.hole_count();
+        let p = PunchParams {
+            fraction: 0.1,
+            ..Default::default()
+        };
+        let out = punch_holes(&d, &p);
+        let removed = out.hole_count() - d.hole_count();
+        let disk = (2 * p.max_radius + 1).pow(2);
+        assert!(removed as f64 >= 0.1 * valid as f64, "{removed} of {valid}");
+        assert!(
+            (removed as f64) < 0.1 * valid as f64 + disk as f64,
+            "{removed}"
+        );
+        for (a, b) in d.as_slice().iter().zip(out.as_slice()) {
+            assert!(*b == *a || (*b == 0.0 && DepthMap::is_valid(*a)));
+        }
+        assert_eq!(punch_holes(&d, &p).as_slice(), out.as_slice());
+        let other = punch_holes(&d, &PunchParams { seed: 8, ..p });
+        assert_ne!(other.as_slice(), out.as_slice());
+        // nothing valid: unchanged
+        let empty = Image::from_vec(4, 4, vec![0.0f32; 16]).unwrap();
+        assert_eq!(punch_holes(&empty, &p).as_slice(), empty.as_slice());
     }
 }

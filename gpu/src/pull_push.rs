@@ -24,7 +24,7 @@ use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::depth::pull_push::{
     DualPullPushIn, PullPushIn, PullPushOut, PullPushParams, Weights, check_inputs, check_params,
-    level_count, nothing_to_fill,
+    level_count, nothing_to_fill, shadow_masks,
 };
 
 use crate::session::{Bind, Session, bytes_of, entry, f32s, uniform_blocks};
@@ -66,6 +66,7 @@ const BINDS: &[Bind] = &[
     Bind::ReadWrite,
     Bind::ReadWrite,
     Bind::ReadWrite,
+    Bind::Read,
 ];
 
 /// The device evaluation of `PullPush`.
@@ -156,6 +157,22 @@ fn fill(
         Some((c, _)) => s.image(c, bytes_of(c.as_slice()))?,
         None => Arc::new(s.scratch(16)?),
     };
+    // the holes the background side applies to (the CPU's decision), one
+    // word per pixel of every level; all ones when every hole is
+    let shadow_words: Vec<u32> = match shadow_masks(depth, weights, p, n_levels) {
+        Some(masks) => masks
+            .iter()
+            .flat_map(|m| m.iter().map(|b| u32::from(*b)))
+            .collect(),
+        None => vec![1u32; total],
+    };
+    if shadow_words.len() != total {
+        return Err(NodeError::Internal(format!(
+            "shadow masks hold {} pixels, the pyramid {total}",
+            shadow_words.len()
+        )));
+    }
+    let shadow_buf = s.upload(bytemuck::cast_slice(&shadow_words))?;
     let lz = s.scratch(4 * total as u64)?;
     let lw = s.scratch(4 * total as u64)?;
     // the color pyramid for the dual weights only (a placeholder otherwise)
@@ -192,6 +209,7 @@ fn fill(
                 entry(5, &lc, None),
                 entry(6, &out_depth, None),
                 entry(7, &out_filled, None),
+                entry(8, &shadow_buf, None),
             ],
         });
     let groups =

@@ -8,7 +8,7 @@ use common::*;
 use depthgraph_gpu::parity::depth_within;
 use depthgraph_gpu::pull_push::{DUAL_REL_TOL, REL_TOL};
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::depth::pull_push::PullPushParams;
+use depthgraph_nodes::depth::pull_push::{PullPushParams, ShadowSide};
 use depthgraph_nodes::kit::rng::SplitMix64;
 
 /// Two slanted planes with holes: scattered, a large block, a border strip,
@@ -94,14 +94,37 @@ fn pull_push_agrees_with_the_cpu_within_its_stated_bound() {
             let plain = compare("PullPush", &i, &p);
             i.insert("color", Value::Color(Arc::new(c.clone())));
             i.insert("intrinsics", Value::Intrinsics(k));
-            let dual = compare(
-                "DualPullPush",
-                &i,
-                &PullPushParams {
+            // the near half is left of the far one: "right" takes the holes
+            // between them as shadows, "left" as dropouts, "both" as either
+            let mut dual = 0.0f64;
+            for shadow_side in [ShadowSide::Left, ShadowSide::Right, ShadowSide::Both] {
+                dual = dual.max(compare(
+                    "DualPullPush",
+                    &i,
+                    &PullPushParams {
+                        epsilon: 1e-4,
+                        shadow_side,
+                        ..p.clone()
+                    },
+                ));
+            }
+            // the device follows the side it is given
+            let side = |shadow_side| {
+                let q = PullPushParams {
                     epsilon: 1e-4,
+                    shadow_side,
                     ..p.clone()
-                },
-            );
+                };
+                depth_of(&both("DualPullPush", &i, &q.to_values()).1, "depth")
+            };
+            // (the 7-pixel-wide scene has no row with both sides around a gap)
+            if w >= 64 {
+                assert_ne!(
+                    side(ShadowSide::Left).as_slice(),
+                    side(ShadowSide::Right).as_slice(),
+                    "{w}x{h}: left and right shadows fill alike"
+                );
+            }
             eprintln!(
                 "{w}x{h} holes {rate} levels {levels}: max |dz|/z plain {plain:.2e}, dual {dual:.2e}"
             );

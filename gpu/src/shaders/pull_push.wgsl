@@ -41,6 +41,9 @@ struct Level {
 // results: depth, then the filled mask
 @group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(7) var<storage, read_write> out_filled: array<f32>;
+// the holes the background side applies to in the push, one word per pixel
+// of every level (the CPU's shadow_masks; all ones when every hole is)
+@group(0) @binding(8) var<storage, read> shadow: array<u32>;
 
 // The mark of a filled pixel: valid for the next finer level (the CPU's
 // f64::MIN_POSITIVE; here the smallest normal f32).
@@ -50,10 +53,15 @@ const FILLED: f32 = 1.17549435e-38;
 // `spacing` input pixels apart; 1 when beta = 0 or z_max <= 0. It may
 // underflow to 0 for a large step: the farthest sample keeps 1.
 fn far_factor(z: f32, z_max: f32, spacing: f32) -> f32 {
-    if (L.beta > 0.0 && z_max > 0.0) {
+    return far_factor_b(z, z_max, spacing, L.beta);
+}
+
+// far_factor with the strength given (the push's, per hole).
+fn far_factor_b(z: f32, z_max: f32, spacing: f32, beta: f32) -> f32 {
+    if (beta > 0.0 && z_max > 0.0) {
         let f = 0.5 * (L.kfx + L.kfy);
         let s = (z_max - z) * f / (spacing * z_max);
-        return exp(-L.beta * max(s - L.edge, 0.0));
+        return exp(-beta * max(s - L.edge, 0.0));
     }
     return 1.0;
 }
@@ -151,6 +159,8 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (lw[i] > 0.0) {
         return;
     }
+    // beta of this hole: the background side for the shadows only
+    let beta = select(0.0, L.beta, shadow[i] != 0u);
     // coarse coordinates of the fine pixel centre (exact in f32)
     let cxf = (f32(x) + 0.5) * 0.5 - 0.5;
     let cyf = (f32(y) + 0.5) * 0.5 - 0.5;
@@ -175,7 +185,7 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var k = 0u; k < 4u; k = k + 1u) {
         let j = L.c_off + ny[k] * L.cw + nx[k];
         if (lw[j] > 0.0) {
-            let wb = nw[k] * far_factor(lz[j], z_max, 2.0 / L.scale_f);
+            let wb = nw[k] * far_factor_b(lz[j], z_max, 2.0 / L.scale_f, beta);
             bw = bw + wb;
             bd = bd + wb * lz[j];
         }
@@ -187,7 +197,7 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
         for (var k = 0u; k < 4u; k = k + 1u) {
             let j = L.c_off + ny[k] * L.cw + nx[k];
             if (lw[j] > 0.0) {
-                let f = far_factor(lz[j], z_max, 2.0 / L.scale_f);
+                let f = far_factor_b(lz[j], z_max, 2.0 / L.scale_f, beta);
                 n = n + f;
                 s = s + f * lz[j];
             }
@@ -223,7 +233,7 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
             // eq. 2 and 3; epsilon > 0
             let wd = 1.0 / (L.epsilon + length(vec3<f32>(dxy, dz)));
             let wc = 1.0 / (L.epsilon + distance(ci, lc[j].xyz));
-            let wf = far_factor(lz[j], z_max, 2.0 / L.scale_f);
+            let wf = far_factor_b(lz[j], z_max, 2.0 / L.scale_f, beta);
             sw = sw + wd * wc * wf;
             sd = sd + wd * wc * wf * lz[j];
         }

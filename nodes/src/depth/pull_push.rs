@@ -40,6 +40,25 @@
 //! vanishes). Plain `PullPush` has no intrinsics to tell an edge from a
 //! slanted surface and stays the paper's Fig. 4c baseline.
 //!
+//! **Which holes are shadows** (`shadow_side`, [`shadow_masks`]). A
+//! projector beside the camera casts its shadow on one side of a near
+//! surface only: with the projector at `+x` (Kinect v1, the TUM and NYU
+//! captures, `SimulateKinect`) the band lies left of the near surface, so
+//! along its row a shadow pixel has the far surface as its nearest valid
+//! pixel on the left and the near one on the right. The push applies `W_f`
+//! only to holes in that configuration (a step steeper than `s_edge` over
+//! the gap between the two, [`shadow_side`](PullPushParams::shadow_side)
+//! `left`; `right` mirrors it; `both` is every hole, as before); a coarse
+//! hole is a shadow when one of its children is. Other holes (dropouts on
+//! a surface, a dropout that crosses the near surface's other edge) get
+//! eq. 4's weights as the paper has them. The colour decides within a band
+//! (`shadow_color_gate = g`): the camera sees the background in a shadow,
+//! so a hole pixel whose colour lies nearer the near side's,
+//! `|C_i - C_near| < g |C_i - C_far|`, belongs to the near surface and is
+//! not a shadow. The pull keeps `W_f` everywhere (it only decides what a
+//! coarse pixel straddling an edge holds). Measured on Kinect-like holes
+//! and holes punched in a real Kinect frame in `docs/accuracy-depth.md`.
+//!
 //! Every filled value is a convex combination of coarse values, which are
 //! convex combinations of valid input depths, so it lies within their
 //! `[min, max]`. Sums are accumulated in f64.
@@ -68,6 +87,19 @@ pub enum Weights<'a> {
     },
 }
 
+depthgraph_graph::param_choice! {
+    /// Which holes beside a depth edge `DualPullPush` takes as a projector's shadow
+    /// (the `shadow_side` parameter).
+    pub enum ShadowSide {
+        /// Left of a near surface: a projector right of the camera (+x), as Kinect v1.
+        Left = "left",
+        /// Right of a near surface: a projector left of the camera.
+        Right = "right",
+        /// Every hole beside a depth edge, either side (ToF flying pixels; unknown projector).
+        Both = "both",
+    }
+}
+
 node_params! {
     /// Parameters of `PullPush` and `DualPullPush`.
     pub struct PullPushParams {
@@ -86,6 +118,13 @@ node_params! {
         /// the lateral footprint of the pixel spacing (the tangent of the slant a surface would
         /// need: 4 = 76 degrees).
         pub edge_slope: f64 = 4.0, ParamKind::Float { min: 0.1, max: 1000.0 };
+        /// DualPullPush: which holes the background side applies to: "left" of a near surface
+        /// (a projector right of the camera, Kinect v1), "right", or "both" sides.
+        pub shadow_side: ShadowSide = ShadowSide::Left, ParamKind::Choice(ShadowSide::NAMES);
+        /// DualPullPush: a hole pixel whose colour is nearer the near side's than this share of
+        /// its distance to the far side's belongs to the near surface, not to a shadow (0 = the
+        /// colour is not asked).
+        pub shadow_color_gate: f64 = 0.25, ParamKind::Float { min: 0.0, max: 1.0 };
     }
 }
 
@@ -193,9 +232,11 @@ fn pull(fine: &Level, far: Option<Far>) -> Level {
 }
 
 /// Checks the parameters both backends take as they are: `background`
-/// within `0..=100` and `edge_slope` within `0.1..=1000`.
+/// within `0..=100`, `shadow_color_gate` within `0..=1` and `edge_slope`
+/// within `0.1..=1000`.
 pub fn check_params(p: &PullPushParams) -> Result<(), NodeError> {
     param_within("background", p.background, 0.0, 100.0)?;
+    param_within("shadow_color_gate", p.shadow_color_gate, 0.0, 1.0)?;
     param_within("edge_slope", p.edge_slope, 0.1, 1000.0)
 }
 
@@ -225,6 +266,17 @@ pub fn check_inputs(depth: &DepthMap, weights: Weights) -> Result<(), NodeError>
     Ok(())
 }
 
+/// The next coarser level of a `w x h` mask: a pixel is set when one of
+/// its 2x2 children is. Returns the mask and its size.
+fn any_child(fine: &[bool], w: usize, h: usize) -> (Vec<bool>, usize, usize) {
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    let mut next = vec![false; cw * ch];
+    for (i, _) in fine.iter().enumerate().filter(|(_, v)| **v) {
+        next[(i / w / 2) * cw + (i % w) / 2] = true;
+    }
+    (next, cw, ch)
+}
+
 /// The number of levels below the input that [`pull_push`] builds: the
 /// requested count, or (auto) until the coarsest level has no hole. A coarse
 /// pixel is valid exactly when one of its children is, so this depends on
@@ -247,15 +299,96 @@ pub fn level_count(depth: &DepthMap, p: &PullPushParams) -> u32 {
         if done {
             return used;
         }
-        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-        let mut next = vec![false; cw * ch];
-        for (i, v) in valid.iter().enumerate() {
-            if *v {
-                next[(i / w / 2) * cw + (i % w) / 2] = true;
-            }
-        }
+        let (next, cw, ch) = any_child(&valid, w, h);
         (valid, w, h, used) = (next, cw, ch, used + 1);
     }
+}
+
+/// The holes the background side applies to (module docs), per level:
+/// `levels + 1` masks, level `r` of size `ceil(w / 2^r) x ceil(h / 2^r)`,
+/// true where a hole is taken as a projector's shadow. `None` when every
+/// hole is (`shadow_side` both) or none is (plain weights, `background`
+/// 0), and for inputs [`check_inputs`] refuses (the fills refuse them
+/// first). A discrete decision both backends take from here.
+pub fn shadow_masks(
+    depth: &DepthMap,
+    weights: Weights,
+    p: &PullPushParams,
+    levels: usize,
+) -> Option<Vec<Vec<bool>>> {
+    let Weights::Dual { color, k } = weights else {
+        return None;
+    };
+    if p.background <= 0.0 || p.shadow_side == ShadowSide::Both {
+        return None;
+    }
+    check_inputs(depth, weights).ok()?;
+    let (w, h) = depth.dims();
+    // guard: sane intrinsics (checked by the callers) have fx, fy > 0
+    let f = 0.5 * (k.fx + k.fy);
+    let d = depth.as_slice();
+    let c = color.as_slice();
+    let gate = p.shadow_color_gate;
+    let cdist = |a: [f32; 3], b: [f32; 3]| {
+        ((a[0] as f64 - b[0] as f64).powi(2)
+            + (a[1] as f64 - b[1] as f64).powi(2)
+            + (a[2] as f64 - b[2] as f64).powi(2))
+        .sqrt()
+    };
+    let mut first = vec![false; w * h];
+    first
+        .par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(y, m)| {
+            let row = &d[y * w..(y + 1) * w];
+            // the nearest valid pixel on the left of each hole
+            let mut left: Vec<Option<usize>> = vec![None; w];
+            let mut last = None;
+            for (x, z) in row.iter().enumerate() {
+                if DepthMap::is_valid(*z) {
+                    last = Some(x);
+                } else {
+                    left[x] = last;
+                }
+            }
+            let mut right = None;
+            for x in (0..w).rev() {
+                if DepthMap::is_valid(row[x]) {
+                    right = Some(x);
+                    continue;
+                }
+                let (Some(xl), Some(xr)) = (left[x], right) else {
+                    continue;
+                };
+                let (zl, zr) = (row[xl] as f64, row[xr] as f64);
+                // the near side: right of a left shadow, left of a right one
+                let ((x_near, z_near), (x_far, z_far)) = match p.shadow_side {
+                    ShadowSide::Left => ((xr, zr), (xl, zl)),
+                    _ => ((xl, zl), (xr, zr)),
+                };
+                // the slope of the step over the gap (xr > xl; z_far > 0 valid)
+                let slope = (z_far - z_near) * f / ((xr - xl) as f64 * z_far);
+                if slope <= p.edge_slope {
+                    continue;
+                }
+                let ci = c[y * w + x];
+                let near = cdist(ci, c[y * w + x_near]);
+                let far = cdist(ci, c[y * w + x_far]);
+                // not-a-number colours never veto the shadow
+                m[x] = !(gate > 0.0 && near < gate * far);
+            }
+        });
+    let mut masks = vec![first];
+    let (mut lw, mut lh) = (w, h);
+    for _ in 0..levels {
+        let (next, cw, ch) = match masks.last() {
+            Some(fine) => any_child(fine, lw, lh),
+            None => break,
+        };
+        masks.push(next);
+        (lw, lh) = (cw, ch);
+    }
+    Some(masks)
 }
 
 /// Fills the holes of `depth` (see the module docs) with the given weights.
@@ -333,8 +466,10 @@ pub fn pull_push(
         let next = pull(last, far_at(2f64.powi((levels.len() - 1) as i32)));
         levels.push(next);
     }
+    let shadows = shadow_masks(depth, weights, p, levels.len() - 1);
     // Push: coarse to fine, filling only holes.
     for r in (0..levels.len() - 1).rev() {
+        let shadow = shadows.as_ref().map(|m| &m[r]);
         let (fine_part, coarse_part) = levels.split_at_mut(r + 1);
         let fine = &mut fine_part[r];
         let coarse = &coarse_part[0];
@@ -360,6 +495,12 @@ pub fn pull_push(
                     if fine_weight[i] > 0.0 {
                         continue;
                     }
+                    // the background side only for the holes taken as shadows
+                    let far = if shadow.is_some_and(|m| !m[i]) {
+                        None
+                    } else {
+                        far
+                    };
                     // coarse coordinates of the fine pixel centre
                     let cxf = (x as f64 + 0.5) * 0.5 - 0.5;
                     let cyf = (y as f64 + 0.5) * 0.5 - 0.5;
@@ -592,7 +733,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "DualPullPush",
-        2,
+        3,
         "Fills depth holes by pull-push with 3D-distance x color-similarity weights (3d-editing eq. 2-4).",
         eval_dual,
     ))
@@ -790,6 +931,128 @@ mod tests {
         );
     }
 
+    /// A red box at 1.2 m before a white wall at 3 m, seen by a Kinect-like
+    /// camera; `hole(x)` says which columns of the box's rows are lost.
+    /// Returns the fill's mean absolute error over the lost box pixels and
+    /// over the lost wall pixels.
+    fn box_fill_errors(hole: impl Fn(usize) -> bool, p: &PullPushParams) -> (f64, f64) {
+        let (w, h) = (96, 64);
+        let in_box = |x: usize, y: usize| (40..72).contains(&x) && (16..48).contains(&y);
+        let gt = DepthMap::from_fn(w, h, |x, y| if in_box(x, y) { 1.2f32 } else { 3.0 });
+        let c = ColorImage::from_fn(w, h, |x, y| {
+            if in_box(x, y) {
+                [0.6, 0.05, 0.05]
+            } else {
+                [0.8, 0.8, 0.8]
+            }
+        });
+        let lost = |x: usize, y: usize| hole(x) && (16..48).contains(&y);
+        let d = Image::from_fn(w, h, |x, y| if lost(x, y) { 0.0 } else { *gt.get(x, y) });
+        let kk = Intrinsics {
+            fx: 525.0,
+            fy: 525.0,
+            ..k(w, h)
+        };
+        let out = pull_push(&d, p, Weights::Dual { color: &c, k: &kk }).unwrap();
+        let (mut e, mut n) = ([0.0f64; 2], [0usize; 2]);
+        for y in 0..h {
+            for x in (0..w).filter(|x| lost(*x, y)) {
+                let side = usize::from(!in_box(x, y));
+                e[side] += (*out.depth.get(x, y) as f64 - *gt.get(x, y) as f64).abs();
+                n[side] += 1;
+            }
+        }
+        (e[0] / n[0].max(1) as f64, e[1] / n[1].max(1) as f64)
+    }
+
+    #[test]
+    fn a_hole_right_of_a_near_surface_is_no_left_shadow() {
+        // a dropout across the box's right edge: 6 box columns, 8 wall columns
+        let hole = |x: usize| (66..80).contains(&x);
+        let left = PullPushParams::default();
+        let both = PullPushParams {
+            shadow_side: ShadowSide::Both,
+            ..Default::default()
+        };
+        let (box_left, _) = box_fill_errors(hole, &left);
+        let (box_both, _) = box_fill_errors(hole, &both);
+        // taken as a shadow (both), the box's pixels get the wall; as a
+        // dropout (left), the colour keeps them on the box
+        assert!(box_left < 0.1, "box part {box_left} m");
+        assert!(box_both > 0.5, "box part with both sides {box_both} m");
+    }
+
+    #[test]
+    fn the_colour_keeps_the_near_surface_out_of_a_shadow_band() {
+        // a band left of the box that also takes its first 6 columns: the
+        // shadow part (white, the wall) is filled from the far side, the
+        // red part belongs to the box
+        let hole = |x: usize| (30..46).contains(&x);
+        let gated = PullPushParams::default();
+        let blind = PullPushParams {
+            shadow_color_gate: 0.0,
+            ..Default::default()
+        };
+        let (box_gated, wall_gated) = box_fill_errors(hole, &gated);
+        let (box_blind, wall_blind) = box_fill_errors(hole, &blind);
+        assert!(
+            wall_gated < 0.1 && wall_blind < 0.1,
+            "{wall_gated} {wall_blind}"
+        );
+        assert!(
+            box_gated < 0.1,
+            "box part with the colour gate {box_gated} m"
+        );
+        assert!(box_blind > 0.5, "box part without it {box_blind} m");
+    }
+
+    #[test]
+    fn shadow_masks_mark_only_the_left_band_and_pull_down() {
+        let (w, h) = (16, 2);
+        // far 3 m, a gap at 4..8, near 1 m at 8..12, a gap at 12..14, far again
+        let z = |x: usize| match x {
+            4..8 | 12..14 => 0.0,
+            8..12 => 1.0f32,
+            _ => 3.0,
+        };
+        let d = DepthMap::from_fn(w, h, |x, _| z(x));
+        let c = ColorImage::filled(w, h, [0.5, 0.5, 0.5]);
+        let kk = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            ..k(w, h)
+        };
+        let wts = Weights::Dual { color: &c, k: &kk };
+        let p = PullPushParams::default();
+        let m = shadow_masks(&d, wts, &p, 2).unwrap();
+        let row: Vec<bool> = (0..w).map(|x| m[0][x]).collect();
+        let expect: Vec<bool> = (0..w).map(|x| (4..8).contains(&x)).collect();
+        assert_eq!(row, expect);
+        // level 1: the pairs 2, 3 hold band pixels
+        assert_eq!(m[1].len(), 8);
+        assert_eq!(
+            (0..8).map(|x| m[1][x]).collect::<Vec<_>>(),
+            vec![false, false, true, true, false, false, false, false]
+        );
+        assert_eq!(m[2].len(), 4);
+        // the mirror marks the other gap; both and plain weights need no mask
+        let r = PullPushParams {
+            shadow_side: ShadowSide::Right,
+            ..Default::default()
+        };
+        let mr = shadow_masks(&d, wts, &r, 0).unwrap();
+        assert_eq!(
+            (0..w).filter(|x| mr[0][*x]).collect::<Vec<_>>(),
+            vec![12, 13]
+        );
+        let b = PullPushParams {
+            shadow_side: ShadowSide::Both,
+            ..Default::default()
+        };
+        assert!(shadow_masks(&d, wts, &b, 2).is_none());
+        assert!(shadow_masks(&d, Weights::Bilinear, &p, 2).is_none());
+    }
+
     #[test]
     fn bounded_by_valid_range_for_a_1000x_jump_and_tiny_epsilon() {
         let d = Image::from_fn(16, 16, |x, y| {
@@ -943,7 +1206,8 @@ mod tests {
             let c = Image::from_fn(w, h, |_, _| [next() as f32, next() as f32, next() as f32]);
             let valid: Vec<f32> = d.as_slice().iter().copied().filter(|z| *z > 0.0).collect();
             let (lo, hi) = valid.iter().fold((f32::INFINITY, 0.0f32), |(a, b), v| (a.min(*v), b.max(*v)));
-            for r in [0.0, 1.0, 100.0].iter().flat_map(|b| both(&d, &c, &PullPushParams { epsilon: eps, levels: 0, background: *b, edge_slope: 0.5 })) {
+            let sides = [(0.0, ShadowSide::Left, 0.25), (1.0, ShadowSide::Left, 0.25), (100.0, ShadowSide::Left, 1.0), (1.0, ShadowSide::Right, 0.0), (100.0, ShadowSide::Both, 0.25)];
+            for r in sides.iter().flat_map(|(b, side, gate)| both(&d, &c, &PullPushParams { epsilon: eps, levels: 0, background: *b, edge_slope: 0.5, shadow_side: *side, shadow_color_gate: *gate })) {
                 for (a, b) in d.as_slice().iter().zip(r.depth.as_slice()) {
                     prop_assert!(b.is_finite());
                     if *a > 0.0 { prop_assert_eq!(a, b); }
