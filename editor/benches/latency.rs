@@ -17,7 +17,9 @@
 //!
 //! The peer in the same run is the same request with a cold cache (every
 //! node runs), which is what an editor without the cache would wait for.
-//! `DEPTHGRAPH_LATENCY_PARTS=slider,drag,focus` picks the gestures.
+//! `DEPTHGRAPH_LATENCY_PARTS=slider,drag,focus` picks the gestures;
+//! `DEPTHGRAPH_BACKEND=gpu` (or `auto`) runs the device kinds on a wgpu
+//! adapter (default `cpu`).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -125,19 +127,44 @@ fn measure(mut g: Gesture, out: &std::path::Path) -> Result<String, String> {
     ))
 }
 
-fn graph(file: &str) -> Result<EditorModel, String> {
+fn graph(file: &str, reg: &Arc<Registry>) -> Result<EditorModel, String> {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../graphs")
         .join(file);
-    let reg = Arc::new(depthgraph_nodes::registry().map_err(|e| e.to_string())?);
-    EditorModel::load(&path, reg)
+    EditorModel::load(&path, reg.clone())
 }
 
-fn slider() -> Result<Gesture, String> {
+/// The registry with the device kinds `DEPTHGRAPH_BACKEND` asks for
+/// (`cpu`, the default here so that numbers stay comparable across
+/// machines; `gpu` or `auto`), and a line saying what was chosen.
+fn registry() -> Result<(Arc<Registry>, String), String> {
+    #[allow(unused_mut)]
+    let mut reg = depthgraph_nodes::registry().map_err(|e| e.to_string())?;
+    let name = std::env::var("DEPTHGRAPH_BACKEND").unwrap_or_else(|_| "cpu".to_string());
+    #[cfg(feature = "gpu")]
+    {
+        let req = depthgraph_gpu::BackendRequest::parse(&name)
+            .ok_or_else(|| format!("DEPTHGRAPH_BACKEND `{name}`: expected auto, cpu or gpu"))?;
+        let c =
+            depthgraph_gpu::choose(req, &mut reg).map_err(|e| format!("backend {name}: {e}"))?;
+        Ok((Arc::new(reg), format!("backend {} ({})", c.used, c.reason)))
+    }
+    #[cfg(not(feature = "gpu"))]
+    {
+        match name.as_str() {
+            "cpu" | "auto" => Ok((Arc::new(reg), "backend cpu (built without `gpu`)".into())),
+            _ => Err(format!(
+                "DEPTHGRAPH_BACKEND `{name}`: built without the `gpu` feature"
+            )),
+        }
+    }
+}
+
+fn slider(reg: &Arc<Registry>) -> Result<Gesture, String> {
     Ok(Gesture {
         name: "slider",
         what: "demo 640x480, Kinect `noise_k`",
-        model: graph("demo.ron")?,
+        model: graph("demo.ron", reg)?,
         targets: vec!["kinect".into(), "scene".into()],
         shown: "kinect.depth",
         cached: &["scene"],
@@ -153,8 +180,8 @@ fn slider() -> Result<Gesture, String> {
     })
 }
 
-fn drag() -> Result<Gesture, String> {
-    let mut m = graph("copy_paste_relit.ron")?;
+fn drag(reg: &Arc<Registry>) -> Result<Gesture, String> {
+    let mut m = graph("copy_paste_relit.ron", reg)?;
     for n in ["source", "target"] {
         m.set_param(n, "width", ParamValue::Int(640))?;
         m.set_param(n, "height", ParamValue::Int(480))?;
@@ -200,8 +227,8 @@ fn drag() -> Result<Gesture, String> {
     })
 }
 
-fn focus() -> Result<Gesture, String> {
-    let mut m = graph("refocus.ron")?;
+fn focus(reg: &Arc<Registry>) -> Result<Gesture, String> {
+    let mut m = graph("refocus.ron", reg)?;
     m.set_param("refocus", "samples", ParamValue::Int(64))?;
     Ok(Gesture {
         name: "focus",
@@ -230,8 +257,9 @@ fn main() -> Result<(), String> {
     let parts = std::env::var("DEPTHGRAPH_LATENCY_PARTS")
         .unwrap_or_else(|_| "slider,drag,focus".to_string());
     let out = std::env::temp_dir().join("depthgraph-latency-bench");
+    let (reg, backend) = registry()?;
     println!(
-        "Edit -> re-run -> preview picture, ms ({} threads, {} profile)",
+        "Edit -> re-run -> preview picture, ms ({} threads, {} profile, {backend})",
         rayon_threads(),
         if cfg!(debug_assertions) {
             "dev"
@@ -246,9 +274,9 @@ fn main() -> Result<(), String> {
     println!("|---|---|---:|---:|---:|---:|---:|");
     for part in parts.split(',').map(str::trim) {
         let g = match part {
-            "slider" => slider()?,
-            "drag" => drag()?,
-            "focus" => focus()?,
+            "slider" => slider(&reg)?,
+            "drag" => drag(&reg)?,
+            "focus" => focus(&reg)?,
             "" => continue,
             other => return Err(format!("unknown part `{other}`: slider, drag or focus")),
         };
@@ -257,6 +285,12 @@ fn main() -> Result<(), String> {
     Ok(())
 }
 
+/// The worker threads rayon's global pool starts with: `RAYON_NUM_THREADS`
+/// when set to a positive count, else the available parallelism.
 fn rayon_threads() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get())
+    std::env::var("RAYON_NUM_THREADS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|n| *n > 0)
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }

@@ -5,7 +5,7 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
-use depthgraph_gpu::edges::ABS_TOL;
+use depthgraph_gpu::edges::strength_tol;
 use depthgraph_gpu::parity::edges_within;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::select::edges::{DepthTerm, EdgeParams};
@@ -66,8 +66,9 @@ fn edges_agree_with_the_cpu_within_their_stated_bound() {
         let (cpu, dev) = both("EdgeDetect", &i, &p.to_values());
         let (sa, ea) = outs(&cpu);
         let (sb, eb) = outs(&dev);
-        let (worst, ambiguous) = edges_within((&sa, &ea), (&sb, &eb), p.threshold, ABS_TOL)
-            .unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        let (worst, ambiguous) =
+            edges_within((&sa, &ea), (&sb, &eb), p.threshold, strength_tol(&p))
+                .unwrap_or_else(|e| panic!("{p:?}: {e}"));
         eprintln!(
             "{:?}: max |ds| {worst:.2e}, {ambiguous} ambiguous edge bits differ",
             p.depth_term
@@ -83,10 +84,11 @@ fn the_edges_check_fails_on_a_perturbed_result() {
     let (cpu, dev) = both("EdgeDetect", &i, &p.to_values());
     let (sa, ea) = outs(&cpu);
     let (sb, eb) = outs(&dev);
-    assert!(edges_within((&sa, &ea), (&sb, &eb), p.threshold, ABS_TOL).is_ok());
+    let tol = strength_tol(&p);
+    assert!(edges_within((&sa, &ea), (&sb, &eb), p.threshold, tol).is_ok());
     let mut off = (*sb).clone();
-    off.as_mut_slice()[100] += 3.0 * ABS_TOL as f32;
-    assert!(edges_within((&sa, &ea), (&off, &eb), p.threshold, ABS_TOL).is_err());
+    off.as_mut_slice()[100] += 3.0 * tol as f32;
+    assert!(edges_within((&sa, &ea), (&off, &eb), p.threshold, tol).is_err());
     // an edge bit set where the strength is far below the threshold
     let t = sa
         .as_slice()
@@ -95,5 +97,5 @@ fn the_edges_check_fails_on_a_perturbed_result() {
         .unwrap();
     let mut flipped = (*eb).clone();
     flipped.as_mut_slice()[t] = 1.0 - flipped.as_slice()[t];
-    assert!(edges_within((&sa, &ea), (&sb, &flipped), p.threshold, ABS_TOL).is_err());
+    assert!(edges_within((&sa, &ea), (&sb, &flipped), p.threshold, tol).is_err());
 }

@@ -172,15 +172,16 @@ fn check(file: &str, expect_device: &[&str]) {
                         (Value::Mask(ea), Value::Mask(eb)) => (ea.clone(), eb.clone()),
                         _ => panic!("{file} {key}: no edges"),
                     };
-                    let threshold = match n.params.get("threshold") {
-                        Some(ParamValue::Float(t)) => *t,
-                        _ => 0.5,
-                    };
+                    let ep =
+                        <depthgraph_nodes::select::edges::EdgeParams as NodeParams>::from_values(
+                            &n.params,
+                        )
+                        .unwrap_or_else(|e| panic!("{file} {key}: parameters: {e}"));
                     let (worst, amb) = depthgraph_gpu::parity::edges_within(
                         (x, &ea),
                         (y, &eb),
-                        threshold,
-                        depthgraph_gpu::edges::ABS_TOL,
+                        ep.threshold,
+                        depthgraph_gpu::edges::strength_tol(&ep),
                     )
                     .unwrap_or_else(|e| panic!("{file} {key}: {e}"));
                     eprintln!(
