@@ -46,7 +46,9 @@ struct Level {
     ch: u32,
     c_off: u32,
     dual: u32,
-    _pad0: u32,
+    /// 1: the push reads `shadow` per hole; 0: every hole takes the
+    /// background side (no masks: `shadow` holds one unused word)
+    masked: u32,
     epsilon: f32,
     scale_f: f32,
     kfx: f32,
@@ -120,6 +122,24 @@ fn fill(
         .last()
         .map(|&(lw, lh, off)| off + lw * lh)
         .unwrap_or(w * h);
+    // the holes the background side applies to (the CPU's decision), one
+    // word per pixel of every level; without masks every hole is, and the
+    // buffer holds one unused word (a binding is never empty)
+    let masks = shadow_masks(depth, weights, p, n_levels);
+    let masked = u32::from(masks.is_some());
+    let shadow_words: Vec<u32> = match masks {
+        Some(masks) => masks
+            .iter()
+            .flat_map(|m| m.iter().map(|b| u32::from(*b)))
+            .collect(),
+        None => vec![0u32],
+    };
+    if masked == 1 && shadow_words.len() != total {
+        return Err(NodeError::Internal(format!(
+            "shadow masks hold {} pixels, the pyramid {total}",
+            shadow_words.len()
+        )));
+    }
     let k = dual.map(|(_, k)| *k);
     let block = |r: usize| {
         let (fw, fh, f_off) = dims[r];
@@ -132,7 +152,7 @@ fn fill(
             ch: ch as u32,
             c_off: c_off as u32,
             dual: u32::from(dual.is_some()),
-            _pad0: 0,
+            masked,
             epsilon: p.epsilon as f32,
             scale_f: 0.5f64.powi(r as i32) as f32,
             kfx: k.map_or(1.0, |k| k.fx as f32),
@@ -157,21 +177,6 @@ fn fill(
         Some((c, _)) => s.image(c, bytes_of(c.as_slice()))?,
         None => Arc::new(s.scratch(16)?),
     };
-    // the holes the background side applies to (the CPU's decision), one
-    // word per pixel of every level; all ones when every hole is
-    let shadow_words: Vec<u32> = match shadow_masks(depth, weights, p, n_levels) {
-        Some(masks) => masks
-            .iter()
-            .flat_map(|m| m.iter().map(|b| u32::from(*b)))
-            .collect(),
-        None => vec![1u32; total],
-    };
-    if shadow_words.len() != total {
-        return Err(NodeError::Internal(format!(
-            "shadow masks hold {} pixels, the pyramid {total}",
-            shadow_words.len()
-        )));
-    }
     let shadow_buf = s.upload(bytemuck::cast_slice(&shadow_words))?;
     let lz = s.scratch(4 * total as u64)?;
     let lw = s.scratch(4 * total as u64)?;

@@ -17,7 +17,9 @@ struct Level {
     c_off: u32,
     // 1 for the dual weights (eq. 2-4)
     dual: u32,
-    _pad0: u32,
+    // 1: `shadow` says per hole whether it takes the background side; 0:
+    // every hole does (`shadow` holds one unused word)
+    masked: u32,
     epsilon: f32,
     // intrinsics scale of the finer level (2^-r); the coarser is half
     scale_f: f32,
@@ -42,7 +44,7 @@ struct Level {
 @group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(7) var<storage, read_write> out_filled: array<f32>;
 // the holes the background side applies to in the push, one word per pixel
-// of every level (the CPU's shadow_masks; all ones when every hole is)
+// of every level (the CPU's shadow_masks), read when L.masked is 1
 @group(0) @binding(8) var<storage, read> shadow: array<u32>;
 
 // The mark of a filled pixel: valid for the next finer level (the CPU's
@@ -160,7 +162,7 @@ fn push(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     // beta of this hole: the background side for the shadows only
-    let beta = select(0.0, L.beta, shadow[i] != 0u);
+    let beta = select(0.0, L.beta, L.masked == 0u || shadow[i] != 0u);
     // coarse coordinates of the fine pixel centre (exact in f32)
     let cxf = (f32(x) + 0.5) * 0.5 - 0.5;
     let cyf = (f32(y) + 0.5) * 0.5 - 0.5;
