@@ -15,45 +15,116 @@
 //!   [`EXACT_BELOW`], far above the subnormal range, the target is handed
 //!   back ([`Finish::Exact`]) and run again with [`Acc`]'s running maximum.
 //!
-//! **Precision.** The exponential is [`exp_neg`] (relative error < 1e-12),
-//! the sums are f64 as in [`Acc`]; a weight's relative error `δ` moves the
-//! estimate by at most `δ (hi - lo)` (the range of the averaged depths), so
-//! the results equal [`Acc`]'s to about 1e-12 of the window's depth range
-//! (tested against it).
+//! **Two precisions.** [`DepthRows`] runs in f32 or f64 (`E`): the patch
+//! distances of the band (its `Real`), the discontinuity term, the
+//! exponential and the priors; the weight sums of eq. 1 (`Z_i` and
+//! `sum w v`) are f64 in both, the similarity sums (the confidence) in
+//! `E`. The CPU runner takes f32 (eight lanes where f64 has four) when
+//! every target is a source itself (denoising: its own term weighs its
+//! confidence, so the weights that count never underflow), f64 otherwise
+//! (holes being inpainted may have every candidate more than 87 units of
+//! exponent away, where f32 has nothing left).
+//!
+//! - f64: the exponential is [`exp_neg`] (relative error < 1e-12); the
+//!   results equal [`Acc`]'s to about 1e-12 of the window's depth range.
+//! - f32, against the f64 pass ([`PerPair`] with [`Acc`], the reference
+//!   the GPU is checked against too), with `u = 2^-24`: a patch distance
+//!   is a sum of at most `(2r+1)^2` non-negative per-pixel terms (each
+//!   within `5u`), weighted by the box coefficients, so its relative error
+//!   is below `((2r+1)^2 + 8) u`, `33u = 2e-6` at the default `r = 2`; the
+//!   exponent `x` of a weight is off by at most that times `|x|`, and only
+//!   weights with `|x| <= 87` are not 0 in f32 (`exp(-87)` is f32's last
+//!   normal value). With [`exp_neg_f32`]'s `5e-7` a weight's relative error
+//!   is `δ <= 33u * 87 + 5e-7 = 1.8e-4` (the background factor, when on,
+//!   adds `3 β u`: `9e-6` at the default `β = 50`); in clean data the
+//!   weights that count have `|x|` of a few units and `δ` is near `1e-5`.
+//!   Weights off by `δ` move the estimate by at most `δ / (1 - δ)` of the
+//!   range of the averaged depths `hi - lo`, and the f64 sums add nothing
+//!   of note: **`|Δz| <= 2.5e-4 (hi - lo)`** plus the final rounding to
+//!   f32, and the confidence (a ratio of f32 sums of at most `(2R+1)^2`
+//!   terms) within `2.5e-4 + 2 (2R+1)^2 u`. Tested against the f64 pass
+//!   below, and in `NLMeansDepth`'s results at 640x480 (the depth bench).
 
-use crate::kit::fast_exp::exp_neg;
+use std::marker::PhantomData;
+
+use crate::kit::fast_exp::{exp_neg, exp_neg_f32};
 
 use super::pass::*;
 
-/// Weight sums below this are recomputed with the running maximum: the
-/// sum's largest term is then above `EXACT_BELOW / (2R+1)^2`, still far
-/// from the subnormal range, so every sum kept has full f64 precision.
-pub(super) const EXACT_BELOW: f64 = 1e-280;
+/// The float type of a [`DepthRows`] pass: its patch distances, weights
+/// and similarity sums (the weight sums of eq. 1 are f64 in both).
+pub(super) trait Weight: Real {
+    /// Weight sums below this are recomputed with the running maximum (in
+    /// f64).
+    const EXACT_BELOW: f64;
+    /// `exp(x)` for `x <= 0`, branch-free.
+    fn exp_neg(self) -> Self;
+}
+
+impl Weight for f32 {
+    /// The sum's largest term is then above `EXACT_BELOW / (2R+1)^2`
+    /// (`2.7e-34` at the largest window), far from f32's subnormal range
+    /// (`1.2e-38`), so the terms lost there weigh less than `2e-8` of the sum.
+    const EXACT_BELOW: f64 = 1e-30;
+    #[inline(always)]
+    fn exp_neg(self) -> f32 {
+        exp_neg_f32(self)
+    }
+}
+
+impl Weight for f64 {
+    /// The sum's largest term is then above `EXACT_BELOW / (2R+1)^2`,
+    /// still far from the subnormal range, so every sum kept has full f64
+    /// precision.
+    const EXACT_BELOW: f64 = 1e-280;
+    #[inline(always)]
+    fn exp_neg(self) -> f64 {
+        exp_neg(self)
+    }
+}
+
+/// The depth kernel's vectorised rows in `E` (f32 or f64; module docs).
+pub(super) struct DepthRows<'k, 'a, E> {
+    pub(super) kernel: &'k DepthKernel<'a>,
+    _weight: PhantomData<E>,
+}
+
+impl<'k, 'a, E: Weight> DepthRows<'k, 'a, E> {
+    pub(super) fn new(kernel: &'k DepthKernel<'a>) -> Self {
+        Self {
+            kernel,
+            _weight: PhantomData,
+        }
+    }
+}
 
 /// [`Acc`]'s sums for a band, plane by plane, relative to exponent 0.
-pub(super) struct DepthSums {
-    sim: Vec<f64>,
-    sim_conf: Vec<f64>,
+pub(super) struct DepthSums<E> {
+    sim: Vec<E>,
+    sim_conf: Vec<E>,
     w: Vec<f64>,
     wv: Vec<f64>,
-    /// The range of the averaged depths (f32 values, held as f64).
-    lo: Vec<f64>,
-    hi: Vec<f64>,
+    /// The range of the averaged depths.
+    lo: Vec<f32>,
+    hi: Vec<f32>,
+    /// One row's weights, between the loop in `E` and the f64 sums.
+    wgt: Vec<E>,
 }
 
 /// The slices of one row of [`DepthSums`].
-struct RowSums<'a> {
-    sim: &'a mut [f64],
-    sim_conf: &'a mut [f64],
+struct RowSums<'a, E> {
+    sim: &'a mut [E],
+    sim_conf: &'a mut [E],
     w: &'a mut [f64],
     wv: &'a mut [f64],
-    lo: &'a mut [f64],
-    hi: &'a mut [f64],
+    lo: &'a mut [f32],
+    hi: &'a mut [f32],
+    wgt: &'a mut [E],
 }
 
 /// One row's inputs, all aligned with its targets.
-struct RowIn<'a> {
-    dist: &'a [f64],
+struct RowIn<'a, E> {
+    dist: &'a [E],
     zi: &'a [f32],
     ci: &'a [f32],
     zj: &'a [f32],
@@ -62,22 +133,24 @@ struct RowIn<'a> {
     z_max: &'a [f32],
 }
 
-impl RowKernel for DepthKernel<'_> {
-    type Sums = DepthSums;
+impl<E: Weight> RowKernel for DepthRows<'_, '_, E> {
+    type Real = E;
+    type Sums = DepthSums<E>;
 
-    fn sums(&self, len: usize) -> DepthSums {
+    fn sums(&self, len: usize) -> DepthSums<E> {
         DepthSums {
-            sim: vec![0.0; len],
-            sim_conf: vec![0.0; len],
+            sim: vec![E::ZERO; len],
+            sim_conf: vec![E::ZERO; len],
             w: vec![0.0; len],
             wv: vec![0.0; len],
-            lo: vec![f64::INFINITY; len],
-            hi: vec![f64::NEG_INFINITY; len],
+            lo: vec![f32::INFINITY; len],
+            hi: vec![f32::NEG_INFINITY; len],
+            wgt: vec![E::ZERO; len],
         }
     }
 
     #[inline(always)]
-    fn add_row(&self, w: usize, row: &RowCands, s: &mut DepthSums) {
+    fn add_row(&self, w: usize, row: &RowCands<E>, s: &mut DepthSums<E>) {
         // Runs of consecutive targets: a dense row is one run, the scattered
         // holes of an inpainting pass cost only their own pixels. Each pixel's
         // arithmetic is the same whatever run it is in.
@@ -97,41 +170,41 @@ impl RowKernel for DepthKernel<'_> {
         }
     }
 
-    fn finish(&self, s: &DepthSums, k: usize) -> Finish {
+    fn finish(&self, s: &DepthSums<E>, k: usize) -> Finish {
         // a NaN sum is handed back too
-        if s.w[k].is_nan() || s.w[k] < EXACT_BELOW {
+        if s.w[k].is_nan() || s.w[k] < E::EXACT_BELOW {
             return Finish::Exact;
         }
         let acc = Acc {
             ms: 0.0,
-            sim: s.sim[k],
-            sim_conf: s.sim_conf[k],
+            sim: s.sim[k].to_f64(),
+            sim_conf: s.sim_conf[k].to_f64(),
             mw: 0.0,
             w: s.w[k],
             wv: s.wv[k],
-            // exact: the bounds are f32 depths
-            lo: s.lo[k] as f32,
-            hi: s.hi[k] as f32,
+            lo: s.lo[k],
+            hi: s.hi[k],
         };
         Finish::Done(acc.finish())
     }
 }
 
-impl DepthKernel<'_> {
+impl<E: Weight> DepthRows<'_, '_, E> {
     /// [`RowKernel::add_row`] for the targets `run` of the row.
     #[inline(always)]
-    fn run(&self, w: usize, row: &RowCands, run: std::ops::Range<usize>, s: &mut DepthSums) {
+    fn run(&self, w: usize, row: &RowCands<E>, run: std::ops::Range<usize>, s: &mut DepthSums<E>) {
+        let k = self.kernel;
         let n = run.len();
         let i0 = row.y * w + row.x0 + run.start;
         let j0 = ((row.yj * w + row.x0 + run.start) as isize + row.dx) as usize;
         let at = row.at + run.start..row.at + run.end;
         let rin = RowIn {
             dist: &row.dist[run],
-            zi: &self.z[i0..i0 + n],
-            ci: &self.c[i0..i0 + n],
-            zj: &self.z[j0..j0 + n],
-            cj: &self.c[j0..j0 + n],
-            z_max: match self.background {
+            zi: &k.z[i0..i0 + n],
+            ci: &k.c[i0..i0 + n],
+            zj: &k.z[j0..j0 + n],
+            cj: &k.c[j0..j0 + n],
+            z_max: match k.background {
                 Some((_, _, m)) => &m[i0..i0 + n],
                 None => &[],
             },
@@ -143,8 +216,9 @@ impl DepthKernel<'_> {
             wv: &mut s.wv[at.clone()],
             lo: &mut s.lo[at.clone()],
             hi: &mut s.hi[at],
+            wgt: &mut s.wgt[..n],
         };
-        match (self.far.is_some(), self.background.is_some()) {
+        match (k.far.is_some(), k.background.is_some()) {
             (false, false) => self.row::<false, false>(&rin, out),
             (true, false) => self.row::<true, false>(&rin, out),
             (false, true) => self.row::<false, true>(&rin, out),
@@ -154,96 +228,103 @@ impl DepthKernel<'_> {
 
     /// [`DepthKernel::add`] for every target of a row, relative to exponent 0.
     #[inline(always)]
-    fn row<const FAR: bool, const BG: bool>(&self, r: &RowIn, s: RowSums) {
-        let (beta, tau) = self.background.map_or((0.0, 0.0), |(b, t, _)| (b, t));
+    fn row<const FAR: bool, const BG: bool>(&self, r: &RowIn<E>, s: RowSums<E>) {
+        let k = self.kernel;
+        let (beta, tau) = k.background.map_or((0.0, 0.0), |(b, t, _)| (b, t));
         let n = r.dist.len();
         let z_max = if BG { &r.z_max[..n] } else { &[][..] };
-        row_sums::<FAR, BG>(
+        row_sums::<E, FAR, BG>(
             RowConsts {
-                inv_hd2: self.inv_hd2,
-                inv_ref: self.far.unwrap_or(0.0),
-                beta,
-                tau,
+                inv_hd2: E::of_f64(k.inv_hd2),
+                inv_ref: E::of_f64(k.far.unwrap_or(0.0)),
+                beta: E::of_f64(beta),
+                tau: E::of_f64(tau),
             },
-            (&r.dist[..n], &r.zi[..n], &r.ci[..n], &r.zj[..n], &r.cj[..n]),
-            z_max,
-            (&mut s.sim[..n], &mut s.sim_conf[..n]),
-            (&mut s.w[..n], &mut s.wv[..n]),
-            (&mut s.lo[..n], &mut s.hi[..n]),
+            RowIn {
+                dist: &r.dist[..n],
+                zi: &r.zi[..n],
+                ci: &r.ci[..n],
+                zj: &r.zj[..n],
+                cj: &r.cj[..n],
+                z_max,
+            },
+            s,
         );
     }
 }
 
 /// The constants of [`row_sums`].
 #[derive(Clone, Copy)]
-struct RowConsts {
-    inv_hd2: f64,
+struct RowConsts<E> {
+    inv_hd2: E,
     /// `1 / z_ref` of the far-depth prior.
-    inv_ref: f64,
+    inv_ref: E,
     /// The background side's `β` and `τ`.
-    beta: f64,
-    tau: f64,
+    beta: E,
+    tau: E,
 }
 
-/// Patch distances, then target depth and confidence, then candidate depth
-/// and confidence, of one run of targets.
-type RowSlices<'a> = (&'a [f64], &'a [f32], &'a [f32], &'a [f32], &'a [f32]);
-
-/// The row loop of [`DepthKernel::row`]. Every slice is its own argument
-/// (so the compiler knows they do not overlap) of one length (so it drops
-/// the bounds checks), and the body has no branch: the loop vectorises
-/// (inlined into the pass's band, with the instructions it was compiled for).
+/// The row loops of [`DepthRows::row`]. Every slice is reborrowed at one
+/// length (so the compiler drops the bounds checks), and the bodies have
+/// no branch: the loops vectorise (inlined into the pass's band, with the
+/// instructions it was compiled for). The first loop runs in `E` only (in
+/// f32: eight lanes), the second adds the weights to the f64 sums.
 #[inline(always)]
-fn row_sums<const FAR: bool, const BG: bool>(
-    k: RowConsts,
-    (dist, zi, ci, zj, cjs): RowSlices,
-    z_max: &[f32],
-    (sim, sim_conf): (&mut [f64], &mut [f64]),
-    (sw, swv): (&mut [f64], &mut [f64]),
-    (lo, hi): (&mut [f64], &mut [f64]),
+fn row_sums<E: Weight, const FAR: bool, const BG: bool>(
+    k: RowConsts<E>,
+    r: RowIn<E>,
+    s: RowSums<E>,
 ) {
-    let n = dist.len();
-    let (zi, ci, zj, cjs) = (&zi[..n], &ci[..n], &zj[..n], &cjs[..n]);
+    let n = r.dist.len();
+    let (dist, zi, ci, zj, cjs) = (&r.dist[..n], &r.zi[..n], &r.ci[..n], &r.zj[..n], &r.cj[..n]);
+    let z_max = if BG { &r.z_max[..n] } else { &[][..] };
     let (sim, sim_conf, sw, swv) = (
-        &mut sim[..n],
-        &mut sim_conf[..n],
-        &mut sw[..n],
-        &mut swv[..n],
+        &mut s.sim[..n],
+        &mut s.sim_conf[..n],
+        &mut s.w[..n],
+        &mut s.wv[..n],
     );
-    let (lo, hi) = (&mut lo[..n], &mut hi[..n]);
+    let (lo, hi, wbuf) = (&mut s.lo[..n], &mut s.hi[..n], &mut s.wgt[..n]);
+    let (zero, one) = (E::ZERO, E::of_f32(1.0));
     for i in 0..n {
-        // Confidences are in [0, 1] (sanitised): `positive` is exactly 1 for
-        // any c > 0 (even subnormal) and 0 for c = 0, without a select the
-        // compiler would have to combine across lanes.
-        let positive = |c: f64| (c * 1e300).min(1.0);
-        let cj = cjs[i] as f64;
-        let zjd = zj[i] as f64;
-        // Discontinuity factor xi_ij (eq. 3) of a source where the centre has depth.
-        let dz = zi[i] as f64 - zjd;
-        let xi = dz * dz * k.inv_hd2 * (positive(cj) * positive(ci[i] as f64));
-        let e = exp_neg(-(dist[i] + xi));
+        let cj = E::of_f32(cjs[i]);
+        let zjv = E::of_f32(zj[i]);
+        // Discontinuity factor xi_ij (eq. 3) of a source where the centre
+        // has depth (a select, not a product: 0 * inf would be NaN).
+        let dz = E::of_f32(zi[i]) - zjv;
+        let xi = if (cjs[i] > 0.0) & (ci[i] > 0.0) {
+            dz * dz * k.inv_hd2
+        } else {
+            zero
+        };
+        let e = (zero - (dist[i] + xi)).exp_neg();
         sim[i] += e;
         // a hole (confidence 0) counts in the similarity only
         let sc = e * cj;
         sim_conf[i] += sc;
         let mut wgt = sc;
         if FAR {
-            let q = zjd * k.inv_ref;
-            wgt *= q * q;
+            let q = zjv * k.inv_ref;
+            wgt = wgt * q * q;
         }
         if BG {
-            let zm = z_max[i] as f64;
+            let zm = E::of_f32(z_max[i]);
             // guard: z_max > 0 (selected after the division; 0 = no
             // source in the window, factor 1)
-            let step = (zm - zjd) / zm;
-            let f = exp_neg(-k.beta * (step - k.tau).max(0.0));
-            wgt *= if zm > 0.0 { f } else { 1.0 };
+            let step = (zm - zjv) / zm;
+            let f = (zero - k.beta * (step - k.tau).max(zero)).exp_neg();
+            wgt = wgt * if z_max[i] > 0.0 { f } else { one };
         }
-        sw[i] += wgt;
-        swv[i] += wgt * zjd;
-        let pos = wgt > 0.0;
-        lo[i] = lo[i].min(if pos { zjd } else { f64::INFINITY });
-        hi[i] = hi[i].max(if pos { zjd } else { f64::NEG_INFINITY });
+        wbuf[i] = wgt;
+        let pos = wgt > zero;
+        lo[i] = lo[i].min(if pos { zj[i] } else { f32::INFINITY });
+        hi[i] = hi[i].max(if pos { zj[i] } else { f32::NEG_INFINITY });
+    }
+    // The weight sums of eq. 1 in f64.
+    for i in 0..n {
+        let wd = wbuf[i].to_f64();
+        sw[i] += wd;
+        swv[i] += wd * zj[i] as f64;
     }
 }
 
@@ -254,11 +335,15 @@ mod tests {
     use crate::depth::nlmeans::params::Core;
     use crate::kit::rng::SplitMix64;
 
-    /// Both kernels over the same pass: (vectorised rows with the exact
-    /// fallback, per pair with the running maximum), per pixel.
-    type Both = (Vec<Option<(f32, f32)>>, Vec<Option<(f32, f32)>>);
+    /// The stated bound of the f32 rows against the f64 pass (module docs):
+    /// the estimate within this fraction of the averaged depths' range.
+    const F32_BOUND: f64 = 2.5e-4;
 
-    fn both(
+    /// Results per pixel: estimate and confidence, `None` without a source.
+    type Results = Vec<Option<(f32, f32)>>;
+
+    /// A test pass: its scene, kernel settings and targets.
+    struct Case {
         w: usize,
         h: usize,
         h_color: f64,
@@ -266,21 +351,31 @@ mod tests {
         far: bool,
         background: bool,
         seed: u64,
-    ) -> (Both, Vec<bool>) {
-        let (guide, z, c) = scene(w, h, hole_rate, seed);
-        let core = Core::new(4, 2, h_color, 0.05).unwrap();
+        /// Targets: every pixel with depth and every third row's holes
+        /// (false: only the pixels with depth, as in denoising).
+        holes: bool,
+    }
+
+    /// The rows in `E` (with the exact fallback for what they hand back)
+    /// and the per-pair pass with the running maximum, per pixel, plus the
+    /// targets handed back and each pixel's window depth range.
+    fn both<E: Weight>(k: &Case) -> (Results, Results, Vec<bool>, Vec<f32>) {
+        let (w, h) = (k.w, k.h);
+        let (guide, z, c) = scene(w, h, k.hole_rate, k.seed);
+        let core = Core::new(4, 2, k.h_color, 0.05).unwrap();
         let pass = Pass::new((w, h), &guide, Some((&z, &c)), core);
         let lm = window_max(&z, &c, w, h, core.search);
         let kernel = DepthKernel {
             z: &z,
             c: &c,
             inv_hd2: core.inv_hd2,
-            far: far.then_some(1.0 / 3.1),
-            background: background.then_some((50.0, 0.05, lm.as_slice())),
+            far: k.far.then_some(1.0 / 3.1),
+            background: k.background.then_some((50.0, 0.05, lm.as_slice())),
         };
-        // denoising targets where there is depth, inpainting elsewhere
-        let targets: Vec<bool> = (0..w * h).map(|i| (i / w) % 3 != 1).collect();
-        let (mut fast, exact) = collect(&pass, &targets, &kernel);
+        let targets: Vec<bool> = (0..w * h)
+            .map(|i| c[i] > 0.0 || (k.holes && (i / w) % 3 != 1))
+            .collect();
+        let (mut fast, exact) = collect(&pass, &targets, &DepthRows::<E>::new(&kernel));
         let mut redo = vec![false; w * h];
         for i in &exact {
             redo[*i] = true;
@@ -290,7 +385,29 @@ mod tests {
             fast[i] = slow_exact[i];
         }
         let (slow, _) = collect(&pass, &targets, &PerPair(&kernel));
-        ((fast, slow), redo)
+        let range = window_range(&z, &c, w, h, core.search);
+        (fast, slow, redo, range)
+    }
+
+    /// The depth range (max - min) of the sources in each pixel's window:
+    /// at least the range `hi - lo` of the values a pass averages there.
+    fn window_range(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
+                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                    for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                        let j = yy * w + xx;
+                        if c[j] > 0.0 {
+                            lo = lo.min(z[j]);
+                            hi = hi.max(z[j]);
+                        }
+                    }
+                }
+                if hi >= lo { hi - lo } else { 0.0 }
+            })
+            .collect()
     }
 
     /// A random guide over two noisy surfaces (1 m and 3 m) with holes at
@@ -313,11 +430,7 @@ mod tests {
     }
 
     /// A pass's results per pixel and the targets it handed back.
-    fn collect<K: RowKernel>(
-        pass: &Pass,
-        targets: &[bool],
-        kernel: &K,
-    ) -> (Vec<Option<(f32, f32)>>, Vec<usize>) {
+    fn collect<K: RowKernel>(pass: &Pass, targets: &[bool], kernel: &K) -> (Results, Vec<usize>) {
         let mut out = vec![None; pass.w * pass.h];
         let mut exact = Vec::new();
         run_pass(pass, targets, kernel, &mut |_| Ok(()), |i, r| match r {
@@ -328,6 +441,8 @@ mod tests {
         (out, exact)
     }
 
+    /// Worst relative differences (depth, confidence); infinite when one
+    /// side has an estimate and the other not.
     fn worst(fast: &[Option<(f32, f32)>], slow: &[Option<(f32, f32)>]) -> (f32, f32) {
         let (mut dz, mut dc) = (0.0f32, 0.0f32);
         for (a, b) in fast.iter().zip(slow) {
@@ -343,10 +458,51 @@ mod tests {
         (dz, dc)
     }
 
+    /// The f32 rows' differences over their stated bounds (module docs),
+    /// worst over the pixels: depth `F32_BOUND (window range)` plus two
+    /// f32 ulps, confidence `F32_BOUND + 2 (2R+1)^2 u`. At most 1 within
+    /// the bounds; infinite when one side has an estimate and the other not.
+    fn over_f32_bound(
+        fast: &[Option<(f32, f32)>],
+        slow: &[Option<(f32, f32)>],
+        range: &[f32],
+    ) -> f64 {
+        let conf_bound = F32_BOUND + 2.0 * 81.0 * f32::EPSILON as f64 / 2.0;
+        let mut worst = 0.0f64;
+        for ((a, b), r) in fast.iter().zip(slow).zip(range) {
+            match (a, b) {
+                (Some((za, ca)), Some((zb, cb))) => {
+                    let allowed = F32_BOUND * *r as f64 + 2.0 * (*zb as f64) * f32::EPSILON as f64;
+                    worst = worst.max((za - zb).abs() as f64 / allowed);
+                    worst = worst.max((ca - cb).abs() as f64 / conf_bound);
+                }
+                (None, None) => {}
+                _ => return f64::INFINITY,
+            }
+        }
+        worst
+    }
+
+    fn case(far: bool, background: bool, holes: bool) -> Case {
+        Case {
+            w: 37,
+            h: 29,
+            h_color: 0.1,
+            hole_rate: 0.3,
+            far,
+            background,
+            seed: 5,
+            holes,
+        }
+    }
+
+    const SETTINGS: [(bool, bool); 4] =
+        [(false, false), (true, false), (false, true), (true, true)];
+
     #[test]
-    fn rows_agree_with_the_running_maximum() {
-        for (far, background) in [(false, false), (true, false), (false, true), (true, true)] {
-            let ((fast, slow), _) = both(37, 29, 0.1, 0.3, far, background, 5);
+    fn f64_rows_agree_with_the_running_maximum() {
+        for (far, background) in SETTINGS {
+            let (fast, slow, _, _) = both::<f64>(&case(far, background, true));
             let (dz, dc) = worst(&fast, &slow);
             // f32 results: a last-place difference at most
             assert!(
@@ -362,23 +518,60 @@ mod tests {
     }
 
     #[test]
-    fn underflowing_weights_are_run_again_exactly() {
-        // h_color 1e-3: colour differences of ~0.3 give exponents near -1e5,
-        // so a hole's sources all underflow relative to exponent 0.
-        let ((fast, slow), redo) = both(23, 17, 1e-3, 0.5, false, true, 9);
-        assert!(redo.iter().any(|r| *r), "no target needed the exact path");
-        let (dz, dc) = worst(&fast, &slow);
-        assert!(
-            dz <= 2.0 * f32::EPSILON && dc <= 2.0 * f32::EPSILON,
-            "{dz:e} {dc:e}"
-        );
-        // every hole with a source in its window got an estimate
-        let filled = redo.iter().zip(&fast).filter(|(r, v)| **r && v.is_some());
-        assert!(filled.count() > 0);
+    fn f32_rows_stay_within_their_stated_bound() {
+        for holes in [false, true] {
+            for (far, background) in SETTINGS {
+                let (fast, slow, _, range) = both::<f32>(&case(far, background, holes));
+                let over = over_f32_bound(&fast, &slow, &range);
+                assert!(
+                    over <= 1.0,
+                    "holes {holes} far {far} bg {background}: {over}"
+                );
+                assert!(fast.iter().filter(|v| v.is_some()).count() > 500);
+            }
+        }
     }
 
     #[test]
-    fn the_avx2_band_equals_the_plain_band_bit_for_bit() {
+    fn underflowing_weights_are_run_again_exactly() {
+        // f64 rows: h_color 1e-3 gives colour differences of ~0.3
+        // exponents near -1e5, so a hole's sources all underflow relative
+        // to exponent 0; f32 rows underflow below -87, at h_color 0.02.
+        for (h_color, f32_rows) in [(1e-3, false), (0.02, true)] {
+            let k = Case {
+                w: 23,
+                h: 17,
+                h_color,
+                hole_rate: 0.5,
+                far: false,
+                background: true,
+                seed: 9,
+                holes: true,
+            };
+            let (fast, slow, redo, range) = if f32_rows {
+                both::<f32>(&k)
+            } else {
+                both::<f64>(&k)
+            };
+            assert!(redo.iter().any(|r| *r), "no target needed the exact path");
+            if f32_rows {
+                assert!(over_f32_bound(&fast, &slow, &range) <= 1.0);
+            } else {
+                let (dz, dc) = worst(&fast, &slow);
+                assert!(
+                    dz <= 2.0 * f32::EPSILON && dc <= 2.0 * f32::EPSILON,
+                    "{dz:e} {dc:e}"
+                );
+            }
+            // every hole with a source in its window got an estimate
+            let filled = redo.iter().zip(&fast).filter(|(r, v)| **r && v.is_some());
+            assert!(filled.count() > 0);
+        }
+    }
+
+    /// The AVX2 band and the plain one over the same pass, in `E`: the
+    /// number of pixels whose results differ in any bit.
+    fn avx2_differences<E: Weight>() -> usize {
         let (w, h) = (45, 21);
         let (guide, z, c) = scene(w, h, 0.15, 21);
         let core = Core::new(4, 2, 0.1, 0.05).unwrap();
@@ -391,32 +584,53 @@ mod tests {
             far: Some(0.5),
             background: Some((50.0, 0.05, lm.as_slice())),
         };
+        let rows = DepthRows::<E>::new(&kernel);
         let targets = vec![true; w * h];
         let (a, b) = (
-            band(&pass, &targets, &kernel, (0, h), (0, w)),
-            band_body(&pass, &targets, &kernel, (0, h), (0, w)),
+            band(&pass, &targets, &rows, (0, h), (0, w)),
+            band_body(&pass, &targets, &rows, (0, h), (0, w)),
         );
         let (sa, sb) = (a.sums.unwrap(), b.sums.unwrap());
         let bits = |f: Finish| match f {
             Finish::Done(Some((v, c))) => (v.to_bits(), c.to_bits()),
             _ => (0, 0),
         };
-        let differ = (0..w * h)
-            .filter(|&k| bits(kernel.finish(&sa, k)) != bits(kernel.finish(&sb, k)))
-            .count();
-        assert_eq!(differ, 0);
-        assert!((0..w * h).all(|k| kernel.finish(&sa, k) != Finish::Exact));
+        assert!((0..w * h).all(|k| rows.finish(&sa, k) != Finish::Exact));
+        (0..w * h)
+            .filter(|&k| bits(rows.finish(&sa, k)) != bits(rows.finish(&sb, k)))
+            .count()
     }
 
     #[test]
-    fn a_perturbed_kernel_fails_the_comparison() {
-        let ((mut fast, slow), _) = both(19, 13, 0.1, 0.3, false, false, 3);
-        let (dz, _) = worst(&fast, &slow);
-        assert!(dz <= 2.0 * f32::EPSILON);
-        let k = fast.iter().position(|v| v.is_some()).unwrap();
-        if let Some((z, _)) = fast[k].as_mut() {
+    fn the_avx2_band_equals_the_plain_band_bit_for_bit() {
+        assert_eq!(avx2_differences::<f32>(), 0);
+        assert_eq!(avx2_differences::<f64>(), 0);
+    }
+
+    #[test]
+    fn a_perturbed_kernel_fails_the_comparisons() {
+        let k = Case {
+            w: 19,
+            h: 13,
+            seed: 3,
+            ..case(false, false, true)
+        };
+        let (mut fast, slow, _, _) = both::<f64>(&k);
+        assert!(worst(&fast, &slow).0 <= 2.0 * f32::EPSILON);
+        let i = fast.iter().position(|v| v.is_some()).unwrap();
+        if let Some((z, _)) = fast[i].as_mut() {
             *z *= 1.0 + 4.0 * f32::EPSILON;
         }
         assert!(worst(&fast, &slow).0 > 2.0 * f32::EPSILON);
+        // the f32 bound: a pixel moved by twice its allowance fails it
+        let (mut fast, slow, _, range) = both::<f32>(&k);
+        assert!(over_f32_bound(&fast, &slow, &range) <= 1.0);
+        let i = (0..fast.len())
+            .find(|i| fast[*i].is_some() && range[*i] > 0.1)
+            .unwrap();
+        if let Some((z, _)) = fast[i].as_mut() {
+            *z += 2.0 * (F32_BOUND * range[i] as f64) as f32 + 4.0 * *z * f32::EPSILON;
+        }
+        assert!(over_f32_bound(&fast, &slow, &range) > 1.0);
     }
 }

@@ -7,6 +7,7 @@ use depthgraph_graph::prelude::*;
 use rayon::prelude::*;
 
 use super::common::*;
+use super::depth_rows::DepthRows;
 use super::inputs::*;
 use super::job::PassJob;
 use super::params::*;
@@ -141,13 +142,35 @@ impl PassRunner for CpuPass {
         // near underflow) again with the running maximum.
         let mut exact = vec![false; job.w * job.h];
         let mut any_exact = false;
-        run_pass(&pass, job.targets, &kernel, progress, |i, r| match r {
+        let sink = |i: usize, r: Finish| match r {
             Finish::Done(v) => out[i] = v,
             Finish::Exact => {
                 exact[i] = true;
                 any_exact = true;
             }
-        })?;
+        };
+        // In f32 where every target is a source itself (denoising): its own
+        // term weighs its confidence, so the weights that count never
+        // underflow in f32. Holes (inpainting) may have every candidate
+        // 60 or more units of exponent away: those rows run in f64.
+        let sources = job.targets.iter().zip(job.c).all(|(t, c)| !*t || *c > 0.0);
+        if sources {
+            run_pass(
+                &pass,
+                job.targets,
+                &DepthRows::<f32>::new(&kernel),
+                progress,
+                sink,
+            )?;
+        } else {
+            run_pass(
+                &pass,
+                job.targets,
+                &DepthRows::<f64>::new(&kernel),
+                progress,
+                sink,
+            )?;
+        }
         if any_exact {
             // progress stays at 1; cancellation is still checked every wave
             run_pass(

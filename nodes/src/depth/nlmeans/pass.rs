@@ -1,5 +1,6 @@
 //! The NL-means pass (eq. 1-3): patch distances, weights, the weighted average, in bands.
 
+use std::ops::{Add, AddAssign, Div, Mul, Sub};
 use std::sync::Arc;
 
 use depthgraph_graph::prelude::*;
@@ -117,6 +118,84 @@ impl Acc {
     }
 }
 
+/// The float type a pass computes its patch distances in: f64 for the
+/// per-pair kernels ([`PerPair`], the exact reference), f32 for the depth
+/// kernel's vectorised rows (twice the lanes; its bound against the f64
+/// pass is in the `depth_rows` module docs).
+pub(super) trait Real:
+    Copy
+    + Send
+    + Sync
+    + PartialOrd
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + Div<Output = Self>
+    + AddAssign
+    + 'static
+{
+    /// 0.
+    const ZERO: Self;
+    /// An f32 value (exact for both types).
+    fn of_f32(v: f32) -> Self;
+    /// An f64 value, rounded to the type.
+    fn of_f64(v: f64) -> Self;
+    /// The smaller of two values.
+    fn min(self, o: Self) -> Self;
+    /// The larger of two values.
+    fn max(self, o: Self) -> Self;
+    /// The value as f64 (exact for both types).
+    fn to_f64(self) -> f64;
+}
+
+impl Real for f64 {
+    const ZERO: f64 = 0.0;
+    #[inline(always)]
+    fn of_f32(v: f32) -> f64 {
+        v as f64
+    }
+    #[inline(always)]
+    fn of_f64(v: f64) -> f64 {
+        v
+    }
+    #[inline(always)]
+    fn min(self, o: f64) -> f64 {
+        f64::min(self, o)
+    }
+    #[inline(always)]
+    fn max(self, o: f64) -> f64 {
+        f64::max(self, o)
+    }
+    #[inline(always)]
+    fn to_f64(self) -> f64 {
+        self
+    }
+}
+
+impl Real for f32 {
+    const ZERO: f32 = 0.0;
+    #[inline(always)]
+    fn of_f32(v: f32) -> f32 {
+        v
+    }
+    #[inline(always)]
+    fn of_f64(v: f64) -> f32 {
+        v as f32
+    }
+    #[inline(always)]
+    fn min(self, o: f32) -> f32 {
+        f32::min(self, o)
+    }
+    #[inline(always)]
+    fn max(self, o: f32) -> f32 {
+        f32::max(self, o)
+    }
+    #[inline(always)]
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+}
+
 /// What a pass does with a candidate pair.
 pub(super) trait PairKernel: Sync {
     /// Adds candidate `j` to the sums of target `i`; `d >= 0` is their mean
@@ -127,13 +206,13 @@ pub(super) trait PairKernel: Sync {
 /// The candidates of one band row at one search offset: targets at image
 /// columns `x0..x0 + dist.len()` of row `y`, each with the candidate `dx`
 /// columns away on row `yj`.
-pub(super) struct RowCands<'a> {
+pub(super) struct RowCands<'a, R> {
     pub(super) y: usize,
     pub(super) yj: usize,
     pub(super) x0: usize,
     pub(super) dx: isize,
     /// Mean patch distance of each target and its candidate (divided by the h's).
-    pub(super) dist: &'a [f64],
+    pub(super) dist: &'a [R],
     /// Which of the row's pixels are targets (aligned with `dist`).
     pub(super) targets: &'a [bool],
     /// Index of the first target's sums in the band's sums.
@@ -154,12 +233,14 @@ pub(super) enum Finish {
 /// What a pass does with a band row of candidate pairs: [`PerPair`] adapts
 /// any [`PairKernel`]; the depth kernel has its own vectorised rows.
 pub(super) trait RowKernel: Sync {
+    /// The float type of the patch distances the kernel takes.
+    type Real: Real;
     /// The sums of a band's targets.
     type Sums: Send;
     /// Empty sums for `len` targets.
     fn sums(&self, len: usize) -> Self::Sums;
     /// Adds one row of candidates (`w` is the grid's width).
-    fn add_row(&self, w: usize, row: &RowCands, sums: &mut Self::Sums);
+    fn add_row(&self, w: usize, row: &RowCands<Self::Real>, sums: &mut Self::Sums);
     /// The result of target `k` of the sums.
     fn finish(&self, sums: &Self::Sums, k: usize) -> Finish;
 }
@@ -168,13 +249,14 @@ pub(super) trait RowKernel: Sync {
 pub(super) struct PerPair<'a, K>(pub(super) &'a K);
 
 impl<K: PairKernel> RowKernel for PerPair<'_, K> {
+    type Real = f64;
     type Sums = Vec<Acc>;
 
     fn sums(&self, len: usize) -> Vec<Acc> {
         vec![Acc::EMPTY; len]
     }
 
-    fn add_row(&self, w: usize, row: &RowCands, sums: &mut Vec<Acc>) {
+    fn add_row(&self, w: usize, row: &RowCands<f64>, sums: &mut Vec<Acc>) {
         for (k, (&d, &t)) in row.dist.iter().zip(row.targets).enumerate() {
             if !t {
                 continue;
@@ -422,17 +504,24 @@ pub(super) fn band_body<K: RowKernel>(
     (x0, x1): (usize, usize),
 ) -> BandOut<K::Sums> {
     let (w, h) = (pass.w, pass.h);
+    // The rectangle of the tile's targets: only its rows and columns are
+    // computed (a pixel's sums are box sums of its own patch, whatever
+    // rectangle it is in).
     let (mut xa, mut xb) = (x1, x0);
+    let (mut ya, mut yb) = (y1, y0);
     for y in y0..y1 {
         let row = &targets[y * w + x0..y * w + x1];
         if let Some(first) = row.iter().position(|t| *t) {
             xa = xa.min(x0 + first);
+            ya = ya.min(y);
+            yb = y + 1;
         }
         if let Some(last) = row.iter().rposition(|t| *t) {
             xb = xb.max(x0 + last + 1);
         }
     }
-    if xa >= xb {
+    let (y0, y1) = (ya, yb);
+    if xa >= xb || y0 >= y1 {
         return BandOut {
             y0,
             xa: 0,
@@ -447,21 +536,25 @@ pub(super) fn band_body<K: RowKernel>(
     let (ew, eh) = (bw + n - 1, bh + n - 1);
     let pk = PatchKernel::new(r);
     let nb = pk.radii.len();
-    let (inv_hc2, inv_hd2) = (pass.core.inv_hc2, pass.core.inv_hd2);
+    let (inv_hc2, inv_hd2) = (
+        K::Real::of_f64(pass.core.inv_hc2),
+        K::Real::of_f64(pass.core.inv_hd2),
+    );
+    let cap = K::Real::of_f64(pk.cap);
+    let coefs: Vec<K::Real> = pk.coef.iter().map(|c| K::Real::of_f64(*c)).collect();
+    let zero = K::Real::ZERO;
     let big_r = pass.core.search as isize;
     let clampi = |v: isize, len: usize| v.clamp(0, len as isize - 1) as usize;
     let pad = &pass.padded;
     // Extended column e of the band is padded column `e0 + e`; its candidate
     // at offset dx is `e0 + e + dx`.
     let e0 = pad.pad + xa - r;
-    let mut d = vec![0.0f64; ew];
+    let mut d = vec![zero; ew];
     // Horizontal box sums of every extended row, per box.
-    let mut hs = vec![0.0f64; nb * eh * bw];
-    // Vertical box sums of the current row, per box.
-    let mut vs = vec![0.0f64; nb * bw];
+    let mut hs = vec![zero; nb * eh * bw];
     let mut sums = kernel.sums(bw * bh);
     // Patch distances of the current row's targets.
-    let mut drow = vec![0.0f64; bw];
+    let mut drow = vec![zero; bw];
     for dy in -big_r..=big_r {
         // Rows of the band whose candidate row y + dy is inside the image.
         let t0 = (-(y0 as isize) - dy).max(0) as usize;
@@ -482,74 +575,48 @@ pub(super) fn band_body<K: RowKernel>(
                 let y = clampi(y0 as isize - r as isize + er as isize, h);
                 let yo = clampi(y0 as isize - r as isize + er as isize + dy, h);
                 let (ga, gb) = (pad.row(y, e0, ew), pad.row(yo, eo, ew));
-                for (k, de) in d.iter_mut().enumerate() {
-                    let d0 = ga[0][k] - gb[0][k];
-                    let d1 = ga[1][k] - gb[1][k];
-                    let d2 = ga[2][k] - gb[2][k];
-                    *de = (d0 * d0 + d1 * d1 + d2 * d2) as f64 * inv_hc2;
-                }
+                // (the colour term written out in both loops: a closure is
+                // not always inlined, and one called per pixel would run
+                // without the band's vector instructions)
                 if pass.depth.is_some() {
                     let (za, ca) = (pad.z_row(y, e0, ew), pad.c_row(y, e0, ew));
                     let (zb, cb) = (pad.z_row(yo, eo, ew), pad.c_row(yo, eo, ew));
                     for (k, de) in d.iter_mut().enumerate() {
+                        let d0 = ga[0][k] - gb[0][k];
+                        let d1 = ga[1][k] - gb[1][k];
+                        let d2 = ga[2][k] - gb[2][k];
+                        let colour = K::Real::of_f32(d0 * d0 + d1 * d1 + d2 * d2) * inv_hc2;
                         // holes have confidence 0 and depth 0: the term is 0
-                        let cc = ca[k] * cb[k];
-                        let dz = za[k] as f64 - zb[k] as f64;
-                        *de += cc as f64 * dz * dz * inv_hd2;
+                        let cc = K::Real::of_f32(ca[k] * cb[k]);
+                        let dz = K::Real::of_f32(za[k]) - K::Real::of_f32(zb[k]);
+                        *de = (colour + cc * dz * dz * inv_hd2).min(cap);
                     }
-                }
-                for de in d.iter_mut() {
-                    *de = de.min(pk.cap);
+                } else {
+                    for (k, de) in d.iter_mut().enumerate() {
+                        let d0 = ga[0][k] - gb[0][k];
+                        let d1 = ga[1][k] - gb[1][k];
+                        let d2 = ga[2][k] - gb[2][k];
+                        let colour = K::Real::of_f32(d0 * d0 + d1 * d1 + d2 * d2) * inv_hc2;
+                        *de = colour.min(cap);
+                    }
                 }
                 for (b, &sr) in pk.radii.iter().enumerate() {
-                    // Box of radius sr centred on extended column x + r:
-                    // summed directly (no running sum, so no drift, and
-                    // every output independent: the loop vectorises).
+                    // Box of radius sr centred on extended column x + r,
+                    // summed directly (no running sum, so no drift).
                     let lo = r - sr;
                     let hrow = &mut hs[(b * eh + er) * bw..(b * eh + er + 1) * bw];
-                    hrow.copy_from_slice(&d[lo..lo + bw]);
-                    for k in 1..2 * sr + 1 {
-                        for (hv, dv) in hrow.iter_mut().zip(&d[lo + k..lo + k + bw]) {
-                            *hv += dv;
-                        }
-                    }
+                    sum_shifted(hrow, &d[lo..], 2 * sr + 1);
                 }
             }
             // Vertical box sums and the kernel.
             for t in t0..t1 {
-                for (b, &sr) in pk.radii.iter().enumerate() {
-                    let v = &mut vs[b * bw..(b + 1) * bw];
-                    let plane = &hs[b * eh * bw..(b + 1) * eh * bw];
-                    // Rows t + r - sr ..= t + r + sr of the extended band.
-                    let (lo, len) = (t + r - sr, 2 * sr + 1);
-                    if t == t0 {
-                        v.copy_from_slice(&plane[lo * bw..(lo + 1) * bw]);
-                        for k in 1..len {
-                            let row = &plane[(lo + k) * bw..(lo + k + 1) * bw];
-                            for (vx, hv) in v.iter_mut().zip(row) {
-                                *vx += hv;
-                            }
-                        }
-                    } else {
-                        let add = &plane[(lo + len - 1) * bw..(lo + len) * bw];
-                        let sub = &plane[(lo - 1) * bw..lo * bw];
-                        for ((vx, a), s) in v.iter_mut().zip(add).zip(sub) {
-                            *vx += a - s;
-                        }
-                    }
-                }
                 let y = y0 + t;
                 let trow = &targets[y * w + xa + c0..y * w + xa + c1];
                 if !trow.iter().any(|t| *t) {
                     continue;
                 }
                 let dist = &mut drow[c0..c1];
-                dist.fill(0.0);
-                for (b, coef) in pk.coef.iter().enumerate() {
-                    for (dv, v) in dist.iter_mut().zip(&vs[b * bw + c0..b * bw + c1]) {
-                        *dv += coef * v.max(0.0);
-                    }
-                }
+                patch_distances(dist, &hs, (&pk.radii, &coefs), (eh, bw), (t + r, c0));
                 let row = RowCands {
                     y,
                     yj: (y as isize + dy) as usize,
@@ -569,6 +636,86 @@ pub(super) fn band_body<K: RowKernel>(
         bw,
         bh,
         sums: Some(sums),
+    }
+}
+
+/// Lanes of the box-sum loops: each output's sum is held in registers of
+/// this many values while its terms are added (several independent
+/// additions in flight).
+const LANES: usize = 16;
+
+/// `out[x] = sum_{k < n} src[x + k]`, each output summed directly (no
+/// running sum, so no drift), its terms in the order of `k`.
+#[inline(always)]
+fn sum_shifted<R: Real>(out: &mut [R], src: &[R], n: usize) {
+    let len = out.len();
+    let src = &src[..len + n - 1];
+    let mut x = 0;
+    while x + LANES <= len {
+        let mut acc = [R::ZERO; LANES];
+        for k in 0..n {
+            let s = &src[x + k..x + k + LANES];
+            for l in 0..LANES {
+                acc[l] += s[l];
+            }
+        }
+        out[x..x + LANES].copy_from_slice(&acc);
+        x += LANES;
+    }
+    for (x, o) in out.iter_mut().enumerate().skip(x) {
+        let mut a = R::ZERO;
+        for v in &src[x..x + n] {
+            a += *v;
+        }
+        *o = a;
+    }
+}
+
+/// The patch distances of one row of a band's targets, columns
+/// `c0..c0 + dist.len()`: `sum_b coef_b (vertical box sum of radius
+/// sr_b over the horizontal sums hs_b)`, rows centred on extended row
+/// `centre`. Each box sum is summed directly from its rows (no running sum:
+/// in f32 one would drift by an ulp of the largest sum per row), in a
+/// register, then weighted (the order fixed: boxes, then rows).
+#[inline(always)]
+fn patch_distances<R: Real>(
+    dist: &mut [R],
+    hs: &[R],
+    (radii, coefs): (&[usize], &[R]),
+    (eh, bw): (usize, usize),
+    (centre, c0): (usize, usize),
+) {
+    let len = dist.len();
+    let at = |b: usize, row: usize, x: usize| (b * eh + row) * bw + c0 + x;
+    let mut x = 0;
+    while x + LANES <= len {
+        let mut tot = [R::ZERO; LANES];
+        for (b, (&sr, &coef)) in radii.iter().zip(coefs).enumerate() {
+            let mut acc = [R::ZERO; LANES];
+            for row in centre - sr..=centre + sr {
+                let a = at(b, row, x);
+                let s = &hs[a..a + LANES];
+                for l in 0..LANES {
+                    acc[l] += s[l];
+                }
+            }
+            for l in 0..LANES {
+                tot[l] += coef * acc[l];
+            }
+        }
+        dist[x..x + LANES].copy_from_slice(&tot);
+        x += LANES;
+    }
+    for (x, o) in dist.iter_mut().enumerate().skip(x) {
+        let mut tot = R::ZERO;
+        for (b, (&sr, &coef)) in radii.iter().zip(coefs).enumerate() {
+            let mut acc = R::ZERO;
+            for row in centre - sr..=centre + sr {
+                acc += hs[at(b, row, x)];
+            }
+            tot += coef * acc;
+        }
+        *o = tot;
     }
 }
 
