@@ -9,6 +9,9 @@ pub(super) const BAND_ROWS: usize = 32;
 /// Columns per tile of the parallel passes (a band of rows is cut into
 /// tiles; tiles without a target are skipped).
 pub(super) const TILE_COLS: usize = 128;
+/// Rows and columns of the smaller tiles a sparse tile is cut into.
+pub(super) const SPARSE_ROWS: usize = 8;
+pub(super) const SPARSE_COLS: usize = 32;
 /// Tiles processed between two progress reports / cancellation checks.
 pub(super) const WAVE_TILES: usize = 32;
 /// `exp(-x)` is exactly 0 in f64 for `x >= EXP_CUTOFF`: per-pixel patch

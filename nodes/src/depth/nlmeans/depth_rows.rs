@@ -608,6 +608,46 @@ mod tests {
     }
 
     #[test]
+    fn sparse_targets_give_the_results_of_one_whole_tile() {
+        // thin vertical strips and a few dots: run_pass cuts its tiles
+        // small there; one band over the whole image must give the same bits
+        let (w, h) = (150, 40);
+        let (guide, z, c) = scene(w, h, 0.2, 33);
+        let core = Core::new(4, 2, 0.1, 0.05).unwrap();
+        let pass = Pass::new((w, h), &guide, Some((&z, &c)), core);
+        let kernel = DepthKernel {
+            z: &z,
+            c: &c,
+            inv_hd2: core.inv_hd2,
+            far: None,
+            background: None,
+        };
+        let rows = DepthRows::<f64>::new(&kernel);
+        let targets: Vec<bool> = (0..w * h)
+            .map(|i| (i % w) % 37 < 2 || i % 211 == 0)
+            .collect();
+        let (tiled, exact) = collect(&pass, &targets, &rows);
+        assert!(exact.is_empty());
+        let whole = band(&pass, &targets, &rows, (0, h), (0, w));
+        let sums = whole.sums.unwrap();
+        let mut compared = 0;
+        for t in 0..whole.bh {
+            for k in 0..whole.bw {
+                let i = (whole.y0 + t) * w + whole.xa + k;
+                if targets[i] {
+                    let Finish::Done(v) = rows.finish(&sums, t * whole.bw + k) else {
+                        panic!("pixel {i} handed back");
+                    };
+                    let bits = |r: Option<(f32, f32)>| r.map(|(a, b)| (a.to_bits(), b.to_bits()));
+                    assert_eq!(bits(v), bits(tiled[i]), "pixel {i}");
+                    compared += 1;
+                }
+            }
+        }
+        assert_eq!(compared, targets.iter().filter(|t| **t).count());
+    }
+
+    #[test]
     fn a_perturbed_kernel_fails_the_comparisons() {
         let k = Case {
             w: 19,

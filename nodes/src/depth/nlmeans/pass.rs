@@ -734,21 +734,46 @@ pub(super) fn run_pass<K: RowKernel>(
         return Ok(());
     }
     // Tiles of BAND_ROWS x TILE_COLS holding a target: the scattered holes
-    // of an inpainting pass cost only the tiles around them. A pixel's sums
-    // do not depend on its tile (its patch distances are box sums of its own
-    // patch), so neither do the results.
-    let tiles: Vec<((usize, usize), (usize, usize))> = (0..h)
-        .step_by(BAND_ROWS)
-        .flat_map(|y0| {
-            let rows = (y0, (y0 + BAND_ROWS).min(h));
-            (0..w)
-                .step_by(TILE_COLS)
-                .map(move |x0| (rows, (x0, (x0 + TILE_COLS).min(w))))
-        })
-        .filter(|&((y0, y1), (x0, x1))| {
-            (y0..y1).any(|y| targets[y * w + x0..y * w + x1].iter().any(|t| *t))
-        })
-        .collect();
+    // of an inpainting pass cost only the tiles around them, and a tile
+    // whose targets cover less than a quarter of it is cut into tiles of
+    // SPARSE_ROWS x SPARSE_COLS (a thin hole strip then costs the small
+    // tiles along it, not the rectangle around it). A pixel's sums do not
+    // depend on its tile (its patch distances are box sums of its own
+    // patch, each summed directly), so neither do the results.
+    let count = |(y0, y1): (usize, usize), (x0, x1): (usize, usize)| -> usize {
+        (y0..y1)
+            .map(|y| {
+                targets[y * w + x0..y * w + x1]
+                    .iter()
+                    .filter(|t| **t)
+                    .count()
+            })
+            .sum()
+    };
+    let mut tiles: Vec<((usize, usize), (usize, usize))> = Vec::new();
+    for y0 in (0..h).step_by(BAND_ROWS) {
+        let rows = (y0, (y0 + BAND_ROWS).min(h));
+        for x0 in (0..w).step_by(TILE_COLS) {
+            let cols = (x0, (x0 + TILE_COLS).min(w));
+            let n = count(rows, cols);
+            if n == 0 {
+                continue;
+            }
+            if 4 * n >= (rows.1 - rows.0) * (cols.1 - cols.0) {
+                tiles.push((rows, cols));
+                continue;
+            }
+            for sy in (rows.0..rows.1).step_by(SPARSE_ROWS) {
+                let sub_rows = (sy, (sy + SPARSE_ROWS).min(rows.1));
+                for sx in (cols.0..cols.1).step_by(SPARSE_COLS) {
+                    let sub_cols = (sx, (sx + SPARSE_COLS).min(cols.1));
+                    if count(sub_rows, sub_cols) > 0 {
+                        tiles.push((sub_rows, sub_cols));
+                    }
+                }
+            }
+        }
+    }
     let waves = tiles.len().div_ceil(WAVE_TILES).max(1);
     for (k, wave) in tiles.chunks(WAVE_TILES).enumerate() {
         let outs: Vec<BandOut<K::Sums>> = wave
