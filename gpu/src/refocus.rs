@@ -24,6 +24,8 @@
 
 use std::sync::Arc;
 
+use rayon::prelude::*;
+
 use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
@@ -322,19 +324,28 @@ pub fn render(
             )?;
             let rgb = f32s(&back[0]);
             let holes_total: usize = u32s(&back[1]).iter().map(|&c| c as usize).sum();
-            let mut data: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let mut data: Vec<[f32; 3]> = rgb
+                .par_chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect();
             // Inactive pixels are the input times the gain, which the CPU
             // rounds once from f64: take its formula here so they are
             // bit-identical whatever the gain (a fractional stop's f32
-            // product can be an ulp off).
-            let mut changed = false;
-            for ((px, &a), src) in data.iter_mut().zip(&plan.active).zip(&plan.src_color) {
-                if !a {
+            // product can be an ulp off). Pixels in parallel.
+            let changed = data
+                .par_iter_mut()
+                .zip(plan.active.par_iter())
+                .zip(plan.src_color.par_iter())
+                .map(|((px, &a), src)| {
+                    if a {
+                        return false;
+                    }
                     let exact = src.map(|v| (v as f64 * plan.gain) as f32);
-                    changed |= exact.map(f32::to_bits) != px.map(f32::to_bits);
+                    let differs = exact.map(f32::to_bits) != px.map(f32::to_bits);
                     *px = exact;
-                }
-            }
+                    differs
+                })
+                .reduce(|| false, |a, b| a | b);
             let img = Image::from_vec(w, h, data)?;
             // The barrel's share of the unmoved pixels and the image-wide
             // lens effects (magnification per channel, breathing, natural

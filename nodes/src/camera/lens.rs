@@ -462,7 +462,14 @@ pub fn coc_map(depth: &DepthMap, lens: &ThinLens) -> Result<Image<f32>, NodeErro
     lens.validate()?;
     let c = lens.coc_scale(depth.width());
     let inv_u = lens.inv_focus();
-    Ok(depth.map(|&z| (c * (inv_depth(z) - inv_u).abs()) as f32))
+    // pixels in parallel (rayon's collect keeps their order)
+    let (w, h) = depth.dims();
+    let data: Vec<f32> = depth
+        .as_slice()
+        .par_iter()
+        .map(|&z| (c * (inv_depth(z) - inv_u).abs()) as f32)
+        .collect();
+    Ok(Image::from_vec(w, h, data)?)
 }
 
 /// The shape of the aperture, in a frame where the aperture has diameter 1

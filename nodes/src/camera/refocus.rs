@@ -201,13 +201,19 @@ fn sane(c: Rgb) -> Rgb {
 fn active_pixels(coc: &Image<f32>, extent: f64) -> (Vec<bool>, usize) {
     let (w, h) = coc.dims();
     let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    // each row of tiles in parallel
     let mut tile_max = vec![0.0f32; tw * th];
-    for y in 0..h {
-        for (x, &c) in coc.row(y).iter().enumerate() {
-            let t = &mut tile_max[(y / TILE) * tw + x / TILE];
-            *t = t.max(c);
-        }
-    }
+    tile_max
+        .par_chunks_mut(tw.max(1))
+        .enumerate()
+        .for_each(|(ty, tiles)| {
+            for y in ty * TILE..((ty + 1) * TILE).min(h) {
+                for (x, &c) in coc.row(y).iter().enumerate() {
+                    let t = &mut tiles[x / TILE];
+                    *t = t.max(c);
+                }
+            }
+        });
     let mut active_tile = vec![false; tw * th];
     for ty in 0..th {
         for tx in 0..tw {
@@ -229,9 +235,10 @@ fn active_pixels(coc: &Image<f32>, extent: f64) -> (Vec<bool>, usize) {
         }
     }
     let flags: Vec<bool> = (0..w * h)
+        .into_par_iter()
         .map(|i| active_tile[(i / w / TILE) * tw + (i % w) / TILE])
         .collect();
-    let count = flags.iter().filter(|f| **f).count();
+    let count = flags.par_iter().filter(|f| **f).count();
     (flags, count)
 }
 
@@ -402,7 +409,11 @@ pub fn plan(
         coc
     };
     let gain = 2f64.powf(p.exposure_stops);
-    let max_coc = coc.as_slice().iter().fold(0.0f64, |m, &c| m.max(c as f64));
+    let max_coc = coc
+        .as_slice()
+        .par_iter()
+        .fold(|| 0.0f64, |m, &c| m.max(c as f64))
+        .reduce(|| 0.0, f64::max);
     let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
     let barrel = fx.barrel(&lens, w, h);
     if max_coc < MIN_COC_PX || color.is_empty() {
@@ -429,15 +440,28 @@ pub fn plan(
     };
     let points = aperture.samples(n, p.seed)?;
     let (active, n_active) = active_pixels(&coc, aperture.extent());
-    let src_inv_z: Vec<f64> = depth.as_slice().iter().map(|&z| inv_depth(z)).collect();
-    let src_color: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
+    // (per-pixel maps in parallel: rayon's collect keeps the order)
+    let src_inv_z: Vec<f64> = depth.as_slice().par_iter().map(|&z| inv_depth(z)).collect();
+    let src_color: Vec<Rgb> = color.as_slice().par_iter().map(|&c| sane(c)).collect();
     // Sources that can move: active pixels only (see active_pixels), with
     // the high half of their z-buffer key computed once: depth bits (positive
     // floats order like their bits; +inf for the sky) then the source index.
-    let sources: Vec<(u32, u64)> = (0..w * h)
-        .filter(|&i| active[i])
-        .map(|i| (i as u32, zkey(src_inv_z[i], i)))
+    // (rows in parallel, joined in row order)
+    let rows: Vec<Vec<(u32, u64)>> = active
+        .par_chunks(w)
+        .enumerate()
+        .map(|(y, row)| {
+            (y * w..(y + 1) * w)
+                .zip(row)
+                .filter(|(_, a)| **a)
+                .map(|(i, _)| (i as u32, zkey(src_inv_z[i], i)))
+                .collect()
+        })
         .collect();
+    let mut sources: Vec<(u32, u64)> = Vec::with_capacity(n_active);
+    for r in rows {
+        sources.extend(r);
+    }
     let layer = if p.background_layer {
         background_layer(
             w,
