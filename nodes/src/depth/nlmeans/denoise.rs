@@ -102,7 +102,17 @@ fn filter_on(
     let mut out_z = z.clone();
     let mut out_c = vec![0.0f32; w * h];
     let pk = PatchKernel::new(core.patch);
-    let job = PassJob::new((w, h), &guide, (&z, &c), &targets, core, &pk, (None, None));
+    // targets: the pixels with depth; those of confidence 0 (if any) are
+    // handed back by the f32 rows and run exactly
+    let job = PassJob::new(
+        (w, h),
+        &guide,
+        (&z, &c),
+        (&targets, true),
+        core,
+        &pk,
+        (None, None),
+    );
     for (i, r) in checked_run(runner, &job, &mut on_progress)?
         .into_iter()
         .enumerate()

@@ -126,7 +126,7 @@ impl PassRunner for CpuPass {
         let pass = Pass::with_guide((job.w, job.h), guide, Some((job.z, job.c)), core);
         let local_max = job
             .background
-            .map(|_| window_max(job.z, job.c, job.w, job.h, job.search));
+            .map(|_| window_max_on(job.z, job.c, (job.w, job.h), job.search, Some(job.targets)));
         let kernel = DepthKernel {
             z: job.z,
             c: job.c,
@@ -153,8 +153,7 @@ impl PassRunner for CpuPass {
         // term weighs its confidence, so the weights that count never
         // underflow in f32. Holes (inpainting) may have every candidate
         // 60 or more units of exponent away: those rows run in f64.
-        let sources = job.targets.iter().zip(job.c).all(|(t, c)| !*t || *c > 0.0);
-        if sources {
+        if job.targets_are_sources {
             run_pass(
                 &pass,
                 job.targets,
@@ -192,7 +191,20 @@ impl PassRunner for CpuPass {
 /// The largest source depth (confidence > 0) in the `(2r+1)^2` window of
 /// every pixel, clipped to the image (the candidates of a pass); 0 where
 /// the window holds no source. Separable: a row pass, then a column pass.
+#[cfg(test)]
 pub(super) fn window_max(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    window_max_on(z, c, (w, h), r, None)
+}
+
+/// [`window_max`] on the rows holding a target only (0 elsewhere), when
+/// `targets` is given: the later iterations of an inpainting have few.
+pub(super) fn window_max_on(
+    z: &[f32],
+    c: &[f32],
+    (w, h): (usize, usize),
+    r: usize,
+    targets: Option<&[bool]>,
+) -> Vec<f32> {
     if w == 0 || h == 0 {
         return Vec::new();
     }
@@ -203,9 +215,21 @@ pub(super) fn window_max(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> 
             0.0
         }
     };
+    // rows holding a target, and the rows their windows read
+    let wanted: Vec<bool> = match targets {
+        Some(t) => t.par_chunks(w).map(|row| row.iter().any(|t| *t)).collect(),
+        None => vec![true; h],
+    };
+    let mut read = vec![false; h];
+    for (y, _) in wanted.iter().enumerate().filter(|(_, t)| **t) {
+        read[y.saturating_sub(r)..(y + r + 1).min(h)].fill(true);
+    }
     // rows in parallel, then the columns of every output row in parallel
     let mut rows = vec![0.0f32; w * h];
     rows.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
+        if !read[y] {
+            return;
+        }
         let row: Vec<f32> = (y * w..(y + 1) * w).map(src).collect();
         for (x, o) in out.iter_mut().enumerate() {
             let (a, b) = (x.saturating_sub(r), (x + r + 1).min(w));
@@ -214,6 +238,9 @@ pub(super) fn window_max(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> 
     });
     let mut out = vec![0.0f32; w * h];
     out.par_chunks_mut(w).enumerate().for_each(|(y, o)| {
+        if !wanted[y] {
+            return;
+        }
         let (a, b) = (y.saturating_sub(r), (y + r + 1).min(h));
         o.copy_from_slice(&rows[a * w..(a + 1) * w]);
         for yy in a + 1..b {
@@ -256,8 +283,8 @@ pub(super) fn reachable_holes(z: &[f32], c: &[f32], w: usize, h: usize, r: usize
 /// reads the previous state). Returns the number of iterations run.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn inpaint_state(
-    z: &mut Vec<f32>,
-    c: &mut Vec<f32>,
+    z: &mut [f32],
+    c: &mut [f32],
     guide: &[[f32; 3]],
     w: usize,
     h: usize,
@@ -281,14 +308,13 @@ pub(super) fn inpaint_state(
         if !targets.iter().any(|t| *t) {
             break;
         }
-        let (mut nz, mut nc) = (z.clone(), c.clone());
         let mut filled = 0usize;
         let pk = PatchKernel::new(core.patch);
         let job = PassJob::new(
             (w, h),
             guide,
             (z, c),
-            &targets,
+            (&targets, false),
             core,
             &pk,
             (far, background),
@@ -296,15 +322,16 @@ pub(super) fn inpaint_state(
         // Guard: iterations >= 1 inside the loop.
         let scale = 1.0 / iterations as f32;
         let mut sub = |f: f32| progress((it as f32 + f) * scale);
-        for (i, r) in checked_run(runner, &job, &mut sub)?.into_iter().enumerate() {
+        // Jacobi: the pass reads the previous state (the job borrows it),
+        // the results go in once it is done.
+        let results = checked_run(runner, &job, &mut sub)?;
+        for (i, r) in results.into_iter().enumerate() {
             if let (true, Some((v, conf))) = (targets[i], r) {
-                nz[i] = v;
-                nc[i] = conf;
+                z[i] = v;
+                c[i] = conf;
                 filled += 1;
             }
         }
-        *z = nz;
-        *c = nc;
         done = it + 1;
         if filled == 0 {
             break;

@@ -20,6 +20,10 @@ pub struct PassJob<'a> {
     pub c: &'a [f32],
     /// The pixels to estimate.
     pub targets: &'a [bool],
+    /// Every target is a source itself (denoising; no hole among them):
+    /// its own term keeps its weights from underflowing, so a runner may
+    /// compute them in f32 (see `depth_rows`). Holes being inpainted: false.
+    pub targets_are_sources: bool,
     /// Search radius (candidates in a `(2R+1)^2` window inside the image).
     pub search: usize,
     /// Patch radius `r` (patch pixels at clamped coordinates).
@@ -48,7 +52,7 @@ impl<'a> PassJob<'a> {
         (w, h): (usize, usize),
         guide: &'a [[f32; 3]],
         (z, c): (&'a [f32], &'a [f32]),
-        targets: &'a [bool],
+        (targets, targets_are_sources): (&'a [bool], bool),
         core: Core,
         pk: &'a PatchKernel,
         (far, background): (Option<f64>, Option<(f64, f64)>),
@@ -60,6 +64,7 @@ impl<'a> PassJob<'a> {
             z,
             c,
             targets,
+            targets_are_sources,
             search: core.search,
             patch: core.patch,
             radii: &pk.radii,

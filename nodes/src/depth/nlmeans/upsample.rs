@@ -336,7 +336,7 @@ fn upsample_step(
             (w, h),
             &guide,
             (&[], &[]),
-            &targets,
+            (&targets, false),
             core,
             &pk,
             (None, None),
