@@ -410,20 +410,16 @@ pub fn bytes_of<T: bytemuck::Pod>(v: &[T]) -> &[u8] {
 }
 
 /// `f32`s from bytes read back (a copy; the length is a multiple of 4 by
-/// construction of [`Session::finish`]).
+/// construction of [`Session::finish`], a trailing partial value would be
+/// dropped). The device's bytes are the host's order, as [`bytes_of`]
+/// uploads them: one copy of the whole buffer, whatever its alignment.
 pub fn f32s(bytes: &[u8]) -> Vec<f32> {
-    bytes
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
+    bytemuck::pod_collect_to_vec(&bytes[..bytes.len() / 4 * 4])
 }
 
-/// `u32`s from bytes read back.
+/// `u32`s from bytes read back (as [`f32s`]).
 pub fn u32s(bytes: &[u8]) -> Vec<u32> {
-    bytes
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
+    bytemuck::pod_collect_to_vec(&bytes[..bytes.len() / 4 * 4])
 }
 
 /// Workgroups of `size` invocations covering `n` items.
@@ -492,4 +488,23 @@ pub fn uniform_blocks<T: bytemuck::Pod>(blocks: &[T], align: u32) -> (Vec<u8>, u
         bytes[k * stride..k * stride + size].copy_from_slice(bytemuck::bytes_of(b));
     }
     (bytes, stride)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{bytes_of, f32s, u32s};
+
+    #[test]
+    fn read_back_values_round_trip_at_any_alignment() {
+        let v: Vec<f32> = (0..37).map(|i| i as f32 * 0.37 - 3.0).collect();
+        let mut padded = vec![0u8; 1];
+        padded.extend_from_slice(bytes_of(&v));
+        padded.push(0xff); // a partial value at the end is dropped
+        // one byte in: the values start unaligned
+        let back = f32s(&padded[1..]);
+        assert_eq!(back.len(), v.len());
+        assert!(back.iter().zip(&v).all(|(a, b)| a.to_bits() == b.to_bits()));
+        let bits = u32s(&padded[1..padded.len() - 1]);
+        assert_eq!(bits, v.iter().map(|x| x.to_bits()).collect::<Vec<_>>());
+    }
 }
