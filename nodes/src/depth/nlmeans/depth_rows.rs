@@ -569,8 +569,9 @@ mod tests {
         }
     }
 
-    /// The AVX2 band and the plain one over the same pass, in `E`: the
-    /// number of pixels whose results differ in any bit.
+    /// The band the CPU's best instructions run (AVX-512 F or AVX2 where
+    /// present) and the plain one over the same pass, in `E`: the number of
+    /// pixels whose results differ in any bit.
     fn avx2_differences<E: Weight>() -> usize {
         let (w, h) = (45, 21);
         let (guide, z, c) = scene(w, h, 0.15, 21);
@@ -586,23 +587,39 @@ mod tests {
         };
         let rows = DepthRows::<E>::new(&kernel);
         let targets = vec![true; w * h];
-        let (a, b) = (
-            band(&pass, &targets, &rows, (0, h), (0, w)),
-            band_body(&pass, &targets, &rows, (0, h), (0, w)),
-        );
-        let (sa, sb) = (a.sums.unwrap(), b.sums.unwrap());
+        let whole = ((0, h), (0, w));
+        let plain = band_body(&pass, &targets, &rows, whole.0, whole.1);
+        let mut versions = vec![band(&pass, &targets, &rows, whole.0, whole.1)];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2.
+                versions.push(unsafe { band_avx2(&pass, &targets, &rows, whole.0, whole.1) });
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU has AVX-512 F.
+                versions.push(unsafe { band_avx512(&pass, &targets, &rows, whole.0, whole.1) });
+            }
+        }
+        let sb = plain.sums.unwrap();
         let bits = |f: Finish| match f {
             Finish::Done(Some((v, c))) => (v.to_bits(), c.to_bits()),
             _ => (0, 0),
         };
-        assert!((0..w * h).all(|k| rows.finish(&sa, k) != Finish::Exact));
-        (0..w * h)
-            .filter(|&k| bits(rows.finish(&sa, k)) != bits(rows.finish(&sb, k)))
-            .count()
+        versions
+            .into_iter()
+            .map(|a| {
+                let sa = a.sums.unwrap();
+                assert!((0..w * h).all(|k| rows.finish(&sa, k) != Finish::Exact));
+                (0..w * h)
+                    .filter(|&k| bits(rows.finish(&sa, k)) != bits(rows.finish(&sb, k)))
+                    .count()
+            })
+            .sum()
     }
 
     #[test]
-    fn the_avx2_band_equals_the_plain_band_bit_for_bit() {
+    fn the_vector_band_equals_the_plain_band_bit_for_bit() {
         assert_eq!(avx2_differences::<f32>(), 0);
         assert_eq!(avx2_differences::<f64>(), 0);
     }
