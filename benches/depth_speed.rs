@@ -210,10 +210,10 @@ fn main() {
             row.push(ms);
         }
         ours.push(row);
-        if let Some(t) = &temp {
-            if let Err(e) = write_peer_inputs(t.path(), &format!("frame{fi}"), f, repeats) {
-                eprintln!("cannot write the peers' inputs: {e}");
-            }
+        if let Some(t) = &temp
+            && let Err(e) = write_peer_inputs(t.path(), &format!("frame{fi}"), f, repeats)
+        {
+            eprintln!("cannot write the peers' inputs: {e}");
         }
     }
     let mut peer_ms: Vec<Option<serde_json::Value>> = vec![None; frames.len()];

@@ -752,13 +752,12 @@ impl EditorApp {
                     self.place_interaction(ui, &resp, frame);
                 }
                 if let Some(c) = clicks.as_mut() {
-                    if resp.clicked() {
-                        if let Some(px) =
+                    if resp.clicked()
+                        && let Some(px) =
                             resp.interact_pointer_pos().and_then(|p| frame.to_pixel(p))
-                        {
-                            c.push([(px[0] * 10.0).round() / 10.0, (px[1] * 10.0).round() / 10.0]);
-                            clicks_changed = true;
-                        }
+                    {
+                        c.push([(px[0] * 10.0).round() / 10.0, (px[1] * 10.0).round() / 10.0]);
+                        clicks_changed = true;
                     }
                     if resp.secondary_clicked() && c.pop().is_some() {
                         clicks_changed = true;
@@ -784,16 +783,16 @@ impl EditorApp {
                         );
                     }
                 }
-                if let Some(pos) = resp.hover_pos() {
-                    if let Some(px) = frame.to_pixel(pos) {
-                        let (x, y) = (px[0] as usize, px[1] as usize);
-                        if let Some(text) = self
-                            .values
-                            .get(&value_key)
-                            .and_then(|v| preview::describe_pixel(v, x, y))
-                        {
-                            resp.on_hover_text_at_pointer(text);
-                        }
+                if let Some(pos) = resp.hover_pos()
+                    && let Some(px) = frame.to_pixel(pos)
+                {
+                    let (x, y) = (px[0] as usize, px[1] as usize);
+                    if let Some(text) = self
+                        .values
+                        .get(&value_key)
+                        .and_then(|v| preview::describe_pixel(v, x, y))
+                    {
+                        resp.on_hover_text_at_pointer(text);
                     }
                 }
             });
@@ -823,12 +822,11 @@ impl EditorApp {
                 }
             });
         }
-        if clicks_changed {
-            if let Some(c) = clicks {
-                if let Err(e) = self.model.set_param(sel, "clicks", ParamValue::Points(c)) {
-                    self.message = Some(e);
-                }
-            }
+        if clicks_changed
+            && let Some(c) = clicks
+            && let Err(e) = self.model.set_param(sel, "clicks", ParamValue::Points(c))
+        {
+            self.message = Some(e);
         }
     }
 
@@ -921,14 +919,15 @@ impl EditorApp {
             }
         }
         let zoom = ui.input(|i| i.zoom_delta());
-        if resp.hovered() && zoom != 1.0 {
-            if let Ok(ParamValue::Float(scale)) = self.model.param_value(&paste, "scale") {
-                self.model.begin_gesture();
-                self.wheel_gesture = Some(Instant::now());
-                let v = placement::zoomed_scale(scale, f64::from(zoom));
-                if let Err(e) = self.model.set_param(&paste, "scale", ParamValue::Float(v)) {
-                    self.message = Some(e);
-                }
+        if resp.hovered()
+            && zoom != 1.0
+            && let Ok(ParamValue::Float(scale)) = self.model.param_value(&paste, "scale")
+        {
+            self.model.begin_gesture();
+            self.wheel_gesture = Some(Instant::now());
+            let v = placement::zoomed_scale(scale, f64::from(zoom));
+            if let Err(e) = self.model.set_param(&paste, "scale", ParamValue::Float(v)) {
+                self.message = Some(e);
             }
         }
     }
@@ -999,20 +998,18 @@ impl EditorApp {
             };
             [px[0] * sx, px[1] * sy]
         };
-        if resp.clicked() {
-            if let Some(px) = resp.interact_pointer_pos().and_then(|p| frame.to_pixel(p)) {
-                match focus::focus_depth(&depth, to_depth(px), focus::FOCUS_WINDOW_RADIUS) {
-                    Some(z) => {
-                        let z = (z * 1e4).round() / 1e4;
-                        match self.model.set_param(sel, "focus_m", ParamValue::Float(z)) {
-                            Ok(()) => self.message = Some(format!("focus at {z:.3} m")),
-                            Err(e) => self.message = Some(e),
-                        }
-                    }
-                    None => {
-                        self.message = Some("no depth under the pointer: focus unchanged".into())
+        if resp.clicked()
+            && let Some(px) = resp.interact_pointer_pos().and_then(|p| frame.to_pixel(p))
+        {
+            match focus::focus_depth(&depth, to_depth(px), focus::FOCUS_WINDOW_RADIUS) {
+                Some(z) => {
+                    let z = (z * 1e4).round() / 1e4;
+                    match self.model.set_param(sel, "focus_m", ParamValue::Float(z)) {
+                        Ok(()) => self.message = Some(format!("focus at {z:.3} m")),
+                        Err(e) => self.message = Some(e),
                     }
                 }
+                None => self.message = Some("no depth under the pointer: focus unchanged".into()),
             }
         }
         if let Some(pos) = resp.hover_pos() {
@@ -1127,10 +1124,10 @@ impl EditorApp {
             _ => None,
         };
         if let Some(delta) = apply_drag {
-            if let Err(e) = self.move_pasted(delta) {
-                if let Some(shot) = self.shot.as_mut() {
-                    finish(shot, Err(format!("--drag: {e}")));
-                }
+            if let Err(e) = self.move_pasted(delta)
+                && let Some(shot) = self.shot.as_mut()
+            {
+                finish(shot, Err(format!("--drag: {e}")));
             }
             ctx.request_repaint();
             return;

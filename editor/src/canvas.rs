@@ -244,11 +244,11 @@ impl SnarlViewer<String> for GraphViewer<'_> {
         let Some(dst) = snarl.get_node(pin.id.node).cloned() else {
             return;
         };
-        if let Some((ip, _)) = self.ports(&dst, false).get(pin.id.input).copied() {
-            if self.model.input_source(&dst, ip).is_some() {
-                let r = self.model.disconnect(&dst, ip);
-                self.report(r);
-            }
+        if let Some((ip, _)) = self.ports(&dst, false).get(pin.id.input).copied()
+            && self.model.input_source(&dst, ip).is_some()
+        {
+            let r = self.model.disconnect(&dst, ip);
+            self.report(r);
         }
     }
 

@@ -57,10 +57,10 @@ struct Job {
 type Notify = Arc<Mutex<Option<Box<dyn Fn() + Send>>>>;
 
 fn call(notify: &Notify) {
-    if let Ok(n) = notify.lock() {
-        if let Some(f) = n.as_ref() {
-            f();
-        }
+    if let Ok(n) = notify.lock()
+        && let Some(f) = n.as_ref()
+    {
+        f();
     }
 }
 

@@ -142,13 +142,13 @@ fn run(args: Args) -> Result<(), String> {
             )
         }
     };
-    if let Some(sel) = &args.select {
-        if model.document().node(sel).is_none() {
-            return Err(format!(
-                "--select `{sel}`: no such node in {}",
-                path.display()
-            ));
-        }
+    if let Some(sel) = &args.select
+        && model.document().node(sel).is_none()
+    {
+        return Err(format!(
+            "--select `{sel}`: no such node in {}",
+            path.display()
+        ));
     }
     let mut app = EditorApp::with_out_dir(model, path.clone(), args.out.clone());
     let outcome = Arc::new(Mutex::new(None));

@@ -557,12 +557,11 @@ impl EditorModel {
         let mut edges = Vec::new();
         for (to, d) in self.doc.nodes.iter().enumerate() {
             for (_, src) in &d.inputs {
-                if let Some((up, _)) = split_ref(&src.value) {
-                    if let Some(&from) = index.get(up) {
-                        if from != to {
-                            edges.push((from, to));
-                        }
-                    }
+                if let Some((up, _)) = split_ref(&src.value)
+                    && let Some(&from) = index.get(up)
+                    && from != to
+                {
+                    edges.push((from, to));
                 }
             }
         }

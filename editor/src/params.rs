@@ -253,10 +253,10 @@ pub fn param_row(
             }
         }
     });
-    if state.browse.as_ref().is_some_and(|(k, _)| *k == key) {
-        if let Some(path) = file_browser(ui, state) {
-            new_value = Some(ParamValue::Text(path));
-        }
+    if state.browse.as_ref().is_some_and(|(k, _)| *k == key)
+        && let Some(path) = file_browser(ui, state)
+    {
+        new_value = Some(ParamValue::Text(path));
     }
     let result = match (new_value, new_text) {
         (Some(v), _) => Some(model.set_param(node, name, v)),

@@ -255,10 +255,10 @@ fn the_automatic_layout_keeps_wires_shorter_than_file_order_on_every_graph() {
                 continue;
             };
             for p in &imp.schema().inputs {
-                if let Some((src, _)) = m.input_source(&d.name.value, p.name) {
-                    if let Some(from) = idx(&src) {
-                        edges.push((from, to));
-                    }
+                if let Some((src, _)) = m.input_source(&d.name.value, p.name)
+                    && let Some(from) = idx(&src)
+                {
+                    edges.push((from, to));
                 }
             }
         }

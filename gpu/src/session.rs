@@ -224,7 +224,7 @@ impl<'a> Session<'a> {
 
     fn write(&self, b: &wgpu::Buffer, bytes: &[u8]) {
         // write_buffer needs a multiple of 4 bytes
-        if bytes.len() % 4 == 0 {
+        if bytes.len().is_multiple_of(4) {
             self.ctx.queue().write_buffer(b, 0, bytes);
         } else {
             let mut padded = bytes.to_vec();

@@ -200,18 +200,18 @@ impl Pipeline {
                             continue;
                         }
                         Some(out) => {
-                            if let Some(inp) = in_spec {
-                                if !out.ty.connects_to(inp.ty) {
-                                    errors.push(CheckError::TypeMismatch {
-                                        loc,
-                                        node: decl.name.value.clone(),
-                                        port: port.value.clone(),
-                                        expected: inp.ty,
-                                        found: out.ty,
-                                        source_ref: src.value.clone(),
-                                    });
-                                    continue;
-                                }
+                            if let Some(inp) = in_spec
+                                && !out.ty.connects_to(inp.ty)
+                            {
+                                errors.push(CheckError::TypeMismatch {
+                                    loc,
+                                    node: decl.name.value.clone(),
+                                    port: port.value.clone(),
+                                    expected: inp.ty,
+                                    found: out.ty,
+                                    source_ref: src.value.clone(),
+                                });
+                                continue;
                             }
                         }
                     }

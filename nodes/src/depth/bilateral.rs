@@ -257,8 +257,8 @@ impl Planes {
     /// the same bits (tested).
     fn filter_row(&self, y: usize, out: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: `filter_row_avx512` only needs AVX-512 F, which the CPU was just found to have.
+        if crate::kit::cpu::avx512() {
+            // SAFETY: `filter_row_avx512` needs AVX-512 F and what it implies, which the CPU was just found to have.
             return unsafe { self.filter_row_avx512(y, out) };
         }
         #[cfg(target_arch = "x86_64")]
@@ -484,8 +484,8 @@ mod tests {
                     Box::new(|y, o| unsafe { ctx.filter_row_avx2(y, o) }),
                 ));
             }
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                // SAFETY: the CPU has AVX-512 F.
+            if crate::kit::cpu::avx512() {
+                // SAFETY: the CPU has AVX-512 F (and what it implies).
                 versions.push((
                     "avx512",
                     Box::new(|y, o| unsafe { ctx.filter_row_avx512(y, o) }),

@@ -37,13 +37,13 @@ fn check_inputs(
 ) -> Result<(), NodeError> {
     let (w, h) = depth.dims();
     fits_intrinsics("intrinsics", k, "depth map", (w, h))?;
-    if let Some(c) = color {
-        if !c.same_dims(depth) {
-            return Err(NodeError::input(
-                "color",
-                format!("is {}x{} but the depth is {w}x{h}", c.width(), c.height()),
-            ));
-        }
+    if let Some(c) = color
+        && !c.same_dims(depth)
+    {
+        return Err(NodeError::input(
+            "color",
+            format!("is {}x{} but the depth is {w}x{h}", c.width(), c.height()),
+        ));
     }
     if w.saturating_mul(h) > u32::MAX as usize {
         return Err(NodeError::input(

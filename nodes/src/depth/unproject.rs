@@ -25,19 +25,19 @@ pub fn unproject(
     color: Option<&ColorImage>,
 ) -> Result<PointCloud, NodeError> {
     fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
-    if let Some(c) = color {
-        if !c.same_dims(depth) {
-            return Err(NodeError::input(
-                "color",
-                format!(
-                    "is {}x{} but the depth is {}x{}",
-                    c.width(),
-                    c.height(),
-                    depth.width(),
-                    depth.height()
-                ),
-            ));
-        }
+    if let Some(c) = color
+        && !c.same_dims(depth)
+    {
+        return Err(NodeError::input(
+            "color",
+            format!(
+                "is {}x{} but the depth is {}x{}",
+                c.width(),
+                c.height(),
+                depth.width(),
+                depth.height()
+            ),
+        ));
     }
     let mut pc = PointCloud::default();
     for y in 0..depth.height() {

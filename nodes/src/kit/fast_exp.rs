@@ -46,7 +46,8 @@ pub fn exp_neg(x: f64) -> f64 {
 }
 
 /// `x` below this gives 0 in [`exp_neg_f32`]: `exp(-87)` is about
-/// `1.6e-38`, the last value before f32's subnormal range (`1.18e-38`).
+/// `1.65e-38`, just above f32's smallest normal value (`1.18e-38`, at
+/// about `exp(-87.34)`), so every non-zero result is a normal number.
 pub const EXP_NEG_MIN_F32: f32 = -87.0;
 
 /// `exp(x)` for `x <= 0` in f32 with relative error below `5e-7` (about 4

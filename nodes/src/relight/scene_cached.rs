@@ -971,10 +971,11 @@ pub fn relight_moved(
                 let (x, y) = (i % w, i / w);
                 let slot =
                     ((y % Tile::SIDE) / FILL_BLOCK) * PER_SIDE + (x % Tile::SIDE) / FILL_BLOCK;
-                if let Some((n0, p0, f)) = fills[slot] {
-                    if n0.dot(s.n) > 0.95 && (p0 - s.pos).length() <= 0.05 * s.pos.z.abs() {
-                        return f;
-                    }
+                if let Some((n0, p0, f)) = fills[slot]
+                    && n0.dot(s.n) > 0.95
+                    && (p0 - s.pos).length() <= 0.05 * s.pos.z.abs()
+                {
+                    return f;
                 }
                 let f = scene_fill(s.pos, s.n, &scene_vpls, r2_min, &volume);
                 if fills[slot].is_none() {

@@ -754,12 +754,15 @@ pub(crate) fn support_vpls(
             // shown by the photo (the scene VPLs hold it), or behind what
             // the photo shows (a wall between it and the camera, and so,
             // mostly, between it and the object): nothing
-            if let Some(uv) = k.project(x) {
-                if uv.x >= 0.0 && uv.y >= 0.0 && (uv.x as usize) < w && (uv.y as usize) < h {
-                    let z = *depth.get(uv.x as usize, uv.y as usize);
-                    if DepthMap::is_valid(z) && f64::from(z) <= 1.05 * x.z {
-                        return None;
-                    }
+            if let Some(uv) = k.project(x)
+                && uv.x >= 0.0
+                && uv.y >= 0.0
+                && (uv.x as usize) < w
+                && (uv.y as usize) < h
+            {
+                let z = *depth.get(uv.x as usize, uv.y as usize);
+                if DepthMap::is_valid(z) && f64::from(z) <= 1.05 * x.z {
+                    return None;
                 }
             }
             // a / pdf = 2π d² ln(d_max / d_min), over m draws

@@ -365,10 +365,11 @@ pub fn binary_edges(strength: &Confidence, threshold: f32, thin: bool) -> Mask {
                         best = Some((m, a, b));
                     }
                 }
-                if let Some((_, a, b)) = best {
-                    if v > a && v >= b {
-                        *o = 1.0;
-                    }
+                if let Some((_, a, b)) = best
+                    && v > a
+                    && v >= b
+                {
+                    *o = 1.0;
                 }
             }
         });

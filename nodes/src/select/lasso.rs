@@ -292,11 +292,12 @@ pub fn snap_click(
     let mut pick_d2 = u64::MAX;
     for y in y0..=y1 {
         for x in x0..=x1 {
-            if let Some((v, d2)) = score(x, y) {
-                if v >= floor && d2 < pick_d2 {
-                    pick_d2 = d2;
-                    pick = [x, y];
-                }
+            if let Some((v, d2)) = score(x, y)
+                && v >= floor
+                && d2 < pick_d2
+            {
+                pick_d2 = d2;
+                pick = [x, y];
             }
         }
     }

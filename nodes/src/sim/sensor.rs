@@ -118,12 +118,12 @@ fn projector_zbuffer(row: &[f32], fb: f64) -> Vec<f64> {
         }
         let end = u as f64 + 1.0 - shift(z);
         splat(&mut zbuf, u as f64 - shift(z), end, z as f64);
-        if let Some(&zn) = row.get(u + 1) {
-            if DepthMap::is_valid(zn) {
-                let next_start = u as f64 + 1.0 - shift(zn);
-                if next_start > end {
-                    splat(&mut zbuf, end, next_start, z.max(zn) as f64);
-                }
+        if let Some(&zn) = row.get(u + 1)
+            && DepthMap::is_valid(zn)
+        {
+            let next_start = u as f64 + 1.0 - shift(zn);
+            if next_start > end {
+                splat(&mut zbuf, end, next_start, z.max(zn) as f64);
             }
         }
     }
@@ -212,19 +212,19 @@ pub fn simulate_kinect(
     p: &KinectParams,
 ) -> Result<DepthMap, NodeError> {
     fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
-    if let Some(c) = color {
-        if !c.same_dims(depth) {
-            return Err(NodeError::input(
-                "color",
-                format!(
-                    "is {}x{} but the depth map is {}x{}",
-                    c.width(),
-                    c.height(),
-                    depth.width(),
-                    depth.height()
-                ),
-            ));
-        }
+    if let Some(c) = color
+        && !c.same_dims(depth)
+    {
+        return Err(NodeError::input(
+            "color",
+            format!(
+                "is {}x{} but the depth map is {}x{}",
+                c.width(),
+                c.height(),
+                depth.width(),
+                depth.height()
+            ),
+        ));
     }
     let (w, h) = depth.dims();
     let mut out = vec![0.0f32; w * h];
@@ -265,10 +265,11 @@ pub fn simulate_kinect(
             let u_dark = rng.uniform();
             let g = rng.gaussian();
             if p.dropouts {
-                if let Some(c) = color {
-                    if luminance(*c.get(u, y)) < p.dark_threshold && u_dark < p.dark_dropout_prob {
-                        continue;
-                    }
+                if let Some(c) = color
+                    && luminance(*c.get(u, y)) < p.dark_threshold
+                    && u_dark < p.dark_dropout_prob
+                {
+                    continue;
                 }
                 if let Some((n, pt)) = normal_at(depth, k, u, y) {
                     // Guard: pt.z = z > 0, so |pt| > 0.

@@ -628,10 +628,10 @@ impl Scene {
         }
         let mut best: Option<(f64, DVec3, &Object)> = None;
         for obj in &self.objects {
-            if let Some((t, n)) = obj.primitive.hit(origin, dir) {
-                if best.is_none_or(|(bt, _, _)| t < bt) {
-                    best = Some((t, n, obj));
-                }
+            if let Some((t, n)) = obj.primitive.hit(origin, dir)
+                && best.is_none_or(|(bt, _, _)| t < bt)
+            {
+                best = Some((t, n, obj));
             }
         }
         let (t, n, obj) = best?;

@@ -148,20 +148,20 @@ pub fn load_bracket_with(
     let mut stack = ExposureStack::default();
     for ((path, t), img) in entries.iter().zip(loaded) {
         let mut img = img?;
-        if let Some(first) = stack.images.first() {
-            if img.dims() != first.dims() {
-                return Err(NodeError::Decode {
-                    path: path.clone(),
-                    message: format!(
-                        "is {}x{} but {} is {}x{}; every exposure must have the same size",
-                        img.width(),
-                        img.height(),
-                        entries[0].0.display(),
-                        first.width(),
-                        first.height()
-                    ),
-                });
-            }
+        if let Some(first) = stack.images.first()
+            && img.dims() != first.dims()
+        {
+            return Err(NodeError::Decode {
+                path: path.clone(),
+                message: format!(
+                    "is {}x{} but {} is {}x{}; every exposure must have the same size",
+                    img.width(),
+                    img.height(),
+                    entries[0].0.display(),
+                    first.width(),
+                    first.height()
+                ),
+            });
         }
         if p.mask_pure_blue {
             for px in img.as_mut_slice() {

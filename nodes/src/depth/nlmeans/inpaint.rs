@@ -7,7 +7,7 @@ use depthgraph_graph::prelude::*;
 use rayon::prelude::*;
 
 use super::common::*;
-use super::depth_rows::DepthRows;
+use super::depth_rows::{DepthRows, F32_MAX_PATCH};
 use super::inputs::*;
 use super::job::PassJob;
 use super::params::*;
@@ -152,8 +152,10 @@ impl PassRunner for CpuPass {
         // In f32 where every target is a source itself (denoising): its own
         // term weighs its confidence, so the weights that count never
         // underflow in f32. Holes (inpainting) may have every candidate
-        // 60 or more units of exponent away: those rows run in f64.
-        if job.targets_are_sources {
+        // more than 87 units of exponent away, where f32 has nothing
+        // left: those rows run in f64. Patches wider than 5x5 run in f64
+        // too (the f32 bound is stated for r <= 2; `depth_rows`).
+        if job.targets_are_sources && job.patch <= F32_MAX_PATCH {
             run_pass(
                 &pass,
                 job.targets,

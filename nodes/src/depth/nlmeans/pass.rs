@@ -475,9 +475,9 @@ pub(super) fn band<K: RowKernel>(
     (x0, x1): (usize, usize),
 ) -> BandOut<K::Sums> {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        // SAFETY: `band_avx512` only needs AVX-512 F (which implies AVX2),
-        // which the CPU was just found to have.
+    if crate::kit::cpu::avx512() {
+        // SAFETY: `band_avx512` needs AVX-512 F and what it implies (AVX2,
+        // FMA, F16C), which the CPU was just found to have.
         return unsafe { band_avx512(pass, targets, kernel, (y0, y1), (x0, x1)) };
     }
     #[cfg(target_arch = "x86_64")]

@@ -93,14 +93,14 @@ pub fn prune_outliers(
     for ky in -r..=r {
         for kx in -r..=r {
             if ky > 0 || (ky == 0 && kx > 0) {
-                preds.push(Prediction::new((kx, ky), (-kx, -ky), 1.5));
+                preds.push(Prediction::new((kx, ky), (-kx, -ky), MIDPOINT));
             }
         }
     }
     for ky in -r..=r {
         for kx in -r..=r {
             if (kx, ky) != (0, 0) && 2 * kx.abs() <= r && 2 * ky.abs() <= r {
-                preds.push(Prediction::new((kx, ky), (2 * kx, 2 * ky), 6.0));
+                preds.push(Prediction::new((kx, ky), (2 * kx, 2 * ky), EXTRAPOLATION));
             }
         }
     }
@@ -185,10 +185,15 @@ struct Prediction {
     inv_root: f64,
 }
 
+/// The midpoint of an opposite pair: weights of `q_a` and `q_b`, and the
+/// variance factor (the pixel's own noise plus half of each neighbour's).
+const MIDPOINT: ((f64, f64), f64) = ((0.5, 0.5), 1.5);
+/// The one-sided extrapolation `2 q_a - q_b`: weights and variance factor.
+const EXTRAPOLATION: ((f64, f64), f64) = ((2.0, -1.0), 6.0);
+
 impl Prediction {
-    fn new(a: (isize, isize), b: (isize, isize), k: f64) -> Self {
-        let (wa, wb) = if k == 1.5 { (0.5, 0.5) } else { (2.0, -1.0) };
-        // Guard: k is 1.5 or 6.
+    fn new(a: (isize, isize), b: (isize, isize), ((wa, wb), k): ((f64, f64), f64)) -> Self {
+        // Guard: k > 0 (the constants above).
         Self {
             a,
             b,
@@ -229,8 +234,8 @@ impl Mixture {
         sums: (&mut [f64], &mut [f64]),
     ) {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: `add_row_avx512` only needs AVX-512 F, which the CPU was just found to have.
+        if crate::kit::cpu::avx512() {
+            // SAFETY: `add_row_avx512` needs AVX-512 F and what it implies, which the CPU was just found to have.
             return unsafe { self.add_row_avx512(pr, q, c, zi, sums) };
         }
         #[cfg(target_arch = "x86_64")]
@@ -344,21 +349,22 @@ mod tests {
                 };
                 for ky in -r..=r {
                     for kx in -r..=r {
-                        if ky > 0 || (ky == 0 && kx > 0) {
-                            if let (Some(a), Some(b)) = (at(x + kx, y + ky), at(x - kx, y - ky)) {
-                                add(0.5 * (q(a) + q(b)), 1.5, c[a] as f64 * c[b] as f64);
-                            }
+                        if (ky > 0 || (ky == 0 && kx > 0))
+                            && let (Some(a), Some(b)) = (at(x + kx, y + ky), at(x - kx, y - ky))
+                        {
+                            add(0.5 * (q(a) + q(b)), 1.5, c[a] as f64 * c[b] as f64);
                         }
                     }
                 }
                 for ky in -r..=r {
                     for kx in -r..=r {
-                        if (kx, ky) != (0, 0) && 2 * kx.abs() <= r && 2 * ky.abs() <= r {
-                            if let (Some(a), Some(b)) =
+                        if (kx, ky) != (0, 0)
+                            && 2 * kx.abs() <= r
+                            && 2 * ky.abs() <= r
+                            && let (Some(a), Some(b)) =
                                 (at(x + kx, y + ky), at(x + 2 * kx, y + 2 * ky))
-                            {
-                                add(2.0 * q(a) - q(b), 6.0, c[a] as f64 * c[b] as f64);
-                            }
+                        {
+                            add(2.0 * q(a) - q(b), 6.0, c[a] as f64 * c[b] as f64);
                         }
                     }
                 }
@@ -387,8 +393,8 @@ mod tests {
             (num, den)
         };
         let preds = [
-            Prediction::new((1, 0), (-1, 0), 1.5),
-            Prediction::new((0, 1), (0, 2), 6.0),
+            Prediction::new((1, 0), (-1, 0), MIDPOINT),
+            Prediction::new((0, 1), (0, 2), EXTRAPOLATION),
         ];
         let plain = run(&|num, den| {
             for pr in &preds {
@@ -422,10 +428,10 @@ mod tests {
                 });
                 assert_eq!(bits(&v), bits(&plain));
             }
-            if std::arch::is_x86_feature_detected!("avx512f") {
+            if crate::kit::cpu::avx512() {
                 let v = run(&|num, den| {
                     for pr in &preds {
-                        // SAFETY: the CPU has AVX-512 F.
+                        // SAFETY: the CPU has AVX-512 F and what it implies.
                         unsafe {
                             model.add_row_avx512(pr, (&qa, &qb), (&ca, &cb), &zi, (num, den))
                         };
