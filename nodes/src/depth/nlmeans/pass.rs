@@ -148,53 +148,38 @@ pub(super) trait Real:
     fn to_f64(self) -> f64;
 }
 
-impl Real for f64 {
-    const ZERO: f64 = 0.0;
-    #[inline(always)]
-    fn of_f32(v: f32) -> f64 {
-        v as f64
-    }
-    #[inline(always)]
-    fn of_f64(v: f64) -> f64 {
-        v
-    }
-    #[inline(always)]
-    fn min(self, o: f64) -> f64 {
-        f64::min(self, o)
-    }
-    #[inline(always)]
-    fn max(self, o: f64) -> f64 {
-        f64::max(self, o)
-    }
-    #[inline(always)]
-    fn to_f64(self) -> f64 {
-        self
-    }
+/// [`Real`] for a float type: `as` casts between f32, f64 and the type
+/// (exact from f32, rounded to f32 from f64), its own `min` and `max`.
+macro_rules! real_impl {
+    ($t:ty) => {
+        impl Real for $t {
+            const ZERO: $t = 0.0;
+            #[inline(always)]
+            fn of_f32(v: f32) -> $t {
+                v as $t
+            }
+            #[inline(always)]
+            fn of_f64(v: f64) -> $t {
+                v as $t
+            }
+            #[inline(always)]
+            fn min(self, o: $t) -> $t {
+                <$t>::min(self, o)
+            }
+            #[inline(always)]
+            fn max(self, o: $t) -> $t {
+                <$t>::max(self, o)
+            }
+            #[inline(always)]
+            fn to_f64(self) -> f64 {
+                self as f64
+            }
+        }
+    };
 }
 
-impl Real for f32 {
-    const ZERO: f32 = 0.0;
-    #[inline(always)]
-    fn of_f32(v: f32) -> f32 {
-        v
-    }
-    #[inline(always)]
-    fn of_f64(v: f64) -> f32 {
-        v as f32
-    }
-    #[inline(always)]
-    fn min(self, o: f32) -> f32 {
-        f32::min(self, o)
-    }
-    #[inline(always)]
-    fn max(self, o: f32) -> f32 {
-        f32::max(self, o)
-    }
-    #[inline(always)]
-    fn to_f64(self) -> f64 {
-        self as f64
-    }
-}
+real_impl!(f64);
+real_impl!(f32);
 
 /// What a pass does with a candidate pair.
 pub(super) trait PairKernel: Sync {
