@@ -490,7 +490,7 @@ pub(super) unsafe fn band_avx2<K: RowKernel>(
 /// rows keep their constants in registers; about 10 % faster than AVX2 on
 /// the 2-core test machine).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
+#[cfg_attr(not(fuzzing), target_feature(enable = "avx512f"))]
 pub(super) unsafe fn band_avx512<K: RowKernel>(
     pass: &Pass,
     targets: &[bool],

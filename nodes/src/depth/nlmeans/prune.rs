@@ -262,7 +262,7 @@ impl Mixture {
 
     /// [`Mixture::add_row_body`] compiled with AVX-512 F.
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f")]
+    #[cfg_attr(not(fuzzing), target_feature(enable = "avx512f"))]
     unsafe fn add_row_avx512(
         &self,
         pr: &Prediction,
