@@ -55,9 +55,15 @@
 //! (`shadow_color_gate = g`): the camera sees the background in a shadow,
 //! so a hole pixel whose colour lies nearer the near side's,
 //! `|C_i - C_near| < g |C_i - C_far|`, belongs to the near surface and is
-//! not a shadow. The pull keeps `W_f` everywhere (it only decides what a
-//! coarse pixel straddling an edge holds). Measured on Kinect-like holes
-//! and holes punched in a real Kinect frame in `docs/accuracy-depth.md`.
+//! not a shadow. Nor is a hole wider than the shadow the projector can
+//! cast across the step (`shadow_baseline_m = B`, [`shadow_width`]): a
+//! projector `B` beside the camera shifts a point at depth `z` by
+//! `f B / z` pixels, so its shadow between a near surface at `z_n` and a
+//! far one at `z_f` spans `f B (1/z_n - 1/z_f)` pixels; a wider gap (a
+//! dropout, a hole across the near surface's edge) gets eq. 4's weights.
+//! The pull keeps `W_f` everywhere (it only decides what a coarse pixel
+//! straddling an edge holds). Measured on Kinect-like holes and holes
+//! punched in a real Kinect frame in `docs/accuracy-depth.md`.
 //!
 //! Every filled value is a convex combination of coarse values, which are
 //! convex combinations of valid input depths, so it lies within their
@@ -125,6 +131,11 @@ node_params! {
         /// its distance to the far side's belongs to the near surface, not to a shadow (0 = the
         /// colour is not asked).
         pub shadow_color_gate: f64 = 0.25, ParamKind::Float { min: 0.0, max: 1.0 };
+        /// DualPullPush: the projector's distance from the camera, metres (Kinect v1: 0.075). A
+        /// hole wider than the shadow such a projector casts across its depth step (f B (1/z_near
+        /// - 1/z_far) pixels, plus 2) is no shadow but a dropout or a hole across the near
+        /// surface, and gets the paper's weights. 0 = any width may be a shadow.
+        pub shadow_baseline_m: f64 = 0.075, ParamKind::Float { min: 0.0, max: 10.0 };
     }
 }
 
@@ -232,11 +243,13 @@ fn pull(fine: &Level, far: Option<Far>) -> Level {
 }
 
 /// Checks the parameters both backends take as they are: `background`
-/// within `0..=100`, `shadow_color_gate` within `0..=1` and `edge_slope`
-/// within `0.1..=1000`.
+/// within `0..=100`, `shadow_color_gate` within `0..=1`,
+/// `shadow_baseline_m` within `0..=10` and `edge_slope` within
+/// `0.1..=1000`.
 pub fn check_params(p: &PullPushParams) -> Result<(), NodeError> {
     param_within("background", p.background, 0.0, 100.0)?;
     param_within("shadow_color_gate", p.shadow_color_gate, 0.0, 1.0)?;
+    param_within("shadow_baseline_m", p.shadow_baseline_m, 0.0, 10.0)?;
     param_within("edge_slope", p.edge_slope, 0.1, 1000.0)
 }
 
@@ -371,6 +384,11 @@ pub fn shadow_masks(
                 if slope <= p.edge_slope {
                     continue;
                 }
+                if p.shadow_baseline_m > 0.0
+                    && (xr - xl - 1) as f64 > shadow_width(k.fx, p.shadow_baseline_m, z_near, z_far)
+                {
+                    continue; // wider than any shadow of this step
+                }
                 let ci = c[y * w + x];
                 let near = cdist(ci, c[y * w + x_near]);
                 let far = cdist(ci, c[y * w + x_far]);
@@ -390,6 +408,21 @@ pub fn shadow_masks(
     }
     Some(masks)
 }
+
+/// The widest hole (pixels along a row) a projector at `baseline` metres
+/// beside a camera of focal length `fx` pixels leaves between a near
+/// surface at `z_near` and a far one at `z_far` (both > 0, valid depths):
+/// the disparity step `fx B (1/z_near - 1/z_far)`, plus
+/// [`SHADOW_SLACK_PX`].
+pub fn shadow_width(fx: f64, baseline: f64, z_near: f64, z_far: f64) -> f64 {
+    // guard: the callers pass valid (positive, finite) depths
+    fx * baseline * (1.0 / z_near - 1.0 / z_far) + SHADOW_SLACK_PX
+}
+
+/// Pixels a shadow band may exceed its disparity step by: the pixel at
+/// either end that straddles an edge and is lost with it (a sensor's
+/// dropout at a silhouette, its disparity quantisation).
+pub const SHADOW_SLACK_PX: f64 = 2.0;
 
 /// Fills the holes of `depth` (see the module docs) with the given weights.
 ///
@@ -1007,6 +1040,46 @@ mod tests {
     }
 
     #[test]
+    fn a_gap_wider_than_the_projectors_shadow_is_no_shadow() {
+        // far 3 m, a gap of `gap` pixels, near 2.5 m: a projector 7.5 cm
+        // beside a 500-pixel camera shifts the two by 12.5 and 15 pixels,
+        // a shadow of 2.5 pixels (+2 of slack: 4.5)
+        let marked = |gap: usize, baseline: f64| {
+            let w = 4 + gap + 4;
+            let d = DepthMap::from_fn(w, 1, |x, _| match x {
+                _ if x < 4 => 3.0f32,
+                _ if x < 4 + gap => 0.0,
+                _ => 2.5,
+            });
+            let c = ColorImage::filled(w, 1, [0.5; 3]);
+            let kk = Intrinsics {
+                fx: 500.0,
+                fy: 500.0,
+                ..k(w, 1)
+            };
+            let p = PullPushParams {
+                shadow_baseline_m: baseline,
+                ..Default::default()
+            };
+            let m = shadow_masks(&d, Weights::Dual { color: &c, k: &kk }, &p, 0).unwrap();
+            (4..4 + gap).filter(|x| m[0][*x]).count()
+        };
+        assert!((shadow_width(500.0, 0.075, 2.5, 3.0) - 4.5).abs() < 1e-12);
+        assert_eq!(marked(4, 0.075), 4);
+        assert_eq!(marked(5, 0.075), 0);
+        assert_eq!(marked(8, 0.075), 0);
+        // a wider baseline casts a wider shadow; 0 lets any width be one
+        assert_eq!(marked(8, 0.2), 8);
+        assert_eq!(marked(8, 0.0), 8);
+        let bad = PullPushParams {
+            shadow_baseline_m: -1.0,
+            ..Default::default()
+        };
+        let err = check_params(&bad).unwrap_err().to_string();
+        assert!(err.contains("shadow_baseline_m"), "{err}");
+    }
+
+    #[test]
     fn shadow_masks_mark_only_the_left_band_and_pull_down() {
         let (w, h) = (16, 2);
         // far 3 m, a gap at 4..8, near 1 m at 8..12, a gap at 12..14, far again
@@ -1206,8 +1279,8 @@ mod tests {
             let c = Image::from_fn(w, h, |_, _| [next() as f32, next() as f32, next() as f32]);
             let valid: Vec<f32> = d.as_slice().iter().copied().filter(|z| *z > 0.0).collect();
             let (lo, hi) = valid.iter().fold((f32::INFINITY, 0.0f32), |(a, b), v| (a.min(*v), b.max(*v)));
-            let sides = [(0.0, ShadowSide::Left, 0.25), (1.0, ShadowSide::Left, 0.25), (100.0, ShadowSide::Left, 1.0), (1.0, ShadowSide::Right, 0.0), (100.0, ShadowSide::Both, 0.25)];
-            for r in sides.iter().flat_map(|(b, side, gate)| both(&d, &c, &PullPushParams { epsilon: eps, levels: 0, background: *b, edge_slope: 0.5, shadow_side: *side, shadow_color_gate: *gate })) {
+            let sides = [(0.0, ShadowSide::Left, 0.25, 0.075), (1.0, ShadowSide::Left, 0.25, 0.075), (100.0, ShadowSide::Left, 1.0, 0.0), (1.0, ShadowSide::Right, 0.0, 10.0), (100.0, ShadowSide::Both, 0.25, 0.075)];
+            for r in sides.iter().flat_map(|(b, side, gate, base)| both(&d, &c, &PullPushParams { epsilon: eps, levels: 0, background: *b, edge_slope: 0.5, shadow_side: *side, shadow_color_gate: *gate, shadow_baseline_m: *base })) {
                 for (a, b) in d.as_slice().iter().zip(r.depth.as_slice()) {
                     prop_assert!(b.is_finite());
                     if *a > 0.0 { prop_assert_eq!(a, b); }
