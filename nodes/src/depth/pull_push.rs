@@ -766,7 +766,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "DualPullPush",
-        3,
+        4,
         "Fills depth holes by pull-push with 3D-distance x color-similarity weights (3d-editing eq. 2-4).",
         eval_dual,
     ))
