@@ -159,22 +159,16 @@ impl<E: Weight> RowKernel for DepthRows<'_, '_, E> {
 
     #[inline(always)]
     fn add_row(&self, w: usize, row: &RowCands<E>, s: &mut DepthSums<E>) {
-        // Runs of consecutive targets: a dense row is one run, the scattered
-        // holes of an inpainting pass cost only their own pixels. Each pixel's
-        // arithmetic is the same whatever run it is in.
-        let n = row.dist.len();
-        let mut a = 0;
-        while a < n {
-            if !row.targets[a] {
-                a += 1;
-                continue;
-            }
-            let b = row.targets[a..]
-                .iter()
-                .position(|t| !*t)
-                .map_or(n, |k| a + k);
-            self.run(w, row, a..b, s);
-            a = b;
+        // One run from the row's first target to its last: the pixels
+        // between that are no targets get sums nobody reads, which costs
+        // less than a run per group of scattered holes (each run's setup
+        // and its loops' scalar ends: 8 % of NLMeansInpaint's time on a
+        // Kinect frame). Each pixel's arithmetic is the same whatever run
+        // it is in, so the results are too.
+        let first = row.targets.iter().position(|t| *t);
+        let last = row.targets.iter().rposition(|t| *t);
+        if let (Some(a), Some(b)) = (first, last) {
+            self.run(w, row, a..b + 1, s);
         }
     }
 

@@ -311,7 +311,7 @@ impl PaddedGuide {
     pub(super) fn new((w, h): (usize, usize), guide: &[[f32; 3]], pad: usize) -> Self {
         Self {
             pad,
-            g: [0, 1, 2].map(|k| padded_plane((w, h), pad, &|i| guide[i][k])),
+            g: [0, 1, 2].map(|k| padded_plane((w, h), pad, |i| guide[i][k])),
         }
     }
 
@@ -323,21 +323,20 @@ impl PaddedGuide {
 
 /// One plane of `w x h` values `at(i)`, each row extended by `pad` columns
 /// on each side with its border value (rows in parallel).
-fn padded_plane(
-    (w, h): (usize, usize),
-    pad: usize,
-    at: &(dyn Fn(usize) -> f32 + Sync),
-) -> Vec<f32> {
+fn padded_plane<F: Fn(usize) -> f32 + Sync>((w, h): (usize, usize), pad: usize, at: F) -> Vec<f32> {
     if w == 0 {
         return Vec::new();
     }
     let stride = w + 2 * pad;
     let mut out = vec![0.0f32; stride * h];
     out.par_chunks_mut(stride).enumerate().for_each(|(y, row)| {
-        for (u, o) in row.iter_mut().enumerate() {
-            let x = u.saturating_sub(pad).min(w - 1);
+        let (left, rest) = row.split_at_mut(pad);
+        let (mid, right) = rest.split_at_mut(w);
+        left.fill(at(y * w));
+        for (x, o) in mid.iter_mut().enumerate() {
             *o = at(y * w + x);
         }
+        right.fill(at(y * w + w - 1));
     });
     out
 }
@@ -359,8 +358,8 @@ impl Padded {
         let pad = g.pad;
         let (z, c) = match depth {
             Some((z, c)) => (
-                padded_plane((w, h), pad, &|i| z[i]),
-                padded_plane((w, h), pad, &|i| c[i]),
+                padded_plane((w, h), pad, |i| z[i]),
+                padded_plane((w, h), pad, |i| c[i]),
             ),
             None => (Vec::new(), Vec::new()),
         };
@@ -658,17 +657,11 @@ fn sum_shifted<R: Real>(out: &mut [R], src: &[R], n: usize) {
     let len = out.len();
     let src = &src[..len + n - 1];
     let mut x = 0;
-    while x + LANES <= len {
-        let mut acc = [R::ZERO; LANES];
-        for k in 0..n {
-            let s = &src[x + k..x + k + LANES];
-            for l in 0..LANES {
-                acc[l] += s[l];
-            }
-        }
-        out[x..x + LANES].copy_from_slice(&acc);
-        x += LANES;
-    }
+    // LANES columns at a time, then 8 and 4 (a narrow band of scattered
+    // holes is mostly such a rest), then one by one
+    x = sum_shifted_by::<R, LANES>(out, src, n, x);
+    x = sum_shifted_by::<R, 8>(out, src, n, x);
+    x = sum_shifted_by::<R, 4>(out, src, n, x);
     for (x, o) in out.iter_mut().enumerate().skip(x) {
         let mut a = R::ZERO;
         for v in &src[x..x + n] {
@@ -676,6 +669,30 @@ fn sum_shifted<R: Real>(out: &mut [R], src: &[R], n: usize) {
         }
         *o = a;
     }
+}
+
+/// [`sum_shifted`]'s outputs from `x` on, `L` at a time while `L` remain;
+/// returns where it stopped.
+#[inline(always)]
+fn sum_shifted_by<R: Real, const L: usize>(
+    out: &mut [R],
+    src: &[R],
+    n: usize,
+    mut x: usize,
+) -> usize {
+    let len = out.len();
+    while x + L <= len {
+        let mut acc = [R::ZERO; L];
+        for k in 0..n {
+            let s = &src[x + k..x + k + L];
+            for l in 0..L {
+                acc[l] += s[l];
+            }
+        }
+        out[x..x + L].copy_from_slice(&acc);
+        x += L;
+    }
+    x
 }
 
 /// The patch distances of one row of a band's targets, columns
@@ -692,27 +709,13 @@ fn patch_distances<R: Real>(
     (eh, bw): (usize, usize),
     (centre, c0): (usize, usize),
 ) {
-    let len = dist.len();
     let at = |b: usize, row: usize, x: usize| (b * eh + row) * bw + c0 + x;
     let mut x = 0;
-    while x + LANES <= len {
-        let mut tot = [R::ZERO; LANES];
-        for (b, (&sr, &coef)) in radii.iter().zip(coefs).enumerate() {
-            let mut acc = [R::ZERO; LANES];
-            for row in centre - sr..=centre + sr {
-                let a = at(b, row, x);
-                let s = &hs[a..a + LANES];
-                for l in 0..LANES {
-                    acc[l] += s[l];
-                }
-            }
-            for l in 0..LANES {
-                tot[l] += coef * acc[l];
-            }
-        }
-        dist[x..x + LANES].copy_from_slice(&tot);
-        x += LANES;
-    }
+    // as in `sum_shifted`: LANES, 8 and 4 columns at a time, then one by one
+    let geom = ((radii, coefs), (eh, bw), (centre, c0));
+    x = patch_distances_by::<R, LANES>(dist, hs, geom, x);
+    x = patch_distances_by::<R, 8>(dist, hs, geom, x);
+    x = patch_distances_by::<R, 4>(dist, hs, geom, x);
     for (x, o) in dist.iter_mut().enumerate().skip(x) {
         let mut tot = R::ZERO;
         for (b, (&sr, &coef)) in radii.iter().zip(coefs).enumerate() {
@@ -724,6 +727,39 @@ fn patch_distances<R: Real>(
         }
         *o = tot;
     }
+}
+
+/// [`patch_distances`]'s outputs from `x` on, `L` at a time while `L`
+/// remain; returns where it stopped.
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn patch_distances_by<R: Real, const L: usize>(
+    dist: &mut [R],
+    hs: &[R],
+    ((radii, coefs), (eh, bw), (centre, c0)): ((&[usize], &[R]), (usize, usize), (usize, usize)),
+    mut x: usize,
+) -> usize {
+    let len = dist.len();
+    let at = |b: usize, row: usize, x: usize| (b * eh + row) * bw + c0 + x;
+    while x + L <= len {
+        let mut tot = [R::ZERO; L];
+        for (b, (&sr, &coef)) in radii.iter().zip(coefs).enumerate() {
+            let mut acc = [R::ZERO; L];
+            for row in centre - sr..=centre + sr {
+                let a = at(b, row, x);
+                let s = &hs[a..a + L];
+                for l in 0..L {
+                    acc[l] += s[l];
+                }
+            }
+            for l in 0..L {
+                tot[l] += coef * acc[l];
+            }
+        }
+        dist[x..x + L].copy_from_slice(&tot);
+        x += L;
+    }
+    x
 }
 
 /// Runs a pass over every target pixel and hands each target's result to
