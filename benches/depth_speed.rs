@@ -9,6 +9,10 @@
 //! `fastNlMeansDenoising` 7/21 on the 8-bit colour and on the 16-bit depth,
 //! `ximgproc.jointBilateralFilter` d=9 and d=15, `inpaint` Navier-Stokes.
 //! Both sides use 2 threads (rayon's pool here, `cv2.setNumThreads(2)`).
+//! The measurement runs in rounds that alternate ours and the peers'
+//! (`DEPTHGRAPH_ROUNDS`, default 2); every method keeps the lower of its
+//! rounds' medians, so a burst of load on the shared machine during one
+//! side's turn does not decide a ratio.
 //! `DEPTHGRAPH_DEPTH_ONLY=Inpaint` (any part of a method's name) times only
 //! those methods and prints them, without peers or docs.
 
@@ -199,43 +203,57 @@ fn main() {
         }
         return;
     }
-    let mut ours: Vec<Vec<f64>> = Vec::new();
+    // Rounds alternate ours and the peers'; each method keeps the lower of
+    // its rounds' medians (the round the machine disturbed least), both
+    // sides alike.
+    let rounds = env_usize("DEPTHGRAPH_ROUNDS", 2).max(1);
     for (fi, f) in frames.iter().enumerate() {
-        let mut row = Vec::new();
-        for (name, m) in methods() {
-            // one untimed run first (allocations, the thread pool)
-            let _ = m(f);
-            let (_, ms) = timed(repeats, || m(f));
-            eprintln!("{}: {name}: {ms:.1} ms", f.name);
-            row.push(ms);
-        }
-        ours.push(row);
         if let Some(t) = &temp
             && let Err(e) = write_peer_inputs(t.path(), &format!("frame{fi}"), f, repeats)
         {
             eprintln!("cannot write the peers' inputs: {e}");
         }
     }
+    let mut ours: Vec<Vec<f64>> = vec![vec![f64::INFINITY; methods().len()]; frames.len()];
     let mut peer_ms: Vec<Option<serde_json::Value>> = vec![None; frames.len()];
     let mut peer_note = "OpenCV peers skipped (DEPTHGRAPH_PEERS=0)".to_string();
-    if let (true, Some(t)) = (peers_on, &temp) {
-        match run_peers(t.path()) {
-            Ok(()) => {
-                peer_note.clear();
-                for (fi, slot) in peer_ms.iter_mut().enumerate() {
-                    let p = t.path().join(format!("frame{fi}.peers.json"));
-                    *slot = std::fs::read_to_string(p)
-                        .ok()
-                        .and_then(|s| serde_json::from_str(&s).ok());
-                    if let (true, Some(j)) = (peer_note.is_empty(), slot.as_ref()) {
-                        peer_note = format!("OpenCV {}", j["opencv"].as_str().unwrap_or("?"));
+    for round in 0..rounds {
+        for (f, row) in frames.iter().zip(ours.iter_mut()) {
+            for ((name, m), best) in methods().into_iter().zip(row.iter_mut()) {
+                // one untimed run first (allocations, the thread pool)
+                let _ = m(f);
+                let (_, ms) = timed(repeats, || m(f));
+                eprintln!("round {round}: {}: {name}: {ms:.1} ms", f.name);
+                *best = best.min(ms);
+            }
+        }
+        if let (true, Some(t)) = (peers_on, &temp) {
+            match run_peers(t.path()) {
+                Ok(()) => {
+                    peer_note = String::new();
+                    for (fi, slot) in peer_ms.iter_mut().enumerate() {
+                        let p = t.path().join(format!("frame{fi}.peers.json"));
+                        let new: Option<serde_json::Value> = std::fs::read_to_string(p)
+                            .ok()
+                            .and_then(|s| serde_json::from_str(&s).ok());
+                        *slot = lower_times(slot.take(), new);
+                        if let (true, Some(j)) = (peer_note.is_empty(), slot.as_ref()) {
+                            peer_note = format!("OpenCV {}", j["opencv"].as_str().unwrap_or("?"));
+                        }
                     }
                 }
+                Err(e) => peer_note = format!("OpenCV peers did not run: {e}"),
             }
-            Err(e) => peer_note = format!("OpenCV peers did not run: {e}"),
         }
     }
-    let md = report(&frames, &ours, &peer_ms, &peer_note, &data_note, repeats);
+    let md = report(
+        &frames,
+        &ours,
+        &peer_ms,
+        &peer_note,
+        &data_note,
+        (repeats, rounds),
+    );
     let out = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("docs/depth-speed.md");
     match std::fs::write(&out, &md) {
         Ok(()) => eprintln!("wrote {}", out.display()),
@@ -244,20 +262,46 @@ fn main() {
     println!("{md}");
 }
 
+/// The peers' times of two rounds, each method at the lower (`ms` keys of
+/// the script's JSON); either alone when the other is missing.
+fn lower_times(
+    a: Option<serde_json::Value>,
+    b: Option<serde_json::Value>,
+) -> Option<serde_json::Value> {
+    match (a, b) {
+        (Some(mut a), Some(b)) => {
+            if let (Some(am), Some(bm)) = (a["ms"].as_object_mut(), b["ms"].as_object()) {
+                for (k, v) in bm {
+                    let lower = match (am.get(k).and_then(|x| x.as_f64()), v.as_f64()) {
+                        (Some(x), Some(y)) => x.min(y),
+                        (None, Some(y)) => y,
+                        _ => continue,
+                    };
+                    am.insert(k.clone(), serde_json::json!(lower));
+                }
+            }
+            Some(a)
+        }
+        (a, b) => a.or(b),
+    }
+}
+
 fn report(
     frames: &[Frame],
     ours: &[Vec<f64>],
     peers: &[Option<serde_json::Value>],
     peer_note: &str,
     data_note: &str,
-    repeats: usize,
+    (repeats, rounds): (usize, usize),
 ) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# Depth filters: speed beside OpenCV\n");
     let _ = writeln!(
         s,
         "Regenerate with `cargo bench --bench depth_speed` (this file is overwritten). \
-         640x480, median of {repeats} runs after one untimed run, release build, 2 threads on \
+         640x480, release build; each time is the lower of {rounds} rounds' medians of \
+         {repeats} runs (after one untimed run), the rounds alternating ours and the peers' \
+         (`DEPTHGRAPH_ROUNDS`): the round the shared machine disturbed least; 2 threads on \
          both sides (rayon; `cv2.setNumThreads(2)`), the same inputs in the same run. \
          {peer_note}. {data_note}\n\n\
          Ratio = ours / the peer's time (below 1: ours is faster). The colour peer of \
