@@ -249,40 +249,16 @@ struct Planes {
 }
 
 impl Planes {
-    /// One output row. On x86-64 CPUs with AVX-512 F or AVX2 the row is
-    /// computed by the same code compiled with those instructions (AVX2: 8
-    /// f32 lanes instead of SSE2's 4), the best the CPU has chosen at run
-    /// time; each lane does the scalar code's operations in the same order
-    /// (no fused multiply-add, no sum across lanes), so every version gives
-    /// the same bits (tested).
-    fn filter_row(&self, y: usize, out: &mut [f32]) {
-        #[cfg(target_arch = "x86_64")]
-        if crate::kit::cpu::avx512() {
-            // SAFETY: `filter_row_avx512` needs AVX-512 F and what it implies, which the CPU was just found to have.
-            return unsafe { self.filter_row_avx512(y, out) };
-        }
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: `filter_row_avx2` only needs AVX2, which the CPU was just found to have.
-            return unsafe { self.filter_row_avx2(y, out) };
-        }
-        self.filter_row_body(y, out)
-    }
-
-    /// [`Planes::filter_row_body`] compiled with AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn filter_row_avx2(&self, y: usize, out: &mut [f32]) {
-        self.filter_row_body(y, out)
-    }
-
-    /// [`Planes::filter_row_body`] compiled with AVX-512 F (32 vector
-    /// registers; about 30 % faster than AVX2 at r = 4 on the 2-core test
-    /// machine).
-    #[cfg(target_arch = "x86_64")]
-    #[cfg_attr(not(fuzzing), target_feature(enable = "avx512f"))]
-    unsafe fn filter_row_avx512(&self, y: usize, out: &mut [f32]) {
-        self.filter_row_body(y, out)
+    crate::kit::cpu::simd_versions! {
+        /// One output row. On x86-64 CPUs with AVX-512 F or AVX2 the row is
+        /// computed by the same code compiled with those instructions (AVX2: 8
+        /// f32 lanes instead of SSE2's 4; AVX-512: about 30 % faster than AVX2
+        /// at r = 4 on the 2-core test machine), the best the CPU has chosen at
+        /// run time; each lane does the scalar code's operations in the same
+        /// order (no fused multiply-add, no sum across lanes), so every version
+        /// gives the same bits (tested).
+        fn filter_row(&self, y: usize, out: &mut [f32]);
+        avx2: filter_row_avx2, avx512: filter_row_avx512, body: filter_row_body,
     }
 
     #[inline(always)]

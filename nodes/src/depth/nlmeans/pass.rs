@@ -442,62 +442,26 @@ impl PatchKernel {
     }
 }
 
-/// Computes the sums of every target pixel of rows `[y0, y1)`, columns `[x0, x1)`.
-///
-/// On x86-64 CPUs with AVX-512 F or AVX2 the same code is compiled again
-/// with those instructions (AVX2: 8 f32 or 4 f64 lanes instead of SSE2's
-/// 4 and 2) and the best the CPU has is chosen at run time. Each lane
-/// computes what the scalar code computes, in the same order (Rust never
-/// fuses a multiply and an add on its own, and no sum runs across lanes),
-/// so every version gives the same bits (tested against [`band_body`]
-/// called plainly).
-pub(super) fn band<K: RowKernel>(
-    pass: &Pass,
-    targets: &[bool],
-    kernel: &K,
-    (y0, y1): (usize, usize),
-    (x0, x1): (usize, usize),
-) -> BandOut<K::Sums> {
-    #[cfg(target_arch = "x86_64")]
-    if crate::kit::cpu::avx512() {
-        // SAFETY: `band_avx512` needs AVX-512 F and what it implies (AVX2,
-        // FMA, F16C), which the CPU was just found to have.
-        return unsafe { band_avx512(pass, targets, kernel, (y0, y1), (x0, x1)) };
-    }
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: `band_avx2` only needs AVX2, which the CPU was just found to have.
-        return unsafe { band_avx2(pass, targets, kernel, (y0, y1), (x0, x1)) };
-    }
-    band_body(pass, targets, kernel, (y0, y1), (x0, x1))
-}
-
-/// [`band_body`] compiled with AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-pub(super) unsafe fn band_avx2<K: RowKernel>(
-    pass: &Pass,
-    targets: &[bool],
-    kernel: &K,
-    (y0, y1): (usize, usize),
-    (x0, x1): (usize, usize),
-) -> BandOut<K::Sums> {
-    band_body(pass, targets, kernel, (y0, y1), (x0, x1))
-}
-
-/// [`band_body`] compiled with AVX-512 F (32 vector registers: the f32
-/// rows keep their constants in registers; about 10 % faster than AVX2 on
-/// the 2-core test machine).
-#[cfg(target_arch = "x86_64")]
-#[cfg_attr(not(fuzzing), target_feature(enable = "avx512f"))]
-pub(super) unsafe fn band_avx512<K: RowKernel>(
-    pass: &Pass,
-    targets: &[bool],
-    kernel: &K,
-    (y0, y1): (usize, usize),
-    (x0, x1): (usize, usize),
-) -> BandOut<K::Sums> {
-    band_body(pass, targets, kernel, (y0, y1), (x0, x1))
+crate::kit::cpu::simd_versions! {
+    /// Computes the sums of every target pixel of rows `[y0, y1)`, columns `[x0, x1)`.
+    ///
+    /// On x86-64 CPUs with AVX-512 F or AVX2 the same code is compiled again
+    /// with those instructions (AVX2: 8 f32 or 4 f64 lanes instead of SSE2's
+    /// 4 and 2; AVX-512's 32 vector registers keep the f32 rows' constants
+    /// in registers, about 10 % faster than AVX2 on the 2-core test machine)
+    /// and the best the CPU has is chosen at run time. Each lane computes
+    /// what the scalar code computes, in the same order (Rust never fuses a
+    /// multiply and an add on its own, and no sum runs across lanes), so
+    /// every version gives the same bits (tested against [`band_body`]
+    /// called plainly).
+    pub(super) fn band<K: RowKernel>(
+        pass: &Pass,
+        targets: &[bool],
+        kernel: &K,
+        rows: (usize, usize),
+        cols: (usize, usize),
+    ) -> BandOut<K::Sums>;
+    avx2: band_avx2, avx512: band_avx512, body: band_body,
 }
 
 /// The work of [`band`].

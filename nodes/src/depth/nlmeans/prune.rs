@@ -212,66 +212,29 @@ struct Mixture {
 }
 
 impl Mixture {
-    /// Adds one prediction's term to the kernel density of a row's pixels:
-    /// `num += wgt N(z_i; z_p, k sigma(z_p)^2)`, `den += wgt`, with
-    /// `wgt = c_a c_b` and `z_p = 1 / q_p` wherever both neighbours are
-    /// measurements and `q_p > 0` (finite). With `q_p = 1 / z_p`,
-    /// `(z_i - z_p) / sigma = (z_i q_p - 1) / (sigma_m q_p + sigma_rel)` and
-    /// `1 / sigma = q_p / (sigma_m q_p + sigma_rel)`: one division per term
-    /// (guard: the divisor is at least `sigma_m q_p > 0` where used; other
-    /// lanes divide by a selected 1). No branch: the loop vectorises.
-    ///
-    /// On x86-64 CPUs with AVX-512 F or AVX2 the loop is compiled again with
-    /// those instructions and the best is chosen at run time (the same
-    /// arithmetic lane by lane, so the same bits: Rust fuses no multiply
-    /// and add on its own; tested).
-    fn add_row(
-        &self,
-        pr: &Prediction,
-        q: (&[f64], &[f64]),
-        c: (&[f32], &[f32]),
-        zi: &[f64],
-        sums: (&mut [f64], &mut [f64]),
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        if crate::kit::cpu::avx512() {
-            // SAFETY: `add_row_avx512` needs AVX-512 F and what it implies, which the CPU was just found to have.
-            return unsafe { self.add_row_avx512(pr, q, c, zi, sums) };
-        }
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: `add_row_avx2` only needs AVX2, which the CPU was just found to have.
-            return unsafe { self.add_row_avx2(pr, q, c, zi, sums) };
-        }
-        self.add_row_body(pr, q, c, zi, sums)
-    }
-
-    /// [`Mixture::add_row_body`] compiled with AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn add_row_avx2(
-        &self,
-        pr: &Prediction,
-        q: (&[f64], &[f64]),
-        c: (&[f32], &[f32]),
-        zi: &[f64],
-        sums: (&mut [f64], &mut [f64]),
-    ) {
-        self.add_row_body(pr, q, c, zi, sums)
-    }
-
-    /// [`Mixture::add_row_body`] compiled with AVX-512 F.
-    #[cfg(target_arch = "x86_64")]
-    #[cfg_attr(not(fuzzing), target_feature(enable = "avx512f"))]
-    unsafe fn add_row_avx512(
-        &self,
-        pr: &Prediction,
-        q: (&[f64], &[f64]),
-        c: (&[f32], &[f32]),
-        zi: &[f64],
-        sums: (&mut [f64], &mut [f64]),
-    ) {
-        self.add_row_body(pr, q, c, zi, sums)
+    crate::kit::cpu::simd_versions! {
+        /// Adds one prediction's term to the kernel density of a row's pixels:
+        /// `num += wgt N(z_i; z_p, k sigma(z_p)^2)`, `den += wgt`, with
+        /// `wgt = c_a c_b` and `z_p = 1 / q_p` wherever both neighbours are
+        /// measurements and `q_p > 0` (finite). With `q_p = 1 / z_p`,
+        /// `(z_i - z_p) / sigma = (z_i q_p - 1) / (sigma_m q_p + sigma_rel)` and
+        /// `1 / sigma = q_p / (sigma_m q_p + sigma_rel)`: one division per term
+        /// (guard: the divisor is at least `sigma_m q_p > 0` where used; other
+        /// lanes divide by a selected 1). No branch: the loop vectorises.
+        ///
+        /// On x86-64 CPUs with AVX-512 F or AVX2 the loop is compiled again with
+        /// those instructions and the best is chosen at run time (the same
+        /// arithmetic lane by lane, so the same bits: Rust fuses no multiply
+        /// and add on its own; tested).
+        fn add_row(
+            &self,
+            pr: &Prediction,
+            q: (&[f64], &[f64]),
+            c: (&[f32], &[f32]),
+            zi: &[f64],
+            sums: (&mut [f64], &mut [f64]),
+        );
+        avx2: add_row_avx2, avx512: add_row_avx512, body: add_row_body,
     }
 
     /// The loop of [`Mixture::add_row`].
