@@ -443,7 +443,8 @@ impl PatchKernel {
 }
 
 crate::kit::cpu::simd_versions! {
-    /// Computes the sums of every target pixel of rows `[y0, y1)`, columns `[x0, x1)`.
+    /// Computes the sums of every target pixel of rows `rows = [y0, y1)`, columns
+    /// `cols = [x0, x1)`.
     ///
     /// On x86-64 CPUs with AVX-512 F or AVX2 the same code is compiled again
     /// with those instructions (AVX2: 8 f32 or 4 f64 lanes instead of SSE2's
@@ -620,10 +621,9 @@ const LANES: usize = 16;
 fn sum_shifted<R: Real>(out: &mut [R], src: &[R], n: usize) {
     let len = out.len();
     let src = &src[..len + n - 1];
-    let mut x = 0;
     // LANES columns at a time, then 8 and 4 (a narrow band of scattered
     // holes is mostly such a rest), then one by one
-    x = sum_shifted_by::<R, LANES>(out, src, n, x);
+    let mut x = sum_shifted_by::<R, LANES>(out, src, n, 0);
     x = sum_shifted_by::<R, 8>(out, src, n, x);
     x = sum_shifted_by::<R, 4>(out, src, n, x);
     for (x, o) in out.iter_mut().enumerate().skip(x) {
@@ -674,10 +674,9 @@ fn patch_distances<R: Real>(
     (centre, c0): (usize, usize),
 ) {
     let at = |b: usize, row: usize, x: usize| (b * eh + row) * bw + c0 + x;
-    let mut x = 0;
     // as in `sum_shifted`: LANES, 8 and 4 columns at a time, then one by one
     let geom = ((radii, coefs), (eh, bw), (centre, c0));
-    x = patch_distances_by::<R, LANES>(dist, hs, geom, x);
+    let mut x = patch_distances_by::<R, LANES>(dist, hs, geom, 0);
     x = patch_distances_by::<R, 8>(dist, hs, geom, x);
     x = patch_distances_by::<R, 4>(dist, hs, geom, x);
     for (x, o) in dist.iter_mut().enumerate().skip(x) {
