@@ -6,7 +6,7 @@ use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
-use crate::kit::checks::{fits_intrinsics, sane_intrinsics};
+use crate::kit::checks::{fits_intrinsics, same_size, sane_intrinsics};
 
 /// Unprojects every valid pixel: `X = (u - cx) z / fx`, `Y = (v - cy) z / fy`, `Z = z`
 /// (3d-editing eq. 1), with `(u, v)` the pixel centre `(x + 0.5, y + 0.5)`.
@@ -25,19 +25,14 @@ pub fn unproject(
     color: Option<&ColorImage>,
 ) -> Result<PointCloud, NodeError> {
     fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
-    if let Some(c) = color
-        && !c.same_dims(depth)
-    {
-        return Err(NodeError::input(
+    if let Some(c) = color {
+        same_size(
             "color",
-            format!(
-                "is {}x{} but the depth is {}x{}",
-                c.width(),
-                c.height(),
-                depth.width(),
-                depth.height()
-            ),
-        ));
+            "a colour image",
+            c.dims(),
+            "the depth",
+            depth.dims(),
+        )?;
     }
     let mut pc = PointCloud::default();
     for y in 0..depth.height() {

@@ -18,7 +18,7 @@
 //! so results are identical whatever the number of threads.
 
 use crate::camera::response::Curve;
-use crate::kit::checks::fits_intrinsics;
+use crate::kit::checks::{fits_intrinsics, same_size};
 use crate::kit::color::luminance;
 use crate::kit::rng::SplitMix64;
 use std::sync::Arc;
@@ -212,19 +212,14 @@ pub fn simulate_kinect(
     p: &KinectParams,
 ) -> Result<DepthMap, NodeError> {
     fits_intrinsics("intrinsics", k, "depth map", depth.dims())?;
-    if let Some(c) = color
-        && !c.same_dims(depth)
-    {
-        return Err(NodeError::input(
+    if let Some(c) = color {
+        same_size(
             "color",
-            format!(
-                "is {}x{} but the depth map is {}x{}",
-                c.width(),
-                c.height(),
-                depth.width(),
-                depth.height()
-            ),
-        ));
+            "a colour image",
+            c.dims(),
+            "the depth map",
+            depth.dims(),
+        )?;
     }
     let (w, h) = depth.dims();
     let mut out = vec![0.0f32; w * h];
