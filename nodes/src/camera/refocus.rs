@@ -446,22 +446,12 @@ pub fn plan(
     // Sources that can move: active pixels only (see active_pixels), with
     // the high half of their z-buffer key computed once: depth bits (positive
     // floats order like their bits; +inf for the sky) then the source index.
-    // (rows in parallel, joined in row order)
-    let rows: Vec<Vec<(u32, u64)>> = active
-        .par_chunks(w)
-        .enumerate()
-        .map(|(y, row)| {
-            (y * w..(y + 1) * w)
-                .zip(row)
-                .filter(|(_, a)| **a)
-                .map(|(i, _)| (i as u32, zkey(src_inv_z[i], i)))
-                .collect()
-        })
+    // (in parallel: rayon's collect keeps the order)
+    let sources: Vec<(u32, u64)> = (0..active.len())
+        .into_par_iter()
+        .filter(|&i| active[i])
+        .map(|i| (i as u32, zkey(src_inv_z[i], i)))
         .collect();
-    let mut sources: Vec<(u32, u64)> = Vec::with_capacity(n_active);
-    for r in rows {
-        sources.extend(r);
-    }
     let layer = if p.background_layer {
         background_layer(
             w,

@@ -13,7 +13,7 @@ use std::sync::Arc;
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
-use crate::kit::checks::fits_intrinsics;
+use crate::kit::checks::{fits_intrinsics, same_size};
 use depthgraph_graph::registry::RegistryError;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -37,13 +37,8 @@ fn check_inputs(
 ) -> Result<(), NodeError> {
     let (w, h) = depth.dims();
     fits_intrinsics("intrinsics", k, "depth map", (w, h))?;
-    if let Some(c) = color
-        && !c.same_dims(depth)
-    {
-        return Err(NodeError::input(
-            "color",
-            format!("is {}x{} but the depth is {w}x{h}", c.width(), c.height()),
-        ));
+    if let Some(c) = color {
+        same_size("color", "a colour image", c.dims(), "the depth", (w, h))?;
     }
     if w.saturating_mul(h) > u32::MAX as usize {
         return Err(NodeError::input(

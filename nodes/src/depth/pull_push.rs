@@ -134,7 +134,8 @@ node_params! {
         /// DualPullPush: the projector's distance from the camera, metres (Kinect v1: 0.075). A
         /// hole wider than the shadow such a projector casts across its depth step (f B (1/z_near
         /// - 1/z_far) pixels, plus 2) is no shadow but a dropout or a hole across the near
-        /// surface, and gets the paper's weights. 0 = any width may be a shadow.
+        /// surface, and gets the paper's weights (`shadow_side` left or right; "both" takes
+        /// every hole beside an edge). 0 = any width may be a shadow.
         pub shadow_baseline_m: f64 = 0.075, ParamKind::Float { min: 0.0, max: 10.0 };
     }
 }

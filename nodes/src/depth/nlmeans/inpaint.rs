@@ -149,12 +149,14 @@ impl PassRunner for CpuPass {
                 any_exact = true;
             }
         };
-        // In f32 where every target is a source itself (denoising): its own
-        // term weighs its confidence, so the weights that count never
-        // underflow in f32. Holes (inpainting) may have every candidate
-        // more than 87 units of exponent away, where f32 has nothing
-        // left: those rows run in f64. Patches wider than 5x5 run in f64
-        // too (the f32 bound is stated for r <= 2; `depth_rows`).
+        // In f32 where every target holds depth (denoising): its own term
+        // weighs its confidence, so the weights that count rarely
+        // underflow in f32 (a target of confidence 0 whose do is handed
+        // back below). Holes (inpainting) may have every candidate more
+        // than 87 units of exponent away, where f32 has nothing left: so
+        // many are handed back (8.5k per TUM frame) that f32 gains nothing
+        // there, and those rows run in f64. Patches wider than 5x5 run in
+        // f64 too (the f32 bound is stated for r <= 2; `depth_rows`).
         if job.targets_are_sources && job.patch <= F32_MAX_PATCH {
             run_pass(
                 &pass,
@@ -190,16 +192,18 @@ impl PassRunner for CpuPass {
     }
 }
 
-/// The largest source depth (confidence > 0) in the `(2r+1)^2` window of
-/// every pixel, clipped to the image (the candidates of a pass); 0 where
-/// the window holds no source. Separable: a row pass, then a column pass.
+/// [`window_max_on`] on every row (tests).
 #[cfg(test)]
 pub(super) fn window_max(z: &[f32], c: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
     window_max_on(z, c, (w, h), r, None)
 }
 
-/// [`window_max`] on the rows holding a target only (0 elsewhere), when
-/// `targets` is given: the later iterations of an inpainting have few.
+/// The largest source depth (confidence > 0) in the `(2r+1)^2` window of
+/// every pixel, clipped to the image (the candidates of a pass); 0 where
+/// the window holds no source. Separable: a row pass ([`window_max_row`]),
+/// then a column pass. With `targets`, only the rows holding a target are
+/// computed (0 elsewhere): the later iterations of an inpainting have few;
+/// `None` computes every row.
 pub(super) fn window_max_on(
     z: &[f32],
     c: &[f32],

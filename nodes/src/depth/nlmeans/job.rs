@@ -20,9 +20,12 @@ pub struct PassJob<'a> {
     pub c: &'a [f32],
     /// The pixels to estimate.
     pub targets: &'a [bool],
-    /// Every target is a source itself (denoising; no hole among them):
-    /// its own term keeps its weights from underflowing, so a runner may
-    /// compute them in f32 (see `depth_rows`). Holes being inpainted: false.
+    /// Every target holds depth (denoising; no hole among them): its own
+    /// term, weighed by its confidence, keeps its weights from
+    /// underflowing, so a runner may compute them in f32 (see
+    /// `depth_rows`); a target of confidence 0 whose weights underflow all
+    /// the same is handed back and run in f64. Holes being inpainted
+    /// (false) would be handed back too often for f32 to pay.
     pub targets_are_sources: bool,
     /// Search radius (candidates in a `(2R+1)^2` window inside the image).
     pub search: usize,

@@ -526,6 +526,21 @@ pub(super) fn band_body<K: RowKernel>(
     let mut sums = kernel.sums(bw * bh);
     // Patch distances of the current row's targets.
     let mut drow = vec![zero; bw];
+    // Each band row's targets, first to last (band columns): at every
+    // offset the vertical sums and the kernel run over that span, clipped
+    // to the offset's columns (pixels in it that are no targets get sums
+    // nobody reads, which costs less than a run per group of scattered
+    // holes: each run's setup and its loops' scalar ends); rows without a
+    // target are skipped. Each pixel's arithmetic is the same whatever
+    // span it is in, so the results are too.
+    let spans: Vec<Option<(usize, usize)>> = (0..bh)
+        .map(|t| {
+            let row = &targets[(y0 + t) * w + xa..(y0 + t) * w + xa + bw];
+            let a = row.iter().position(|v| *v)?;
+            let b = row.iter().rposition(|v| *v)?;
+            Some((a, b + 1))
+        })
+        .collect();
     for dy in -big_r..=big_r {
         // Rows of the band whose candidate row y + dy is inside the image.
         let t0 = (-(y0 as isize) - dy).max(0) as usize;
@@ -579,23 +594,24 @@ pub(super) fn band_body<K: RowKernel>(
                     sum_shifted(hrow, &d[lo..], 2 * sr + 1);
                 }
             }
-            // Vertical box sums and the kernel.
-            for t in t0..t1 {
-                let y = y0 + t;
-                let trow = &targets[y * w + xa + c0..y * w + xa + c1];
-                if !trow.iter().any(|t| *t) {
+            // Vertical box sums and the kernel over each row's span.
+            for (t, span) in spans.iter().enumerate().take(t1).skip(t0) {
+                let Some((a, b)) = *span else { continue };
+                let (a, b) = (a.max(c0), b.min(c1));
+                if a >= b {
                     continue;
                 }
-                let dist = &mut drow[c0..c1];
-                patch_distances(dist, &hs, (&pk.radii, &coefs), (eh, bw), (t + r, c0));
+                let y = y0 + t;
+                let dist = &mut drow[a..b];
+                patch_distances(dist, &hs, (&pk.radii, &coefs), (eh, bw), (t + r, a));
                 let row = RowCands {
                     y,
                     yj: (y as isize + dy) as usize,
-                    x0: xa + c0,
+                    x0: xa + a,
                     dx,
                     dist,
-                    targets: trow,
-                    at: t * bw + c0,
+                    targets: &targets[y * w + xa + a..y * w + xa + b],
+                    at: t * bw + a,
                 };
                 kernel.add_row(w, &row, &mut sums);
             }
@@ -626,13 +642,7 @@ fn sum_shifted<R: Real>(out: &mut [R], src: &[R], n: usize) {
     let mut x = sum_shifted_by::<R, LANES>(out, src, n, 0);
     x = sum_shifted_by::<R, 8>(out, src, n, x);
     x = sum_shifted_by::<R, 4>(out, src, n, x);
-    for (x, o) in out.iter_mut().enumerate().skip(x) {
-        let mut a = R::ZERO;
-        for v in &src[x..x + n] {
-            a += *v;
-        }
-        *o = a;
-    }
+    sum_shifted_by::<R, 1>(out, src, n, x);
 }
 
 /// [`sum_shifted`]'s outputs from `x` on, `L` at a time while `L` remain;
@@ -673,23 +683,12 @@ fn patch_distances<R: Real>(
     (eh, bw): (usize, usize),
     (centre, c0): (usize, usize),
 ) {
-    let at = |b: usize, row: usize, x: usize| (b * eh + row) * bw + c0 + x;
     // as in `sum_shifted`: LANES, 8 and 4 columns at a time, then one by one
     let geom = ((radii, coefs), (eh, bw), (centre, c0));
     let mut x = patch_distances_by::<R, LANES>(dist, hs, geom, 0);
     x = patch_distances_by::<R, 8>(dist, hs, geom, x);
     x = patch_distances_by::<R, 4>(dist, hs, geom, x);
-    for (x, o) in dist.iter_mut().enumerate().skip(x) {
-        let mut tot = R::ZERO;
-        for (b, (&sr, &coef)) in radii.iter().zip(coefs).enumerate() {
-            let mut acc = R::ZERO;
-            for row in centre - sr..=centre + sr {
-                acc += hs[at(b, row, x)];
-            }
-            tot += coef * acc;
-        }
-        *o = tot;
-    }
+    patch_distances_by::<R, 1>(dist, hs, geom, x);
 }
 
 /// [`patch_distances`]'s outputs from `x` on, `L` at a time while `L`
