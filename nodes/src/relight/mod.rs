@@ -6,6 +6,7 @@ pub mod closure;
 pub mod contact;
 pub mod envmap;
 pub mod ism;
+pub mod lattice;
 pub mod lighting;
 pub mod node;
 pub mod object_mesh;

@@ -110,7 +110,7 @@ fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<Relig
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Relight",
-        7,
+        8,
         "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
          directional VPLs of an environment map, imperfect shadow maps, one bounce each way with clamped \
          1/r² (object to scene; scene to object through secondary VPLs read off the photo, the floor it stands \
@@ -118,7 +118,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
          The object is shaded by the ratio of the irradiance it receives here to what it received where it was \
          captured (capture_vpls, else the same map); shadows remove only the light the object blocks, direct and \
          bounced (fill_light); its unseen back is closed for its shadows (close_back); where a shadow map cannot tell (an occluder \
-         within its bias: a wall beside the object) the photo's depth is marched (contact). Pixels are radiance.\n\
+         within its bias: a wall beside the object) the photo's depth is marched (contact); the object's irradiance, its bounce and the fill are evaluated every lattice_step pixels and blended between them on one surface where neighbours agree. Pixels are radiance.\n\
          Only the pixels the object changes are rendered; elsewhere the photo is kept bit for bit.\n\
          visibility: scene_cached keeps the scene's shadow maps while only the object changes (fast moves); \
          paired rebuilds scene+object maps with near-object importance (eq. 6) every run; raycast traces \

@@ -235,6 +235,52 @@ impl ObjectMesh {
     }
 }
 
+/// `depth` (of a camera `k`) pooled over blocks of `f x f` pixels, and
+/// the camera of the pooled grid (focal lengths and principal point over
+/// `f`, so that pooled pixel `u'` is pixel `f u'`): a block with at least
+/// half its pixels valid takes the median of their depths (an upper
+/// median, one of them: a block across a depth edge lies on one side, not
+/// between), else none. The coarse object maps' mesh is built on it
+/// ([`crate::relight::scene_cached`]): a patch then stands for a block,
+/// and the outline moves by at most half a block.
+pub fn pooled(depth: &DepthMap, k: &Intrinsics, f: usize) -> (DepthMap, Intrinsics) {
+    let f = f.max(1);
+    let (w, h) = depth.dims();
+    let (pw, ph) = (w.div_ceil(f), h.div_ceil(f));
+    let mut out = DepthMap::filled(pw, ph, 0.0);
+    let mut zs: Vec<f32> = Vec::with_capacity(f * f);
+    for by in 0..ph {
+        for bx in 0..pw {
+            zs.clear();
+            let mut n = 0;
+            for y in by * f..((by + 1) * f).min(h) {
+                for x in bx * f..((bx + 1) * f).min(w) {
+                    n += 1;
+                    let z = *depth.get(x, y);
+                    if DepthMap::is_valid(z) {
+                        zs.push(z);
+                    }
+                }
+            }
+            if !zs.is_empty() && 2 * zs.len() >= n {
+                zs.sort_by(f32::total_cmp);
+                *out.get_mut(bx, by) = zs[zs.len() / 2];
+            }
+        }
+    }
+    // guard: f >= 1
+    let s = f as f64;
+    let kp = Intrinsics {
+        fx: k.fx / s,
+        fy: k.fy / s,
+        cx: k.cx / s,
+        cy: k.cy / s,
+        width: pw,
+        height: ph,
+    };
+    (out, kp)
+}
+
 /// The half edges of pixel `(x, y)`'s patch on a valid depth (module
 /// docs): `∂P/∂x / 2` and `∂P/∂y / 2` from the neighbours on the same
 /// surface (one-sided differences; fronto-parallel without one), each
@@ -411,6 +457,39 @@ mod tests {
     /// direction, the map covers the disc's area to within the outline's
     /// texels, for every stride, and has no hole inside it (no texel
     /// within the disc's inner 90 % is empty).
+    /// Pooling keeps a block where at least half its pixels are valid, at
+    /// one of their depths (the upper median), and its camera puts the
+    /// pooled pixel where the block lies: a plane stays the plane.
+    #[test]
+    fn pooled_blocks_take_a_member_depth_on_the_same_plane() {
+        let k = crate::sim::synthetic::kinect_like_intrinsics(9, 7);
+        let mut d = DepthMap::filled(9, 7, 0.0);
+        // a fronto-parallel plane at 2 m over x < 6, rows 0..6
+        for y in 0..6 {
+            for x in 0..6 {
+                *d.get_mut(x, y) = 2.0;
+            }
+        }
+        // one block with a near pixel among far ones: 2, 2, 2, 1
+        *d.get_mut(1, 1) = 1.0;
+        // a block with one valid pixel of four is dropped
+        *d.get_mut(6, 0) = 3.0;
+        let (p, kp) = pooled(&d, &k, 2);
+        assert_eq!(p.dims(), (5, 4));
+        assert_eq!(*p.get(0, 0), 2.0);
+        assert_eq!(*p.get(2, 2), 2.0);
+        assert_eq!(*p.get(3, 0), 0.0);
+        // the edge blocks: column 4 (one pixel wide) and row 3 (rows 6)
+        assert_eq!(*p.get(4, 0), 0.0);
+        assert_eq!(*p.get(0, 3), 0.0);
+        // pooled pixel (u', v') + 1/2 at depth z is the point at fine
+        // pixel 2 (u' + 1/2): the block's centre
+        let q = kp.unproject(1.5, 2.5, 2.0);
+        let r = k.unproject(3.0, 5.0, 2.0);
+        assert!((q - r).length() < 1e-12, "{q} {r}");
+        assert!((kp.fx - k.fx / 2.0).abs() < 1e-12 && kp.width == 5 && kp.height == 4);
+    }
+
     #[test]
     fn a_sphere_front_seen_from_the_camera_covers_its_disc_without_holes() {
         let k = cam(320, 240);

@@ -60,6 +60,8 @@ node_params! {
         pub contact: bool = true, ParamKind::Bool;
         /// The object's capture irradiance is at least this fraction of the VPLs' total: a face the capture map barely lit is not brightened without bound.
         pub min_capture_rel: f64 = 0.02, ParamKind::Float { min: 1e-9, max: 1.0 };
+        /// Pixels between the points where the object's irradiance and its bounce are evaluated (scene_cached; the fill light at four times this, except at 1): pixels between them blend their neighbours where those lie on the same surface and agree within 5 %, and are evaluated themselves elsewhere. 1 = every pixel.
+        pub lattice_step: usize = 2usize, ParamKind::Int { min: 1, max: 16 };
         /// Extend the plane the object stands on beyond the photo's frame: it bounces light onto the object.
         pub extend_support: bool = true, ParamKind::Bool;
         /// How far the support plane is extended, in object radii from the object's foot.
@@ -324,7 +326,7 @@ impl Cone {
     }
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Copy)]
 pub(crate) struct Surf {
     pub(crate) pos: DVec3,
     pub(crate) n: DVec3,
