@@ -444,24 +444,34 @@ fn coarse_resolution(res: usize) -> usize {
 
 /// The object's closed mesh for the two map resolutions
 /// ([`FINE_MAP_SHARE`]): `fine` on the layers' pixels, `coarse` on the
-/// layers pooled over [`COARSE_POOL`]² blocks
-/// ([`crate::relight::object_mesh::pooled`]), each at the stride of its
-/// maps' texels; `coarse` is `None` where the maps share one resolution.
+/// layers pooled over [`COARSE_POOL`]² blocks where the object is large
+/// enough ([`POOL_MIN_STRIDE`], [`crate::relight::object_mesh::pooled`]),
+/// each at the stride of its maps' texels; `coarse` is `None` where it
+/// would be the fine one.
 struct ObjectMeshes {
     fine: ObjectMesh,
     coarse: Option<ObjectMesh>,
 }
 
 /// The coarse maps' mesh is built on the object's layers pooled over
-/// blocks of this many pixels a side. Its maps have half the fine maps'
+/// blocks of this many pixels a side, where its cells span at least
+/// [`POOL_MIN_STRIDE`] pixels. Its maps have half the fine maps'
 /// resolution, so a cell of two of their texels spans twice the pixels;
 /// but along the outline, where cells break, the mesh falls back to a
 /// patch per pixel, and those patches (a band as deep as the stride)
 /// were nine tenths of its triangles: 8208 against the fine mesh's 6700
-/// for a sphere of 10 000 pixels. Pooled, a patch covers a block: a
-/// quarter of the triangles, and an outline within half a block (a
-/// quarter of a coarse texel at the usual strides).
+/// for a sphere of 10 000 pixels. Pooled, a patch covers a block: about a
+/// third of the triangles, and an outline within half a block.
 pub const COARSE_POOL: usize = 2;
+
+/// The coarse mesh is pooled only where its cells (two coarse texels)
+/// span at least this many pixels: half a block then moves the outline
+/// by at most a quarter of a texel. Against the path-traced rooms,
+/// pooling the 320x240 objects (cells of 6 pixels) cost up to 1.1 dB in
+/// the influence region (occluded, sun + sky: 31.3 -> 30.2); at 640x480
+/// (cells of 11) it scored as well as the unpooled mesh (33.0 against
+/// 32.6 and 40.5 against 40.4 dB, 64 paths per pixel).
+pub const POOL_MIN_STRIDE: usize = 8;
 
 impl ObjectMeshes {
     /// The meshes of `front` and `back` for an object of centre `c` and
@@ -479,12 +489,15 @@ impl ObjectMeshes {
         let (fine, coarse) = rayon::join(
             || ObjectMesh::new(front, back, k, fine_stride),
             || {
-                (coarse_resolution(res) != res).then(|| {
-                    let (f, kc) = pooled(front, k, COARSE_POOL);
-                    let b = back.map(|b| pooled(b, k, COARSE_POOL).0);
-                    let stride = object_stride(radius, c.z, &kc, coarse_resolution(res));
-                    ObjectMesh::new(&f, b.as_ref(), &kc, stride)
-                })
+                let stride = object_stride(radius, c.z, k, coarse_resolution(res));
+                if stride < POOL_MIN_STRIDE {
+                    return (stride != fine_stride)
+                        .then(|| ObjectMesh::new(front, back, k, stride));
+                }
+                let (f, kc) = pooled(front, k, COARSE_POOL);
+                let b = back.map(|b| pooled(b, k, COARSE_POOL).0);
+                let stride = object_stride(radius, c.z, &kc, coarse_resolution(res));
+                Some(ObjectMesh::new(&f, b.as_ref(), &kc, stride))
             },
         );
         Self { fine, coarse }
@@ -630,10 +643,15 @@ fn same_surface(s: &Surf, q: &Surf) -> bool {
     q.n.dot(s.n) > 0.9 && d.dot(s.n).abs() <= 0.01 * z && d.length() <= 0.1 * z
 }
 
-/// An object surface's `(E^{s+t}, E_cap)`.
-type Irradiances = ([f64; 3], [f64; 3]);
+/// An object surface's `E^{s+t}`, `E_cap` and the scene's bounce onto it.
+type Irradiances = [[f64; 3]; 3];
 
-/// The object's irradiances `(E^{s+t}, E_cap)` at its pixels `obj_idx`
+/// [`Irradiances`] as one row of nine.
+fn flat(v: &Irradiances) -> [f64; 9] {
+    std::array::from_fn(|i| v[i / 3][i % 3])
+}
+
+/// The object's irradiances ([`Irradiances`]) at its pixels `obj_idx`
 /// (sorted, surfaces `surfs`) of a `w x h` image, by `exact` (which takes
 /// a list of surfaces and sums VPL-major over them): on the lattices
 /// every `2 step`, then every `step` pixels ([`crate::relight::lattice`]),
@@ -652,10 +670,10 @@ fn lattice_irradiance(
         return exact(surfs);
     }
     let surf_at = |i: usize| obj_idx.binary_search(&i).ok().map(|j| &surfs[j]);
-    let mut out: Vec<Option<[f64; 6]>> = vec![None; obj_idx.len()];
+    let mut out: Vec<Option<[f64; 9]>> = vec![None; obj_idx.len()];
     for grid in [
-        Lattice::<6>::new(w, h, 2 * step),
-        Lattice::<6>::new(w, h, step),
+        Lattice::<9>::new(w, h, 2 * step),
+        Lattice::<9>::new(w, h, step),
     ] {
         let open: Vec<usize> = (0..obj_idx.len()).filter(|&j| out[j].is_none()).collect();
         // the object's nodes the open pixels blend, each once, in order
@@ -668,11 +686,8 @@ fn lattice_irradiance(
         nodes.dedup();
         let node_surfs: Vec<Surf> = nodes.iter().filter_map(|&n| surf_at(n).copied()).collect();
         let values = exact(&node_surfs);
-        let eval = |i: usize| {
-            let (a, b) = values[nodes.binary_search(&i).ok()?];
-            Some([a[0], a[1], a[2], b[0], b[1], b[2]])
-        };
-        let blended: Vec<Option<[f64; 6]>> = open
+        let eval = |i: usize| Some(flat(&values[nodes.binary_search(&i).ok()?]));
+        let blended: Vec<Option<[f64; 9]>> = open
             .par_iter()
             .map(|&j| {
                 let (i, s) = (obj_idx[j], &surfs[j]);
@@ -686,13 +701,13 @@ fn lattice_irradiance(
     }
     let rest: Vec<usize> = (0..obj_idx.len()).filter(|&j| out[j].is_none()).collect();
     let rest_surfs: Vec<Surf> = rest.iter().map(|&j| surfs[j]).collect();
-    for (&j, (a, b)) in rest.iter().zip(exact(&rest_surfs)) {
-        out[j] = Some([a[0], a[1], a[2], b[0], b[1], b[2]]);
+    for (&j, v) in rest.iter().zip(exact(&rest_surfs)) {
+        out[j] = Some(flat(&v));
     }
     out.into_iter()
         .map(|v| {
-            let v = v.unwrap_or_default();
-            ([v[0], v[1], v[2]], [v[3], v[4], v[5]])
+            let v = v.unwrap_or([0.0; 9]);
+            std::array::from_fn(|t| [v[3 * t], v[3 * t + 1], v[3 * t + 2]])
         })
         .collect()
 }
@@ -868,7 +883,33 @@ pub fn relight_moved(
     // chunks of surfaces, VPL-major inside (one pair of maps in cache at a
     // time); every surface sums its VPLs in order
     const CHUNK: usize = 256;
-    let irradiance = |surfs: &[Surf]| -> Vec<([f64; 3], [f64; 3])> {
+    // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
+    // samples, each with its own radius
+    let m_obj = (p.bounce_ism_points / 4).max(16);
+    let (r_scene, r_obj) = match (&scene.pool, &oset) {
+        (Some(pool), Some(oset)) => (
+            BOUNCE_SPLAT_SCALE * pool.base_radius(p.bounce_ism_points),
+            BOUNCE_SPLAT_SCALE * oset.base_radius(m_obj),
+        ),
+        _ => (0.0, 0.0),
+    };
+    let bounce_samples: Vec<ParaboloidSamples> = match (&scene.pool, &oset) {
+        (Some(pool), Some(oset)) => vec![
+            ParaboloidSamples {
+                set: pool,
+                m: p.bounce_ism_points,
+                radius_scale: BOUNCE_SPLAT_SCALE,
+            },
+            ParaboloidSamples {
+                set: oset,
+                m: m_obj,
+                radius_scale: BOUNCE_SPLAT_SCALE,
+            },
+        ],
+        _ => Vec::new(),
+    };
+    let scene_shadows = PointVplShadows::new(&scene_vpls, &bounce_samples, p, p.seed ^ 0x5EC0);
+    let irradiance = |surfs: &[Surf]| -> Vec<Irradiances> {
         surfs
             .par_chunks(CHUNK)
             .flat_map_iter(|chunk| {
@@ -914,9 +955,12 @@ pub fn relight_moved(
                             }
                             _ => {
                                 let sl = slope(cos);
+                                let vo = omap.is_none_or(|m| m.visible(s.pos, bias_oo[j] * sl));
+                                // the scene's test (a march, maybe) only
+                                // where the object lets the light through
                                 (
-                                    omap.is_none_or(|m| m.visible(s.pos, bias_oo[j] * sl)),
-                                    sm.is_none_or(|m| {
+                                    vo,
+                                    vo && sm.is_none_or(|m| {
                                         let lc = m.light_coords(s.pos);
                                         let os = f64::from(m.occluder_lc(lc));
                                         scene_sees(
@@ -942,7 +986,21 @@ pub fn relight_moved(
                         }
                     }
                 }
-                acc
+                // the scene's bounce onto the object, per surface
+                acc.into_iter().zip(chunk).map(|((est, ecap), s)| {
+                    let bs = if scene_vpls.is_empty() {
+                        [0.0; 3]
+                    } else {
+                        scene_shadows.bounce(
+                            s.pos,
+                            s.n,
+                            r_obj,
+                            scene_lit.iter().enumerate(),
+                            r2_min,
+                        )
+                    };
+                    [est, ecap, bs]
+                })
             })
             .collect()
     };
@@ -958,52 +1016,18 @@ pub fn relight_moved(
     // the capture side: the same VPLs, or the capture map's with maps of
     // the object alone in their directions
     let ecap: Vec<[f64; 3]> = match inp.capture_vpls {
-        None => irr.iter().map(|(_, e)| *e).collect(),
+        None => irr.iter().map(|v| v[1]).collect(),
         Some(cv) => {
             let (cv, cdirs, _) = lit_vpls(cv);
             let cm = object_maps(&meshes, &cdirs, &cv, p);
             capture_irradiance(&obj_surfs, &cv, &cdirs, &cm, scene.bias_scale)
         }
     };
-    // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
-    // samples, each with its own radius
-    let m_obj = (p.bounce_ism_points / 4).max(16);
-    let (r_scene, r_obj) = match (&scene.pool, &oset) {
-        (Some(pool), Some(oset)) => (
-            BOUNCE_SPLAT_SCALE * pool.base_radius(p.bounce_ism_points),
-            BOUNCE_SPLAT_SCALE * oset.base_radius(m_obj),
-        ),
-        _ => (0.0, 0.0),
-    };
-    let bounce_samples: Vec<ParaboloidSamples> = match (&scene.pool, &oset) {
-        (Some(pool), Some(oset)) => vec![
-            ParaboloidSamples {
-                set: pool,
-                m: p.bounce_ism_points,
-                radius_scale: BOUNCE_SPLAT_SCALE,
-            },
-            ParaboloidSamples {
-                set: oset,
-                m: m_obj,
-                radius_scale: BOUNCE_SPLAT_SCALE,
-            },
-        ],
-        _ => Vec::new(),
-    };
-    let scene_shadows = PointVplShadows::new(&scene_vpls, &bounce_samples, p, p.seed ^ 0x5EC0);
     let obj_rad: Vec<Rgb> = obj_idx
         .par_iter()
-        .zip(obj_surfs.par_iter())
         .zip(irr.par_iter())
         .zip(ecap.par_iter())
-        .map(|(((&i, s), &(est, _)), &ecap)| {
-            let bs = if scene_vpls.is_empty() {
-                [0.0; 3]
-            } else {
-                scene_shadows.bounce(s.pos, s.n, r_obj, scene_lit.iter().enumerate(), r2_min)
-            };
-            object_radiance(pasted[i], est, ecap, bs, cap_floor)
-        })
+        .map(|((&i, v), &ecap)| object_radiance(pasted[i], v[0], ecap, v[2], cap_floor))
         .collect();
     let bounce = object_bounce_vpls(
         &obj_idx,
@@ -1057,6 +1081,10 @@ pub fn relight_moved(
     // the same frame) at `s` with `cos = n·ω > 0` inside its cone, and the
     // scene does not: then its light is taken away.
     let takes = |j: usize, shared: bool, s: &Surf, cos: f64, lc: DVec3, occ: f64| -> bool {
+        // in front of the object's occluder whatever the bias (>= 0): lit
+        if occ.is_nan() || occ <= lc.z {
+            return false;
+        }
         let sl = slope(cos);
         if occ.is_nan() || occ <= lc.z + bias_os[j] * sl {
             return false;
