@@ -1047,7 +1047,7 @@ pub fn relight_moved(
     let albedo = inp.albedo.map(|a| a.as_slice());
     let fill = p.fill_light && !scene_vpls.is_empty();
     // the smooth terms on lattices (`crate::relight::lattice`): the
-    // bounce at every `lattice_step`-th pixel, the fill at four times that
+    // bounce at every `lattice_step`-th pixel, the fill at twice that
     let on_surface = |s: &Surf, node: usize| {
         scene.target[node]
             .as_ref()
@@ -1072,7 +1072,7 @@ pub fn relight_moved(
     let fill_step = if p.lattice_step <= 1 {
         1
     } else {
-        4 * p.lattice_step
+        2 * p.lattice_step
     };
     let fill_grid = Nested::<6>::new(w, h, fill_step);
     let fill_node = |i: usize| scene.target[i].as_ref().map(fill_here);
