@@ -345,6 +345,16 @@ fn main() {
             },
         );
     }
+    for step in [1, 4] {
+        row(
+            format!("scene_cached: 256 x 8000, lattice_step {step}"),
+            256,
+            RelightParams {
+                lattice_step: step,
+                ..cached.clone()
+            },
+        );
+    }
 
     // ---- bounce shadows (paraboloid ISMs), against rays that shadow the
     // bounce too

@@ -18,7 +18,7 @@
 //!
 //! their bilinear weights renormalized (a geometry-aware blend: a node
 //! across a depth edge does not bleed into the pixel), **if** at least one
-//! is left and their values agree: per component, `max - min <= rel ·
+//! is left (all of them with [`Agreement::whole`]) and their values agree: per component, `max - min <= rel ·
 //! max|v| + abs`. Otherwise ([`Lattice::at`] returns `None`) the caller
 //! evaluates the pixel exactly, so a surface without nodes of its own (a
 //! thin pole) and fast changes (the contact of an object with the floor)
@@ -35,6 +35,11 @@ pub struct Agreement {
     pub rel: f64,
     /// Absolute floor (the term's units), so that near-zero values blend.
     pub abs: f64,
+    /// Every bracketing node must take part: no node may drop out (a
+    /// pixel is then interpolated, never extrapolated from the nodes on
+    /// one side: for terms that follow the normal closely, like direct
+    /// irradiance on a curved object's rim).
+    pub whole: bool,
 }
 
 /// An `N`-component term at every `step`-th pixel of a `w x h` image
@@ -160,10 +165,18 @@ impl<const N: usize> Lattice<N> {
         let mut total = 0.0f64;
         let (mut lo, mut hi, mut big) = ([f64::INFINITY; N], [f64::NEG_INFINITY; N], [0.0f64; N]);
         for (nx, ny, wgt) in corners {
-            if wgt == 0.0 || !same(self.pixel(nx, ny)) {
+            if wgt == 0.0 {
                 continue;
             }
-            let Some(v) = value(nx, ny) else {
+            let v = if same(self.pixel(nx, ny)) {
+                value(nx, ny)
+            } else {
+                None
+            };
+            let Some(v) = v else {
+                if tol.whole {
+                    return None;
+                }
                 continue;
             };
             total += wgt;
@@ -222,7 +235,11 @@ impl<const N: usize> Nested<N> {
 mod tests {
     use super::*;
 
-    const EXACT: Agreement = Agreement { rel: 0.0, abs: 0.0 };
+    const EXACT: Agreement = Agreement {
+        rel: 0.0,
+        abs: 0.0,
+        whole: false,
+    };
 
     /// A linear term is reproduced exactly between nodes (bilinear blend of
     /// a plane); nodes return their own values; the last column and row
@@ -231,7 +248,11 @@ mod tests {
     fn a_plane_is_interpolated_exactly() {
         let (w, h) = (23, 17);
         let f = |i: usize| [(i % w) as f64 * 0.5 + (i / w) as f64 * 2.0 + 1.0];
-        let loose = Agreement { rel: 1.0, abs: 0.0 };
+        let loose = Agreement {
+            rel: 1.0,
+            abs: 0.0,
+            whole: false,
+        };
         for step in [1, 2, 3, 4, 8, 40] {
             let l = Lattice::new(w, h, step);
             let eval = |i: usize| Some(f(i));
@@ -265,6 +286,7 @@ mod tests {
         let tol = Agreement {
             rel: 0.1,
             abs: 1e-3,
+            whole: false,
         };
         // a step between x = 4 and x = 5
         let l = Lattice::new(w, h, 4);
@@ -294,7 +316,11 @@ mod tests {
         assert_eq!(l.at(7, 7, &eval, |_| true, tol), None);
         assert_eq!(l.at(7, 7, &eval, |n| n % 9 != 4, tol), Some([2.0, 0.0]));
         // within tolerance the blend is the bilinear weight
-        let loose = Agreement { rel: 1.0, abs: 0.0 };
+        let loose = Agreement {
+            rel: 1.0,
+            abs: 0.0,
+            whole: false,
+        };
         assert_eq!(l.at(6, 0, &eval, |_| true, loose), Some([1.5, 0.0]));
         // outside the image
         assert_eq!(l.at(9, 0, &eval, |_| true, loose), None);
@@ -320,6 +346,7 @@ mod tests {
         let tol = Agreement {
             rel: 0.25,
             abs: 0.0,
+            whole: false,
         };
         let n = Nested::<1>::new(w, h, 2);
         // x = 2 between the coarse nodes 0 and 4, both 1.0
@@ -331,5 +358,25 @@ mod tests {
         assert_eq!(n.at(15, 0, &f, |_| true, tol), Some([8.0]));
         // x = 10: coarse nodes 8 (1.0) and 12 (5.0) disagree; 10 is a fine node
         assert_eq!(n.at(10, 0, &f, |_| true, tol), Some([3.0]));
+    }
+
+    /// With `whole`, a pixel whose bracketing nodes are not all there (on
+    /// its surface, with a value) is the caller's.
+    #[test]
+    fn whole_blends_only_between_all_nodes() {
+        let l = Lattice::<1>::new(9, 1, 4);
+        let eval = |i: usize| Some([i as f64]);
+        let whole = Agreement {
+            rel: 1.0,
+            abs: 0.0,
+            whole: true,
+        };
+        assert_eq!(l.at(2, 0, &eval, |_| true, whole), Some([2.0]));
+        assert_eq!(l.at(2, 0, &eval, |n| n != 4, whole), None);
+        let part = Agreement {
+            whole: false,
+            ..whole
+        };
+        assert_eq!(l.at(2, 0, &eval, |n| n != 4, part), Some([0.0]));
     }
 }

@@ -110,7 +110,7 @@ fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<Relig
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Relight",
-        10,
+        11,
         "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
          directional VPLs of an environment map, imperfect shadow maps, one bounce each way with clamped \
          1/r² (object to scene; scene to object through secondary VPLs read off the photo, the floor it stands \

@@ -754,6 +754,7 @@ pub fn relight_moved(
     let agree = Agreement {
         rel: LATTICE_REL,
         abs: LATTICE_ABS_REL * scene.e_ref,
+        whole: false,
     };
 
     // ---- the object: its samples (every pasted pixel, hidden ones too:
@@ -1010,7 +1011,12 @@ pub fn relight_moved(
         w,
         h,
         p.lattice_step,
-        agree,
+        // the object's irradiance follows its normals (a sphere's rim):
+        // interpolated between all its nodes, never extrapolated
+        Agreement {
+            whole: true,
+            ..agree
+        },
         &irradiance,
     );
     // the capture side: the same VPLs, or the capture map's with maps of
@@ -1057,7 +1063,11 @@ pub fn relight_moved(
     // or stops blocking one of the scene's VPLs: the nodes blend whatever
     // their values (the terms are >= 0: max - min <= max), which smooths
     // those steps, where the former scheme held one value per 4x4 block.
-    let fill_agree = Agreement { rel: 1.0, abs: 0.0 };
+    let fill_agree = Agreement {
+        rel: 1.0,
+        abs: 0.0,
+        whole: false,
+    };
     let bounce_grid = Nested::<3>::new(w, h, p.lattice_step);
     let bounce_node = |i: usize| {
         let s = scene.target[i].as_ref()?;
