@@ -196,9 +196,9 @@ impl<const N: usize> Lattice<N> {
 /// Two lattices of one term, every `2 step` and every `step` pixels: a
 /// pixel takes the coarse blend where the coarse nodes allow it (module
 /// docs), else the fine one's, else it is the caller's. A smooth term far
-/// from its sources is then evaluated at a sixteenth of the pixels, and
-/// where it changes faster (near the object) at a quarter; a coarse node
-/// is evaluated once per lattice (up to twice in all).
+/// from its sources is then evaluated at `1 / (2 step)²` of the pixels,
+/// and where it changes faster (near the object) at `1 / step²`; a
+/// coarse node is evaluated once per lattice (up to twice in all).
 #[derive(Debug)]
 pub struct Nested<const N: usize> {
     coarse: Lattice<N>,

@@ -453,10 +453,6 @@ mod tests {
         m.t.iter().filter(|t| t.is_finite()).count()
     }
 
-    /// Looking at a disc (a sphere's front) from the camera's own
-    /// direction, the map covers the disc's area to within the outline's
-    /// texels, for every stride, and has no hole inside it (no texel
-    /// within the disc's inner 90 % is empty).
     /// Pooling keeps a block where at least half its pixels are valid, at
     /// one of their depths (the upper median), and its camera puts the
     /// pooled pixel where the block lies: a plane stays the plane.
@@ -490,6 +486,10 @@ mod tests {
         assert!((kp.fx - k.fx / 2.0).abs() < 1e-12 && kp.width == 5 && kp.height == 4);
     }
 
+    /// Looking at a disc (a sphere's front) from the camera's own
+    /// direction, the map covers the disc's area to within the outline's
+    /// texels, for every stride, and has no hole inside it (no texel
+    /// within the disc's inner 90 % is empty).
     #[test]
     fn a_sphere_front_seen_from_the_camera_covers_its_disc_without_holes() {
         let k = cam(320, 240);

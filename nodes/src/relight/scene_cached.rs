@@ -578,9 +578,9 @@ fn object_maps(
 /// fraction of the largest ...
 const LATTICE_REL: f64 = 0.05;
 
-/// ... plus this fraction of the VPLs' reference irradiance `e_ref` (the
-/// photo is about `ρ e_ref` bright: 1e-3 of it is a quarter of an 8-bit
-/// step at mid grey), so that terms near zero blend.
+/// ... plus this fraction of the VPLs' reference irradiance `e_ref`, so
+/// that terms near zero blend (the photo is about `ρ e_ref` bright: 1e-3
+/// of it is at most a quarter of an 8-bit step, at white).
 const LATTICE_ABS_REL: f64 = 1e-3;
 
 /// Pixels per mesh cell of the object (at least 1): about two texels of
@@ -635,8 +635,8 @@ fn capture_irradiance(
 }
 
 /// Whether the object surface `q` lies on `s`'s surface for the lattices'
-/// blend: normals within 25°, `q` within 1 % of `s`'s depth of its
-/// tangent plane and within 10 % of it in all.
+/// blend: normals within about 26° (cosine > 0.9), `q` within 1 % of
+/// `s`'s depth of its tangent plane and within 10 % of it in all.
 fn same_surface(s: &Surf, q: &Surf) -> bool {
     let d = q.pos - s.pos;
     let z = s.pos.z.abs();
@@ -1053,7 +1053,7 @@ pub fn relight_moved(
     let albedo = inp.albedo.map(|a| a.as_slice());
     let fill = p.fill_light && !scene_vpls.is_empty();
     // the smooth terms on lattices (`crate::relight::lattice`): the
-    // bounce at every `lattice_step`-th pixel, the fill at twice that
+    // bounce every 2 and 1 `lattice_step` pixels, the fill every 4 and 2
     let on_surface = |s: &Surf, node: usize| {
         scene.target[node]
             .as_ref()

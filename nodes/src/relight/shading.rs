@@ -60,7 +60,7 @@ node_params! {
         pub contact: bool = true, ParamKind::Bool;
         /// The object's capture irradiance is at least this fraction of the VPLs' total: a face the capture map barely lit is not brightened without bound.
         pub min_capture_rel: f64 = 0.02, ParamKind::Float { min: 1e-9, max: 1.0 };
-        /// Pixels between the points where the smooth terms are evaluated (scene_cached: the object's irradiance, the bounces, and the fill light at twice this): every twice this first, every this where those disagree; a pixel between blends the points on its surface when they agree within 5 %, else it is evaluated itself. 1 = every pixel.
+        /// Pixels between the points where the smooth terms are evaluated (scene_cached): the object's irradiance and the bounces every twice this first, every this where those disagree, a pixel between blending the points on its surface when they agree within 5 % (the object's only between all of them), else evaluated itself; the fill light every four times this, then twice, blended whatever its values. 1 = every pixel.
         pub lattice_step: usize = 2usize, ParamKind::Int { min: 1, max: 16 };
         /// Extend the plane the object stands on beyond the photo's frame: it bounces light onto the object.
         pub extend_support: bool = true, ParamKind::Bool;
