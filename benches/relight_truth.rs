@@ -27,8 +27,9 @@ use common::{env_usize, median, timed};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
+use depthgraph::nodes::kit::color::{display_mse_masked, psnr_of_mse};
 use depthgraph::nodes::relight::scene_cached::{RelightScene, relight_moved};
-use depthgraph::nodes::relight::shading::RelightParams;
+use depthgraph::nodes::relight::shading::{RelightParams, Relit};
 use depthgraph::nodes::sim::pathtrace::PathTraceParams;
 use depthgraph::nodes::sim::relight_truth::{Room, Sky, relight_case, score};
 
@@ -161,24 +162,20 @@ fn main() {
             let inp = case.inputs();
             let (p2, p1) = (&variants[0].1, &variants[3].1);
             let sc = RelightScene::new(&inp.scene(), &vpls, p2).expect("scene");
-            let (mut t2, mut t1) = (Vec::new(), Vec::new());
-            let (mut r2, mut r1) = (None, None);
+            // (default, every pixel): times and the last result
+            let mut runs: [(Vec<f64>, Option<Relit>); 2] = Default::default();
             for _ in 0..5 {
-                let (r, t) = timed(1, || {
-                    relight_moved(&sc, &inp, p2)
-                        .expect("relight")
-                        .expect("something")
-                });
-                t2.push(t);
-                r2 = Some(r);
-                let (r, t) = timed(1, || {
-                    relight_moved(&sc, &inp, p1)
-                        .expect("relight")
-                        .expect("something")
-                });
-                t1.push(t);
-                r1 = Some(r);
+                for ((times, last), p) in runs.iter_mut().zip([p2, p1]) {
+                    let (r, t) = timed(1, || {
+                        relight_moved(&sc, &inp, p)
+                            .expect("relight")
+                            .expect("something")
+                    });
+                    times.push(t);
+                    *last = Some(r);
+                }
             }
+            let [(t2, r2), (t1, r1)] = runs;
             let (r2, r1) = (r2.expect("ran"), r1.expect("ran"));
             let (m2, m1) = (median(t2), median(t1));
             let object_px = inp.alpha.as_slice().iter().filter(|a| **a > 0.0).count();
@@ -190,7 +187,15 @@ fn main() {
                 m2,
                 m1,
                 m2 / m1,
-                display_psnr(&r2.color, &r1.color, &r1.region)
+                psnr_of_mse(display_mse_masked(
+                    r2.color.as_slice(),
+                    r1.color.as_slice(),
+                    &r1.region
+                        .as_slice()
+                        .iter()
+                        .map(|m| *m > 0.0)
+                        .collect::<Vec<_>>(),
+                ))
             );
         }
     }
@@ -207,36 +212,4 @@ fn main() {
         std::process::exit(1);
     }
     println!("wrote {}", path.display());
-}
-
-/// PSNR (dB) of `a` against `b` in display values (sRGB of [0, 1]) over
-/// the pixels where `mask > 0`; infinite where they agree exactly.
-fn display_psnr(
-    a: &depthgraph::graph::value::ColorImage,
-    b: &depthgraph::graph::value::ColorImage,
-    mask: &depthgraph::graph::value::Mask,
-) -> f64 {
-    let srgb = |v: f32| {
-        let v = f64::from(v.clamp(0.0, 1.0));
-        if v <= 0.003_130_8 {
-            12.92 * v
-        } else {
-            1.055 * v.powf(1.0 / 2.4) - 0.055
-        }
-    };
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for ((x, y), m) in a.as_slice().iter().zip(b.as_slice()).zip(mask.as_slice()) {
-        if *m > 0.0 {
-            for ch in 0..3 {
-                let d = srgb(x[ch]) - srgb(y[ch]);
-                se += d * d;
-            }
-            n += 3;
-        }
-    }
-    // guard: n > 0 before dividing; no pixels compare as identical
-    if n == 0 || se == 0.0 {
-        return f64::INFINITY;
-    }
-    -10.0 * (se / n as f64).log10()
 }

@@ -123,6 +123,22 @@ impl<const N: usize> Lattice<N> {
         out
     }
 
+    /// The value of the node at pixel index `i` (evaluated by `eval` if
+    /// no pixel asked for it yet); `None` when `i` is not a node.
+    pub fn node_value(
+        &self,
+        i: usize,
+        eval: &(impl Fn(usize) -> Option<[f64; N]> + ?Sized),
+    ) -> Option<Option<[f64; N]>> {
+        // guard: w > 0 whenever a pixel index exists
+        let (x, y) = (i % self.w.max(1), i / self.w.max(1));
+        if !self.is_node(x, y) {
+            return None;
+        }
+        let (nx, ny) = (x.div_ceil(self.step), y.div_ceil(self.step));
+        Some(*self.cells[ny * self.cols + nx].get_or_init(|| eval(i)))
+    }
+
     /// Whether pixel `(x, y)` is a node.
     pub fn is_node(&self, x: usize, y: usize) -> bool {
         x < self.w
@@ -197,8 +213,8 @@ impl<const N: usize> Lattice<N> {
 /// pixel takes the coarse blend where the coarse nodes allow it (module
 /// docs), else the fine one's, else it is the caller's. A smooth term far
 /// from its sources is then evaluated at `1 / (2 step)²` of the pixels,
-/// and where it changes faster (near the object) at `1 / step²`; a
-/// coarse node is evaluated once per lattice (up to twice in all).
+/// and where it changes faster (near the object) at `1 / step²`; every
+/// node once (the coarse nodes are fine nodes too, and share the value).
 #[derive(Debug)]
 pub struct Nested<const N: usize> {
     coarse: Lattice<N>,
@@ -225,9 +241,12 @@ impl<const N: usize> Nested<N> {
         same: impl Fn(usize) -> bool,
         tol: Agreement,
     ) -> Option<[f64; N]> {
+        // a fine node that is a coarse one takes the coarse lattice's value
+        // (evaluated once in all)
+        let fine_eval = |i: usize| self.coarse.node_value(i, eval).unwrap_or_else(|| eval(i));
         self.coarse
             .at(x, y, eval, &same, tol)
-            .or_else(|| self.fine.at(x, y, eval, &same, tol))
+            .or_else(|| self.fine.at(x, y, &fine_eval, &same, tol))
     }
 }
 
@@ -378,5 +397,36 @@ mod tests {
             ..whole
         };
         assert_eq!(l.at(2, 0, &eval, |n| n != 4, part), Some([0.0]));
+    }
+
+    /// The nested lattices evaluate every node once, the coarse nodes'
+    /// values serving the fine lattice too.
+    #[test]
+    fn nested_lattices_evaluate_each_node_once() {
+        let (w, h) = (13, 9);
+        let asked = std::cell::RefCell::new(Vec::new());
+        // a ramp steep enough that the coarse blend refuses everywhere
+        let eval = |i: usize| {
+            asked.borrow_mut().push(i);
+            Some([(i % w) as f64 * 10.0 + 1.0])
+        };
+        let tol = Agreement {
+            rel: 0.3,
+            abs: 0.0,
+            whole: false,
+        };
+        let n = Nested::<1>::new(w, h, 2);
+        for y in 0..h {
+            for x in 0..w {
+                let _ = n.at(x, y, &eval, |_| true, tol);
+            }
+        }
+        let mut a = asked.into_inner();
+        let all = a.len();
+        a.sort_unstable();
+        a.dedup();
+        assert_eq!(a.len(), all, "a node was evaluated twice");
+        // the fine lattice was used (its nodes at odd multiples of 2)
+        assert!(a.contains(&2));
     }
 }

@@ -671,22 +671,28 @@ fn lattice_irradiance(
     }
     let surf_at = |i: usize| obj_idx.binary_search(&i).ok().map(|j| &surfs[j]);
     let mut out: Vec<Option<[f64; 9]>> = vec![None; obj_idx.len()];
+    // every node computed so far, by pixel: the coarse lattice's nodes
+    // are the fine one's too, and are not computed again
+    let mut known: std::collections::BTreeMap<usize, [f64; 9]> = Default::default();
     for grid in [
         Lattice::<9>::new(w, h, 2 * step),
         Lattice::<9>::new(w, h, step),
     ] {
         let open: Vec<usize> = (0..obj_idx.len()).filter(|&j| out[j].is_none()).collect();
-        // the object's nodes the open pixels blend, each once, in order
+        // the object's nodes the open pixels blend and no lattice computed
+        // yet, each once, in order
         let mut nodes: Vec<usize> = open
             .iter()
             .flat_map(|&j| grid.corners(obj_idx[j] % w, obj_idx[j] / w))
-            .filter(|&n| surf_at(n).is_some())
+            .filter(|&n| surf_at(n).is_some() && !known.contains_key(&n))
             .collect();
         nodes.sort_unstable();
         nodes.dedup();
         let node_surfs: Vec<Surf> = nodes.iter().filter_map(|&n| surf_at(n).copied()).collect();
-        let values = exact(&node_surfs);
-        let eval = |i: usize| Some(flat(&values[nodes.binary_search(&i).ok()?]));
+        for (&n, v) in nodes.iter().zip(exact(&node_surfs)) {
+            known.insert(n, flat(&v));
+        }
+        let eval = |i: usize| known.get(&i).copied();
         let blended: Vec<Option<[f64; 9]>> = open
             .par_iter()
             .map(|&j| {
