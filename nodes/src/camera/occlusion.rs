@@ -53,6 +53,8 @@
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
+use crate::kit::grid::round_to_pixel;
+
 /// Directions marched from every candidate pixel (evenly spaced angles).
 pub const DIRECTIONS: usize = 16;
 /// Largest reach in pixels that the layer extends behind an edge (a bound
@@ -176,11 +178,13 @@ pub fn background_layer(
                 let len = (d[0] * d[0] + d[1] * d[1]).sqrt();
                 let mut k = 1.0;
                 while k * len <= limit {
-                    let (qx, qy) = ((x + k * d[0]).round(), (y + k * d[1]).round());
-                    if qx < 0.0 || qy < 0.0 || qx >= w as f64 || qy >= h as f64 {
+                    let (Some(qx), Some(qy)) = (
+                        round_to_pixel(x + k * d[0], w),
+                        round_to_pixel(y + k * d[1], h),
+                    ) else {
                         break;
-                    }
-                    let q = qy as usize * w + qx as usize;
+                    };
+                    let q = qy * w + qx;
                     if farther(v, inv_z[q], p.fill_h) {
                         let dist = k * len;
                         if dist <= p.reach_scale * (v - inv_z[q]) + 1.0 {

@@ -47,6 +47,7 @@ use crate::camera::lens::{
     effective_f_number, inv_depth,
 };
 use crate::camera::occlusion::{BackgroundLayer, LayerParams, background_layer};
+use crate::kit::grid::round_to_pixel;
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
 pub const TILE: usize = 16;
@@ -603,7 +604,7 @@ pub fn refocus(
     // keys are the view. (Spherical aberration moves the whole view in the
     // warp; the barrel only masks the accumulation.)
     let barrel = plan.barrel;
-    let zbuf: Vec<AtomicU64> = (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect();
+    let mut zbuf: Vec<AtomicU64> = (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect();
     // The split view and its sums are held per channel (planes: a
     // channel's shifted read is a row of one plane). Pixels no view moves
     // hold the input in every view (no source reaches them): written once,
@@ -630,7 +631,12 @@ pub fn refocus(
         warp.par_chunks(4096).for_each(|chunk| {
             for src in chunk {
                 if let Some(t) = src.target(w, h, move_by) {
-                    zbuf[t].fetch_min(src.key, Ordering::Relaxed);
+                    // (a plain read first: a source that loses takes no
+                    // locked instruction; the minimum is the same)
+                    let slot = &zbuf[t];
+                    if src.key < slot.load(Ordering::Relaxed) {
+                        slot.fetch_min(src.key, Ordering::Relaxed);
+                    }
                 }
             }
         });
@@ -639,6 +645,8 @@ pub fn refocus(
             barrel.is_none_or(|b| b.open(*s, (t % w) as f64 + 0.5, (t / w) as f64 + 0.5))
         };
         let step = BlurPlan::fill_step([dx, dy]);
+        // Pixels per parallel task of the passes over the view.
+        const CHUNK: usize = 4096;
         if !split {
             // Take the winning keys (resetting the z-buffer), list the holes
             // and accumulate every active pixel that is not a hole; then the
@@ -646,26 +654,34 @@ pub fn refocus(
             // order as copying the view out first, with a third of the
             // memory traffic.
             let holes: Vec<usize> = keys
-                .par_iter_mut()
-                .zip(acc.par_iter_mut())
+                .par_chunks_mut(CHUNK)
+                .zip(zbuf.par_chunks_mut(CHUNK))
+                .zip(acc.par_chunks_mut(CHUNK))
                 .enumerate()
-                .filter_map(|(t, (k, a))| {
-                    let key = zbuf[t].swap(EMPTY, Ordering::Relaxed);
-                    *k = key;
-                    if !active[t] {
-                        return None;
+                .flat_map_iter(|(c, ((ks, zs), accs))| {
+                    let mut holes = Vec::new();
+                    let pixels = ks.iter_mut().zip(zs).zip(accs);
+                    for (j, ((k, z), a)) in pixels.enumerate() {
+                        let t = c * CHUNK + j;
+                        // (exclusive here: a plain read and write, no locked swap)
+                        let key = std::mem::replace(z.get_mut(), EMPTY);
+                        *k = key;
+                        if !active[t] {
+                            continue;
+                        }
+                        if key == EMPTY {
+                            holes.push(t);
+                            continue;
+                        }
+                        if !open(t) {
+                            continue;
+                        }
+                        let c = named.color((key & 0xffff_ffff) as usize);
+                        for (a, v) in a.iter_mut().zip(c) {
+                            *a += v as f64;
+                        }
                     }
-                    if key == EMPTY {
-                        return Some(t);
-                    }
-                    if !open(t) {
-                        return None;
-                    }
-                    let (c, _) = named.source((key & 0xffff_ffff) as usize);
-                    for (a, v) in a.iter_mut().zip(c) {
-                        *a += v as f64;
-                    }
-                    None
+                    holes
                 })
                 .collect();
             holes_total += holes.len();
@@ -690,20 +706,25 @@ pub fn refocus(
             // below resets.
             let [vr, vg, vb] = &mut view_planes;
             let holes: Vec<usize> = vr
-                .par_iter_mut()
-                .zip(vg.par_iter_mut())
-                .zip(vb.par_iter_mut())
+                .par_chunks_mut(CHUNK)
+                .zip(vg.par_chunks_mut(CHUNK))
+                .zip(vb.par_chunks_mut(CHUNK))
                 .enumerate()
-                .filter_map(|(t, ((r, g), b))| {
-                    if !active[t] {
-                        return None;
+                .flat_map_iter(|(c, ((rs, gs), bs))| {
+                    let mut holes = Vec::new();
+                    for (j, ((r, g), b)) in rs.iter_mut().zip(gs).zip(bs).enumerate() {
+                        let t = c * CHUNK + j;
+                        if !active[t] {
+                            continue;
+                        }
+                        let key = zbuf[t].load(Ordering::Relaxed);
+                        if key == EMPTY {
+                            holes.push(t);
+                            continue;
+                        }
+                        [*r, *g, *b] = named.color((key & 0xffff_ffff) as usize);
                     }
-                    let key = zbuf[t].load(Ordering::Relaxed);
-                    if key == EMPTY {
-                        return Some(t);
-                    }
-                    [*r, *g, *b] = named.source((key & 0xffff_ffff) as usize).0;
-                    None
+                    holes
                 })
                 .collect();
             holes_total += holes.len();
@@ -864,13 +885,9 @@ impl WarpSource {
     #[inline]
     fn target(&self, w: usize, h: usize, move_by: [f64; 4]) -> Option<usize> {
         let [dx, dy, gx, gy] = move_by;
-        let tx = (self.x as f64 + dx * self.m + gx).round();
-        let ty = (self.y as f64 + dy * self.m + gy).round();
-        if tx < 0.0 || ty < 0.0 || tx >= w as f64 || ty >= h as f64 {
-            None
-        } else {
-            Some(ty as usize * w + tx as usize)
-        }
+        let tx = round_to_pixel(self.x as f64 + dx * self.m + gx, w)?;
+        let ty = round_to_pixel(self.y as f64 + dy * self.m + gy, h)?;
+        Some(ty * w + tx)
     }
 }
 
@@ -922,6 +939,16 @@ struct Sources<'a> {
 }
 
 impl Sources<'_> {
+    /// Colour of source `i` (a layer entry at `n + k`).
+    #[inline]
+    fn color(&self, i: usize) -> Rgb {
+        if i < self.n {
+            self.src_color[i]
+        } else {
+            self.layer.color[i - self.n]
+        }
+    }
+
     /// Colour and inverse depth of source `i` (a layer entry at `n + k`).
     fn source(&self, i: usize) -> (Rgb, f32) {
         if i < self.n {
@@ -953,11 +980,9 @@ fn march(view: &impl Warped, w: usize, h: usize, t: usize, step: [f64; 2]) -> Op
     let (x, y) = ((t % w) as f64, (t / w) as f64);
     let mut k = 1.0;
     loop {
-        let (px, py) = ((x + k * step[0]).round(), (y + k * step[1]).round());
-        if px < 0.0 || py < 0.0 || px >= w as f64 || py >= h as f64 {
-            return None;
-        }
-        let j = py as usize * w + px as usize;
+        let px = round_to_pixel(x + k * step[0], w)?;
+        let py = round_to_pixel(y + k * step[1], h)?;
+        let j = py * w + px;
         if view.is_warped(j) {
             return Some((j, k));
         }
