@@ -64,8 +64,30 @@ pub const EXP_NEG_MIN_F32: f32 = -87.0;
 /// cast.
 #[inline(always)]
 pub fn exp_neg_f32(x: f32) -> f32 {
+    exp_f32_within(x, 0.0)
+}
+
+/// The largest `x` [`exp_f32`] takes: `exp(88)` is about `1.65e38`, below
+/// f32's largest value (`3.4e38`).
+pub const EXP_MAX_F32: f32 = 88.0;
+
+/// `exp(x)` in f32 for `x` in `[EXP_NEG_MIN_F32, EXP_MAX_F32]` with the
+/// relative error of [`exp_neg_f32`] (the same reduction: `|u| <= ln(2) /
+/// 2` on both sides of 0, `2^k` for `k` up to 127 in the exponent bits);
+/// below that range 0, above it `exp(88)`, NaN gives NaN. For sums kept
+/// relative to a reference exponent above their terms' (the NL-means
+/// rows' shift), whose ratios are what counts.
+#[inline(always)]
+pub fn exp_f32(x: f32) -> f32 {
+    exp_f32_within(x, EXP_MAX_F32)
+}
+
+/// [`exp_neg_f32`]'s reduction with `x` clamped to `[EXP_NEG_MIN_F32, hi]`
+/// (`hi <= EXP_MAX_F32`).
+#[inline(always)]
+fn exp_f32_within(x: f32, hi: f32) -> f32 {
     const MAGIC: f32 = 12_582_912.0; // 1.5 * 2^23
-    let xc = x.clamp(EXP_NEG_MIN_F32, 0.0);
+    let xc = x.clamp(EXP_NEG_MIN_F32, hi);
     let y = xc * std::f32::consts::LOG2_E;
     let t = y + MAGIC;
     let k = t - MAGIC; // round(y), exact
@@ -82,7 +104,7 @@ pub fn exp_neg_f32(x: f32) -> f32 {
     p = p * u + 0.5;
     p = p * u + 1.0;
     p = p * u + 1.0;
-    // k in [-126, 0]: the biased exponent 127 + k is in [1, 127].
+    // k in [-126, 127]: the biased exponent 127 + k is in [1, 254].
     let k_int = t.to_bits().wrapping_sub(MAGIC.to_bits());
     let scale = f32::from_bits(127u32.wrapping_add(k_int) << 23);
     let v = p * scale;
@@ -115,6 +137,27 @@ mod tests {
         assert!(worst < 5e-7, "relative error {worst:e}");
         // and the bound is not loose by orders of magnitude
         assert!(worst > 5e-8, "relative error {worst:e}");
+    }
+
+    #[test]
+    fn the_f32_version_above_zero_matches_libm() {
+        assert_eq!(exp_f32(0.0), 1.0);
+        assert_eq!(exp_f32(200.0), exp_f32(EXP_MAX_F32));
+        assert!(exp_f32(EXP_MAX_F32).is_finite());
+        assert_eq!(exp_f32(-87.5), 0.0);
+        assert!(exp_f32(f32::NAN).is_nan());
+        let mut worst = 0.0f64;
+        let n = 400_000;
+        for i in 0..=n {
+            let x = EXP_NEG_MIN_F32 + (EXP_MAX_F32 - EXP_NEG_MIN_F32) * i as f32 / n as f32;
+            let (a, b) = (exp_f32(x) as f64, (x as f64).exp());
+            assert!(a.is_normal(), "{x}: {a:e}");
+            worst = worst.max(((a - b) / b).abs());
+            if x <= 0.0 {
+                assert_eq!(exp_f32(x), exp_neg_f32(x), "{x}");
+            }
+        }
+        assert!(worst < 5e-7, "relative error {worst:e}");
     }
 
     #[test]

@@ -103,7 +103,7 @@ fn filter_on(
     let mut out_c = vec![0.0f32; w * h];
     let pk = PatchKernel::new(core.patch);
     // targets: the pixels with depth, each a source itself (a target of
-    // confidence 0 whose weight sum falls below the f32 rows' EXACT_BELOW
+    // confidence 0 whose weight sum falls below the f32 rows' `exact_below`
     // is run again in f64)
     let job = PassJob::new(
         (w, h),

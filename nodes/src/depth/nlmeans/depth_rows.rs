@@ -12,18 +12,21 @@
 //!   times its prior, 1 in clean data) wherever the target is a source
 //!   itself (denoising). Elsewhere (a hole being inpainted, a target of
 //!   tiny confidence) all of them may be tiny: when `Z_i` is below
-//!   [`EXACT_BELOW`], far above the subnormal range, the target is handed
-//!   back ([`Finish::Exact`]) and run again with [`Acc`]'s running maximum.
+//!   [`Weight::exact_below`], far above the subnormal range, the target is
+//!   handed back ([`Finish::Exact`]) and run again: after the f32 rows in
+//!   the f64 rows, after those with [`Acc`]'s running maximum.
 //!
 //! **Two precisions.** [`DepthRows`] runs in f32 or f64 (`E`): the patch
 //! distances of the band (its `Real`), the discontinuity term, the
 //! exponential and the priors; the weight sums of eq. 1 (`Z_i` and
 //! `sum w v`) are f64 in both, the similarity sums (the confidence) in
-//! `E`. The CPU runner takes f32 (eight lanes where f64 has four) when
-//! every target is a source itself (denoising: its own term weighs its
-//! confidence, so the weights that count never underflow), f64 otherwise
-//! (holes being inpainted may have every candidate more than 87 units of
-//! exponent away, where f32 has nothing left).
+//! `E`. The CPU runner takes f32 (eight lanes where f64 has four) for
+//! patches up to [`F32_MAX_PATCH`]; when every target is a source itself
+//! (denoising) its own term weighs its confidence, so the weights that
+//! count never underflow; a hole being inpainted may have every candidate
+//! more than 117 units of exponent away, where f32 has nothing left even
+//! at the rows' shift ([`Weight::SHIFT`]), and is handed back (1.3k
+//! hole fills of 77k holes on a Kinect frame, all iterations together).
 //!
 //! - f64: the exponential is [`exp_neg`] (relative error < 1e-12); the
 //!   results equal [`Acc`]'s to about 1e-12 of the window's depth range.
@@ -34,14 +37,15 @@
 //!   within `5u`), weighted by the box coefficients, so its relative error
 //!   is below `((2r+1)^2 + 8) u`, `33u = 2e-6` at the default `r = 2`; the
 //!   exponent `x` of a weight is off by at most that times `|x|`, and only
-//!   weights with `|x| <= 87` are not 0 in f32 (`exp(-87)` is f32's last
-//!   normal value). With [`exp_neg_f32`]'s `5e-7` a weight's relative error
-//!   is `δ <= 33u * 87 + 5e-7 = 1.8e-4` (the background factor, when on,
-//!   adds `3 β u`: `9e-6` at the default `β = 50`); in clean data the
-//!   weights that count have `|x|` of a few units and `δ` is near `1e-5`.
-//!   The weights below `exp(-87)`, 0 in f32, weigh less than `6.1e-9` of
-//!   any sum kept ([`Weight::EXACT_BELOW`]; smaller sums run again in
-//!   f64). Weights off by `δ` move the estimate by at most `δ / (1 - δ)`
+//!   weights with `|x| <= 117` are not 0 in f32 (the rows weigh a
+//!   candidate `exp(x + 30)`, [`Weight::SHIFT`], and `exp(-87)` is f32's
+//!   last normal value). With [`exp_f32`]'s `5e-7` a weight's relative
+//!   error is `δ <= 33u * 117 + 5e-7 = 2.35e-4` (the background factor,
+//!   when on, adds `3 β u`: `9e-6` at the default `β = 50`); in clean data
+//!   the weights that count have `|x|` of a few units and `δ` is near
+//!   `1e-5`. The weights below `exp(-117)`, 0 in f32, weigh less than
+//!   `1e-6` of any sum kept ([`Weight::exact_below`]; smaller sums run
+//!   again in f64). Weights off by `δ` move the estimate by at most `δ / (1 - δ)`
 //!   of the range of the averaged depths `hi - lo`, and the f64 sums add
 //!   nothing of note: **`|Δz| <= 2.5e-4 (hi - lo)`** plus the final rounding to
 //!   f32, and the confidence (a ratio of f32 sums of at most `(2R+1)^2`
@@ -50,38 +54,79 @@
 
 use std::marker::PhantomData;
 
-use crate::kit::fast_exp::{exp_neg, exp_neg_f32};
+use crate::kit::fast_exp::{exp_f32, exp_neg, exp_neg_f32};
 
 use super::pass::*;
 
 /// The float type of a [`DepthRows`] pass: its patch distances, weights
 /// and similarity sums (the weight sums of eq. 1 are f64 in both).
 pub(super) trait Weight: Real {
-    /// Weight sums below this are recomputed with the running maximum (in
-    /// f64).
-    const EXACT_BELOW: f64;
+    /// Weight sums below this, for a search window of `candidates` pixels,
+    /// are recomputed (in f64 rows, then with the running maximum).
+    fn exact_below(candidates: usize) -> f64;
     /// `exp(x)` for `x <= 0`, branch-free.
     fn exp_neg(self) -> Self;
+    /// The shift `S` of the rows' reference exponent: a candidate of
+    /// exponent `x <= 0` weighs `exp(x + S)` ([`Weight::exp_shifted`]).
+    /// Every sum takes the same factor `exp(S)` and only their ratios are
+    /// read (eq. 1 and the confidence), so the estimates do not change;
+    /// what changes is how far below the best possible candidate (the
+    /// target itself, exponent 0) a weight may lie before it underflows.
+    const SHIFT: f64;
+    /// `exp(x)` for `x <= SHIFT`, branch-free.
+    fn exp_shifted(self) -> Self;
 }
 
+/// f32's smallest weight: `exp(-87)`, its last normal value; every weight
+/// below it is 0 in f32.
+const F32_SMALLEST_WEIGHT: f64 = 1.65e-38;
+
+/// The largest share of a weight sum kept from the f32 rows that the
+/// weights lost below [`F32_SMALLEST_WEIGHT`] may make up.
+const F32_LOST_SHARE: f64 = 1e-6;
+
 impl Weight for f32 {
-    /// Every weight below `exp(-87) = 1.65e-38` is 0 in f32: at most
-    /// `(2R+1)^2` of them (3721 at the largest window) are lost, together
-    /// less than `6.1e-9` of a sum kept (`3721 * 1.65e-38 / 1e-26`).
-    const EXACT_BELOW: f64 = 1e-26;
+    /// At most `candidates` weights are lost, each below
+    /// [`F32_SMALLEST_WEIGHT`], so a sum kept loses less than
+    /// [`F32_LOST_SHARE`] of itself: `candidates * 1.65e-38 / 1e-6`
+    /// (`2.0e-30` at the 11x11 window of NLMeansInpaint's default,
+    /// `6.1e-29` at the largest, 61x61). (This was a fixed `1e-26`,
+    /// which handed back sums the f32 rows held well.)
+    fn exact_below(candidates: usize) -> f64 {
+        candidates.max(1) as f64 * F32_SMALLEST_WEIGHT / F32_LOST_SHARE
+    }
     #[inline(always)]
     fn exp_neg(self) -> f32 {
         exp_neg_f32(self)
     }
+    /// 30: a weight underflows at exponent `-117` instead of `-87` (f32
+    /// holds `exp(30)` to `exp(-87)`), and the target's own term,
+    /// `exp(30) = 1.1e13`, summed over at most 3721 candidates stays far
+    /// below f32's largest value. On a Kinect frame (TUM, 77k holes) the
+    /// holes handed back over all iterations went from 9.5k to 1.3k (40:
+    /// 1.0k, but the bound below would grow past `2.5e-4`).
+    const SHIFT: f64 = 30.0;
+    #[inline(always)]
+    fn exp_shifted(self) -> f32 {
+        exp_f32(self)
+    }
 }
 
 impl Weight for f64 {
-    /// The sum's largest term is then above `EXACT_BELOW / (2R+1)^2`,
-    /// still far from the subnormal range, so every sum kept has full f64
-    /// precision.
-    const EXACT_BELOW: f64 = 1e-280;
+    /// `1e-280`: the sum's largest term is then above
+    /// `1e-280 / (2R+1)^2`, still far from the subnormal range, so every
+    /// sum kept has full f64 precision.
+    fn exact_below(_candidates: usize) -> f64 {
+        1e-280
+    }
     #[inline(always)]
     fn exp_neg(self) -> f64 {
+        exp_neg(self)
+    }
+    /// 0: f64 reaches `exp(-708)`.
+    const SHIFT: f64 = 0.0;
+    #[inline(always)]
+    fn exp_shifted(self) -> f64 {
         exp_neg(self)
     }
 }
@@ -94,13 +139,18 @@ pub(super) const F32_MAX_PATCH: usize = 2;
 /// The depth kernel's vectorised rows in `E` (f32 or f64; module docs).
 pub(super) struct DepthRows<'k, 'a, E> {
     pub(super) kernel: &'k DepthKernel<'a>,
+    /// [`Weight::exact_below`] of the pass's search window.
+    exact_below: f64,
     _weight: PhantomData<E>,
 }
 
 impl<'k, 'a, E: Weight> DepthRows<'k, 'a, E> {
-    pub(super) fn new(kernel: &'k DepthKernel<'a>) -> Self {
+    /// The rows of `kernel` for a pass whose search radius is `search`.
+    pub(super) fn new(kernel: &'k DepthKernel<'a>, search: usize) -> Self {
+        let side = 2 * search + 1;
         Self {
             kernel,
+            exact_below: E::exact_below(side * side),
             _weight: PhantomData,
         }
     }
@@ -166,7 +216,7 @@ impl<E: Weight> RowKernel for DepthRows<'_, '_, E> {
 
     fn finish(&self, s: &DepthSums<E>, k: usize) -> Finish {
         // a NaN sum is handed back too
-        if s.w[k].is_nan() || s.w[k] < E::EXACT_BELOW {
+        if s.w[k].is_nan() || s.w[k] < self.exact_below {
             return Finish::Exact;
         }
         let acc = Acc {
@@ -280,6 +330,7 @@ fn row_sums<E: Weight, const FAR: bool, const BG: bool>(
     );
     let (lo, hi, wbuf) = (&mut s.lo[..n], &mut s.hi[..n], &mut s.wgt[..n]);
     let (zero, one) = (E::ZERO, E::of_f32(1.0));
+    let shift = E::of_f64(E::SHIFT);
     for i in 0..n {
         let cj = E::of_f32(cjs[i]);
         let zjv = E::of_f32(zj[i]);
@@ -291,7 +342,7 @@ fn row_sums<E: Weight, const FAR: bool, const BG: bool>(
         } else {
             zero
         };
-        let e = (zero - (dist[i] + xi)).exp_neg();
+        let e = (shift - (dist[i] + xi)).exp_shifted();
         sim[i] += e;
         // a hole (confidence 0) counts in the similarity only
         let sc = e * cj;
@@ -369,7 +420,8 @@ mod tests {
         let targets: Vec<bool> = (0..w * h)
             .map(|i| c[i] > 0.0 || (k.holes && (i / w) % 3 != 1))
             .collect();
-        let (mut fast, exact) = collect(&pass, &targets, &DepthRows::<E>::new(&kernel));
+        let (mut fast, exact) =
+            collect(&pass, &targets, &DepthRows::<E>::new(&kernel, core.search));
         let mut redo = vec![false; w * h];
         for i in &exact {
             redo[*i] = true;
@@ -526,22 +578,29 @@ mod tests {
         }
     }
 
+    /// Half of the pixels holes, in a random guide: at small `h_color`
+    /// every source of some holes lies far below exponent 0.
+    fn deep_case(h_color: f64) -> Case {
+        Case {
+            w: 23,
+            h: 17,
+            h_color,
+            hole_rate: 0.5,
+            far: false,
+            background: true,
+            seed: 9,
+            holes: true,
+        }
+    }
+
     #[test]
     fn underflowing_weights_are_run_again_exactly() {
         // f64 rows: h_color 1e-3 gives colour differences of ~0.3
         // exponents near -1e5, so a hole's sources all underflow relative
-        // to exponent 0; f32 rows underflow below -87, at h_color 0.02.
+        // to exponent 0; f32 rows underflow below -117 (-87 and their
+        // shift of 30), at h_color 0.02.
         for (h_color, f32_rows) in [(1e-3, false), (0.02, true)] {
-            let k = Case {
-                w: 23,
-                h: 17,
-                h_color,
-                hole_rate: 0.5,
-                far: false,
-                background: true,
-                seed: 9,
-                holes: true,
-            };
+            let k = deep_case(h_color);
             let (fast, slow, redo, range) = if f32_rows {
                 both::<f32>(&k)
             } else {
@@ -580,7 +639,7 @@ mod tests {
             far: Some(0.5),
             background: Some((50.0, 0.05, lm.as_slice())),
         };
-        let rows = DepthRows::<E>::new(&kernel);
+        let rows = DepthRows::<E>::new(&kernel, core.search);
         let targets = vec![true; w * h];
         let whole = ((0, h), (0, w));
         let plain = band_body(&pass, &targets, &rows, whole.0, whole.1);
@@ -618,6 +677,31 @@ mod tests {
             .sum()
     }
 
+    /// A colour parameter at which some holes of [`deep_case`] have no source above exponent -87 but all have
+    /// one above -117.
+    const HC_DEEP: f64 = 0.08;
+
+    /// [`deep_case`] at colour parameter `h_color`, in the f32 rows: the targets with a
+    /// source handed back and the worst difference over the stated bound.
+    fn f32_hand_backs(h_color: f64) -> (usize, f64) {
+        let (fast, slow, redo, range) = both::<f32>(&deep_case(h_color));
+        // (a hole without any source in its window is handed back too)
+        let with_source = redo.iter().zip(&slow).filter(|(r, v)| **r && v.is_some());
+        (with_source.count(), over_f32_bound(&fast, &slow, &range))
+    }
+
+    #[test]
+    fn the_shift_keeps_weights_between_exp_minus_87_and_minus_117() {
+        // At HC_DEEP some holes have no source above exponent -87: rows
+        // without the shift (SHIFT = 0) hand back 11 of them (124 and 56
+        // at h_color 0.05 and 0.06, against 57 and 13 with it); with the
+        // shift every one is estimated in f32, within the stated bound.
+        assert_eq!(f32::SHIFT, 30.0);
+        let (handed_back, over) = f32_hand_backs(HC_DEEP);
+        assert_eq!(handed_back, 0);
+        assert!(over <= 1.0, "{over}");
+    }
+
     #[test]
     fn the_vector_band_equals_the_plain_band_bit_for_bit() {
         assert_eq!(vector_differences::<f32>(), 0);
@@ -639,7 +723,7 @@ mod tests {
             far: None,
             background: None,
         };
-        let rows = DepthRows::<f64>::new(&kernel);
+        let rows = DepthRows::<f64>::new(&kernel, core.search);
         let targets: Vec<bool> = (0..w * h)
             .map(|i| (i % w) % 37 < 2 || i % 211 == 0)
             .collect();

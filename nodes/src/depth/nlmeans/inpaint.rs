@@ -149,30 +149,42 @@ impl PassRunner for CpuPass {
                 any_exact = true;
             }
         };
-        // In f32 where every target holds depth (denoising): its own term
-        // weighs its confidence, so the weights that count rarely
-        // underflow in f32 (a target of confidence 0 whose do is handed
-        // back below). Holes (inpainting) may have every candidate more
-        // than 87 units of exponent away, where f32 has nothing left: so
-        // many are handed back (8.5k per TUM frame) that f32 gains nothing
-        // there, and those rows run in f64. Patches wider than 5x5 run in
-        // f64 too (the f32 bound is stated for r <= 2; `depth_rows`).
-        if job.targets_are_sources && job.patch <= F32_MAX_PATCH {
+        // The f32 rows (eight lanes where f64 has four) for patches up to
+        // F32_MAX_PATCH (their bound is stated for r <= 2; `depth_rows`),
+        // the f64 rows otherwise. A target the f32 rows hand back (every
+        // weight below f32's range: 1.3k hole fills of 77k holes on a
+        // Kinect frame, all iterations together; in denoising only targets
+        // of confidence 0) runs again in the f64 rows, and what those hand
+        // back with the running maximum.
+        let search = core.search;
+        let f64_rows = DepthRows::<f64>::new(&kernel, search);
+        if job.patch <= F32_MAX_PATCH {
             run_pass(
                 &pass,
                 job.targets,
-                &DepthRows::<f32>::new(&kernel),
+                &DepthRows::<f32>::new(&kernel, search),
                 progress,
                 sink,
             )?;
+            if any_exact {
+                let again = std::mem::replace(&mut exact, vec![false; job.w * job.h]);
+                any_exact = false;
+                run_pass(
+                    &pass,
+                    &again,
+                    &f64_rows,
+                    &mut |_| progress(1.0),
+                    |i, r| match r {
+                        Finish::Done(v) => out[i] = v,
+                        Finish::Exact => {
+                            exact[i] = true;
+                            any_exact = true;
+                        }
+                    },
+                )?;
+            }
         } else {
-            run_pass(
-                &pass,
-                job.targets,
-                &DepthRows::<f64>::new(&kernel),
-                progress,
-                sink,
-            )?;
+            run_pass(&pass, job.targets, &f64_rows, progress, sink)?;
         }
         if any_exact {
             // progress stays at 1; cancellation is still checked every wave

@@ -233,7 +233,7 @@ fn eval_inpaint(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "NLMeansDepth",
-        1,
+        2,
         "NL-means depth denoising guided by color, with outlier pruning (depth blur Sec. 2.2, eq. 1-3).\n\
          Outliers (spikes, flying pixels) are pruned with a normal + uniform mixture model and become holes; \
          the remaining depth is averaged over pixels with similar color and depth patches. Holes stay holes.",
@@ -241,7 +241,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "NLMeansUpsample",
-        2,
+        3,
         "Joint NL-means upsampling of low-resolution depth guided by high-resolution color (depth blur eq. 4).\n\
          Low-resolution samples are placed on the color grid and averaged with weights blending low-resolution \
          depth similarity and high-resolution color similarity (alpha); remaining holes are inpainted (eq. 5). \
@@ -250,7 +250,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "NLMeansInpaint",
-        2,
+        3,
         "Iterative NL-means depth inpainting with confidence propagation (depth blur eq. 5).\n\
          Fills holes from the outside in, weighting known pixels by patch similarity and confidence; \
          optional far-depth prior for disocclusions. Valid pixels are unchanged.",
