@@ -951,14 +951,12 @@ impl Sources<'_> {
 
     /// Colour and inverse depth of source `i` (a layer entry at `n + k`).
     fn source(&self, i: usize) -> (Rgb, f32) {
-        if i < self.n {
-            (self.src_color[i], self.src_inv_z[i] as f32)
+        let inv_z = if i < self.n {
+            self.src_inv_z[i]
         } else {
-            (
-                self.layer.color[i - self.n],
-                self.layer.inv_z[i - self.n] as f32,
-            )
-        }
+            self.layer.inv_z[i - self.n]
+        };
+        (self.color(i), inv_z as f32)
     }
 }
 
