@@ -7,7 +7,10 @@
 //! evaluation, pipeline compilation included) and warm medians, and the
 //! device's upload / kernel / download split. The adapter and driver are
 //! named; on a software adapter (lavapipe) the GPU numbers are labelled
-//! correctness-only. `DEPTHGRAPH_REPEATS` (default 5) timed repeats.
+//! correctness-only. `DEPTHGRAPH_REPEATS` (default 5) timed repeats;
+//! `DEPTHGRAPH_BENCH_ONLY=text` runs only the rows whose name contains it.
+//! Refocus also runs with one view per dispatch (a second context), beside
+//! the default batches.
 //!
 //! `gpu/scripts/device-bench.sh` builds this here and runs it on a GPU
 //! machine without network.
@@ -84,6 +87,12 @@ fn fresh_copies(inputs: &Inputs) -> Inputs {
     out
 }
 
+/// Whether the row named `what` runs: every row, or with
+/// `DEPTHGRAPH_BENCH_ONLY` set those whose name contains it.
+fn wanted(what: &str) -> bool {
+    std::env::var("DEPTHGRAPH_BENCH_ONLY").map_or(true, |only| what.contains(only.as_str()))
+}
+
 fn node_row(
     what: &str,
     regs: &(Registry, Registry),
@@ -91,7 +100,10 @@ fn node_row(
     inputs: &Inputs,
     params: &ParamMap,
     repeats: usize,
-) -> Row {
+) -> Option<Row> {
+    if !wanted(what) {
+        return None;
+    }
     let cpu: Vec<f64> = (0..repeats.clamp(1, 3))
         .map(|_| eval(&regs.0, kind, inputs, params).0)
         .collect();
@@ -108,16 +120,19 @@ fn node_row(
         splits.push(out.transfers);
     }
     let mid = splits.get(splits.len() / 2).copied().unwrap_or_default();
-    Row {
+    Some(Row {
         what: what.to_string(),
         cpu_ms: median(cpu),
         gpu_cold_ms: cold,
         gpu_ms: median(warm),
         split: mid,
-    }
+    })
 }
 
-fn pipeline_row(file: &str, regs: &(Registry, Registry), repeats: usize) -> Row {
+fn pipeline_row(file: &str, regs: &(Registry, Registry), repeats: usize) -> Option<Row> {
+    if !wanted(&format!("pipeline {file}")) {
+        return None;
+    }
     // DEPTHGRAPH_ROOT: the repository on a machine the binary was carried to
     let root = std::env::var_os("DEPTHGRAPH_ROOT")
         .map(PathBuf::from)
@@ -157,13 +172,13 @@ fn pipeline_row(file: &str, regs: &(Registry, Registry), repeats: usize) -> Row 
     let (cold, _) = run(&regs.1);
     let warm: Vec<(f64, Transfers)> = (0..repeats.clamp(1, 3)).map(|_| run(&regs.1)).collect();
     let split = warm[warm.len() / 2].1;
-    Row {
+    Some(Row {
         what: format!("pipeline {file}"),
         cpu_ms: median(cpu),
         gpu_cold_ms: cold,
         gpu_ms: median(warm.iter().map(|w| w.0).collect()),
         split,
-    }
+    })
 }
 
 fn scene_inputs(w: usize, h: usize) -> (Arc<ColorImage>, Arc<DepthMap>) {
@@ -235,7 +250,7 @@ fn main() {
     let mut pi = Inputs::new();
     pi.insert("depth", Value::Depth(holed));
     let pp = depthgraph_nodes::depth::pull_push::PullPushParams::default();
-    rows.push(node_row(
+    rows.extend(node_row(
         "PullPush 640x480 (20 % holes)",
         &regs,
         "PullPush",
@@ -245,7 +260,7 @@ fn main() {
     ));
     pi.insert("color", Value::Color(color.clone()));
     pi.insert("intrinsics", Value::Intrinsics(k));
-    rows.push(node_row(
+    rows.extend(node_row(
         "DualPullPush 640x480 (20 % holes)",
         &regs,
         "DualPullPush",
@@ -259,7 +274,7 @@ fn main() {
     ni.insert("depth", pi.get("depth").cloned().expect("depth"));
     ni.insert("color", Value::Color(color.clone()));
     let np = depthgraph_nodes::depth::nlmeans::NLMeansInpaintParams::default();
-    rows.push(node_row(
+    rows.extend(node_row(
         "NLMeansInpaint 640x480 (20 % holes)",
         &regs,
         "NLMeansInpaint",
@@ -275,7 +290,7 @@ fn main() {
     ui.insert("intrinsics", Value::Intrinsics(k.scaled_to(160, 120)));
     ui.insert("color", Value::Color(color.clone()));
     let up = depthgraph_nodes::depth::nlmeans::NLMeansUpsampleParams::default();
-    rows.push(node_row(
+    rows.extend(node_row(
         "NLMeansUpsample 160x120 -> 640x480",
         &regs,
         "NLMeansUpsample",
@@ -294,7 +309,7 @@ fn main() {
     let mut fi = Inputs::new();
     fi.insert("mask", Value::Mask(Arc::new(disc)));
     let fp = depthgraph_nodes::select::feather::FeatherParams::default();
-    rows.push(node_row(
+    rows.extend(node_row(
         "Feather 640x480 sigma 2",
         &regs,
         "Feather",
@@ -309,7 +324,7 @@ fn main() {
         radius: 7,
         ..Default::default()
     };
-    rows.push(node_row(
+    rows.extend(node_row(
         "JointBilateral 640x480 r=7",
         &regs,
         "JointBilateral",
@@ -330,10 +345,32 @@ fn main() {
     let mut ri = Inputs::new();
     ri.insert("color", Value::Color(color));
     ri.insert("depth", Value::Depth(depth));
-    rows.push(node_row(
+    rows.extend(node_row(
         "Refocus 640x480 256 samples",
         &regs,
         "Refocus",
+        &ri,
+        &rp(256, 640).to_values(),
+        repeats,
+    ));
+    // the same with one view per dispatch (the path before batching), on a
+    // second context opened only when the row runs
+    let one_view_row = |what: &str, inputs: &Inputs, params: &ParamMap, repeats: usize| {
+        if !wanted(what) {
+            return None;
+        }
+        let ctx = GpuContext::new(&AdapterRequest {
+            views_per_dispatch: Some(1),
+            ..Default::default()
+        })
+        .expect("the same adapter again");
+        let mut dev = depthgraph_nodes::registry().expect("registry");
+        depthgraph_gpu::install(&mut dev, &ctx).expect("device kinds");
+        let regs = (depthgraph_nodes::registry().expect("registry"), dev);
+        node_row(what, &regs, "Refocus", inputs, params, repeats)
+    };
+    rows.extend(one_view_row(
+        "Refocus 640x480 256 samples, one view per dispatch",
         &ri,
         &rp(256, 640).to_values(),
         repeats,
@@ -342,7 +379,7 @@ fn main() {
         background_layer: true,
         ..rp(256, 640)
     };
-    rows.push(node_row(
+    rows.extend(node_row(
         "Refocus 640x480 256 samples, background layer",
         &regs,
         "Refocus",
@@ -357,7 +394,7 @@ fn main() {
         barrel_distance_mm: 40.0,
         ..rp(256, 640)
     };
-    rows.push(node_row(
+    rows.extend(node_row(
         "Refocus 640x480 256 samples, spherical + longitudinal chromatic + barrel",
         &regs,
         "Refocus",
@@ -370,7 +407,7 @@ fn main() {
         let mut bi = Inputs::new();
         bi.insert("color", Value::Color(c));
         bi.insert("depth", Value::Depth(d));
-        rows.push(node_row(
+        rows.extend(node_row(
             "Refocus 1600x1200 576 samples",
             &regs,
             "Refocus",
@@ -378,9 +415,15 @@ fn main() {
             &rp(576, 1600).to_values(),
             repeats.min(3),
         ));
+        rows.extend(one_view_row(
+            "Refocus 1600x1200 576 samples, one view per dispatch",
+            &bi,
+            &rp(576, 1600).to_values(),
+            repeats.min(3),
+        ));
     }
     for f in ["depth_fill.ron", "refocus.ron"] {
-        rows.push(pipeline_row(f, &regs, repeats));
+        rows.extend(pipeline_row(f, &regs, repeats));
     }
 
     println!(

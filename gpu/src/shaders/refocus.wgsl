@@ -3,6 +3,11 @@
 // and the running average, all on the device; the views' decisions (points,
 // active tiles, sources) come from the CPU's plan, unchanged.
 //
+// The views run in batches (`B.count` views from `B.k0`, each with its own
+// z-buffer and view slot): one dispatch warps, gathers or fills every view
+// of the batch, and the accumulation adds the batch's views to each pixel
+// in view order, so the sum is the same as one view per dispatch.
+//
 // The z-buffer reproduces the CPU's 64-bit key (depth bits, then source
 // index) exactly with two 32-bit atomicMin passes: `warp_depth` keeps the
 // smallest depth bits per target, `warp_index` the smallest index among the
@@ -27,7 +32,8 @@ struct Globals {
     barrel: u32,
     per_px: f32,
     radius2: f32,
-    _pad: u32,
+    // view slots allocated (the largest batch)
+    slots: u32,
 }
 
 struct ViewParams {
@@ -50,10 +56,22 @@ struct ViewParams {
     ebx: f32,
     eby: f32,
     k: u32,
+    // to the host's 64-byte stride
+    _p0: u32,
+    _p1: u32,
+    _p2: u32,
+}
+
+// The views of one batch: k0 .. k0 + count.
+struct Batch {
+    k0: u32,
+    count: u32,
+    _p0: u32,
+    _p1: u32,
 }
 
 @group(0) @binding(0) var<uniform> G: Globals;
-@group(0) @binding(1) var<uniform> V: ViewParams;
+@group(0) @binding(1) var<uniform> B: Batch;
 // (key index, depth bits, bits of m = 1/u - 1/z, pixel index) per source:
 // the active pixels (key index = pixel), then the background layer's
 // entries (key index n + k)
@@ -62,9 +80,11 @@ struct ViewParams {
 @group(0) @binding(3) var<storage, read> color: array<f32>;
 // (1/z, active flag) per pixel
 @group(0) @binding(4) var<storage, read> pix: array<vec2<f32>>;
-// [0, n): depth bits of the nearest arrival; [n, 2n): its source index
+// per view slot b, from 2 n b: [0, n) depth bits of the nearest arrival;
+// [n, 2n) its source index
 @group(0) @binding(5) var<storage, read_write> zbuf: array<atomic<u32>>;
-// [0, n): (r, g, b, 1/z) of the warped view; [n, 2n).x: certainty
+// per view slot b, from 2 n b: [0, n) (r, g, b, 1/z) of the warped view;
+// [n, 2n).x its certainty
 @group(0) @binding(6) var<storage, read_write> view: array<vec4<f32>>;
 // [0, n): running sum of the views; [n, 2n): its compensation (Kahan)
 @group(0) @binding(7) var<storage, read_write> acc: array<vec4<f32>>;
@@ -74,6 +94,8 @@ struct ViewParams {
 @group(0) @binding(9) var<storage, read_write> out_rgb: array<f32>;
 // (r, g, b, 1/z) of the background layer's entry k
 @group(0) @binding(10) var<storage, read> layer: array<vec4<f32>>;
+// every view's parameters
+@group(0) @binding(11) var<storage, read> views: array<ViewParams>;
 
 const EMPTY: u32 = 0xffffffffu;
 
@@ -99,14 +121,19 @@ fn n_px() -> u32 {
     return G.w * G.h;
 }
 
-// The target pixel of source s in this view, or EMPTY when it leaves the image.
-fn warp_target(s: vec4<u32>) -> u32 {
+// Where view slot b's arrays start in `zbuf` and `view` (2 n entries a slot).
+fn slot(b: u32) -> u32 {
+    return 2u * n_px() * b;
+}
+
+// The target pixel of source s in view v, or EMPTY when it leaves the image.
+fn warp_target(s: vec4<u32>, v: ViewParams) -> u32 {
     let i = s.w;
     let m = bitcast<f32>(s.z);
     let x = f32(i % G.w);
     let y = f32(i / G.w);
-    let tx = round_away(x + V.dx * m + V.gx);
-    let ty = round_away(y + V.dy * m + V.gy);
+    let tx = round_away(x + v.dx * m + v.gx);
+    let ty = round_away(y + v.dy * m + v.gy);
     if (tx < 0.0 || ty < 0.0 || tx >= f32(G.w) || ty >= f32(G.h)) {
         return EMPTY;
     }
@@ -123,70 +150,94 @@ fn clear(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (t >= n_px()) {
         return;
     }
-    atomicStore(&zbuf[t], EMPTY);
-    atomicStore(&zbuf[n_px() + t], EMPTY);
+    for (var b = 0u; b < G.slots; b = b + 1u) {
+        atomicStore(&zbuf[slot(b) + t], EMPTY);
+        atomicStore(&zbuf[slot(b) + n_px() + t], EMPTY);
+    }
     acc[t] = vec4<f32>(0.0);
     acc[n_px() + t] = vec4<f32>(0.0);
 }
 
+// One invocation per (view of the batch, source).
 @compute @workgroup_size(256)
 fn warp_depth(@builtin(global_invocation_id) gid: vec3<u32>) {
     let id = src_id(gid);
-    if (id >= G.n_src) {
+    if (id >= G.n_src * B.count) {
         return;
     }
-    let s = src[id];
-    let t = warp_target(s);
+    let b = id / G.n_src;
+    let s = src[id % G.n_src];
+    let t = warp_target(s, views[B.k0 + b]);
     if (t != EMPTY) {
-        atomicMin(&zbuf[t], s.y);
+        atomicMin(&zbuf[slot(b) + t], s.y);
     }
 }
 
 @compute @workgroup_size(256)
 fn warp_index(@builtin(global_invocation_id) gid: vec3<u32>) {
     let id = src_id(gid);
-    if (id >= G.n_src) {
+    if (id >= G.n_src * B.count) {
         return;
     }
-    let s = src[id];
-    let t = warp_target(s);
-    if (t != EMPTY && atomicLoad(&zbuf[t]) == s.y) {
-        atomicMin(&zbuf[n_px() + t], s.x);
+    let b = id / G.n_src;
+    let s = src[id % G.n_src];
+    let t = warp_target(s, views[B.k0 + b]);
+    if (t != EMPTY && atomicLoad(&zbuf[slot(b) + t]) == s.y) {
+        atomicMin(&zbuf[slot(b) + n_px() + t], s.x);
     }
 }
 
+// A (view of the batch, pixel) invocation: whether it has one, the view
+// b within the batch, the pixel t and where b's slot starts.
+struct SlotPixel {
+    valid: bool,
+    b: u32,
+    t: u32,
+    o: u32,
+}
+
+fn slot_pixel(gid: vec3<u32>) -> SlotPixel {
+    let id = src_id(gid);
+    let n = n_px();
+    let b = id / n;
+    return SlotPixel(id < n * B.count, b, id % n, slot(b));
+}
+
 // The winners of the z-buffer become the view; the z-buffer is reset for
-// the next view.
+// the next batch. One invocation per (view of the batch, pixel).
 @compute @workgroup_size(256)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let t = src_id(gid);
-    if (t >= n_px()) {
+    let q = slot_pixel(gid);
+    if (!q.valid) {
         return;
     }
     let n = n_px();
-    let i = atomicLoad(&zbuf[n + t]);
-    atomicStore(&zbuf[t], EMPTY);
-    atomicStore(&zbuf[n + t], EMPTY);
+    let t = q.t;
+    let o = q.o;
+    let i = atomicLoad(&zbuf[o + n + t]);
+    atomicStore(&zbuf[o + t], EMPTY);
+    atomicStore(&zbuf[o + n + t], EMPTY);
     if (i == EMPTY) {
-        view[t] = vec4<f32>(0.0);
-        view[n + t] = vec4<f32>(0.0);
+        view[o + t] = vec4<f32>(0.0);
+        view[o + n + t] = vec4<f32>(0.0);
     } else if (i >= n) {
-        view[t] = layer[i - n];
-        view[n + t] = vec4<f32>(1.0, 0.0, 0.0, 0.0);
+        view[o + t] = layer[i - n];
+        view[o + n + t] = vec4<f32>(1.0, 0.0, 0.0, 0.0);
     } else {
-        view[t] = vec4<f32>(src_color(i), pix[i].x);
-        view[n + t] = vec4<f32>(1.0, 0.0, 0.0, 0.0);
+        view[o + t] = vec4<f32>(src_color(i), pix[i].x);
+        view[o + n + t] = vec4<f32>(1.0, 0.0, 0.0, 0.0);
     }
 }
 
 struct Hit {
     found: bool,
+    // the pixel's index within its view slot
     j: u32,
     dist: f32,
 }
 
-// The first known pixel from t along (sx, sy), not t itself.
-fn march(t: u32, sx: f32, sy: f32) -> Hit {
+// The first known pixel of slot o's view from t along (sx, sy), not t itself.
+fn march(o: u32, t: u32, sx: f32, sy: f32) -> Hit {
     let x = f32(t % G.w);
     let y = f32(t / G.w);
     // The step's major component is 1, so the march leaves the image
@@ -200,26 +251,27 @@ fn march(t: u32, sx: f32, sy: f32) -> Hit {
             break;
         }
         let j = u32(py) * G.w + u32(px);
-        if (view[n_px() + j].x > 0.0) {
+        if (view[o + n_px() + j].x > 0.0) {
             return Hit(true, j, k);
         }
     }
     return Hit(false, 0u, 0.0);
 }
 
-// The fill of hole t (the CPU's fill_one): the far end along the view's
-// shift, or both ends of a crack blended with the far prior's weights.
-fn fill(t: u32) -> vec3<f32> {
-    let a = march(t, V.sx, V.sy);
-    let b = march(t, -V.sx, -V.sy);
+// The fill of hole t in slot o's view v (the CPU's fill_one): the far end
+// along the view's shift, or both ends of a crack blended with the far
+// prior's weights.
+fn fill(o: u32, t: u32, v: ViewParams) -> vec3<f32> {
+    let a = march(o, t, v.sx, v.sy);
+    let b = march(o, t, -v.sx, -v.sy);
     var use_a = a.found;
     var use_b = b.found;
     if (!use_a && !use_b) {
         return vec3<f32>(0.0);
     }
     if (use_a && use_b) {
-        let va = view[a.j].w;
-        let vb = view[b.j].w;
+        let va = view[o + a.j].w;
+        let vb = view[o + b.j].w;
         let s = va + vb;
         var rel = 0.0;
         // Guard: two sky ends (s = 0) are the same depth.
@@ -236,10 +288,10 @@ fn fill(t: u32) -> vec3<f32> {
     }
     var v_far = 3.4e38;
     if (use_a) {
-        v_far = min(v_far, view[a.j].w);
+        v_far = min(v_far, view[o + a.j].w);
     }
     if (use_b) {
-        v_far = min(v_far, view[b.j].w);
+        v_far = min(v_far, view[o + b.j].w);
     }
     var wsum = 0.0;
     var csum = vec3<f32>(0.0);
@@ -253,8 +305,8 @@ fn fill(t: u32) -> vec3<f32> {
         if (!used) {
             continue;
         }
-        let zeta = view[n_px() + h.j].x;
-        let vj = view[h.j].w;
+        let zeta = view[o + n_px() + h.j].x;
+        let vj = view[o + h.j].w;
         var wt = 0.0;
         if (G.far_prior != 0u) {
             // (v_far / v_j)^2 in [0, 1]; the sky (v = 0) is as far as it gets.
@@ -269,7 +321,7 @@ fn fill(t: u32) -> vec3<f32> {
             wt = zeta / h.dist;
         }
         wsum = wsum + wt;
-        csum = csum + wt * view[h.j].xyz;
+        csum = csum + wt * view[o + h.j].xyz;
     }
     if (wsum > 0.0 && !is_non_finite(wsum)) {
         return csum / wsum;
@@ -277,19 +329,19 @@ fn fill(t: u32) -> vec3<f32> {
     // Unreachable (every end has certainty 1 and the farthest prior 1);
     // the CPU's fallback all the same: the first end's color.
     if (use_a) {
-        return view[a.j].xyz;
+        return view[o + a.j].xyz;
     }
-    return view[b.j].xyz;
+    return view[o + b.j].xyz;
 }
 
-// Whether the ray from this view's aperture point to pixel t passes the
-// lens barrel (always without one).
-fn barrel_open(t: u32) -> bool {
+// Whether the ray from view v's aperture point to pixel t passes the lens
+// barrel (always without one).
+fn barrel_open(t: u32, v: ViewParams) -> bool {
     if (G.barrel == 0u) {
         return true;
     }
-    let px = V.bx + G.per_px * (f32(t % G.w) + 0.5);
-    let py = V.by + G.per_px * (f32(t / G.w) + 0.5);
+    let px = v.bx + G.per_px * (f32(t % G.w) + 0.5);
+    let py = v.by + G.per_px * (f32(t / G.w) + 0.5);
     return px * px + py * py <= G.radius2;
 }
 
@@ -305,30 +357,37 @@ fn accumulate(t: u32, c: vec3<f32>) {
 }
 
 // Longitudinal chromatic aberration (the CPU's split path), first kernel:
-// every active hole's fill written into the view's colour. Its certainty
-// stays 0, and the fills read only certain pixels, so no fill sees another.
+// every active hole's fill written into its view's colour, one invocation
+// per (view of the batch, pixel). Its certainty stays 0, and the fills read
+// only certain pixels, so no fill sees another.
 @compute @workgroup_size(256)
 fn fill_store(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let t = src_id(gid);
-    if (t >= n_px() || pix[t].y == 0.0 || view[n_px() + t].x > 0.0) {
+    let q = slot_pixel(gid);
+    if (!q.valid) {
         return;
     }
-    atomicAdd(&holes[V.k], 1u);
-    view[t] = vec4<f32>(fill(t), view[t].w);
+    let t = q.t;
+    let o = q.o;
+    if (pix[t].y == 0.0 || view[o + n_px() + t].x > 0.0) {
+        return;
+    }
+    let v = views[B.k0 + q.b];
+    atomicAdd(&holes[v.k], 1u);
+    view[o + t] = vec4<f32>(fill(o, t, v), view[o + t].w);
 }
 
-// The colour a channel reads at pixel j of the filled view: the input at
-// pixels no view moves (they hold it in every view).
-fn view_rgb(j: u32) -> vec3<f32> {
+// The colour a channel reads at pixel j of slot o's filled view: the input
+// at pixels no view moves (they hold it in every view).
+fn view_rgb(o: u32, j: u32) -> vec3<f32> {
     if (pix[j].y == 0.0) {
         return src_color(j);
     }
-    return view[j].xyz;
+    return view[o + j].xyz;
 }
 
-// The filled view at (x, y) - e, bilinear, edges clamped (the CPU's
+// Slot o's filled view at (x, y) - e, bilinear, edges clamped (the CPU's
 // lens::bilinear).
-fn read_at(x: u32, y: u32, e: vec2<f32>) -> vec3<f32> {
+fn read_at(o: u32, x: u32, y: u32, e: vec2<f32>) -> vec3<f32> {
     let fx = clamp(f32(x) - e.x, 0.0, f32(G.w - 1u));
     let fy = clamp(f32(y) - e.y, 0.0, f32(G.h - 1u));
     let x0 = u32(floor(fx));
@@ -337,56 +396,70 @@ fn read_at(x: u32, y: u32, e: vec2<f32>) -> vec3<f32> {
     let y1 = min(y0 + 1u, G.h - 1u);
     let ax = fx - f32(x0);
     let ay = fy - f32(y0);
-    let top = view_rgb(y0 * G.w + x0) * (1.0 - ax) + view_rgb(y0 * G.w + x1) * ax;
-    let bottom = view_rgb(y1 * G.w + x0) * (1.0 - ax) + view_rgb(y1 * G.w + x1) * ax;
+    let top = view_rgb(o, y0 * G.w + x0) * (1.0 - ax) + view_rgb(o, y0 * G.w + x1) * ax;
+    let bottom = view_rgb(o, y1 * G.w + x0) * (1.0 - ax) + view_rgb(o, y1 * G.w + x1) * ax;
     return top * (1.0 - ay) + bottom * ay;
 }
 
-// Second kernel: each active pixel the barrel passes adds green from the
-// view at its place and red and blue from their offsets.
+// Second kernel: each active pixel adds, view by view in order, green from
+// the view at its place and red and blue from their offsets, for every
+// view whose ray the barrel passes.
 @compute @workgroup_size(256)
 fn accumulate_split(@builtin(global_invocation_id) gid: vec3<u32>) {
     let t = src_id(gid);
-    if (t >= n_px() || pix[t].y == 0.0 || !barrel_open(t)) {
+    if (t >= n_px() || pix[t].y == 0.0) {
         return;
     }
     let x = t % G.w;
     let y = t / G.w;
-    let here = view[t].xyz;
-    var r = here.x;
-    var b = here.z;
-    let er = vec2<f32>(V.erx, V.ery);
-    let eb = vec2<f32>(V.ebx, V.eby);
-    if (any(er != vec2<f32>(0.0))) {
-        r = read_at(x, y, er).x;
+    for (var b = 0u; b < B.count; b = b + 1u) {
+        let v = views[B.k0 + b];
+        if (!barrel_open(t, v)) {
+            continue;
+        }
+        let o = slot(b);
+        let here = view[o + t].xyz;
+        var r = here.x;
+        var bl = here.z;
+        let er = vec2<f32>(v.erx, v.ery);
+        let eb = vec2<f32>(v.ebx, v.eby);
+        if (any(er != vec2<f32>(0.0))) {
+            r = read_at(o, x, y, er).x;
+        }
+        if (any(eb != vec2<f32>(0.0))) {
+            bl = read_at(o, x, y, eb).z;
+        }
+        accumulate(t, vec3<f32>(r, here.y, bl));
     }
-    if (any(eb != vec2<f32>(0.0))) {
-        b = read_at(x, y, eb).z;
-    }
-    accumulate(t, vec3<f32>(r, here.y, b));
 }
 
+// Each active pixel, view by view in order: its warped colour or its fill,
+// added to the running sum where the barrel passes the view's ray.
 @compute @workgroup_size(256)
 fn fill_accumulate(@builtin(global_invocation_id) gid: vec3<u32>) {
     let t = src_id(gid);
     if (t >= n_px() || pix[t].y == 0.0) {
         return;
     }
-    let warped = view[n_px() + t].x > 0.0;
-    if (!warped) {
-        atomicAdd(&holes[V.k], 1u);
+    for (var b = 0u; b < B.count; b = b + 1u) {
+        let v = views[B.k0 + b];
+        let o = slot(b);
+        let warped = view[o + n_px() + t].x > 0.0;
+        if (!warped) {
+            atomicAdd(&holes[v.k], 1u);
+        }
+        // the barrel blocks this view's ray: the pixel gets nothing from it
+        if (!barrel_open(t, v)) {
+            continue;
+        }
+        var c: vec3<f32>;
+        if (warped) {
+            c = view[o + t].xyz;
+        } else {
+            c = fill(o, t, v);
+        }
+        accumulate(t, c);
     }
-    // the barrel blocks this view's ray: the pixel gets nothing from it
-    if (!barrel_open(t)) {
-        return;
-    }
-    var c: vec3<f32>;
-    if (warped) {
-        c = view[t].xyz;
-    } else {
-        c = fill(t);
-    }
-    accumulate(t, c);
 }
 
 @compute @workgroup_size(256)
