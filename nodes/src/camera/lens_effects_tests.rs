@@ -499,6 +499,7 @@ fn each_effect_matches_the_ray_traced_lens() {
             samples: 256,
             seed: 5,
             effects: Default::default(),
+            pixel_area: false,
         },
         |_| Ok(()),
     ) {
@@ -519,6 +520,7 @@ fn each_effect_matches_the_ray_traced_lens() {
                 samples: 256,
                 seed: 5,
                 effects: p.effects(),
+                pixel_area: false,
             },
             |_| Ok(()),
         ) {

@@ -1802,6 +1802,7 @@ mod ground_truth {
                     samples: 256,
                     seed: 9,
                     effects: Default::default(),
+                    pixel_area: false,
                 },
                 |_| Ok(()),
             )

@@ -1081,6 +1081,29 @@ pub struct ThinLensRender {
     /// breathing; all off by default), the model of
     /// [`crate::camera::lens::LensEffects`].
     pub effects: LensEffects,
+    /// Each ray also starts from its own point of the pixel's square (a
+    /// box filter over the pixel, as a sensor pixel integrates light; the
+    /// pinhole render's `supersample` is the same filter) instead of the
+    /// pixel centre.
+    pub pixel_area: bool,
+}
+
+/// The R2 sequence's steps (Roberts 2018, from the plastic number): the
+/// sub-pixel points of [`render_thin_lens`]'s rays with `pixel_area`, a
+/// low-discrepancy sequence rotated per pixel.
+const R2_STEP: [f64; 2] = [0.754_877_666_246_692_7, 0.569_840_290_998_053_2];
+
+/// Where ray `i` of a pixel crosses it, in pixels from its corner:
+/// `frac(shift + i R2_STEP)` with `pixel_area`, else the centre.
+fn ray_offset(pixel_area: bool, shift: [f64; 2], i: usize) -> [f64; 2] {
+    if !pixel_area {
+        return [0.5, 0.5];
+    }
+    let i = i as f64;
+    [
+        (shift[0] + i * R2_STEP[0]).fract(),
+        (shift[1] + i * R2_STEP[1]).fract(),
+    ]
 }
 
 /// Renders `scene` through a thin lens by distributed ray tracing: for each
@@ -1093,7 +1116,9 @@ pub struct ThinLensRender {
 /// over exactly the circle of confusion `C |1/z - 1/u|` pixels that
 /// [`crate::camera::refocus::refocus`] uses: the two differ only by what a single
 /// RGB-D image cannot know (what hides behind edges). Rays go through pixel
-/// centres, like the pinhole render the refocusing starts from. Each pixel
+/// centres, like the pinhole render the refocusing starts from, or with
+/// [`ThinLensRender::pixel_area`] through points spread over the pixel
+/// (like a supersampled pinhole render). Each pixel
 /// draws its own aperture samples (seeded by the pixel), so the noise is
 /// not correlated across the image.
 pub fn render_thin_lens(
@@ -1127,7 +1152,7 @@ pub fn render_thin_lens(
     let centre = [w as f64 / 2.0, h as f64 / 2.0];
     // The pixel through the lens with the effects: channel group `chans`
     // seen from output pixel (x, y) (see LensEffects for the model).
-    let effect_pixel = |x: usize, y: usize, points: &[[f64; 2]]| -> Rgb {
+    let effect_pixel = |x: usize, y: usize, points: &[[f64; 2]], shift: [f64; 2]| -> Rgb {
         let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
         let mut acc = [0.0f64; 3];
         let groups: &[&[usize]] = if per_channel {
@@ -1137,14 +1162,15 @@ pub fn render_thin_lens(
         };
         for chans in groups {
             let ch = chans[0];
-            // Guard: magnifications are positive (validate).
-            let qx = centre[0] + (px - centre[0]) / mag[ch];
-            let qy = centre[1] + (py - centre[1]) / mag[ch];
-            let d0 = scene.ray(qx, qy);
-            for s in points {
+            for (i, s) in points.iter().enumerate() {
+                let o = ray_offset(lens.pixel_area, shift, i);
+                // Guard: magnifications are positive (validate).
+                let qx = centre[0] + (x as f64 + o[0] - centre[0]) / mag[ch];
+                let qy = centre[1] + (y as f64 + o[1] - centre[1]) / mag[ch];
                 if barrel.is_some_and(|b| !b.open(*s, qx, qy)) {
                     continue;
                 }
+                let d0 = scene.ray(qx, qy);
                 let origin = DVec3::new(s[0] * sx, s[1] * sy, 0.0);
                 // Towards the point where this ray focuses: inverse
                 // distance 1/u + S r^2 + k_c L (any sign: beyond infinity
@@ -1172,12 +1198,21 @@ pub fn render_thin_lens(
                             lens.seed ^ ((y * w + x) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
                         );
                         let points = lens.aperture.samples(lens.samples, pixel_seed)?;
+                        let r = crate::kit::rng::splitmix64(pixel_seed ^ 0x0ff5_e7a1);
+                        let unit = |v: u64| (v >> 11) as f64 / (1u64 << 53) as f64;
+                        let shift = [unit(r), unit(crate::kit::rng::splitmix64(r))];
                         if !plain {
-                            return Ok(effect_pixel(x, y, &points));
+                            return Ok(effect_pixel(x, y, &points, shift));
                         }
-                        let d0 = scene.ray(x as f64 + 0.5, y as f64 + 0.5);
+                        let centre_ray = scene.ray(x as f64 + 0.5, y as f64 + 0.5);
                         let mut acc = [0.0f64; 3];
-                        for s in &points {
+                        for (i, s) in points.iter().enumerate() {
+                            let d0 = if lens.pixel_area {
+                                let o = ray_offset(true, shift, i);
+                                scene.ray(x as f64 + o[0], y as f64 + o[1])
+                            } else {
+                                centre_ray
+                            };
                             let origin = DVec3::new(s[0] * sx, s[1] * sy, 0.0);
                             let dir = if inv_u > 0.0 {
                                 // Guard: inv_u > 0, so 1 / inv_u is the finite focus distance.
@@ -1255,6 +1290,8 @@ node_params! {
         pub natural_vignetting: f64 = 0.0, ParamKind::Float { min: 0.0, max: 8.0 };
         /// Focus breathing (as Refocus).
         pub focus_breathing: bool = false, ParamKind::Bool;
+        /// Rays spread over each pixel's square (a box filter, as a sensor pixel integrates; pair with SyntheticScene's supersample), not through its centre.
+        pub pixel_area: bool = false, ParamKind::Bool;
     }
 }
 
@@ -1300,6 +1337,7 @@ fn eval_thin_lens(
             natural_vignetting: p.natural_vignetting,
             focus_breathing: p.focus_breathing,
         },
+        pixel_area: p.pixel_area,
     };
     let color = render_thin_lens(&scene, &lens, |f| {
         ctx.progress(f);
@@ -1828,6 +1866,55 @@ mod tests {
         assert!(Scene::preset("nope", 8, 8).is_none());
     }
 
+    /// With `pixel_area`, a lens too small to blur gives the box-filtered
+    /// pinhole image (the supersampled render) rather than the centre
+    /// samples: the error against the 4x4 supersampled render is a
+    /// fraction of the centre samples' error against it, and without the
+    /// flag the rays still give the centre samples (the pinhole render).
+    #[test]
+    fn thin_lens_rays_over_the_pixel_area_give_the_box_filtered_image() {
+        let scene = Scene::preset("tabletop", 64, 48).unwrap();
+        let boxed = render(&scene, &RenderOptions { supersample: 4 });
+        let centred = render(&scene, &RenderOptions::default());
+        let lens = |pixel_area: bool| ThinLensRender {
+            lens: ThinLens {
+                focal_length_mm: 50.0,
+                f_number: 1000.0,
+                focus_m: 2.0,
+                sensor_width_mm: 36.0 * 64.0 / 640.0,
+            },
+            aperture: Aperture::Disc,
+            samples: 256,
+            seed: 3,
+            effects: Default::default(),
+            pixel_area,
+        };
+        let area = render_thin_lens(&scene, &lens(true), |_| Ok(())).unwrap();
+        let centre = render_thin_lens(&scene, &lens(false), |_| Ok(())).unwrap();
+        let mse = |a: &ColorImage, b: &ColorImage| -> f64 {
+            a.as_slice()
+                .iter()
+                .zip(b.as_slice())
+                .flat_map(|(p, q)| {
+                    p.iter()
+                        .zip(q)
+                        .map(|(u, v)| (f64::from(*u) - f64::from(*v)).powi(2))
+                })
+                .sum::<f64>()
+                / a.len() as f64
+        };
+        let (e_area, e_centre) = (mse(&area, &boxed.color), mse(&centre, &boxed.color));
+        eprintln!("area {e_area:e}, centre {e_centre:e}");
+        assert!(e_centre > 0.0, "the scene has edges a box filter changes");
+        assert!(
+            e_area < 0.2 * e_centre,
+            "area {e_area:e}, centre {e_centre:e}"
+        );
+        // the centre path: every ray through the centre, as the pinhole
+        let to_pinhole = mse(&centre, &centred.color);
+        assert!(to_pinhole < 0.05 * e_centre, "{to_pinhole:e}");
+    }
+
     #[test]
     fn thin_lens_render_tends_to_the_pinhole_and_rejects_bad_lenses() {
         let scene = Scene::preset("tabletop", 48, 36).unwrap();
@@ -1843,6 +1930,7 @@ mod tests {
             samples: 16,
             seed: 3,
             effects: Default::default(),
+            pixel_area: false,
         };
         // f/1000: the aperture is 0.05 mm, every CoC far below a pixel.
         let tiny = render_thin_lens(&scene, &lens(1000.0, 2.0), |_| Ok(())).unwrap();
