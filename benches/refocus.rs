@@ -613,8 +613,8 @@ fn edge_band(depth: &DepthMap, r: usize) -> Vec<bool> {
     band
 }
 
-/// The focus settings of the first table with pixels that integrate their
-/// square, as a sensor's do: the input is the 4x4 supersampled pinhole
+/// The focus settings of the first table and the thin scene's with pixels
+/// that integrate their square, as a sensor's do: the input is the 4x4 supersampled pinhole
 /// render (its depth still from the pixel centre, as a depth camera gives
 /// one depth a pixel) and the truth's rays spread over each pixel.
 fn area_pixels(doc: &mut String, repeats: usize, rays: usize) {
@@ -623,22 +623,34 @@ fn area_pixels(doc: &mut String, repeats: usize, rays: usize) {
         doc,
         "\n## Pixels that integrate their area\n\n\
          The tables above sample every pixel at its centre, in the input and in the truth: the \
-         input then aliases fine texture (the floor's grid) that no refocusing can undo, and the \
-         truth keeps what a lens blurs continuously. A sensor pixel integrates its square: here \
-         the input is the pinhole render with 4x4 samples a pixel (colour only; the depth stays the \
-         centre's, one depth a pixel as a depth camera gives) and the truth's {rays} rays a pixel \
-         are spread over its square (`ThinLensRender::pixel_area`). {w}x{h}, 50 mm f/1.4, Refocus \
-         with 256 samples. \"edges\": within 8 px of a depth edge.\n\n\
-         | focus | PSNR | PSNR at edges | SSIM | PSNR, centre samples (first table) | time (ms) |\n\
+         input then aliases fine texture (the floor's grid, the checker) that no refocusing can \
+         undo, and the truth keeps what a lens blurs continuously. A sensor pixel integrates its \
+         square: here the input is the pinhole render with 4x4 samples a pixel (colour only; the \
+         depth stays the centre's, one depth a pixel as a depth camera gives) and the truth's \
+         {rays} rays a pixel are spread over its square (`ThinLensRender::pixel_area`). {w}x{h}, \
+         50 mm f/1.4, Refocus with 256 samples (the thin scene with the background layer and its \
+         texture, the table above's best). \"edges\": within 8 px of a depth edge.\n\n\
+         | scene, focus | PSNR | PSNR at edges | SSIM | PSNR, centre samples (tables above) | time (ms) |\n\
          |---|---|---|---|---|---|"
     )
     .ok();
-    let scene = Scene::preset("tabletop", w, h).expect("preset");
-    let area = render(&scene, &RenderOptions { supersample: 4 });
-    let centre = render(&scene, &RenderOptions::default());
-    let band = edge_band(&area.depth, 8);
-    for (label, focus) in [("near", 0.95), ("middle", 1.6), ("far", 2.8)] {
-        let p = lens_params(w, focus, 256);
+    let cases = [
+        ("tabletop", "tabletop, near", 0.95, false),
+        ("tabletop", "tabletop, middle", 1.6, false),
+        ("tabletop", "tabletop, far", 2.8, false),
+        ("thin", "thin, on the poles", 1.2, true),
+        ("thin", "thin, on the wall", 2.0, true),
+    ];
+    for (preset, label, focus, layer) in cases {
+        let scene = Scene::preset(preset, w, h).expect("preset");
+        let area = render(&scene, &RenderOptions { supersample: 4 });
+        let centre = render(&scene, &RenderOptions::default());
+        let band = edge_band(&area.depth, 8);
+        let p = RefocusParams {
+            background_layer: layer,
+            background_texture: layer,
+            ..lens_params(w, focus, 256)
+        };
         let (gt, gt_s) = truth_with(&scene, &p, rays, true);
         let (gt_centre, _) = truth(&scene, &p, rays);
         eprintln!("area truth {label}: {gt_s:.1} s");
@@ -735,10 +747,18 @@ fn partial_occlusion(doc: &mut String, repeats: usize, rays: usize, out_dir: &Pa
         let ((on, _), ms_on) = timed(repeats, || {
             refocus(&pin.color, &pin.depth, &Aperture::Disc, &on_p, |_| Ok(())).expect("refocus")
         });
+        let tex_p = RefocusParams {
+            background_texture: true,
+            ..on_p.clone()
+        };
+        let ((tex, _), ms_tex) = timed(repeats, || {
+            refocus(&pin.color, &pin.depth, &Aperture::Disc, &tex_p, |_| Ok(())).expect("refocus")
+        });
         for (name, img, ms) in [
             ("reverse-mapped z-buffer DoF", &rev, ms_rev),
             ("Refocus, per-view fill (layer off)", &off, ms_off),
             ("Refocus, background layer", &on, ms_on),
+            ("Refocus, background layer + texture", &tex, ms_tex),
         ] {
             writeln!(
                 doc,
@@ -753,6 +773,7 @@ fn partial_occlusion(doc: &mut String, repeats: usize, rays: usize, out_dir: &Pa
             save_png(&out_dir.join(format!("occlusion_{file}_truth.png")), &gt);
             save_png(&out_dir.join(format!("occlusion_{file}_off.png")), &off);
             save_png(&out_dir.join(format!("occlusion_{file}_layer.png")), &on);
+            save_png(&out_dir.join(format!("occlusion_{file}_texture.png")), &tex);
         }
         if std::env::var_os("DEPTHGRAPH_REFOCUS_ONLY").is_some() {
             // Tuning: display error maps, x8.
@@ -798,12 +819,17 @@ fn partial_occlusion(doc: &mut String, repeats: usize, rays: usize, out_dir: &Pa
                 &out_dir.join(format!("occlusion_{file}_rev_err.png")),
                 &diff(&rev),
             );
+            save_png(
+                &out_dir.join(format!("occlusion_{file}_texture_err.png")),
+                &diff(&tex),
+            );
         }
     }
     writeln!(
         doc,
         "\nImages: [truth](refocus/occlusion_thin_near_truth.png), [layer off](refocus/occlusion_thin_near_off.png), \
-         [background layer](refocus/occlusion_thin_near_layer.png) (thin, focus on the poles); \
+         [background layer](refocus/occlusion_thin_near_layer.png), \
+         [with texture](refocus/occlusion_thin_near_texture.png) (thin, focus on the poles); \
          `occlusion_thin_far_*.png` likewise."
     )
     .ok();

@@ -49,6 +49,36 @@
 //! continued behind it; `1/d^2` and uniform weights measured worse (the
 //! `refocus` bench's partial-occlusion table and the two-plane test in
 //! `refocus`).
+//!
+//! # Texture behind the edge ([`LayerParams::texture`])
+//!
+//! Interpolation continues a smooth background but not a textured one: a
+//! checker behind a thin pole comes out as a grey smear. With `texture`
+//! on, the layer's colour is copied from elsewhere in the background along
+//! one of the background's **dominant patch offsets**, after He and Sun,
+//! "Statistics of Patch Offsets for Image Completion" (ECCV 2012): a
+//! regular or repeating texture matches itself under a few offsets (its
+//! periods), and those are the ones that continue it across a gap.
+//!
+//! 1. *Statistics*: at up to [`OFFSET_SAMPLES`] background pixels next to
+//!    the foreground (the samples the march found), the offset `o`
+//!    (`|o|_∞` from [`MIN_OFFSET`] to [`OFFSET_RADIUS`]) whose
+//!    `(2·STAT_PATCH+1)²` patch of clamped luminance matches best (mean
+//!    squared difference over the pixels of the same depth band in both
+//!    patches, at least half the patch) is counted; the [`OFFSETS`] most
+//!    counted offsets are kept (each at least twice).
+//! 2. *Choice*: each layer pixel `p` of inverse depth `v` takes the offset
+//!    whose source `p + o` is background of the same band (not a layer
+//!    pixel, `v` and `v_q` not [`farther`] from each other) and whose
+//!    neighbourhood (radius [`MATCH_RADIUS`]) matches `p`'s known
+//!    background best (clamped colour, mean squared difference over at
+//!    least [`MIN_MATCHED`] pixels known around both), and copies its
+//!    colour where that mismatch is below [`TEXTURE_GAIN`] times the
+//!    spread of `p`'s known background about its mean (a texture the
+//!    offset continues). A pixel with no such offset keeps the
+//!    interpolated colour, as does a smooth background;
+//!    the depth stays the interpolated one either way (a plane is
+//!    continued exactly by interpolation).
 
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
@@ -61,6 +91,26 @@ pub const DIRECTIONS: usize = 16;
 /// on the work of a huge circle of confusion; beyond it the per-view fill
 /// of `Refocus` takes over).
 pub const MAX_REACH_PX: usize = 256;
+/// Background pixels whose best offset is counted ([`LayerParams::texture`]).
+pub const OFFSET_SAMPLES: usize = 1500;
+/// Largest offset searched, pixels (`|o|_∞`).
+pub const OFFSET_RADIUS: i64 = 24;
+/// Smallest offset searched, pixels (`|o|_∞`): nearer offsets only say that
+/// the background is smooth, which interpolation already continues.
+pub const MIN_OFFSET: i64 = 3;
+/// Half-size of the patches of the offset statistics.
+pub const STAT_PATCH: i64 = 2;
+/// Dominant offsets kept.
+pub const OFFSETS: usize = 12;
+/// Radius of the neighbourhood compared when a layer pixel picks its offset.
+pub const MATCH_RADIUS: i64 = 4;
+/// Fewest pixels known around both ends for an offset to be compared.
+pub const MIN_MATCHED: usize = 6;
+/// A copy replaces the interpolated colour only where its neighbourhood's
+/// mismatch is below this fraction of the known background's spread
+/// around its mean there (a texture the offset continues; a smooth
+/// background keeps the interpolation).
+pub const TEXTURE_GAIN: f64 = 1.0;
 
 /// Inputs of [`background_layer`] besides the image.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -71,6 +121,9 @@ pub struct LayerParams {
     /// Relative inverse-depth step that separates a foreground from a
     /// background (`Refocus`'s `fill_h`).
     pub fill_h: f64,
+    /// Continue the background's texture along its dominant patch offsets
+    /// instead of only interpolating its colour (module docs).
+    pub texture: bool,
 }
 
 /// The background layer: the pixels that have something behind them.
@@ -82,6 +135,9 @@ pub struct BackgroundLayer {
     pub color: Vec<Rgb>,
     /// Inpainted inverse depth of each entry (1/m; 0 = infinitely far).
     pub inv_z: Vec<f64>,
+    /// Entries whose colour was copied along a dominant offset
+    /// ([`LayerParams::texture`]; 0 without it).
+    pub textured: usize,
 }
 
 impl BackgroundLayer {
@@ -161,7 +217,7 @@ pub fn background_layer(
             [c / m, s / m]
         })
         .collect();
-    let entries: Vec<(u32, Rgb, f64)> = (0..n)
+    let entries: Vec<(u32, Rgb, f64, Option<u32>)> = (0..n)
         .into_par_iter()
         .filter(|&i| {
             want[i]
@@ -220,20 +276,240 @@ pub fn background_layer(
             if !(ws > 0.0 && ws.is_finite()) {
                 return None;
             }
-            Some((i as u32, cs.map(|a| (a / ws) as f32), zs / ws))
+            // the nearest sample: a background pixel next to the edge
+            let nearest = samples
+                .iter()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .map(|&(q, _)| q as u32);
+            Some((i as u32, cs.map(|a| (a / ws) as f32), zs / ws, nearest))
         })
         .collect();
     let mut layer = BackgroundLayer {
         pixels: Vec::with_capacity(entries.len()),
         color: Vec::with_capacity(entries.len()),
         inv_z: Vec::with_capacity(entries.len()),
+        textured: 0,
     };
-    for (i, c, v) in entries {
+    let mut ring: Vec<u32> = Vec::new();
+    for (i, c, v, q) in entries {
         layer.pixels.push(i);
         layer.color.push(c);
         layer.inv_z.push(v);
+        ring.extend(q);
+    }
+    if p.texture && !layer.is_empty() {
+        ring.sort_unstable();
+        ring.dedup();
+        continue_texture(w, h, color, inv_z, &ring, p.fill_h, &mut layer);
     }
     layer
+}
+
+/// The same depth band: neither inverse depth is a background to the other.
+fn same_band(a: f64, b: f64, fill_h: f64) -> bool {
+    !farther(a, b, fill_h) && !farther(b, a, fill_h)
+}
+
+/// A colour for patch comparisons: clamped to the display range, so a
+/// bright emitter weighs no more than white.
+fn clamped(c: Rgb) -> [f64; 3] {
+    c.map(|v| f64::from(v).clamp(0.0, 1.0))
+}
+
+/// The dominant offsets of the background around `ring` (module docs, step
+/// 1), most counted first; `known[i]`: pixel `i` is not a layer pixel.
+fn dominant_offsets(
+    w: usize,
+    h: usize,
+    lum: &[f64],
+    inv_z: &[f64],
+    known: &[bool],
+    ring: &[u32],
+    fill_h: f64,
+) -> Vec<[i64; 2]> {
+    let (wi, hi) = (w as i64, h as i64);
+    let step = ring.len().div_ceil(OFFSET_SAMPLES).max(1);
+    let side = 2 * OFFSET_RADIUS + 1;
+    let best: Vec<Option<usize>> = ring
+        .par_iter()
+        .step_by(step)
+        .map(|&q| {
+            let q = q as usize;
+            let (qx, qy) = ((q % w) as i64, (q / w) as i64);
+            let vq = inv_z[q];
+            // the patch's pixels of q's band
+            let patch: Vec<(i64, i64, f64)> = (-STAT_PATCH..=STAT_PATCH)
+                .flat_map(|dy| (-STAT_PATCH..=STAT_PATCH).map(move |dx| (dx, dy)))
+                .filter_map(|(dx, dy)| {
+                    let (x, y) = (qx + dx, qy + dy);
+                    if x < 0 || y < 0 || x >= wi || y >= hi {
+                        return None;
+                    }
+                    let i = (y * wi + x) as usize;
+                    (known[i] && same_band(vq, inv_z[i], fill_h)).then_some((dx, dy, lum[i]))
+                })
+                .collect();
+            let need = (2 * STAT_PATCH + 1).pow(2) as usize / 2;
+            if patch.len() < need {
+                return None;
+            }
+            let mut best: Option<(f64, usize)> = None;
+            for oy in -OFFSET_RADIUS..=OFFSET_RADIUS {
+                for ox in -OFFSET_RADIUS..=OFFSET_RADIUS {
+                    if ox.abs().max(oy.abs()) < MIN_OFFSET {
+                        continue;
+                    }
+                    let (mut sum, mut m) = (0.0f64, 0usize);
+                    for &(dx, dy, l) in &patch {
+                        let (x, y) = (qx + ox + dx, qy + oy + dy);
+                        if x < 0 || y < 0 || x >= wi || y >= hi {
+                            continue;
+                        }
+                        let i = (y * wi + x) as usize;
+                        if known[i] && same_band(vq, inv_z[i], fill_h) {
+                            sum += (lum[i] - l).powi(2);
+                            m += 1;
+                        }
+                    }
+                    if m < need {
+                        continue;
+                    }
+                    // Guard: m >= need >= 1.
+                    let e = sum / m as f64;
+                    if best.is_none_or(|(b, _)| e < b) {
+                        best = Some((
+                            e,
+                            ((oy + OFFSET_RADIUS) * side + ox + OFFSET_RADIUS) as usize,
+                        ));
+                    }
+                }
+            }
+            best.map(|(_, k)| k)
+        })
+        .collect();
+    let mut count = vec![0usize; (side * side) as usize];
+    for k in best.into_iter().flatten() {
+        count[k] += 1;
+    }
+    let mut ranked: Vec<(usize, usize)> = count
+        .into_iter()
+        .enumerate()
+        .filter(|&(_, c)| c >= 2)
+        .map(|(k, c)| (c, k))
+        .collect();
+    // most counted first; ties by the offset's index (deterministic)
+    ranked.sort_unstable_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+    ranked
+        .into_iter()
+        .take(OFFSETS)
+        .map(|(_, k)| {
+            let k = k as i64;
+            [k % side - OFFSET_RADIUS, k / side - OFFSET_RADIUS]
+        })
+        .collect()
+}
+
+/// Step 2 of the module docs: every layer pixel's colour copied along the
+/// best-matching dominant offset, where one fits.
+fn continue_texture(
+    w: usize,
+    h: usize,
+    color: &[Rgb],
+    inv_z: &[f64],
+    ring: &[u32],
+    fill_h: f64,
+    layer: &mut BackgroundLayer,
+) {
+    let mut known = vec![true; w * h];
+    for &i in &layer.pixels {
+        known[i as usize] = false;
+    }
+    let lum: Vec<f64> = color
+        .par_iter()
+        .map(|&c| {
+            let c = clamped(c);
+            0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+        })
+        .collect();
+    let offsets = dominant_offsets(w, h, &lum, inv_z, &known, ring, fill_h);
+    if offsets.is_empty() {
+        return;
+    }
+    let (wi, hi) = (w as i64, h as i64);
+    let at = |x: i64, y: i64| -> Option<usize> {
+        (x >= 0 && y >= 0 && x < wi && y < hi).then(|| (y * wi + x) as usize)
+    };
+    let copied: Vec<Option<Rgb>> = layer
+        .pixels
+        .par_iter()
+        .zip(layer.inv_z.par_iter())
+        .map(|(&i, &v)| {
+            let i = i as usize;
+            let (px, py) = ((i % w) as i64, (i / w) as i64);
+            let band = |j: usize| known[j] && same_band(v, inv_z[j], fill_h);
+            // the spread of p's known background: what the mean (about what
+            // interpolation gives) misses
+            let (mut n0, mut s1, mut s2) = (0usize, [0.0f64; 3], 0.0f64);
+            for dy in -MATCH_RADIUS..=MATCH_RADIUS {
+                for dx in -MATCH_RADIUS..=MATCH_RADIUS {
+                    if let Some(a) = at(px + dx, py + dy).filter(|&a| band(a)) {
+                        let c = clamped(color[a]);
+                        n0 += 1;
+                        for k in 0..3 {
+                            s1[k] += c[k];
+                            s2 += c[k] * c[k];
+                        }
+                    }
+                }
+            }
+            if n0 < MIN_MATCHED {
+                return None;
+            }
+            // Guard: n0 >= MIN_MATCHED >= 1.
+            let spread = (s2 - s1.iter().map(|t| t * t).sum::<f64>() / n0 as f64) / n0 as f64;
+            let mut best: Option<(f64, usize)> = None;
+            for o in &offsets {
+                let Some(src) = at(px + o[0], py + o[1]) else {
+                    continue;
+                };
+                if !band(src) {
+                    continue;
+                }
+                let (mut sum, mut m) = (0.0f64, 0usize);
+                for dy in -MATCH_RADIUS..=MATCH_RADIUS {
+                    for dx in -MATCH_RADIUS..=MATCH_RADIUS {
+                        let (Some(a), Some(b)) =
+                            (at(px + dx, py + dy), at(px + o[0] + dx, py + o[1] + dy))
+                        else {
+                            continue;
+                        };
+                        if band(a) && band(b) {
+                            let (ca, cb) = (clamped(color[a]), clamped(color[b]));
+                            sum += (0..3).map(|k| (ca[k] - cb[k]).powi(2)).sum::<f64>();
+                            m += 1;
+                        }
+                    }
+                }
+                if m < MIN_MATCHED {
+                    continue;
+                }
+                // Guard: m >= MIN_MATCHED >= 1.
+                let e = sum / m as f64;
+                if best.is_none_or(|(b, _)| e < b) {
+                    best = Some((e, src));
+                }
+            }
+            // a texture the offset predicts well beyond its mean
+            best.filter(|&(e, _)| e < TEXTURE_GAIN * spread)
+                .map(|(_, src)| color[src])
+        })
+        .collect();
+    for (c, new) in layer.color.iter_mut().zip(copied) {
+        if let Some(new) = new {
+            *c = new;
+            layer.textured += 1;
+        }
+    }
 }
 
 #[cfg(test)]
@@ -266,6 +542,7 @@ mod tests {
         let p = LayerParams {
             reach_scale,
             fill_h: 0.05,
+            texture: false,
         };
         (
             w,
@@ -314,6 +591,95 @@ mod tests {
         assert!(xs.iter().all(|&x| x == 10 || x == 13));
     }
 
+    /// A grey checker wall (2 m, squares of `period` px) behind a near bar
+    /// (columns 20..24, 1 m): the truth behind the bar is the checker.
+    fn checker_scene(w: usize, h: usize, period: usize) -> (Vec<Rgb>, Vec<f64>, Vec<Rgb>) {
+        let mut color = vec![[0.0f32; 3]; w * h];
+        let mut inv_z = vec![0.5f64; w * h];
+        let mut truth = vec![[0.0f32; 3]; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let g = if (x / period + y / period).is_multiple_of(2) {
+                    0.8
+                } else {
+                    0.1
+                };
+                truth[i] = [g; 3];
+                if (20..24).contains(&x) {
+                    color[i] = [1.0, 0.0, 0.0];
+                    inv_z[i] = 1.0;
+                } else {
+                    color[i] = [g; 3];
+                }
+            }
+        }
+        (color, inv_z, truth)
+    }
+
+    /// The layer with every pixel wanted, reach scale 20, with or without
+    /// the texture.
+    fn layer_of(
+        w: usize,
+        h: usize,
+        color: &[Rgb],
+        inv_z: &[f64],
+        texture: bool,
+    ) -> BackgroundLayer {
+        let p = LayerParams {
+            reach_scale: 20.0,
+            fill_h: 0.05,
+            texture,
+        };
+        background_layer(w, h, color, inv_z, &vec![true; w * h], &p)
+    }
+
+    #[test]
+    fn texture_continues_a_checker_behind_a_thin_bar() {
+        let (w, h) = (64, 40);
+        let (color, inv_z, truth) = checker_scene(w, h, 6);
+        let (plain, tex) = (
+            layer_of(w, h, &color, &inv_z, false),
+            layer_of(w, h, &color, &inv_z, true),
+        );
+        assert_eq!(plain.pixels, tex.pixels);
+        assert_eq!(plain.inv_z, tex.inv_z, "the depth stays interpolated");
+        assert_eq!(plain.textured, 0);
+        let err = |l: &BackgroundLayer| -> f64 {
+            l.pixels
+                .iter()
+                .zip(&l.color)
+                .map(|(&i, c)| (f64::from(c[1]) - f64::from(truth[i as usize][1])).abs())
+                .sum::<f64>()
+                / l.len() as f64
+        };
+        let (e_plain, e_tex) = (err(&plain), err(&tex));
+        assert!(
+            tex.textured * 10 >= tex.len() * 9,
+            "{} of {} copied",
+            tex.textured,
+            tex.len()
+        );
+        assert!(e_plain > 0.1, "interpolation smears the checker: {e_plain}");
+        assert!(
+            e_tex < 0.1 * e_plain,
+            "texture {e_tex}, interpolation {e_plain}"
+        );
+    }
+
+    #[test]
+    fn texture_keeps_the_interpolation_of_a_smooth_background() {
+        // the bar scene's wall changes smoothly with x: nothing to continue
+        let (w, h) = (30, 8);
+        let (color, inv_z) = bar_scene(w, h);
+        let (plain, tex) = (
+            layer_of(w, h, &color, &inv_z, false),
+            layer_of(w, h, &color, &inv_z, true),
+        );
+        assert_eq!(tex.textured, 0);
+        assert_eq!(plain, tex);
+    }
+
     #[test]
     fn a_flat_image_or_a_tiny_reach_has_no_layer() {
         let (w, h) = (12, 6);
@@ -323,12 +689,14 @@ mod tests {
         let p = LayerParams {
             reach_scale: 50.0,
             fill_h: 0.05,
+            texture: false,
         };
         assert!(background_layer(w, h, &color, &flat, &want, &p).is_empty());
         let (color, inv_z) = bar_scene(30, 8);
         let p = LayerParams {
             reach_scale: 0.1,
             fill_h: 0.05,
+            texture: false,
         };
         assert!(background_layer(30, 8, &color, &inv_z, &vec![true; 240], &p).is_empty());
         // Mismatched lengths: no layer rather than a panic.

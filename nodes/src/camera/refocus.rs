@@ -113,6 +113,8 @@ node_params! {
         pub focus_breathing: bool = false, ParamKind::Bool;
         /// Partial occlusion: a background layer inpainted once behind foreground edges (from the background side, colour and depth) and warped with the image in every view, so a blurred near edge veils the background and a blurred background shows around thin in-focus structures; off = each view fills what it reveals on its own (Refocus only).
         pub background_layer: bool = false, ParamKind::Bool;
+        /// With the background layer: continue the background's texture behind the edges along its dominant patch offsets (a checker, a brick wall continued behind a thin pole) instead of only interpolating its colour; off = interpolation (Refocus only).
+        pub background_texture: bool = false, ParamKind::Bool;
     }
 }
 
@@ -159,6 +161,9 @@ pub struct RefocusReport {
     /// Fraction of the image's pixels with a background layer entry (0 when
     /// `background_layer` is off).
     pub layer_fraction: f64,
+    /// Fraction of the background layer's entries whose colour continues
+    /// the background's texture (0 when `background_texture` is off).
+    pub layer_textured: f64,
 }
 
 /// The sample count `samples = 0` picks for a largest CoC of `max_coc_px`
@@ -384,6 +389,8 @@ impl BlurPlan {
             hole_fraction: holes_total as f64
                 / (self.n_active.max(1) * self.points.len().max(1)) as f64,
             layer_fraction: self.layer.len() as f64 / (w * h).max(1) as f64,
+            // Guard: max(1) keeps an empty layer at 0.
+            layer_textured: self.layer.textured as f64 / self.layer.len().max(1) as f64,
         }
     }
 }
@@ -431,6 +438,7 @@ pub fn plan(
                 active_fraction: 0.0,
                 hole_fraction: 0.0,
                 layer_fraction: 0.0,
+                layer_textured: 0.0,
             },
         ));
     }
@@ -463,6 +471,7 @@ pub fn plan(
             &LayerParams {
                 reach_scale: lens.coc_scale(w) * aperture.extent(),
                 fill_h: p.fill_h,
+                texture: p.background_texture,
             },
         )
     } else {
@@ -1230,6 +1239,12 @@ pub fn produced(
             "background layer behind foreground edges: {:.1} % of the pixels",
             100.0 * report.layer_fraction
         ));
+        if p.background_texture {
+            lines.push(format!(
+                "background texture continued along its dominant offsets on {:.1} % of the layer",
+                100.0 * report.layer_textured
+            ));
+        }
     }
     Produced {
         out,
