@@ -332,6 +332,7 @@ pub fn render(
         });
 
     let mut next = 0;
+    let mut done = 0;
     let mut first = true;
     while next < batches.len() || first {
         // whole batches, at least VIEWS_PER_SUBMIT views (or the rest)
@@ -341,10 +342,9 @@ pub fn render(
             in_submit += batches[last].count as usize;
             last += 1;
         }
-        let k1 = batches
-            .get(last.wrapping_sub(1))
-            .filter(|_| last > next)
-            .map_or(0, |b| (b.k0 + b.count) as usize);
+        // the views rendered once this submission is done (batches run in
+        // view order from view 0)
+        let k1 = done + in_submit;
         let mut encoder = s.encoder();
         {
             let mut pass = encoder.begin_compute_pass(&Default::default());
@@ -429,6 +429,7 @@ pub fn render(
         ctx.progress(k1 as f32 / views as f32);
         ctx.check_cancelled()?;
         next = last;
+        done = k1;
     }
     Err(s.fail(s.ctx().error("refocus: no views rendered")))
 }

@@ -83,6 +83,7 @@
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
+use crate::kit::color::luminance_f64;
 use crate::kit::grid::round_to_pixel;
 
 /// Directions marched from every candidate pixel (evenly spaced angles).
@@ -426,10 +427,7 @@ fn continue_texture(
     }
     let lum: Vec<f64> = color
         .par_iter()
-        .map(|&c| {
-            let c = clamped(c);
-            0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
-        })
+        .map(|&c| luminance_f64(clamped(c)))
         .collect();
     let offsets = dominant_offsets(w, h, &lum, inv_z, &known, ring, fill_h);
     if offsets.is_empty() {
@@ -447,23 +445,27 @@ fn continue_texture(
             let i = i as usize;
             let (px, py) = ((i % w) as i64, (i / w) as i64);
             let band = |j: usize| known[j] && same_band(v, inv_z[j], fill_h);
-            // the spread of p's known background: what the mean (about what
-            // interpolation gives) misses
-            let (mut n0, mut s1, mut s2) = (0usize, [0.0f64; 3], 0.0f64);
-            for dy in -MATCH_RADIUS..=MATCH_RADIUS {
-                for dx in -MATCH_RADIUS..=MATCH_RADIUS {
-                    if let Some(a) = at(px + dx, py + dy).filter(|&a| band(a)) {
-                        let c = clamped(color[a]);
-                        n0 += 1;
-                        for k in 0..3 {
-                            s1[k] += c[k];
-                            s2 += c[k] * c[k];
-                        }
-                    }
-                }
-            }
+            // p's known background around it (offset, clamped colour), read
+            // once for the spread and for every offset's match
+            let near: Vec<(i64, i64, [f64; 3])> = (-MATCH_RADIUS..=MATCH_RADIUS)
+                .flat_map(|dy| (-MATCH_RADIUS..=MATCH_RADIUS).map(move |dx| (dx, dy)))
+                .filter_map(|(dx, dy)| {
+                    let a = at(px + dx, py + dy).filter(|&a| band(a))?;
+                    Some((dx, dy, clamped(color[a])))
+                })
+                .collect();
+            let n0 = near.len();
             if n0 < MIN_MATCHED {
                 return None;
+            }
+            // the spread of p's known background: what the mean (about what
+            // interpolation gives) misses
+            let (mut s1, mut s2) = ([0.0f64; 3], 0.0f64);
+            for (_, _, c) in &near {
+                for k in 0..3 {
+                    s1[k] += c[k];
+                    s2 += c[k] * c[k];
+                }
             }
             // Guard: n0 >= MIN_MATCHED >= 1.
             let spread = (s2 - s1.iter().map(|t| t * t).sum::<f64>() / n0 as f64) / n0 as f64;
@@ -476,18 +478,11 @@ fn continue_texture(
                     continue;
                 }
                 let (mut sum, mut m) = (0.0f64, 0usize);
-                for dy in -MATCH_RADIUS..=MATCH_RADIUS {
-                    for dx in -MATCH_RADIUS..=MATCH_RADIUS {
-                        let (Some(a), Some(b)) =
-                            (at(px + dx, py + dy), at(px + o[0] + dx, py + o[1] + dy))
-                        else {
-                            continue;
-                        };
-                        if band(a) && band(b) {
-                            let (ca, cb) = (clamped(color[a]), clamped(color[b]));
-                            sum += (0..3).map(|k| (ca[k] - cb[k]).powi(2)).sum::<f64>();
-                            m += 1;
-                        }
+                for (dx, dy, ca) in &near {
+                    if let Some(b) = at(px + o[0] + dx, py + o[1] + dy).filter(|&b| band(b)) {
+                        let cb = clamped(color[b]);
+                        sum += (0..3).map(|k| (ca[k] - cb[k]).powi(2)).sum::<f64>();
+                        m += 1;
                     }
                 }
                 if m < MIN_MATCHED {
