@@ -266,8 +266,9 @@ fn fill(o: u32, t: u32, v: ViewParams) -> vec3<f32> {
     let b = march(o, t, -v.sx, -v.sy);
     var use_a = a.found;
     var use_b = b.found;
+    // both ways leave the frame: the input's own colour (the CPU's fill_one)
     if (!use_a && !use_b) {
-        return vec3<f32>(0.0);
+        return src_color(t);
     }
     if (use_a && use_b) {
         let va = view[o + a.j].w;

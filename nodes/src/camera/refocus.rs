@@ -911,6 +911,8 @@ trait Warped: Sync {
     fn inv_z(&self, j: usize) -> f32 {
         self.warped(j).1
     }
+    /// The (sanitised) input colour at pixel `t`.
+    fn input(&self, t: usize) -> Rgb;
 }
 
 /// A view held as its z-buffer's winning keys only (the keys taken out, or
@@ -973,6 +975,9 @@ impl<K: Key> Warped for Keyed<'_, K> {
     fn is_warped(&self, j: usize) -> bool {
         self.keys[j].key() != EMPTY
     }
+    fn input(&self, t: usize) -> Rgb {
+        self.sources.color(t)
+    }
     fn warped(&self, j: usize) -> (Rgb, f32, f32) {
         let (c, v) = self
             .sources
@@ -1018,7 +1023,9 @@ fn march(view: &impl Warped, w: usize, h: usize, t: usize, step: [f64; 2]) -> Op
 /// bar by 28 % (see the `disocclusion_is_filled_from_the_background` test),
 /// this fill by under 5 %. Every hole pixel is computed from the warped view
 /// only, so the result does not depend on the thread count. A hole with no
-/// known pixel along either direction keeps black with certainty 0.
+/// known pixel along either direction (the march leaves the frame both
+/// ways: the view looks past the input's border) takes the input's own
+/// colour there.
 fn fill_one(
     view: &impl Warped,
     w: usize,
@@ -1030,7 +1037,12 @@ fn fill_one(
     let a = march(view, w, h, t, step);
     let b = march(view, w, h, t, [-step[0], -step[1]]);
     let ends: Vec<(usize, f64)> = match (a, b) {
-        (None, None) => return [0.0; 3],
+        // Both directions leave the frame before meeting a warped pixel:
+        // the view looks past the input's border there (a pixel near the
+        // frame's edge, the view's shift pointing along or out of it).
+        // The input's own pixel continues the image (for a plane of one
+        // colour, exactly); black would darken the frame's border.
+        (None, None) => return view.input(t),
         (Some(e), None) | (None, Some(e)) => vec![e],
         (Some(ea), Some(eb)) => {
             let (va, vb) = (view.inv_z(ea.0) as f64, view.inv_z(eb.0) as f64);
@@ -1269,7 +1281,7 @@ fn eval_reverse(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Refocus",
-        1,
+        2,
         "Thin-lens depth of field by sampling the aperture (realistic-depth-blur Sec. 2.3): one sheared \
          pinhole view per aperture sample, forward-warped with a z-buffer, disocclusions inpainted with the \
          far-depth prior, averaged in linear radiance, then the exposure. Any aperture shape gives its bokeh.\n\
@@ -1324,6 +1336,20 @@ mod tests {
         );
         let total: f64 = out.as_slice().iter().map(|p| p[0] as f64).sum();
         assert!((total - 1000.0).abs() < 1e-3, "{total}");
+        // A plane of one colour stays that colour to the frame's corners,
+        // where a view's holes look past the input (their fill found no
+        // warped pixel either way and was black: 179 of these 4096 pixels
+        // darkened, a corner to 54 %).
+        let flat = ColorImage::filled(64, 64, [0.25, 0.5, 1.0]);
+        let (out, _) = refocus(&flat, &d, &Aperture::Disc, &params(1.0, 2.0, 256), |_| {
+            Ok(())
+        })
+        .unwrap();
+        for (i, p) in out.as_slice().iter().enumerate() {
+            for (v, want) in p.iter().zip([0.25f32, 0.5, 1.0]) {
+                assert!((v - want).abs() <= 1e-5 * want, "pixel {i}: {p:?}");
+            }
+        }
     }
 
     /// `aperture_diameter_mm` overrides `f_number`: a diameter of f/N
