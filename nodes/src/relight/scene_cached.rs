@@ -889,7 +889,7 @@ pub fn relight_moved(
     };
     // chunks of surfaces, VPL-major inside (one pair of maps in cache at a
     // time); every surface sums its VPLs in order
-    const CHUNK: usize = 256;
+    const CHUNK: usize = 64;
     // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
     // samples, each with its own radius
     let m_obj = (p.bounce_ism_points / 4).max(16);
@@ -947,9 +947,13 @@ pub fn relight_moved(
                                     let sl = slope(cos);
                                     let see =
                                         |occ: f64, bias: f64| occ.is_nan() || occ <= lc.z + bias;
+                                    let vo = see(oo, bias_oo[j] * sl);
+                                    // the scene's test (a march, maybe) only
+                                    // where the object lets the light through:
+                                    // its light counts only then
                                     (
-                                        see(oo, bias_oo[j] * sl),
-                                        scene_sees(
+                                        vo,
+                                        vo && scene_sees(
                                             os,
                                             lc.z,
                                             scene.bias_t[j] * sl,
@@ -1153,42 +1157,45 @@ pub fn relight_moved(
                 .collect();
             let mut de = vec![[0.0f64; 3]; pix.len()];
             let mut hit = vec![false; pix.len()];
-            // per pixel, the light coordinates and occluder of the object
-            // map in use: VPLs of one group (the sun's, mostly) share a
-            // map, so they are looked up once per group (`vpls` is sorted
-            // by group)
-            let mut looked: Vec<(DVec3, f64)> = vec![(DVec3::ZERO, 0.0); pix.len()];
-            let mut looked_in = usize::MAX;
-            for &j in &vpls {
-                let Some(om_j) = om.get(j) else {
+            // The VPLs of one group (the sun's, mostly) share an object
+            // map (`vpls` is sorted by group): per group, pixel by pixel,
+            // the map is looked up once, and only at the first VPL that
+            // faces the pixel inside its cone (most of a tile's pixels see
+            // the object along few of the tile's directions). Every pixel
+            // still sums its VPLs in the tile's order.
+            for run in vpls.chunk_by(|&a, &b| om.of[a] == om.of[b]) {
+                let Some(om_j) = om.get(run[0]) else {
                     continue;
                 };
-                if om.of[j] != looked_in {
-                    looked_in = om.of[j];
-                    for ((_, s, _), l) in pix.iter().zip(looked.iter_mut()) {
-                        let lc = om_j.light_coords(s.pos);
-                        *l = (lc, f64::from(om_j.occluder_lc(lc)));
-                    }
-                }
-                let d = scene.dirs[j];
-                let power = scene.vpls[j].power.map(f64::from);
-                let shared = scene.maps[j].as_ref().is_some_and(|m| m.same_frame(om_j));
-                for (((_, s, cone), &(lc, occ)), (de, hit)) in pix
+                // per VPL of the run: direction, power, whether its scene
+                // map has the object map's frame
+                let lights: Vec<(usize, DVec3, [f64; 3], bool)> = run
                     .iter()
-                    .zip(&looked)
-                    .zip(de.iter_mut().zip(hit.iter_mut()))
-                {
-                    if occ == f64::NEG_INFINITY {
-                        continue; // nothing of the object there
-                    }
-                    let cos = s.n.dot(d);
-                    if cos <= 0.0 || !cone.contains(d) {
-                        continue;
-                    }
-                    if takes(j, shared, s, cos, lc, occ) {
-                        *hit = true;
-                        for ch in 0..3 {
-                            de[ch] += power[ch] * cos;
+                    .map(|&j| {
+                        let shared = scene.maps[j].as_ref().is_some_and(|m| m.same_frame(om_j));
+                        (j, scene.dirs[j], scene.vpls[j].power.map(f64::from), shared)
+                    })
+                    .collect();
+                for ((_, s, cone), (de, hit)) in pix.iter().zip(de.iter_mut().zip(hit.iter_mut())) {
+                    // (light coordinates, occluder) once looked up
+                    let mut looked: Option<(DVec3, f64)> = None;
+                    for &(j, d, power, shared) in &lights {
+                        let cos = s.n.dot(d);
+                        if cos <= 0.0 || !cone.contains(d) {
+                            continue;
+                        }
+                        let (lc, occ) = *looked.get_or_insert_with(|| {
+                            let lc = om_j.light_coords(s.pos);
+                            (lc, f64::from(om_j.occluder_lc(lc)))
+                        });
+                        if occ == f64::NEG_INFINITY {
+                            break; // nothing of the object there
+                        }
+                        if takes(j, shared, s, cos, lc, occ) {
+                            *hit = true;
+                            for ch in 0..3 {
+                                de[ch] += power[ch] * cos;
+                            }
                         }
                     }
                 }

@@ -631,22 +631,34 @@ pub(crate) fn scene_bounce_vpls(
         return Vec::new();
     }
     let d_min = d_min.max(1e-6);
+    // the weights in parallel (a square root and a division a pixel), the
+    // running sum in pixel order
+    let weights: Vec<f64> = target
+        .par_iter()
+        .zip(areas.par_iter())
+        .map(|(s, &area)| {
+            let Some(s) = s else {
+                return 0.0;
+            };
+            let d = (s.pos - c).length().max(d_min);
+            // guard: d >= d_min > 0
+            let wgt = area / (d * d);
+            if wgt.is_finite() && wgt > 0.0 {
+                wgt
+            } else {
+                0.0
+            }
+        })
+        .collect();
     let mut idx = Vec::new();
     let mut cdf = Vec::new();
     let mut acc = 0.0f64;
-    for ((i, s), &area) in target.iter().enumerate().zip(areas) {
-        let Some(s) = s else {
-            continue;
-        };
-        let d = (s.pos - c).length().max(d_min);
-        // guard: d >= d_min > 0
-        let wgt = area / (d * d);
-        if !(wgt.is_finite() && wgt > 0.0) {
-            continue;
+    for (i, &wgt) in weights.iter().enumerate() {
+        if wgt > 0.0 {
+            acc += wgt;
+            idx.push(i);
+            cdf.push(acc);
         }
-        acc += wgt;
-        idx.push(i);
-        cdf.push(acc);
     }
     if idx.is_empty() || !(acc.is_finite() && acc > 0.0) {
         return Vec::new();
@@ -711,14 +723,22 @@ pub(crate) fn support_vpls(
     let up = DVec3::NEG_Y;
     let (mut n_sum, mut q_sum, mut l_sum, mut count) =
         (DVec3::ZERO, DVec3::ZERO, [0.0f64; 3], 0usize);
-    for (s, px) in target.iter().zip(photo.as_slice()) {
-        let Some(s) = s else { continue };
-        if s.n.dot(up) <= 0.8 || (s.pos - c).length() > 3.0 * radius {
+    // the surfaces to fit found in parallel, summed in pixel order
+    let fit: Vec<usize> = target
+        .par_iter()
+        .zip(photo.as_slice().par_iter())
+        .enumerate()
+        .filter_map(|(i, (s, px))| {
+            let s = s.as_ref()?;
+            let skip = s.n.dot(up) <= 0.8 || (s.pos - c).length() > 3.0 * radius;
+            (!skip && px.iter().all(|v| v.is_finite())).then_some(i)
+        })
+        .collect();
+    let pixels = photo.as_slice();
+    for &i in &fit {
+        let (Some(s), px) = (&target[i], pixels[i]) else {
             continue;
-        }
-        if !px.iter().all(|v| v.is_finite()) {
-            continue;
-        }
+        };
         n_sum += s.n;
         q_sum += s.pos;
         for ch in 0..3 {
