@@ -888,7 +888,9 @@ pub fn relight_moved(
         !p.contact || !contact_occluded(inp.depth, k, pos, d, reach, &contact)
     };
     // chunks of surfaces, VPL-major inside (one pair of maps in cache at a
-    // time); every surface sums its VPLs in order
+    // time); every surface sums its VPLs in order. 64, not more: the fine
+    // lattice's and the exact rest's lists are a few hundred surfaces, and
+    // larger chunks left one of the two threads idle on them.
     const CHUNK: usize = 64;
     // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
     // samples, each with its own radius
@@ -1163,19 +1165,18 @@ pub fn relight_moved(
             // faces the pixel inside its cone (most of a tile's pixels see
             // the object along few of the tile's directions). Every pixel
             // still sums its VPLs in the tile's order.
+            // per VPL of a run: direction, power, whether its scene map
+            // has the object map's frame (one buffer for the tile's runs)
+            let mut lights: Vec<(usize, DVec3, [f64; 3], bool)> = Vec::new();
             for run in vpls.chunk_by(|&a, &b| om.of[a] == om.of[b]) {
                 let Some(om_j) = om.get(run[0]) else {
                     continue;
                 };
-                // per VPL of the run: direction, power, whether its scene
-                // map has the object map's frame
-                let lights: Vec<(usize, DVec3, [f64; 3], bool)> = run
-                    .iter()
-                    .map(|&j| {
-                        let shared = scene.maps[j].as_ref().is_some_and(|m| m.same_frame(om_j));
-                        (j, scene.dirs[j], scene.vpls[j].power.map(f64::from), shared)
-                    })
-                    .collect();
+                lights.clear();
+                lights.extend(run.iter().map(|&j| {
+                    let shared = scene.maps[j].as_ref().is_some_and(|m| m.same_frame(om_j));
+                    (j, scene.dirs[j], scene.vpls[j].power.map(f64::from), shared)
+                }));
                 for ((_, s, cone), (de, hit)) in pix.iter().zip(de.iter_mut().zip(hit.iter_mut())) {
                     // (light coordinates, occluder) once looked up
                     let mut looked: Option<(DVec3, f64)> = None;

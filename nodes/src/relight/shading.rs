@@ -723,22 +723,18 @@ pub(crate) fn support_vpls(
     let up = DVec3::NEG_Y;
     let (mut n_sum, mut q_sum, mut l_sum, mut count) =
         (DVec3::ZERO, DVec3::ZERO, [0.0f64; 3], 0usize);
-    // the surfaces to fit found in parallel, summed in pixel order
-    let fit: Vec<usize> = target
+    // the surfaces to fit found in parallel (rayon's collect keeps the
+    // order), summed in pixel order
+    let fit: Vec<(&Surf, &Rgb)> = target
         .par_iter()
         .zip(photo.as_slice().par_iter())
-        .enumerate()
-        .filter_map(|(i, (s, px))| {
+        .filter_map(|(s, px)| {
             let s = s.as_ref()?;
             let skip = s.n.dot(up) <= 0.8 || (s.pos - c).length() > 3.0 * radius;
-            (!skip && px.iter().all(|v| v.is_finite())).then_some(i)
+            (!skip && px.iter().all(|v| v.is_finite())).then_some((s, px))
         })
         .collect();
-    let pixels = photo.as_slice();
-    for &i in &fit {
-        let (Some(s), px) = (&target[i], pixels[i]) else {
-            continue;
-        };
+    for (s, px) in fit {
         n_sum += s.n;
         q_sum += s.pos;
         for ch in 0..3 {
