@@ -108,6 +108,10 @@ struct UpsampleParams {
     inv_low_area: f32,
     ln_alpha: f32,
     ln_one_minus_alpha: f32,
+    // the spatial falloff 1 / (2 sigma^2), pixels^-2 (0: none)
+    spatial: f32,
+    // to a multiple of 16 bytes
+    pad: [f32; 3],
 }
 
 /// An index of the CPU's (`usize::MAX` for none) as the kernel's `u32`
@@ -303,6 +307,8 @@ impl PassRunner for DeviceRunner<'_, '_> {
             } else {
                 0.0
             },
+            spatial: job.spatial as f32,
+            pad: [0.0; 3],
         };
         // the inpainting that follows uses the same guide
         let guide = guide_on_device(&mut self.guide, s, p.guide)?;

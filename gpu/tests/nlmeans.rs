@@ -250,6 +250,15 @@ fn upsampling_agrees_with_the_cpu_within_its_stated_bound() {
                 ..Default::default()
             },
         ),
+        // eq. 4 as published: no spatial falloff, the uniform 11x11 window
+        (
+            15,
+            4,
+            NLMeansUpsampleParams {
+                spatial_sigma: 0.0,
+                ..Default::default()
+            },
+        ),
     ] {
         let i = upsample_inputs(60, 48, factor, seed);
         let (cpu, dev) = both("NLMeansUpsample", &i, &p.to_values());

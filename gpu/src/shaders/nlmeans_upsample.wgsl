@@ -2,7 +2,8 @@
 // eq. 4): for every high-resolution pixel i, every candidate j of the
 // (2R+1)^2 search window that holds a placed low-resolution sample s(j),
 // the weight (1 - alpha) w(i_low, s(j)) + alpha w_u(i, j), summed in the
-// log domain (neither term underflows alone):
+// log domain (neither term underflows alone), times the spatial falloff
+// exp(-|i - j|^2 spatial) when `spatial` > 0:
 //
 // - w_u: the colour patch distance of NL-means (nested box means of the
 //   capped per-pixel guide distances, patch pixels at clamped coordinates);
@@ -27,6 +28,12 @@ struct Params {
     // ln(alpha), ln(1 - alpha) where the terms exist
     ln_alpha: f32,
     ln_one_minus_alpha: f32,
+    // the spatial falloff 1 / (2 sigma^2), pixels^-2 (0: none)
+    spatial: f32,
+    // to a multiple of 16 bytes
+    pad0: f32,
+    pad1: f32,
+    pad2: f32,
 }
 
 const NONE: u32 = 0xffffffffu;
@@ -141,8 +148,14 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (e.y == 0.0) {
                 continue; // both terms absent: weighs nothing
             }
+            // the Gaussian falloff with the distance from i to j (exact
+            // in f32: dx^2 + dy^2 <= 2 * 30^2)
+            var ln_w = e.x;
+            if (P.spatial > 0.0) {
+                ln_w = ln_w - f32(dx * dx + dy * dy) * P.spatial;
+            }
             let zs = low[s];
-            add(&acc, e.x, zs.y, 1.0, zs.x);
+            add(&acc, ln_w, zs.y, 1.0, zs.x);
         }
     }
     result[i] = finish(acc);

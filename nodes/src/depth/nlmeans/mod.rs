@@ -241,11 +241,12 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "NLMeansUpsample",
-        3,
+        4,
         "Joint NL-means upsampling of low-resolution depth guided by high-resolution color (depth blur eq. 4).\n\
          Low-resolution samples are placed on the color grid and averaged with weights blending low-resolution \
          depth similarity and high-resolution color similarity (alpha); remaining holes are inpainted (eq. 5). \
-         Factors above max_step_factor (4) run in equal steps, each guided by the colour at its size.",
+         Weights fall off with distance (spatial_sigma low-resolution pixels) and the window is at least twice \
+         the factor. Factors above max_step_factor (4) run in equal steps, each guided by the colour at its size.",
         eval_upsample,
     ))?;
     reg.register(PortedNode::new(
@@ -680,9 +681,10 @@ mod tests {
             ..Default::default()
         };
         let (low, k_low) = simulate_tof(&gt.depth, &gt.intrinsics, &tof).unwrap();
-        let run = |max_step_factor: f64| {
+        let run = |max_step_factor: f64, spatial_sigma: f64| {
             let p = NLMeansUpsampleParams {
                 max_step_factor,
+                spatial_sigma,
                 ..Default::default()
             };
             nlmeans_upsample(&low, &k_low, &gt.color, &p).unwrap().0
@@ -690,13 +692,20 @@ mod tests {
         let edges = edge_mask(&gt.depth, 2);
         let at_edges = |e: &DepthMap| rmse(e, &gt.depth, |i| edges[i]).0;
         let all = |d: &DepthMap| rmse(d, &gt.depth, |_| true).0;
-        let (one, steps) = (run(0.0), run(4.0));
+        // eq. 4 as published (no falloff, a uniform 11x11 window)
+        let (one, steps) = (run(0.0, 0.0), run(4.0, 0.0));
         let bl = bilinear_up(&low, 320, 240);
         assert_eq!(steps.hole_count(), 0);
-        // Measured: whole image 0.097 (steps) / 0.099 (one step) / 0.106 m
+        // Measured: whole image 0.098 (steps) / 0.099 (one step) / 0.106 m
         // (bilinear); at the edges 0.310 / 0.327 / 0.354 m.
         assert!(all(&steps) < all(&one) && all(&steps) < all(&bl));
         assert!(at_edges(&steps) < 0.97 * at_edges(&one));
+        // With the falloff (default) the window widens to 16 pixels in one
+        // step: measured 0.088 m whole, 0.287 at the edges; in steps 0.099 /
+        // 0.311 (the default, ahead of bilinear either way).
+        let (one_f, steps_f) = (run(0.0, 2.0), run(4.0, 2.0));
+        assert!(all(&one_f) < 0.95 * all(&steps) && at_edges(&one_f) < 0.95 * at_edges(&steps));
+        assert!(all(&steps_f) < all(&bl) && at_edges(&steps_f) < at_edges(&bl));
     }
 
     #[test]
@@ -737,6 +746,69 @@ mod tests {
                 Err(NodeError::Input { port: got, .. }) => assert_eq!(got, port),
                 other => panic!("expected an input error, got {other:?}"),
             }
+        }
+    }
+
+    /// With one colour everywhere every colour patch matches, so with
+    /// `alpha` 1 each estimate is the mean of the window's samples weighted
+    /// by the spatial falloff alone, over a window of radius
+    /// `max(search_radius, 2 f)` (`search_radius` without the falloff):
+    /// computed here from the placement's rule and compared (x4, so the
+    /// window is 8 pixels, not 5).
+    #[test]
+    fn the_spatial_falloff_weighs_the_samples_of_the_widened_window() {
+        let (lw, lh, f) = (12usize, 10usize, 4usize);
+        let mut rng = SplitMix64(3);
+        let low = DepthMap::from_fn(lw, lh, |_, _| 1.0 + rng.next_f64() as f32);
+        let k = k_for(lw, lh);
+        let (w, h) = (lw * f, lh * f);
+        let hk = k.scaled_to(w, h);
+        let cols = axis_map(lw, k.fx, k.cx, hk.fx, hk.cx, w);
+        let rows = axis_map(lh, k.fy, k.cy, hk.fy, hk.cy, h);
+        for sigma in [0.0, 1.0, 2.0] {
+            // widened to 2 f with the falloff; eq. 4's own without
+            let r = if sigma > 0.0 { 8isize } else { 5 };
+            let p = NLMeansUpsampleParams {
+                alpha: 1.0,
+                prune: false,
+                spatial_sigma: sigma,
+                iterations: 0,
+                ..Default::default()
+            };
+            let (d, _) = nlmeans_upsample(&low, &k, &gray(w, h), &p).unwrap();
+            for (x, y) in [(20isize, 17isize), (3, 2), (45, 38), (30, 5)] {
+                let (mut sw, mut sz) = (0.0f64, 0.0f64);
+                for (ly, &hy) in rows.iter().enumerate() {
+                    for (lx, &hx) in cols.iter().enumerate() {
+                        let (dx, dy) = (hx as isize - x, hy as isize - y);
+                        if dx.abs() > r || dy.abs() > r {
+                            continue;
+                        }
+                        let wt = if sigma > 0.0 {
+                            let s = sigma * f as f64;
+                            (-((dx * dx + dy * dy) as f64) / (2.0 * s * s)).exp()
+                        } else {
+                            1.0
+                        };
+                        sw += wt;
+                        sz += wt * f64::from(*low.get(lx, ly));
+                    }
+                }
+                let want = sz / sw;
+                let got = f64::from(*d.get(x as usize, y as usize));
+                assert!(
+                    (got - want).abs() <= 1e-6 * want,
+                    "sigma {sigma} at ({x}, {y}): {got} against {want}"
+                );
+            }
+        }
+        let p = NLMeansUpsampleParams {
+            spatial_sigma: -1.0,
+            ..Default::default()
+        };
+        match nlmeans_upsample(&low, &k, &gray(w, h), &p) {
+            Err(NodeError::Param { param, .. }) => assert_eq!(param, "spatial_sigma"),
+            other => panic!("expected a parameter error, got {other:?}"),
         }
     }
 

@@ -49,11 +49,21 @@ node_params! {
 node_params! {
     /// Parameters of the `NLMeansUpsample` node ([`nlmeans_upsample`]).
     pub struct NLMeansUpsampleParams {
-        /// Radius of the search window in high-resolution pixels (eq. 4); it
-        /// should be at least the upsampling factor so that every window
-        /// holds low-resolution samples (remaining holes are inpainted, see
-        /// `iterations`). 5 gives 11x11.
+        /// Radius of the search window in high-resolution pixels (eq. 4), at
+        /// least: with a spatial falloff (`spatial_sigma` > 0) each step
+        /// widens it to twice its factor (rounded up, at most 30), so that a
+        /// window holds 5x5 low-resolution samples wherever the depth has no
+        /// holes (remaining holes are inpainted, see `iterations`). 5 gives
+        /// 11x11.
         pub search_radius: usize = 5usize, ParamKind::Int { min: 1, max: 30 };
+        /// Standard deviation, in low-resolution pixels, of a Gaussian falloff
+        /// of each weight with the distance between the pixel and the
+        /// sample (the spatial term of Kopf et al.'s joint bilateral
+        /// upsampling, not in eq. 4): nearer samples count more, so a
+        /// patch that resembles the pixel's across an edge, but lies two
+        /// samples away, does not outweigh the pixel's own neighbours.
+        /// 0 = none: eq. 4 as published, a uniform window of `search_radius`.
+        pub spatial_sigma: f64 = 2.0, ParamKind::Float { min: 0.0, max: 100.0 };
         /// Radius of the color patches in high-resolution pixels (the weights
         /// w^(u) of eq. 4): 2 gives 5x5.
         pub patch_radius: usize = 2usize, ParamKind::Int { min: 0, max: 10 };

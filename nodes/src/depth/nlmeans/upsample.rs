@@ -56,7 +56,14 @@ pub(super) fn axis_map(
 ///    high-resolution search window (eq. 4 with the confidence factor of
 ///    eq. 5): `w^(u)` compares high-resolution color patches
 ///    (`patch_radius`), `w` low-resolution depth patches
-///    (`low_patch_radius`) with the discontinuity factor (eq. 3).
+///    (`low_patch_radius`) with the discontinuity factor (eq. 3). Beyond
+///    the paper, each weight falls off with the distance from `i` to `j`
+///    as `exp(-|i - j|^2 / (2 (spatial_sigma f)^2))` for a factor `f`
+///    (0: none, eq. 4 as published), and with it the window is at least
+///    `2 f` pixels in radius
+///    (`window`): eq. 4's uniform window of 11x11 holds 3x3 samples at
+///    x4, where any look-alike patch across an edge counts as much as
+///    the pixel's own neighbours.
 /// 4. Pixels left without an estimate are filled by up to `p.iterations`
 ///    inpainting iterations ([`nlmeans_inpaint`]'s eq. 5 scheme).
 ///
@@ -134,6 +141,7 @@ pub fn nlmeans_upsample_on(
 ) -> Result<(DepthMap, Confidence, Intrinsics), NodeError> {
     let (w, h) = guide_color_high.dims();
     param_within("max_step_factor", p.max_step_factor, 0.0, 64.0)?;
+    param_within("spatial_sigma", p.spatial_sigma, 0.0, 100.0)?;
     let (lw, lh) = low_depth.dims();
     let steps = if p.max_step_factor > 0.0 {
         scale_steps((lw, lh), (w, h), p.max_step_factor)
@@ -266,6 +274,42 @@ pub fn area_downsample(color: &ColorImage, w: usize, h: usize) -> ColorImage {
     })
 }
 
+/// The search radius of one step's pass and its spatial falloff
+/// `1 / (2 sigma^2)` in high-resolution pixels^-2 (0: none), for a step
+/// from `low_k` to `high_k`: the factor `f` is the larger ratio of their
+/// focal lengths, the radius `max(search_radius, ceil(2 f))` (at most
+/// [`MAX_SEARCH_RADIUS`]: a window of 5x5 samples), sigma
+/// `spatial_sigma * f`. Without the falloff (`spatial_sigma` 0) eq. 4 as
+/// published: `search_radius` (a wider uniform window would weigh far
+/// samples as much as near ones).
+///
+/// Errors: `spatial_sigma` outside `0..=100`.
+fn window(
+    p: &NLMeansUpsampleParams,
+    low_k: &Intrinsics,
+    high_k: &Intrinsics,
+) -> Result<(usize, f64), NodeError> {
+    param_within("spatial_sigma", p.spatial_sigma, 0.0, 100.0)?;
+    // Guard: both intrinsics passed `fits_intrinsics` (focal lengths > 0
+    // and finite); a ratio below 1 (a "step" that shrinks) counts as 1.
+    let f = (high_k.fx / low_k.fx).max(high_k.fy / low_k.fy).max(1.0);
+    let sigma = p.spatial_sigma * f;
+    if sigma <= 0.0 {
+        // eq. 4 as published: a uniform window of `search_radius`
+        return Ok((p.search_radius, 0.0));
+    }
+    let widened = (2.0 * f).ceil().min(MAX_SEARCH_RADIUS as f64) as usize;
+    let search = p.search_radius.max(widened).min(MAX_SEARCH_RADIUS);
+    // Guard: sigma > 0 before dividing; 1 / (2 sigma^2) may round to 0
+    // (a falloff too wide to matter) but never overflows for sigma >= 1.
+    let spatial = if sigma > 0.0 {
+        1.0 / (2.0 * sigma * sigma)
+    } else {
+        0.0
+    };
+    Ok((search, spatial))
+}
+
 /// One step of [`nlmeans_upsample_on`]: eq. 4 at the full factor.
 /// `low` is the depth and, for a later step, the previous step's
 /// confidence (so holes an earlier step inpainted keep their lower weight).
@@ -331,13 +375,14 @@ fn upsample_step(
     let guide = guide_features(guide_color_high);
     let pk = PatchKernel::new(core.patch);
     let targets = vec![true; w * h];
+    let (search, spatial) = window(p, low_k, &high_k)?;
     let job = UpsampleJob {
         pass: PassJob::new(
             (w, h),
             &guide,
             (&[], &[]),
             (&targets, false),
-            core,
+            Core { search, ..core },
             &pk,
             (None, None),
         ),
@@ -349,6 +394,7 @@ fn upsample_step(
         lo_row: &lo_row,
         low_patch: p.low_patch_radius,
         alpha: p.alpha,
+        spatial,
     };
     let share = if p.iterations > 0 { 0.5 } else { 1.0 };
     let out = runner.run_upsample(&job, &mut |f| on_progress(f * share))?;

@@ -27,6 +27,9 @@ pub(super) struct UpsampleKernel<'a> {
     /// `ln(alpha)` and `ln(1 - alpha)` of the blend (`-inf` for 0).
     pub(super) ln_alpha: f64,
     pub(super) ln_one_minus_alpha: f64,
+    /// The spatial falloff `1 / (2 sigma^2)`, high-resolution pixels^-2
+    /// (0: none).
+    pub(super) spatial: f64,
 }
 
 impl UpsampleKernel<'_> {
@@ -80,7 +83,16 @@ impl PairKernel for UpsampleKernel<'_> {
         } else {
             f64::NEG_INFINITY
         };
-        acc.add(log_add_exp(color, depth), self.c[s], 1.0, self.z[s]);
+        let mut ln_w = log_add_exp(color, depth);
+        if self.spatial > 0.0 {
+            // the Gaussian falloff with the distance from i to j
+            let (dx, dy) = (
+                (i % self.w) as f64 - (j % self.w) as f64,
+                (i / self.w) as f64 - (j / self.w) as f64,
+            );
+            ln_w -= (dx * dx + dy * dy) * self.spatial;
+        }
+        acc.add(ln_w, self.c[s], 1.0, self.z[s]);
     }
 }
 
@@ -121,6 +133,9 @@ pub struct UpsampleJob<'a> {
     /// The blend of eq. 4: `alpha` on the colour term, `1 - alpha` on the
     /// depth term.
     pub alpha: f64,
+    /// The spatial falloff: each weight times `exp(-|i - j|^2 spatial)`,
+    /// `|i - j|` in high-resolution pixels (0: none, eq. 4 as published).
+    pub spatial: f64,
 }
 
 /// [`UpsampleJob`] on the CPU: the pass of [`nlmeans_upsample_with`].
@@ -151,6 +166,7 @@ pub fn cpu_upsample_pass(
         inv_hd2: p.inv_hd2,
         ln_alpha: job.alpha.ln(),
         ln_one_minus_alpha: (1.0 - job.alpha).ln(),
+        spatial: job.spatial,
     };
     let pass = Pass::new((p.w, p.h), p.guide, None, core);
     let mut out = vec![None; p.w * p.h];
