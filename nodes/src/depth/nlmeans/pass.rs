@@ -186,6 +186,12 @@ pub(super) trait PairKernel: Sync {
     /// Adds candidate `j` to the sums of target `i`; `d >= 0` is their mean
     /// patch distance (already divided by the h's).
     fn add(&self, i: usize, j: usize, d: f64, acc: &mut Acc);
+    /// Whether any pixel of grid row `y` can be a candidate: `false` lets
+    /// the pass skip the rows whose candidates lie there (their
+    /// distances and `add` calls), which changes no sum.
+    fn row_has_candidates(&self, _y: usize) -> bool {
+        true
+    }
 }
 
 /// The candidates of one band row at one search offset: targets at image
@@ -228,6 +234,10 @@ pub(super) trait RowKernel: Sync {
     fn add_row(&self, w: usize, row: &RowCands<Self::Real>, sums: &mut Self::Sums);
     /// The result of target `k` of the sums.
     fn finish(&self, sums: &Self::Sums, k: usize) -> Finish;
+    /// See [`PairKernel::row_has_candidates`].
+    fn row_has_candidates(&self, _y: usize) -> bool {
+        true
+    }
 }
 
 /// A [`PairKernel`] run candidate by candidate with the running sums of [`Acc`].
@@ -255,6 +265,10 @@ impl<K: PairKernel> RowKernel for PerPair<'_, K> {
 
     fn finish(&self, sums: &Vec<Acc>, k: usize) -> Finish {
         Finish::Done(sums[k].finish())
+    }
+
+    fn row_has_candidates(&self, y: usize) -> bool {
+        self.0.row_has_candidates(y)
     }
 }
 
@@ -598,10 +612,10 @@ pub(super) fn band_body<K: RowKernel>(
             for (t, span) in spans.iter().enumerate().take(t1).skip(t0) {
                 let Some((a, b)) = *span else { continue };
                 let (a, b) = (a.max(c0), b.min(c1));
-                if a >= b {
+                let y = y0 + t;
+                if a >= b || !kernel.row_has_candidates((y as isize + dy) as usize) {
                     continue;
                 }
-                let y = y0 + t;
                 let dist = &mut drow[a..b];
                 patch_distances(dist, &hs, (&pk.radii, &coefs), (eh, bw), (t + r, a));
                 let row = RowCands {

@@ -30,6 +30,9 @@ pub(super) struct UpsampleKernel<'a> {
     /// The spatial falloff `1 / (2 sigma^2)`, high-resolution pixels^-2
     /// (0: none).
     pub(super) spatial: f64,
+    /// Whether a high-resolution row holds a placed sample (the pass skips
+    /// candidates on the others: at a factor f, f - 1 rows in f).
+    pub(super) sample_rows: Vec<bool>,
 }
 
 impl UpsampleKernel<'_> {
@@ -64,6 +67,10 @@ impl UpsampleKernel<'_> {
 }
 
 impl PairKernel for UpsampleKernel<'_> {
+    fn row_has_candidates(&self, y: usize) -> bool {
+        self.sample_rows.get(y).copied().unwrap_or(false)
+    }
+
     #[inline]
     fn add(&self, i: usize, j: usize, d: f64, acc: &mut Acc) {
         let s = self.sample_at[j];
@@ -167,6 +174,11 @@ pub fn cpu_upsample_pass(
         ln_alpha: job.alpha.ln(),
         ln_one_minus_alpha: (1.0 - job.alpha).ln(),
         spatial: job.spatial,
+        sample_rows: job
+            .sample_at
+            .chunks(p.w.max(1))
+            .map(|row| row.iter().any(|s| *s != NO_SAMPLE))
+            .collect(),
     };
     let pass = Pass::new((p.w, p.h), p.guide, None, core);
     let mut out = vec![None; p.w * p.h];
