@@ -33,6 +33,22 @@ pub(super) struct UpsampleKernel<'a> {
     /// Whether a high-resolution row holds a placed sample (the pass skips
     /// candidates on the others: at a factor f, f - 1 rows in f).
     pub(super) sample_rows: Vec<bool>,
+    /// [`Self::low_distance`] of each low-resolution pixel to its
+    /// neighbours, computed once (every high-resolution pixel of a
+    /// low-resolution one asks for the same pairs: f^2 times each).
+    pub(super) table: Option<LowTable>,
+}
+
+/// Largest [`LowTable`], entries (96 MiB): beyond it the distances are
+/// computed per pair.
+const LOW_TABLE_MAX: usize = 12 << 20;
+
+/// The low-resolution distances of every pixel `a` to the pixels `b`
+/// within `rx` columns and `ry` rows of it (`NaN` beyond the grid).
+pub(super) struct LowTable {
+    rx: usize,
+    ry: usize,
+    vals: Vec<f64>,
 }
 
 impl UpsampleKernel<'_> {
@@ -66,6 +82,57 @@ impl UpsampleKernel<'_> {
     }
 }
 
+impl UpsampleKernel<'_> {
+    /// The table of [`Self::low_distance`] for the pairs a search window of
+    /// `search` high-resolution pixels reaches on a grid `w` x `h` (the
+    /// sample of a candidate `search` pixels away is at most
+    /// `floor(search lw / w) + 1` low-resolution columns from the target's
+    /// own; pairs further apart are computed when asked), `None` when it
+    /// would exceed [`LOW_TABLE_MAX`] entries or the depth term is absent.
+    fn with_table(mut self, search: usize, (w, h): (usize, usize)) -> Self {
+        use rayon::prelude::*;
+        if self.ln_one_minus_alpha == f64::NEG_INFINITY || w == 0 || h == 0 {
+            return self;
+        }
+        // Guard: w, h > 0 (above).
+        let rx = search * self.lw / w + 1;
+        let ry = search * self.lh / h + 1;
+        let side = (2 * rx + 1) * (2 * ry + 1);
+        let n = self.lw * self.lh;
+        if n.saturating_mul(side) > LOW_TABLE_MAX {
+            return self;
+        }
+        let mut vals = vec![f64::NAN; n * side];
+        vals.par_chunks_mut(side).enumerate().for_each(|(a, row)| {
+            let (ax, ay) = ((a % self.lw) as isize, (a / self.lw) as isize);
+            for (k, v) in row.iter_mut().enumerate() {
+                let bx = ax + (k % (2 * rx + 1)) as isize - rx as isize;
+                let by = ay + (k / (2 * rx + 1)) as isize - ry as isize;
+                if bx >= 0 && by >= 0 && (bx as usize) < self.lw && (by as usize) < self.lh {
+                    *v = self.low_distance(a, by as usize * self.lw + bx as usize);
+                }
+            }
+        });
+        self.table = Some(LowTable { rx, ry, vals });
+        self
+    }
+
+    /// [`Self::low_distance`], from the table where it holds the pair.
+    #[inline]
+    fn low_distance_of(&self, a: usize, b: usize) -> f64 {
+        if let Some(t) = &self.table {
+            let (ax, ay) = ((a % self.lw) as isize, (a / self.lw) as isize);
+            let (bx, by) = ((b % self.lw) as isize, (b / self.lw) as isize);
+            let (dx, dy) = (bx - ax + t.rx as isize, by - ay + t.ry as isize);
+            if dx >= 0 && dy >= 0 && dx <= 2 * t.rx as isize && dy <= 2 * t.ry as isize {
+                let side = (2 * t.rx + 1) * (2 * t.ry + 1);
+                return t.vals[a * side + dy as usize * (2 * t.rx + 1) + dx as usize];
+            }
+        }
+        self.low_distance(a, b)
+    }
+}
+
 impl PairKernel for UpsampleKernel<'_> {
     fn row_has_candidates(&self, y: usize) -> bool {
         self.sample_rows.get(y).copied().unwrap_or(false)
@@ -85,7 +152,7 @@ impl PairKernel for UpsampleKernel<'_> {
             if lx == NO_SAMPLE || ly == NO_SAMPLE {
                 f64::NEG_INFINITY
             } else {
-                self.ln_one_minus_alpha - self.low_distance(ly * self.lw + lx, s)
+                self.ln_one_minus_alpha - self.low_distance_of(ly * self.lw + lx, s)
             }
         } else {
             f64::NEG_INFINITY
@@ -179,7 +246,9 @@ pub fn cpu_upsample_pass(
             .chunks(p.w.max(1))
             .map(|row| row.iter().any(|s| *s != NO_SAMPLE))
             .collect(),
-    };
+        table: None,
+    }
+    .with_table(p.search, (p.w, p.h));
     let pass = Pass::new((p.w, p.h), p.guide, None, core);
     let mut out = vec![None; p.w * p.h];
     run_pass(&pass, p.targets, &PerPair(&kernel), progress, |i, r| {
@@ -188,4 +257,56 @@ pub fn cpu_upsample_pass(
         }
     })?;
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kit::rng::SplitMix64;
+
+    /// The table holds the bits `low_distance` computes, for every pair in
+    /// its reach; pairs beyond it are computed when asked.
+    #[test]
+    fn the_table_of_low_distances_holds_the_same_bits() {
+        let (lw, lh) = (9usize, 7usize);
+        let mut rng = SplitMix64(11);
+        let z: Vec<f32> = (0..lw * lh).map(|_| 1.0 + rng.next_f64() as f32).collect();
+        // some holes (confidence 0) among partly confident samples
+        let c: Vec<f32> = (0..lw * lh)
+            .map(|i| {
+                if i % 5 == 0 {
+                    0.0
+                } else {
+                    0.5 + 0.5 * rng.next_f64() as f32
+                }
+            })
+            .collect();
+        let kernel = UpsampleKernel {
+            w: 36,
+            sample_at: &[],
+            lo_col: &[],
+            lo_row: &[],
+            z: &z,
+            c: &c,
+            lw,
+            lh,
+            low_patch: 1,
+            inv_low_area: 1.0 / 9.0,
+            inv_hd2: 400.0,
+            ln_alpha: 0.9f64.ln(),
+            ln_one_minus_alpha: 0.1f64.ln(),
+            spatial: 0.0,
+            sample_rows: Vec::new(),
+            table: None,
+        }
+        .with_table(8, (36, 28));
+        let t = kernel.table.as_ref().map(|t| (t.rx, t.ry));
+        assert_eq!(t, Some((3, 3)));
+        for a in 0..lw * lh {
+            for b in 0..lw * lh {
+                let (want, got) = (kernel.low_distance(a, b), kernel.low_distance_of(a, b));
+                assert_eq!(want.to_bits(), got.to_bits(), "pair ({a}, {b})");
+            }
+        }
+    }
 }
