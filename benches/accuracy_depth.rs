@@ -775,6 +775,8 @@ fn upsampling(data: &Path) -> String {
                 );
             }
             let [bl, jbu, ours] = anchors;
+            // (a ratio without a guard: a method that failed leaves NaN,
+            // which the table shows as such)
             let wins = if ours < bl && ours < jbu { "yes" } else { "no" };
             let _ = writeln!(
                 summary,

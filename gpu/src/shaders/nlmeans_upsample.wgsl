@@ -117,6 +117,32 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let lx = lo_axis[gid.x];
     let ly = lo_axis[P.k.w + gid.y];
     let centre_low = lx != NONE && ly != NONE;
+    // The falloff relative to the nearest source's: a shift common to all
+    // of the pixel's candidates (their ratios are unchanged), so that the
+    // candidates that carry the weight add small terms to their exponent.
+    // Unshifted, `d^2 spatial` reaches 1e6 (the cap) where f32 keeps 1/16:
+    // the colour and depth terms of tied nearest samples would be lost.
+    var d2_min = 0;
+    if (P.spatial > 0.0) {
+        d2_min = 2 * big_r * big_r + 1;
+        for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
+            let yj = y + dy;
+            if (yj < 0 || yj >= i32(P.k.h)) {
+                continue;
+            }
+            for (var dx = -big_r; dx <= big_r; dx = dx + 1) {
+                let xj = x + dx;
+                if (xj < 0 || xj >= i32(P.k.w)) {
+                    continue;
+                }
+                let s = sample_at[u32(yj) * P.k.w + u32(xj)];
+                // the sources (confidence > 0): the weights of eq. 4
+                if (s != NONE && low[s].y > 0.0) {
+                    d2_min = min(d2_min, dx * dx + dy * dy);
+                }
+            }
+        }
+    }
     for (var dy = -big_r; dy <= big_r; dy = dy + 1) {
         let yj = y + dy;
         if (yj < 0 || yj >= i32(P.k.h)) {
@@ -148,11 +174,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (e.y == 0.0) {
                 continue; // both terms absent: weighs nothing
             }
-            // the Gaussian falloff with the distance from i to j (exact
-            // in f32: dx^2 + dy^2 <= 2 * 30^2)
+            // the Gaussian falloff with the distance from i to j, relative
+            // to the nearest sample's (integers exact in f32:
+            // dx^2 + dy^2 <= 2 * 30^2)
             var ln_w = e.x;
             if (P.spatial > 0.0) {
-                ln_w = ln_w - f32(dx * dx + dy * dy) * P.spatial;
+                ln_w = ln_w - f32(dx * dx + dy * dy - d2_min) * P.spatial;
             }
             let zs = low[s];
             add(&acc, ln_w, zs.y, 1.0, zs.x);

@@ -802,6 +802,22 @@ mod tests {
                 );
             }
         }
+        // A falloff too narrow to compute (1 / (2 sigma^2) overflows) is
+        // capped: the nearest sample decides, every pixel has a value.
+        let p = NLMeansUpsampleParams {
+            alpha: 1.0,
+            prune: false,
+            spatial_sigma: 1e-200,
+            iterations: 0,
+            ..Default::default()
+        };
+        let (d, _) = nlmeans_upsample(&low, &k, &gray(w, h), &p).unwrap();
+        for (ly, &hy) in rows.iter().enumerate() {
+            for (lx, &hx) in cols.iter().enumerate() {
+                assert_eq!(*d.get(hx, hy), *low.get(lx, ly), "sample ({lx}, {ly})");
+            }
+        }
+        assert_eq!(d.hole_count(), 0);
         let p = NLMeansUpsampleParams {
             spatial_sigma: -1.0,
             ..Default::default()

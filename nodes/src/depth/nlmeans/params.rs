@@ -52,9 +52,9 @@ node_params! {
         /// Radius of the search window in high-resolution pixels (eq. 4), at
         /// least: with a spatial falloff (`spatial_sigma` > 0) each step
         /// widens it to twice its factor (rounded up, at most 30), so that a
-        /// window holds 5x5 low-resolution samples wherever the depth has no
-        /// holes (remaining holes are inpainted, see `iterations`). 5 gives
-        /// 11x11.
+        /// window holds 4 to 5 low-resolution samples across each axis
+        /// wherever the depth has no holes (remaining holes are inpainted,
+        /// see `iterations`). 5 gives 11x11.
         pub search_radius: usize = 5usize, ParamKind::Int { min: 1, max: 30 };
         /// Standard deviation, in low-resolution pixels, of a Gaussian falloff
         /// of each weight with the distance between the pixel and the

@@ -61,9 +61,9 @@ pub(super) fn axis_map(
 ///    as `exp(-|i - j|^2 / (2 (spatial_sigma f)^2))` for a factor `f`
 ///    (0: none, eq. 4 as published), and with it the window is at least
 ///    `2 f` pixels in radius
-///    (`window`): eq. 4's uniform window of 11x11 holds 3x3 samples at
-///    x4, where any look-alike patch across an edge counts as much as
-///    the pixel's own neighbours.
+///    (`window`): eq. 4's uniform window of 11x11 holds 2 to 3 samples
+///    across each axis at x4, where any look-alike patch across an edge
+///    counts as much as the pixel's own neighbours.
 /// 4. Pixels left without an estimate are filled by up to `p.iterations`
 ///    inpainting iterations ([`nlmeans_inpaint`]'s eq. 5 scheme).
 ///
@@ -274,12 +274,19 @@ pub fn area_downsample(color: &ColorImage, w: usize, h: usize) -> ColorImage {
     })
 }
 
+/// Largest spatial falloff `1 / (2 sigma^2)`, pixels^-2: a `spatial_sigma`
+/// so small that the falloff would overflow weighs every candidate but the
+/// nearest by `exp(-1e6)` = 0 (in f64 and f32 alike), and the products
+/// with distances (`dx^2 + dy^2 <= 2 * 30^2`) stay finite in f32.
+const MAX_SPATIAL: f64 = 1e6;
+
 /// The search radius of one step's pass and its spatial falloff
 /// `1 / (2 sigma^2)` in high-resolution pixels^-2 (0: none), for a step
 /// from `low_k` to `high_k`: the factor `f` is the larger ratio of their
 /// focal lengths, the radius `max(search_radius, ceil(2 f))` (at most
-/// [`MAX_SEARCH_RADIUS`]: a window of 5x5 samples), sigma
-/// `spatial_sigma * f`. Without the falloff (`spatial_sigma` 0) eq. 4 as
+/// [`MAX_SEARCH_RADIUS`]: 4 to 5 samples across each axis of the window,
+/// fewer beyond f = 15), sigma `spatial_sigma * f`, the falloff at most
+/// [`MAX_SPATIAL`]. Without the falloff (`spatial_sigma` 0) eq. 4 as
 /// published: `search_radius` (a wider uniform window would weigh far
 /// samples as much as near ones).
 ///
@@ -290,23 +297,21 @@ fn window(
     high_k: &Intrinsics,
 ) -> Result<(usize, f64), NodeError> {
     param_within("spatial_sigma", p.spatial_sigma, 0.0, 100.0)?;
-    // Guard: both intrinsics passed `fits_intrinsics` (focal lengths > 0
-    // and finite); a ratio below 1 (a "step" that shrinks) counts as 1.
-    let f = (high_k.fx / low_k.fx).max(high_k.fy / low_k.fy).max(1.0);
-    let sigma = p.spatial_sigma * f;
-    if sigma <= 0.0 {
+    if p.spatial_sigma == 0.0 {
         // eq. 4 as published: a uniform window of `search_radius`
         return Ok((p.search_radius, 0.0));
     }
+    // Guard: both intrinsics passed `fits_intrinsics` (focal lengths > 0
+    // and finite); a ratio below 1 (a "step" that shrinks) counts as 1, and
+    // one that overflows (focal lengths 1e300 apart) as the largest window.
+    let f = (high_k.fx / low_k.fx).max(high_k.fy / low_k.fy).max(1.0);
     let widened = (2.0 * f).ceil().min(MAX_SEARCH_RADIUS as f64) as usize;
     let search = p.search_radius.max(widened).min(MAX_SEARCH_RADIUS);
-    // Guard: sigma > 0 before dividing; 1 / (2 sigma^2) may round to 0
-    // (a falloff too wide to matter) but never overflows for sigma >= 1.
-    let spatial = if sigma > 0.0 {
-        1.0 / (2.0 * sigma * sigma)
-    } else {
-        0.0
-    };
+    let sigma = p.spatial_sigma * f;
+    // Guard: sigma > 0 (spatial_sigma > 0, f >= 1); a sigma so small that
+    // the quotient overflows is capped, one so large that it rounds to 0
+    // is no falloff.
+    let spatial = (1.0 / (2.0 * sigma * sigma)).min(MAX_SPATIAL);
     Ok((search, spatial))
 }
 

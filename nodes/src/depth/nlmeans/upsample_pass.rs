@@ -55,6 +55,8 @@ impl UpsampleKernel<'_> {
     /// `-ln w(i_low, j_low)`: eq. 2/5 on low-resolution depth patches, with
     /// the discontinuity factor at the centres.
     pub(super) fn low_distance(&self, a: usize, b: usize) -> f64 {
+        // Guard: lw > 0 (the upsampling returns before any pass on an
+        // empty grid).
         let (ax, ay) = ((a % self.lw) as isize, (a / self.lw) as isize);
         let (bx, by) = ((b % self.lw) as isize, (b / self.lw) as isize);
         let cl = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
@@ -84,19 +86,61 @@ impl UpsampleKernel<'_> {
 
 impl UpsampleKernel<'_> {
     /// The table of [`Self::low_distance`] for the pairs a search window of
-    /// `search` high-resolution pixels reaches on a grid `w` x `h` (the
-    /// sample of a candidate `search` pixels away is at most
-    /// `floor(search lw / w) + 1` low-resolution columns from the target's
-    /// own; pairs further apart are computed when asked), `None` when it
-    /// would exceed [`LOW_TABLE_MAX`] entries or the depth term is absent.
-    fn with_table(mut self, search: usize, (w, h): (usize, usize)) -> Self {
+    /// `search` high-resolution pixels reaches on the grid (its reach per
+    /// axis from the placement itself: the largest distance, in
+    /// low-resolution pixels, between a pixel's own low-resolution column
+    /// and that of a sample within `search` columns; pairs beyond it, none
+    /// with these maps, are computed when asked), `None` when it would
+    /// exceed [`LOW_TABLE_MAX`] entries or the depth term is absent.
+    fn with_table(mut self, search: usize, h: usize) -> Self {
         use rayon::prelude::*;
-        if self.ln_one_minus_alpha == f64::NEG_INFINITY || w == 0 || h == 0 {
+        let w = self.w;
+        if self.ln_one_minus_alpha == f64::NEG_INFINITY || w == 0 || h == 0 || self.lw == 0 {
             return self;
         }
-        // Guard: w, h > 0 (above).
-        let rx = search * self.lw / w + 1;
-        let ry = search * self.lh / h + 1;
+        // The low-resolution column of the sample on each column (samples
+        // sit on a grid: the first row holding one has them all), and row.
+        let Some(first) = self
+            .sample_at
+            .chunks(w)
+            .find(|r| r.iter().any(|s| *s != NO_SAMPLE))
+        else {
+            return self;
+        };
+        // Guard: lw > 0 (above).
+        let col_of: Vec<usize> = first
+            .iter()
+            .map(|s| {
+                if *s == NO_SAMPLE {
+                    NO_SAMPLE
+                } else {
+                    s % self.lw
+                }
+            })
+            .collect();
+        let row_of: Vec<usize> = (0..h)
+            .map(|y| {
+                self.sample_at[y * w..(y + 1) * w]
+                    .iter()
+                    .find(|s| **s != NO_SAMPLE)
+                    .map_or(NO_SAMPLE, |s| s / self.lw)
+            })
+            .collect();
+        let reach = |own: &[usize], of: &[usize]| -> usize {
+            let n = own.len();
+            (0..n)
+                .filter(|&x| own[x] != NO_SAMPLE)
+                .flat_map(|x| {
+                    let (a, b) = (x.saturating_sub(search), (x + search + 1).min(n));
+                    of[a..b]
+                        .iter()
+                        .filter(|l| **l != NO_SAMPLE)
+                        .map(move |l| l.abs_diff(own[x]))
+                })
+                .max()
+                .unwrap_or(0)
+        };
+        let (rx, ry) = (reach(self.lo_col, &col_of), reach(self.lo_row, &row_of));
         let side = (2 * rx + 1) * (2 * ry + 1);
         let n = self.lw * self.lh;
         if n.saturating_mul(side) > LOW_TABLE_MAX {
@@ -121,6 +165,7 @@ impl UpsampleKernel<'_> {
     #[inline]
     fn low_distance_of(&self, a: usize, b: usize) -> f64 {
         if let Some(t) = &self.table {
+            // Guard: lw > 0 (a table exists only then).
             let (ax, ay) = ((a % self.lw) as isize, (a / self.lw) as isize);
             let (bx, by) = ((b % self.lw) as isize, (b / self.lw) as isize);
             let (dx, dy) = (bx - ax + t.rx as isize, by - ay + t.ry as isize);
@@ -147,6 +192,8 @@ impl PairKernel for UpsampleKernel<'_> {
         // ln((1 - alpha) w + alpha w_u) computed in the log domain, so
         // neither term underflows alone: ln(0) = -inf drops a term.
         let color = self.ln_alpha - d;
+        // Guard of `% w`, `/ w` here and below: w > 0 (a pass runs only on
+        // a non-empty grid).
         let depth = if self.ln_one_minus_alpha > f64::NEG_INFINITY {
             let (lx, ly) = (self.lo_col[i % self.w], self.lo_row[i / self.w]);
             if lx == NO_SAMPLE || ly == NO_SAMPLE {
@@ -248,7 +295,7 @@ pub fn cpu_upsample_pass(
             .collect(),
         table: None,
     }
-    .with_table(p.search, (p.w, p.h));
+    .with_table(p.search, p.h);
     let pass = Pass::new((p.w, p.h), p.guide, None, core);
     let mut out = vec![None; p.w * p.h];
     run_pass(&pass, p.targets, &PerPair(&kernel), progress, |i, r| {
@@ -265,10 +312,26 @@ mod tests {
     use crate::kit::rng::SplitMix64;
 
     /// The table holds the bits `low_distance` computes, for every pair in
-    /// its reach; pairs beyond it are computed when asked.
+    /// its reach (pairs beyond it are computed when asked), and its reach is
+    /// the placement's: 2 low-resolution pixels for a window of 8 at x4
+    /// (a sample 8 columns away is 2 low-resolution columns away).
     #[test]
     fn the_table_of_low_distances_holds_the_same_bits() {
-        let (lw, lh) = (9usize, 7usize);
+        use super::super::upsample::axis_map;
+        let (lw, lh, f) = (9usize, 7usize, 4usize);
+        let (w, h) = (lw * f, lh * f);
+        let k = crate::sim::synthetic::kinect_like_intrinsics(lw, lh);
+        let hk = k.scaled_to(w, h);
+        let to_hi_col = axis_map(lw, k.fx, k.cx, hk.fx, hk.cx, w);
+        let to_hi_row = axis_map(lh, k.fy, k.cy, hk.fy, hk.cy, h);
+        let mut sample_at = vec![NO_SAMPLE; w * h];
+        for (ly, &hy) in to_hi_row.iter().enumerate() {
+            for (lx, &hx) in to_hi_col.iter().enumerate() {
+                sample_at[hy * w + hx] = ly * lw + lx;
+            }
+        }
+        let lo_col = axis_map(w, hk.fx, hk.cx, k.fx, k.cx, lw);
+        let lo_row = axis_map(h, hk.fy, hk.cy, k.fy, k.cy, lh);
         let mut rng = SplitMix64(11);
         let z: Vec<f32> = (0..lw * lh).map(|_| 1.0 + rng.next_f64() as f32).collect();
         // some holes (confidence 0) among partly confident samples
@@ -282,10 +345,10 @@ mod tests {
             })
             .collect();
         let kernel = UpsampleKernel {
-            w: 36,
-            sample_at: &[],
-            lo_col: &[],
-            lo_row: &[],
+            w,
+            sample_at: &sample_at,
+            lo_col: &lo_col,
+            lo_row: &lo_row,
             z: &z,
             c: &c,
             lw,
@@ -299,13 +362,24 @@ mod tests {
             sample_rows: Vec::new(),
             table: None,
         }
-        .with_table(8, (36, 28));
+        .with_table(8, h);
         let t = kernel.table.as_ref().map(|t| (t.rx, t.ry));
-        assert_eq!(t, Some((3, 3)));
+        assert_eq!(t, Some((2, 2)));
         for a in 0..lw * lh {
             for b in 0..lw * lh {
                 let (want, got) = (kernel.low_distance(a, b), kernel.low_distance_of(a, b));
                 assert_eq!(want.to_bits(), got.to_bits(), "pair ({a}, {b})");
+            }
+        }
+        // every pair a window of 8 asks for is in the table
+        for (x, &own) in lo_col.iter().enumerate() {
+            for xj in x.saturating_sub(8)..(x + 9).min(w) {
+                if let Some(s) = (0..h)
+                    .map(|y| sample_at[y * w + xj])
+                    .find(|s| *s != NO_SAMPLE)
+                {
+                    assert!((s % lw).abs_diff(own) <= 2, "column {x} to {xj}");
+                }
             }
         }
     }
