@@ -30,9 +30,10 @@ pub(super) struct UpsampleKernel<'a> {
     /// The spatial falloff `1 / (2 sigma^2)`, high-resolution pixels^-2
     /// (0: none).
     pub(super) spatial: f64,
-    /// Whether a high-resolution row holds a placed sample (the pass skips
-    /// candidates on the others: at a factor f, f - 1 rows in f).
-    pub(super) sample_rows: Vec<bool>,
+    /// Per high-resolution row, the low-resolution row of the samples
+    /// placed on it, or `NO_SAMPLE` (the pass skips candidates on such
+    /// rows: at a factor f, f - 1 rows in f).
+    pub(super) sample_row: Vec<usize>,
     /// [`Self::low_distance`] of each low-resolution pixel to its
     /// neighbours, computed once (every high-resolution pixel of a
     /// low-resolution one asks for the same pairs: f^2 times each).
@@ -48,6 +49,9 @@ const LOW_TABLE_MAX: usize = 12 << 20;
 pub(super) struct LowTable {
     rx: usize,
     ry: usize,
+    /// `2 rx + 1`, and the entries per pixel `(2 rx + 1) (2 ry + 1)`.
+    cols: usize,
+    side: usize,
     vals: Vec<f64>,
 }
 
@@ -118,14 +122,6 @@ impl UpsampleKernel<'_> {
                 }
             })
             .collect();
-        let row_of: Vec<usize> = (0..h)
-            .map(|y| {
-                self.sample_at[y * w..(y + 1) * w]
-                    .iter()
-                    .find(|s| **s != NO_SAMPLE)
-                    .map_or(NO_SAMPLE, |s| s / self.lw)
-            })
-            .collect();
         let reach = |own: &[usize], of: &[usize]| -> usize {
             let n = own.len();
             (0..n)
@@ -140,8 +136,12 @@ impl UpsampleKernel<'_> {
                 .max()
                 .unwrap_or(0)
         };
-        let (rx, ry) = (reach(self.lo_col, &col_of), reach(self.lo_row, &row_of));
-        let side = (2 * rx + 1) * (2 * ry + 1);
+        let (rx, ry) = (
+            reach(self.lo_col, &col_of),
+            reach(self.lo_row, &self.sample_row),
+        );
+        let cols = 2 * rx + 1;
+        let side = cols * (2 * ry + 1);
         let n = self.lw * self.lh;
         if n.saturating_mul(side) > LOW_TABLE_MAX {
             return self;
@@ -150,14 +150,20 @@ impl UpsampleKernel<'_> {
         vals.par_chunks_mut(side).enumerate().for_each(|(a, row)| {
             let (ax, ay) = ((a % self.lw) as isize, (a / self.lw) as isize);
             for (k, v) in row.iter_mut().enumerate() {
-                let bx = ax + (k % (2 * rx + 1)) as isize - rx as isize;
-                let by = ay + (k / (2 * rx + 1)) as isize - ry as isize;
+                let bx = ax + (k % cols) as isize - rx as isize;
+                let by = ay + (k / cols) as isize - ry as isize;
                 if bx >= 0 && by >= 0 && (bx as usize) < self.lw && (by as usize) < self.lh {
                     *v = self.low_distance(a, by as usize * self.lw + bx as usize);
                 }
             }
         });
-        self.table = Some(LowTable { rx, ry, vals });
+        self.table = Some(LowTable {
+            rx,
+            ry,
+            cols,
+            side,
+            vals,
+        });
         self
     }
 
@@ -170,8 +176,7 @@ impl UpsampleKernel<'_> {
             let (bx, by) = ((b % self.lw) as isize, (b / self.lw) as isize);
             let (dx, dy) = (bx - ax + t.rx as isize, by - ay + t.ry as isize);
             if dx >= 0 && dy >= 0 && dx <= 2 * t.rx as isize && dy <= 2 * t.ry as isize {
-                let side = (2 * t.rx + 1) * (2 * t.ry + 1);
-                return t.vals[a * side + dy as usize * (2 * t.rx + 1) + dx as usize];
+                return t.vals[a * t.side + dy as usize * t.cols + dx as usize];
             }
         }
         self.low_distance(a, b)
@@ -180,7 +185,7 @@ impl UpsampleKernel<'_> {
 
 impl PairKernel for UpsampleKernel<'_> {
     fn row_has_candidates(&self, y: usize) -> bool {
-        self.sample_rows.get(y).copied().unwrap_or(false)
+        self.sample_row.get(y).is_some_and(|r| *r != NO_SAMPLE)
     }
 
     #[inline]
@@ -215,6 +220,20 @@ impl PairKernel for UpsampleKernel<'_> {
         }
         acc.add(ln_w, self.c[s], 1.0, self.z[s]);
     }
+}
+
+/// Per row of a grid `w` wide, the low-resolution row (of a grid `lw`
+/// wide) of the samples `sample_at` places on it, or `NO_SAMPLE`.
+fn sample_rows(sample_at: &[usize], w: usize, lw: usize) -> Vec<usize> {
+    sample_at
+        .chunks(w.max(1))
+        .map(|row| {
+            row.iter()
+                .find(|s| **s != NO_SAMPLE)
+                // Guard: a placed sample exists only where lw > 0.
+                .map_or(NO_SAMPLE, |s| s / lw.max(1))
+        })
+        .collect()
 }
 
 /// `ln(exp(a) + exp(b))` without overflow or underflow; `-inf` when both are.
@@ -288,11 +307,7 @@ pub fn cpu_upsample_pass(
         ln_alpha: job.alpha.ln(),
         ln_one_minus_alpha: (1.0 - job.alpha).ln(),
         spatial: job.spatial,
-        sample_rows: job
-            .sample_at
-            .chunks(p.w.max(1))
-            .map(|row| row.iter().any(|s| *s != NO_SAMPLE))
-            .collect(),
+        sample_row: sample_rows(job.sample_at, p.w, lw),
         table: None,
     }
     .with_table(p.search, p.h);
@@ -359,7 +374,7 @@ mod tests {
             ln_alpha: 0.9f64.ln(),
             ln_one_minus_alpha: 0.1f64.ln(),
             spatial: 0.0,
-            sample_rows: Vec::new(),
+            sample_row: sample_rows(&sample_at, w, lw),
             table: None,
         }
         .with_table(8, h);
