@@ -3,7 +3,10 @@
 //! JointBilateral r = 7, Refocus 640x480 at 256 samples plain, with the
 //! background layer and with the per-view lens effects and, with
 //! `DEPTHGRAPH_BENCH_FULL=1`, 1600x1200 at 576 samples) and
-//! per pipeline (`depth_fill.ron`, `refocus.ron`, no cache): cold (first
+//! a `Relight` object move at 640x480 with 256 VPLs (the device's direct
+//! term, the scene kept) in two path-traced rooms, and
+//! per pipeline (`depth_fill.ron`, `refocus.ron`, `copy_paste_relit.ron`,
+//! no cache): cold (first
 //! evaluation, pipeline compilation included) and warm medians, and the
 //! device's upload / kernel / download split. The adapter and driver are
 //! named; on a software adapter (lavapipe) the GPU numbers are labelled
@@ -19,12 +22,18 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+use depthgraph_gpu::relight::DirectStats;
+use depthgraph_gpu::session::Session;
 use depthgraph_gpu::{AdapterRequest, GpuContext};
 use depthgraph_graph::node::{CancelToken, Transfers};
 use depthgraph_graph::pipeline::OutputRef;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::camera::refocus::RefocusParams;
 use depthgraph_nodes::depth::bilateral::BilateralParams;
+use depthgraph_nodes::relight::scene_cached::{RelightScene, relight_moved, relight_moved_with};
+use depthgraph_nodes::relight::shading::RelightParams;
+use depthgraph_nodes::sim::pathtrace::PathTraceParams;
+use depthgraph_nodes::sim::relight_truth::{Room, relight_case};
 use depthgraph_nodes::sim::synthetic::{RenderOptions, Scene, render};
 
 fn env_usize(name: &str, default: usize) -> usize {
@@ -126,6 +135,57 @@ fn node_row(
         gpu_cold_ms: cold,
         gpu_ms: median(warm),
         split: mid,
+    })
+}
+
+/// A `Relight` object move (scene kept) at 640x480 with 256 VPLs on a
+/// path-traced room: the CPU's move against the move with the device's
+/// direct term, the scene built once for both.
+fn relight_move_row(ctx: &GpuContext, room: Room, repeats: usize) -> Option<Row> {
+    let quick = PathTraceParams {
+        samples: 1,
+        bounces: 2,
+        seed: 1,
+    };
+    let case = relight_case(room, None, 640, 480, 256, &quick).expect("relight case");
+    let what = format!("Relight move 640x480 256 VPLs, {}", case.name);
+    if !wanted(&what) {
+        return None;
+    }
+    let vpls = case.vpls(256);
+    let inp = case.inputs();
+    let p = RelightParams::default();
+    let scene = RelightScene::new(&inp.scene(), &vpls, &p).expect("relight scene");
+    let cpu: Vec<f64> = (0..repeats)
+        .map(|_| {
+            let t = Instant::now();
+            relight_moved(&scene, &inp, &p).expect("relight move");
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    let device = |s: &mut Session| {
+        let mut stats = DirectStats::default();
+        let t = Instant::now();
+        relight_moved_with(&scene, &inp, &p, &mut |plan| {
+            depthgraph_gpu::relight::direct(s, plan, &mut stats)
+        })
+        .expect("relight move on the device");
+        t.elapsed().as_secs_f64() * 1e3
+    };
+    let cold = device(&mut Session::new(ctx));
+    let mut warm = Vec::new();
+    let mut split = Transfers::default();
+    for _ in 0..repeats {
+        let mut s = Session::new(ctx);
+        warm.push(device(&mut s));
+        split = s.stats;
+    }
+    Some(Row {
+        what,
+        cpu_ms: median(cpu),
+        gpu_cold_ms: cold,
+        gpu_ms: median(warm),
+        split,
     })
 }
 
@@ -422,7 +482,10 @@ fn main() {
             repeats.min(3),
         ));
     }
-    for f in ["depth_fill.ron", "refocus.ron"] {
+    for room in [Room::Open, Room::NearWall] {
+        rows.extend(relight_move_row(&ctx, room, repeats));
+    }
+    for f in ["depth_fill.ron", "refocus.ron", "copy_paste_relit.ron"] {
         rows.extend(pipeline_row(f, &regs, repeats));
     }
 

@@ -17,7 +17,8 @@
 //! - one module per device kind: [`pull_push`] (PullPush, DualPullPush),
 //!   [`bilateral`] (JointBilateral), [`nlmeans`] (NLMeansDepth,
 //!   NLMeansInpaint, NLMeansUpsample), [`edges`] (EdgeDetect), [`feather`] (Feather),
-//!   [`composite`] (OcclusionComposite), [`refocus`] (Refocus).
+//!   [`composite`] (OcclusionComposite), [`refocus`] (Refocus), [`relight`]
+//!   (Relight: the direct term of a scene-cached move).
 //!
 //! Numerics on the device are f32; each module states its bound against the
 //! CPU's f64 sums and the tolerance its parity test checks.
@@ -35,6 +36,7 @@ pub mod node;
 pub mod parity;
 pub mod pull_push;
 pub mod refocus;
+pub mod relight;
 pub mod session;
 pub mod shaders;
 
@@ -52,6 +54,12 @@ pub const DEVICE_KINDS: &[&str] = &[
     "PullPush",
     "DualPullPush",
     "Feather",
+    "EdgeDetect",
+    "OcclusionComposite",
+    "NLMeansInpaint",
+    "NLMeansDepth",
+    "NLMeansUpsample",
+    "Relight",
 ];
 
 /// Adds the device implementation of every kind in [`DEVICE_KINDS`] to
@@ -67,6 +75,7 @@ pub fn install(reg: &mut Registry, ctx: &Arc<GpuContext>) -> Result<(), Registry
     node::register_device(reg, ctx, "NLMeansInpaint", nlmeans::eval_inpaint)?;
     node::register_device(reg, ctx, "NLMeansDepth", nlmeans::eval_depth)?;
     node::register_device(reg, ctx, "NLMeansUpsample", nlmeans::eval_upsample)?;
+    node::register_device(reg, ctx, "Relight", relight::eval)?;
     reg.prefer_backends(&["wgpu", "cpu"]);
     Ok(())
 }

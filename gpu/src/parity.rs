@@ -215,3 +215,52 @@ pub fn composite_within(
     }
     Ok(())
 }
+
+/// What a comparison of two direct terms measured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DirectAgreement {
+    /// Pixels the object shades (`hit`), the same on both.
+    pub hits: usize,
+    /// Largest `|Δ ΔE| / (Σ_k Φ_k + ΔE)` over pixels and channels.
+    pub max_rel: f64,
+}
+
+/// The same pixel count, the same `hit` at every pixel, and per channel
+/// `|de_gpu - de_cpu| <= rel * (total_power + de_cpu)` (the bound of
+/// [`crate::relight`]; `total_power`: the sum of every VPL's power).
+pub fn direct_within(
+    cpu: &[depthgraph_nodes::relight::direct::DirectSum],
+    gpu: &[depthgraph_nodes::relight::direct::DirectSum],
+    total_power: [f64; 3],
+    rel: f64,
+) -> Result<DirectAgreement, String> {
+    if cpu.len() != gpu.len() {
+        return Err(format!("{} pixels vs {}", cpu.len(), gpu.len()));
+    }
+    let (mut hits, mut max_rel) = (0usize, 0.0f64);
+    for (k, (a, b)) in cpu.iter().zip(gpu).enumerate() {
+        if a.hit != b.hit {
+            return Err(format!(
+                "pixel {k} of the plan: hit cpu {} gpu {}",
+                a.hit, b.hit
+            ));
+        }
+        hits += usize::from(a.hit);
+        for (ch, power) in total_power.iter().enumerate() {
+            // guard: the scale is > 0 unless every power and the sum are 0,
+            // and then any difference is beyond the bound
+            let scale = power + a.de[ch].abs();
+            let d = (a.de[ch] - b.de[ch]).abs();
+            if d.is_nan() || d > rel * scale {
+                return Err(format!(
+                    "pixel {k} of the plan, channel {ch}: cpu {} gpu {}: {d:.3e} > {rel:e} x {scale:.3e}",
+                    a.de[ch], b.de[ch]
+                ));
+            }
+            if scale > 0.0 {
+                max_rel = max_rel.max(d / scale);
+            }
+        }
+    }
+    Ok(DirectAgreement { hits, max_rel })
+}

@@ -58,6 +58,7 @@ kernel!(FEATHER_VERTICAL, "feather.wgsl", "vertical");
 kernel!(EDGES, "edges.wgsl", "main");
 kernel!(COMPOSITE, "composite.wgsl", "main");
 kernel!(NLMEANS, "nlmeans.wgsl", "main", NLMEANS_ACC);
+kernel!(RELIGHT_DIRECT, "relight_direct.wgsl", "main");
 kernel!(
     NLMEANS_UPSAMPLE,
     "nlmeans_upsample.wgsl",
@@ -87,4 +88,5 @@ pub const ALL: &[Kernel] = &[
     COMPOSITE,
     NLMEANS,
     NLMEANS_UPSAMPLE,
+    RELIGHT_DIRECT,
 ];

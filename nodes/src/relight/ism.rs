@@ -375,6 +375,23 @@ pub struct ShadowMap {
     pub t: Vec<f32>,
 }
 
+/// A [`ShadowMap`]'s frame and window ([`ShadowMap::frame`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapFrame {
+    /// First axis across the light.
+    pub eu: DVec3,
+    /// Second axis across the light.
+    pub ev: DVec3,
+    /// Unit direction towards the light (depth axis).
+    pub dir: DVec3,
+    /// Window origin along `eu`, metres.
+    pub u0: f64,
+    /// Window origin along `ev`, metres.
+    pub v0: f64,
+    /// Texels per metre.
+    pub inv_texel: f64,
+}
+
 fn basis(d: DVec3) -> (DVec3, DVec3) {
     let a = if d.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
     let eu = d.cross(a).normalize();
@@ -438,6 +455,20 @@ impl ShadowMap {
     /// The point at continuous texel coordinates `(u, v)` and `t = 0`.
     pub fn texel_point(&self, u: f64, v: f64) -> DVec3 {
         self.eu * (self.u0 + u * self.texel_m) + self.ev * (self.v0 + v * self.texel_m)
+    }
+
+    /// The map's frame: `(e_u, e_v, d)`, the window's origin `(u0, v0)`
+    /// and `1 / texel_m` (a texel `(x, y)` holds the points with
+    /// `floor((p·e_u - u0) / texel_m) = x`, likewise `y`).
+    pub fn frame(&self) -> MapFrame {
+        MapFrame {
+            eu: self.eu,
+            ev: self.ev,
+            dir: self.dir,
+            u0: self.u0,
+            v0: self.v0,
+            inv_texel: self.inv_texel,
+        }
     }
 
     /// Whether `other` has the same direction and frame.

@@ -4,6 +4,7 @@
 //! with its BVH, and lighting estimated from the photo ([`lighting`]).
 pub mod closure;
 pub mod contact;
+pub mod direct;
 pub mod envmap;
 pub mod ism;
 pub mod lattice;

@@ -8,7 +8,10 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
 use crate::kit::color::luminance_clamped;
-use crate::relight::scene_cached::{RelightScene, SCENE_PORTS, relight_moved, scene_key_params};
+use crate::relight::direct::evaluate as evaluate_direct;
+use crate::relight::scene_cached::{
+    DirectEvaluator, RelightScene, SCENE_PORTS, relight_moved_with, scene_key_params,
+};
 use crate::relight::vpl::checked_vpls;
 
 use crate::relight::paired::relight;
@@ -53,6 +56,17 @@ depthgraph_graph::ports! {
 }
 
 fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<RelightOut>, NodeError> {
+    eval_with(ctx, i, p, &mut |plan| Ok(evaluate_direct(plan)))
+}
+
+/// `Relight` with the direct term of a scene-cached move from `direct`
+/// (a device's evaluator; the CPU's is [`crate::relight::direct::evaluate`]).
+pub fn eval_with(
+    ctx: &EvalCtx,
+    i: RelightIn,
+    p: &RelightParams,
+    direct: &mut DirectEvaluator,
+) -> Result<Produced<RelightOut>, NodeError> {
     let vpls = checked_vpls(&i.vpls, "vpls")?;
     let capture = match &i.capture_vpls {
         Some(c) => Some(checked_vpls(c, "capture_vpls")?),
@@ -79,7 +93,7 @@ fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<Relig
                 RelightScene::new(&inp.scene(), &vpls, p)
             })?;
             ctx.check_cancelled()?;
-            relight_moved(&scene, &inp, p)?
+            relight_moved_with(&scene, &inp, p, direct)?
         }
     };
     match result {

@@ -51,6 +51,9 @@ use rayon::prelude::*;
 use crate::kit::checks::fits_intrinsics;
 use crate::kit::color::luminance_clamped;
 use crate::relight::contact::{ContactParams, occluded as contact_occluded};
+use crate::relight::direct::{
+    DirectLight, DirectPixel, DirectPlan, DirectSum, DirectTile, evaluate as evaluate_direct, slope,
+};
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, Window, build_single_in, windows,
 };
@@ -234,15 +237,6 @@ impl Tile {
             })
             .collect()
     }
-}
-
-/// The slope factor of the ISM bias, `1 + min(tan θ, 10)` with
-/// `cos θ = n·ω > 0` (module docs of [`crate::relight::ism`]).
-#[inline]
-fn slope(cos: f64) -> f64 {
-    let c = cos.max(1e-6);
-    // guard: c >= 1e-6
-    1.0 + ((1.0 - c * c).max(0.0).sqrt() / c).min(10.0)
 }
 
 impl RelightScene {
@@ -727,6 +721,21 @@ pub fn relight_moved(
     inp: &RelightInputs,
     p: &RelightParams,
 ) -> Result<Option<Relit>, NodeError> {
+    relight_moved_with(scene, inp, p, &mut |plan| Ok(evaluate_direct(plan)))
+}
+
+/// The direct term's evaluator: one [`DirectSum`] per pixel of the plan,
+/// tile after tile ([`crate::relight::direct::evaluate`] on the CPU).
+pub type DirectEvaluator<'e> = dyn FnMut(&DirectPlan) -> Result<Vec<DirectSum>, NodeError> + 'e;
+
+/// [`relight_moved`] with the direct term's sums from `direct` (the
+/// device's, say); everything else on the CPU.
+pub fn relight_moved_with(
+    scene: &RelightScene,
+    inp: &RelightInputs,
+    p: &RelightParams,
+    direct: &mut DirectEvaluator,
+) -> Result<Option<Relit>, NodeError> {
     let k = inp.k;
     if *k != scene.k {
         return Err(NodeError::input(
@@ -1057,10 +1066,7 @@ pub fn relight_moved(
     );
     let bounce_shadows = PointVplShadows::new(&bounce, &bounce_samples, p, p.seed ^ 0x0B1E);
 
-    // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
-    // pixel's cone, plus the bounce within its reach; tiles whose cone
-    // meets no VPL group, out of the bounce's reach and without object
-    // pixels are skipped whole
+    // ---- the target's smooth terms and the composite's inputs
     let photo = inp.photo.as_slice();
     let albedo = inp.albedo.map(|a| a.as_slice());
     let fill = p.fill_light && !scene_vpls.is_empty();
@@ -1098,29 +1104,14 @@ pub fn relight_moved(
     };
     let fill_grid = Nested::<6>::new(w, h, fill_step);
     let fill_node = |i: usize| scene.target[i].as_ref().map(fill_here);
-    // Whether the object blocks VPL `j` (light coordinates `lc` in its
-    // object map and occluder `occ` there; `shared`: its scene map has
-    // the same frame) at `s` with `cos = n·ω > 0` inside its cone, and the
-    // scene does not: then its light is taken away.
-    let takes = |j: usize, shared: bool, s: &Surf, cos: f64, lc: DVec3, occ: f64| -> bool {
-        // in front of the object's occluder whatever the bias (>= 0): lit
-        if occ.is_nan() || occ <= lc.z {
-            return false;
-        }
-        let sl = slope(cos);
-        if occ.is_nan() || occ <= lc.z + bias_os[j] * sl {
-            return false;
-        }
-        match (&scene.maps[j], shared) {
-            (Some(m), true) => m.visible_lc(lc, scene.bias_t[j] * sl),
-            (Some(m), false) => m.visible(s.pos, scene.bias_t[j] * sl),
-            (None, _) => true,
-        }
-    };
-    let diffs: Vec<(usize, [f64; 3])> = scene
+    // Per tile: the VPLs its cone meets (the direct term's plan), whether
+    // it is within the bounce's reach and the bounce VPLs that face it.
+    // Tiles whose cone meets no VPL group, out of the bounce's reach and
+    // without object pixels are skipped whole.
+    let planned: Vec<(DirectTile, bool, Vec<usize>)> = scene
         .tiles
         .par_iter()
-        .flat_map_iter(|tile| {
+        .filter_map(|tile| {
             let tcone = Cone::new(tile.centre, c, reach + tile.radius);
             let mut vpls: Vec<usize> = (0..scene.groups.axis.len())
                 .filter(|&g| scene.groups.meets(g, &tcone))
@@ -1143,71 +1134,90 @@ pub fn relight_moved(
                 Vec::new()
             };
             let any_alpha = tile.pixels.iter().any(|&i| alpha[i] > 0.0);
-            let mut out = Vec::new();
             if vpls.is_empty() && !tile_near && !any_alpha {
-                return out;
+                return None;
             }
-            // VPL-major over the tile's pixels: one object map in cache at
-            // a time; every pixel still sums its VPLs in the tile's order
-            let pix: Vec<(usize, &Surf, Cone)> = tile
+            let pixels: Vec<DirectPixel> = tile
                 .pixels
                 .iter()
                 .filter_map(|&i| {
                     let s = scene.target[i].as_ref()?;
-                    Some((i, s, Cone::new(s.pos, c, reach)))
+                    let cone = Cone::new(s.pos, c, reach);
+                    Some(DirectPixel {
+                        index: i,
+                        pos: s.pos,
+                        n: s.n,
+                        cone_axis: cone.u,
+                        cone_cos_min: cone.cos_min,
+                        cone_all: cone.cos_min <= -1.0,
+                    })
                 })
                 .collect();
-            let mut de = vec![[0.0f64; 3]; pix.len()];
-            let mut hit = vec![false; pix.len()];
-            // The VPLs of one group (the sun's, mostly) share an object
-            // map (`vpls` is sorted by group): per group, pixel by pixel,
-            // the map is looked up once, and only at the first VPL that
-            // faces the pixel inside its cone (most of a tile's pixels see
-            // the object along few of the tile's directions). Every pixel
-            // still sums its VPLs in the tile's order.
-            // per VPL of a run: direction, power, whether its scene map
-            // has the object map's frame (one buffer for the tile's runs)
-            let mut lights: Vec<(usize, DVec3, [f64; 3], bool)> = Vec::new();
-            for run in vpls.chunk_by(|&a, &b| om.of[a] == om.of[b]) {
-                let Some(om_j) = om.get(run[0]) else {
-                    continue;
+            Some((DirectTile { pixels, vpls }, tile_near, tile_bounce))
+        })
+        .collect();
+    let mut tiles = Vec::with_capacity(planned.len());
+    let mut near_bounce = Vec::with_capacity(planned.len());
+    for (t, near, b) in planned {
+        tiles.push(t);
+        near_bounce.push((near, b));
+    }
+    // per VPL with an object map: whether its scene map shares the frame
+    let lights: Vec<DirectLight> = (0..scene.vpls.len())
+        .map(|j| DirectLight {
+            dir: scene.dirs[j],
+            power: scene.vpls[j].power.map(f64::from),
+            group: om.of.get(j).copied().unwrap_or(usize::MAX),
+            bias_object: bias_os[j],
+            bias_scene: scene.bias_t[j],
+            shared: match (&scene.maps[j], om.get(j)) {
+                (Some(a), Some(b)) => a.same_frame(b),
+                _ => false,
+            },
+        })
+        .collect();
+    let plan = DirectPlan {
+        tiles,
+        lights,
+        object_maps: &om.maps,
+        scene_maps: &scene.maps,
+        centre: c,
+    };
+    // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
+    // pixel's cone (the evaluator's), plus the bounce within its reach
+    let sums = direct(&plan)?;
+    if sums.len() != plan.pixel_count() {
+        return Err(NodeError::Internal(format!(
+            "the direct term's evaluator gave {} sums for {} pixels",
+            sums.len(),
+            plan.pixel_count()
+        )));
+    }
+    let mut starts = Vec::with_capacity(plan.tiles.len());
+    let mut at = 0usize;
+    for t in &plan.tiles {
+        starts.push(at);
+        at += t.pixels.len();
+    }
+    let diffs: Vec<(usize, [f64; 3])> = plan
+        .tiles
+        .par_iter()
+        .zip(near_bounce.par_iter())
+        .zip(starts.par_iter())
+        .flat_map_iter(|((tile, (tile_near, tile_bounce)), &start)| {
+            let mut out = Vec::new();
+            for (px, sum) in tile.pixels.iter().zip(&sums[start..]) {
+                let (i, de, hit) = (px.index, sum.de, sum.hit);
+                let s = Surf {
+                    pos: px.pos,
+                    n: px.n,
                 };
-                lights.clear();
-                lights.extend(run.iter().map(|&j| {
-                    let shared = scene.maps[j].as_ref().is_some_and(|m| m.same_frame(om_j));
-                    (j, scene.dirs[j], scene.vpls[j].power.map(f64::from), shared)
-                }));
-                for ((_, s, cone), (de, hit)) in pix.iter().zip(de.iter_mut().zip(hit.iter_mut())) {
-                    // (light coordinates, occluder) once looked up
-                    let mut looked: Option<(DVec3, f64)> = None;
-                    for &(j, d, power, shared) in &lights {
-                        let cos = s.n.dot(d);
-                        if cos <= 0.0 || !cone.contains(d) {
-                            continue;
-                        }
-                        let (lc, occ) = *looked.get_or_insert_with(|| {
-                            let lc = om_j.light_coords(s.pos);
-                            (lc, f64::from(om_j.occluder_lc(lc)))
-                        });
-                        if occ == f64::NEG_INFINITY {
-                            break; // nothing of the object there
-                        }
-                        if takes(j, shared, s, cos, lc, occ) {
-                            *hit = true;
-                            for ch in 0..3 {
-                                de[ch] += power[ch] * cos;
-                            }
-                        }
-                    }
-                }
-            }
-            for ((&(i, s, _), de), hit) in pix.iter().zip(&de).zip(&hit) {
-                let near = tile_near && (s.pos - c).length() <= bounce_reach;
+                let near = *tile_near && (s.pos - c).length() <= bounce_reach;
                 if !hit && !near && alpha[i] <= 0.0 {
                     continue;
                 }
                 let (x, y) = (i % w, i / w);
-                let same = |node: usize| on_surface(s, node);
+                let same = |node: usize| on_surface(&s, node);
                 let b = if near && !bounce.is_empty() {
                     bounce_grid
                         .at(x, y, &bounce_node, same, agree)
@@ -1222,7 +1232,7 @@ pub fn relight_moved(
                 let (e_ind, blocked) = if fill {
                     let f = fill_grid
                         .at(x, y, &fill_node, same, fill_agree)
-                        .unwrap_or_else(|| fill_here(s));
+                        .unwrap_or_else(|| fill_here(&s));
                     ([f[0], f[1], f[2]], [f[3], f[4], f[5]])
                 } else {
                     ([0.0; 3], [0.0; 3])

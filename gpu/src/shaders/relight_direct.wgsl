@@ -1,0 +1,230 @@
+// Relight, scene-cached move: the direct term at each target pixel
+// (nodes/src/relight/direct.rs), one invocation per pixel:
+//
+//   dE = sum_k Phi_k max(0, n.w_k) V^t_k (1 - V^o_k)
+//
+// over the VPLs of the pixel's tile, in the tile's order (runs of VPLs
+// sharing one object map). Coordinates are relative to an origin near the
+// object (the host subtracts it in f64), so f32 keeps their small
+// differences. Every discrete test (cos > 0, the cone, the texel a point
+// falls in, occluder against receiver) whose f32 value lies within its
+// rounding bound of the threshold marks the pixel unsure: the host then
+// recomputes it with the CPU's own f64 function. The sums are compensated
+// (Kahan): within 2 eps of the f32 terms' exact sum.
+
+struct Params {
+    count: u32,
+    _p0: u32,
+    _p1: u32,
+    _p2: u32,
+}
+
+struct Pixel {
+    pos: vec3<f32>,       // relative to the origin
+    cos_min: f32,         // < -1.5: every direction (the pixel within reach)
+    n: vec3<f32>,
+    first: u32,           // the tile's VPL list: [first, last)
+    axis: vec3<f32>,
+    last: u32,
+}
+
+struct Light {
+    dir: vec3<f32>,
+    bias_object: f32,
+    power: vec3<f32>,
+    bias_scene: f32,
+    group: u32,           // its object map (index into maps)
+    scene_map: u32,       // its scene map, or NONE
+    same_frame: u32,      // the scene map has the object map's frame
+    _pad: u32,
+}
+
+struct Map {
+    eu: vec3<f32>,
+    u0: f32,              // window origin, relative to the origin
+    ev: vec3<f32>,
+    v0: f32,
+    dir: vec3<f32>,
+    z0: f32,              // origin . dir
+    inv_texel: f32,
+    res: u32,             // 0: no map
+    offset: u32,          // first texel in `texels`
+    _pad: u32,
+}
+
+const NONE: u32 = 0xffffffffu;
+// An empty texel (the CPU's -inf) is stored as -1e30; at or below: empty.
+const EMPTY: f32 = -1.0e30;
+// Relative rounding allowance of a test (about 16 f32 ulps).
+const REL: f32 = 1.0e-6;
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> pixels: array<Pixel>;
+@group(0) @binding(2) var<storage, read> list: array<u32>;
+@group(0) @binding(3) var<storage, read> lights: array<Light>;
+@group(0) @binding(4) var<storage, read> maps: array<Map>;
+@group(0) @binding(5) var<storage, read> texels: array<f32>;
+// per pixel: the sums' bits (r, g, b) and flags (1: hit, 2: unsure)
+@group(0) @binding(6) var<storage, read_write> out: array<vec4<u32>>;
+
+var<private> unsure: bool;
+
+// The texel index along one axis of a map (-1 outside); `mag` bounds the
+// magnitude of the point's relative coordinates.
+fn axis_index(l: f32, o: f32, inv: f32, res: u32, mag: f32) -> i32 {
+    let u = (l - o) * inv;
+    let e = REL * (inv * (mag + abs(o)) + abs(u) + 1.0);
+    if (u < 0.0) {
+        if (u > -e) {
+            unsure = true;
+        }
+        return -1;
+    }
+    let f = floor(u);
+    if (u - f < e || (f + 1.0) - u < e) {
+        unsure = true;
+    }
+    if (f >= f32(res)) {
+        return -1;
+    }
+    return i32(f);
+}
+
+// The occluder at light coordinates `lc` of map `m` (EMPTY outside).
+fn lookup(m: Map, lc: vec3<f32>, mag: f32) -> f32 {
+    let x = axis_index(lc.x, m.u0, m.inv_texel, m.res, mag);
+    let y = axis_index(lc.y, m.v0, m.inv_texel, m.res, mag);
+    if (x < 0 || y < 0) {
+        return EMPTY;
+    }
+    return texels[m.offset + u32(y) * m.res + u32(x)];
+}
+
+fn light_coords(m: Map, p: vec3<f32>) -> vec3<f32> {
+    return vec3<f32>(dot(p, m.eu), dot(p, m.ev), dot(p, m.dir));
+}
+
+// The ISM bias's slope factor 1 + min(tan, 10) (direct.rs `slope`).
+fn slope(cos: f32) -> f32 {
+    let c = max(cos, 1.0e-6);
+    return 1.0 + min(sqrt(max(1.0 - c * c, 0.0)) / c, 10.0);
+}
+
+// Whether `d` (occluder minus receiver, plus bias) is within the rounding
+// of its terms of 0: then the f64 test may go the other way.
+fn near_zero(d: f32, scale: f32) -> bool {
+    return abs(d) < REL * scale + 1.0e-12;
+}
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x;
+    if (k >= P.count) {
+        return;
+    }
+    let px = pixels[k];
+    unsure = false;
+    let mag = length(px.pos);
+    var s_r = vec2<f32>(0.0, 0.0);
+    var s_g = vec2<f32>(0.0, 0.0);
+    var s_b = vec2<f32>(0.0, 0.0);
+    var hit = false;
+    var group = NONE;
+    var skip_run = false;
+    var looked = false;
+    var lc = vec3<f32>(0.0);
+    var occ = EMPTY;
+    for (var q = px.first; q < px.last; q = q + 1u) {
+        let j = list[q];
+        let l = lights[j];
+        if (l.group != group) {
+            group = l.group;
+            skip_run = false;
+            looked = false;
+        }
+        if (skip_run) {
+            continue;
+        }
+        let m = maps[l.group];
+        if (m.res == 0u) {
+            skip_run = true;
+            continue;
+        }
+        let cos = dot(px.n, l.dir);
+        if (abs(cos) < 8.0 * REL) {
+            unsure = true;
+        }
+        if (cos <= 0.0) {
+            continue;
+        }
+        if (px.cos_min > -1.5) {
+            let cc = dot(l.dir, px.axis) - px.cos_min;
+            if (abs(cc) < 8.0 * REL) {
+                unsure = true;
+            }
+            if (cc < 0.0) {
+                continue;
+            }
+        }
+        if (!looked) {
+            looked = true;
+            lc = light_coords(m, px.pos);
+            occ = lookup(m, lc, mag);
+        }
+        if (occ <= EMPTY) {
+            // nothing of the object there: the rest of the run is lit
+            skip_run = true;
+            continue;
+        }
+        // in front of the object's occluder whatever the bias: lit
+        let scale = abs(occ) + abs(m.z0) + 4.0 * mag;
+        let d1 = (occ - m.z0) - lc.z;
+        if (near_zero(d1, scale)) {
+            unsure = true;
+        }
+        if (d1 <= 0.0) {
+            continue;
+        }
+        let sl = slope(cos);
+        let bo = l.bias_object * sl;
+        let d2 = d1 - bo;
+        if (near_zero(d2, scale + 16.0 * bo)) {
+            unsure = true;
+        }
+        if (d2 <= 0.0) {
+            continue;
+        }
+        // the scene's own map: its light counts only where it is visible
+        var visible = true;
+        if (l.scene_map != NONE) {
+            let sm = maps[l.scene_map];
+            var slc = lc;
+            if (l.same_frame == 0u) {
+                slc = light_coords(sm, px.pos);
+            }
+            let so = lookup(sm, slc, mag);
+            if (so > EMPTY) {
+                let bs = l.bias_scene * sl;
+                let d3 = (so - sm.z0) - (slc.z + bs);
+                if (near_zero(d3, abs(so) + abs(sm.z0) + 4.0 * mag + 16.0 * bs)) {
+                    unsure = true;
+                }
+                visible = d3 <= 0.0;
+            }
+        }
+        if (visible) {
+            hit = true;
+            s_r = kahan_add(s_r, l.power.x * cos);
+            s_g = kahan_add(s_g, l.power.y * cos);
+            s_b = kahan_add(s_b, l.power.z * cos);
+        }
+    }
+    var flags = 0u;
+    if (hit) {
+        flags = flags | 1u;
+    }
+    if (unsure) {
+        flags = flags | 2u;
+    }
+    out[k] = vec4<u32>(bitcast<u32>(s_r.x), bitcast<u32>(s_g.x), bitcast<u32>(s_b.x), flags);
+}
