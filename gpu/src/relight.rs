@@ -194,10 +194,9 @@ pub fn direct(
         maps: Vec::new(),
         texels: Vec::new(),
     };
-    let fallback = |s: &mut Session, why: String| s.too_large(&why);
     for m in plan.object_maps {
         if let Err(why) = packed.push(m.as_ref(), origin) {
-            return Err(fallback(s, why));
+            return Err(s.too_large(&why));
         }
     }
     let mut used = vec![false; plan.lights.len()];
@@ -209,7 +208,7 @@ pub fn direct(
         let scene_map = match plan.scene_maps.get(j).and_then(Option::as_ref) {
             Some(m) if used[j] => match packed.push(Some(m), origin) {
                 Ok(i) => i,
-                Err(why) => return Err(fallback(s, why)),
+                Err(why) => return Err(s.too_large(&why)),
             },
             _ => NONE,
         };
@@ -259,12 +258,7 @@ pub fn direct(
             words.len()
         )));
     }
-    let mut starts = Vec::with_capacity(plan.tiles.len());
-    let mut total = 0usize;
-    for t in &plan.tiles {
-        starts.push(total);
-        total += t.pixels.len();
-    }
+    let starts = plan.tile_starts();
     stats.pixels += n;
     for (w, &(t, k)) in words.chunks_exact(4).zip(&at) {
         let sum = if w[3] & 2 != 0 {

@@ -112,6 +112,20 @@ impl DirectPlan<'_> {
         self.tiles.iter().map(|t| t.pixels.len()).sum()
     }
 
+    /// Per tile: the index of its first pixel in the flat list of sums an
+    /// evaluator returns (tile after tile).
+    pub fn tile_starts(&self) -> Vec<usize> {
+        let mut at = 0usize;
+        self.tiles
+            .iter()
+            .map(|t| {
+                let start = at;
+                at += t.pixels.len();
+                start
+            })
+            .collect()
+    }
+
     /// Whether the object blocks VPL `j` (`l = lights[j]`) at `px`
     /// (`cos = n·ω_j > 0`, inside the pixel's cone) and the scene does not:
     /// `lc` and `occ` are the light coordinates and the occluder in `j`'s

@@ -1193,12 +1193,7 @@ pub fn relight_moved_with(
             plan.pixel_count()
         )));
     }
-    let mut starts = Vec::with_capacity(plan.tiles.len());
-    let mut at = 0usize;
-    for t in &plan.tiles {
-        starts.push(at);
-        at += t.pixels.len();
-    }
+    let starts = plan.tile_starts();
     let diffs: Vec<(usize, [f64; 3])> = plan
         .tiles
         .par_iter()
