@@ -94,7 +94,11 @@ pub fn occluded(
     let behind = |sz: f64, (z, u, v): (f64, usize, usize)| {
         z < sz - footprint && z < sz - footprint - slack(z, u, v)
     };
-    let mut in_front = surface(x).filter(|q| !behind(x.z, *q));
+    // the last sample in front of the photo's surface; the start's is
+    // looked up only when the first sample is behind (most marches never
+    // need it)
+    let start = || surface(x).filter(|q| !behind(x.z, *q));
+    let mut in_front = None;
     for i in 1..=steps {
         let t = t_max * i as f64 / steps as f64;
         let s = x + d * t;
@@ -109,11 +113,14 @@ pub fn occluded(
             // surface (depths within 10 % per pixel between the two;
             // guard: both > 0)
             let close = s.z - z < p.thickness_m;
-            let crossed = in_front.is_some_and(|(z0, u0, v0)| {
-                let n = u.abs_diff(u0).max(v.abs_diff(v0)).clamp(1, 16);
-                z0.max(z) / z0.min(z) <= 1.1f64.powi(n as i32)
-            });
-            if close || crossed {
+            let crossed = || {
+                let prev = if i == 1 { start() } else { in_front };
+                prev.is_some_and(|(z0, u0, v0)| {
+                    let n = u.abs_diff(u0).max(v.abs_diff(v0)).clamp(1, 16);
+                    z0.max(z) / z0.min(z) <= 1.1f64.powi(n as i32)
+                })
+            };
+            if close || crossed() {
                 return true;
             }
             in_front = None;

@@ -124,7 +124,7 @@ pub fn eval_with(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Relight",
-        11,
+        12,
         "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
          directional VPLs of an environment map, imperfect shadow maps, one bounce each way with clamped \
          1/r² (object to scene; scene to object through secondary VPLs read off the photo, the floor it stands \
