@@ -1483,6 +1483,56 @@ mod tests {
         slab_shadow_is_analytic(&cached, 0.35);
     }
 
+    /// The object's lattices test the received irradiance `E^{s+t} + B_s`
+    /// and `E_cap`, the ratio's two terms: a bounce that swings by all of
+    /// itself but by under 5 % of the whole blends on the coarse lattice
+    /// (only its 5 x 5 nodes of a 16 x 16 plane are summed, each blend
+    /// within 5 % of the value there), while a whole that swings by more
+    /// is summed at more pixels.
+    #[test]
+    fn the_object_lattices_test_the_light_received_in_all() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let (w, h) = (16, 16);
+        let obj_idx: Vec<usize> = (0..w * h).collect();
+        let surfs: Vec<Surf> = obj_idx
+            .iter()
+            .map(|&i| Surf {
+                pos: DVec3::new((i % w) as f64 * 0.01, (i / w) as f64 * 0.01, 2.0),
+                n: DVec3::NEG_Z,
+            })
+            .collect();
+        let agree = Agreement {
+            rel: LATTICE_REL,
+            abs: 0.0,
+            whole: true,
+        };
+        // the value at a surface: direct light 1, a bounce of `swing` about
+        // its mean that changes by all of itself over a few pixels
+        let value = |s: &Surf, swing: f64| -> Irradiances {
+            let bs = swing * (1.0 + (s.pos.x * 100.0).sin());
+            [[1.0 + bs; 3], [1.0; 3]]
+        };
+        for (swing, blends) in [(0.02, true), (0.2, false)] {
+            let summed = AtomicUsize::new(0);
+            let exact = |ss: &[Surf]| -> Vec<Irradiances> {
+                summed.fetch_add(ss.len(), Ordering::Relaxed);
+                ss.iter().map(|s| value(s, swing)).collect()
+            };
+            let irr = lattice_irradiance(&obj_idx, &surfs, w, h, 2, agree, &exact);
+            let n = summed.load(Ordering::Relaxed);
+            if blends {
+                assert_eq!(n, 25, "swing {swing}: {n} surfaces summed");
+                for (s, v) in surfs.iter().zip(&irr) {
+                    let want = value(s, swing);
+                    assert!((v[0][0] - want[0][0]).abs() <= LATTICE_REL * want[0][0]);
+                    assert_eq!(v[1], [1.0; 3]);
+                }
+            } else {
+                assert!(n > 25, "swing {swing}: only {n} surfaces summed");
+            }
+        }
+    }
+
     fn sky(n: usize) -> Vec<Vpl> {
         (0..n)
             .map(|j| {
