@@ -145,7 +145,8 @@ use crate::relight::vpl::Vpl;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, Importance, PointVplShadows, RelightInputs, RelightParams, Relit,
     Surf, centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
-    pixel_areas, scene_bounce_vpls, scene_fill, support_vpls, target_albedo, target_surfaces,
+    pixel_areas, received, scene_bounce_vpls, scene_fill, support_vpls, target_albedo,
+    target_surfaces,
 };
 
 /// Irradiance `(E^t, E^{s+t}, E_cap)` per surface (module docs).
@@ -390,7 +391,7 @@ pub fn relight(
                 }
                 _ => [0.0; 3],
             };
-            object_radiance(pc, est, ecap, bs, cap_floor)
+            object_radiance(pc, received(est, bs), ecap, cap_floor)
         })
         .collect();
     // bounce VPLs: stratified subset of object pixels

@@ -32,8 +32,8 @@ use crate::depth::mesh::{MeshParams, depth_to_mesh};
 use crate::relight::raycast::Bvh;
 use crate::relight::shading::{
     Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, centre_and_radius, clean_alpha,
-    composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas, scene_bounce_vpls,
-    scene_fill, support_vpls, target_albedo, target_surfaces,
+    composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas, received,
+    scene_bounce_vpls, scene_fill, support_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 
@@ -181,7 +181,7 @@ pub fn relight_reference(
         let bs = bounce_sum(pos, n, scene_vpls.iter().enumerate(), r2_min, |j| {
             sees(pos, n, scene_vpls[j].0)
         });
-        object_radiance(pasted[i], est, ecap, bs, cap_floor)
+        object_radiance(pasted[i], received(est, bs), ecap, cap_floor)
     };
     let bounce = object_bounce_vpls(
         &obj_idx,

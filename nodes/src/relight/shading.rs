@@ -425,6 +425,13 @@ pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {
     (c, radius)
 }
 
+/// The irradiance an object surface receives in the target scene,
+/// `E^{s+t} + B_s` ([`object_radiance`]'s numerator).
+#[inline]
+pub(crate) fn received(est: [f64; 3], bs: [f64; 3]) -> [f64; 3] {
+    std::array::from_fn(|ch| est[ch] + bs[ch])
+}
+
 /// The object's shaded colour (module docs of [`crate::relight::paired`],
 /// "The object's own shading"): its pasted radiance times the ratio of the
 /// irradiance it receives in the target scene to the irradiance it
@@ -434,18 +441,14 @@ pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {
 /// scene's bounce, `E_cap` the capture map's direct light with the
 /// object's own shadows (its capture surroundings are unknown: nothing
 /// bounced there). With the same map on both sides and an empty target
-/// the ratio is 1 up to the visibility estimates.
-pub(crate) fn object_radiance(
-    pc: Rgb,
-    est: [f64; 3],
-    ecap: [f64; 3],
-    bs: [f64; 3],
-    cap_floor: f64,
-) -> Rgb {
+/// the ratio is 1 up to the visibility estimates. `received` is
+/// `E^{s+t} + B_s` ([`received`]): the scene-cached path blends that sum
+/// on its lattices rather than its two terms apart.
+pub(crate) fn object_radiance(pc: Rgb, received: [f64; 3], ecap: [f64; 3], cap_floor: f64) -> Rgb {
     std::array::from_fn(|ch| {
         let cap = ecap[ch].max(cap_floor);
         // guard: cap >= cap_floor > 0
-        let ratio = (est[ch] + bs[ch]) / cap;
+        let ratio = received[ch] / cap;
         (f64::from(pc[ch].max(0.0)) * ratio) as f32
     })
 }
