@@ -64,6 +64,7 @@
 
 use depthgraph_graph::prelude::*;
 use glam::DVec3;
+use rayon::prelude::*;
 
 /// The silhouette plane of the object of `front` and what the back is
 /// mirrored about (module docs).
@@ -219,7 +220,7 @@ pub fn back_depth(front: &DepthMap, k: &Intrinsics) -> DepthMap {
         return DepthMap::filled(w, h, 0.0);
     };
     let (q, n, thick) = (sil.centre, sil.normal, sil.thickness);
-    Image::from_fn(w, h, |x, y| {
+    let at = |x: usize, y: usize| -> f32 {
         let zf = *front.get(x, y);
         if !DepthMap::is_valid(zf) {
             return 0.0;
@@ -253,7 +254,18 @@ pub fn back_depth(front: &DepthMap, k: &Intrinsics) -> DepthMap {
         let zf64 = f64::from(zf);
         let zb = (2.0 * zm - zf64).min(zf64 + thick).max(zf64);
         if zb.is_finite() { zb as f32 } else { zf }
-    })
+    };
+    // rows in parallel (each pixel depends on its own front depth alone)
+    let mut out = DepthMap::filled(w, h, 0.0);
+    out.as_mut_slice()
+        .par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, z) in row.iter_mut().enumerate() {
+                *z = at(x, y);
+            }
+        });
+    out
 }
 
 /// The closed object as a volume in the camera's view: a point is inside

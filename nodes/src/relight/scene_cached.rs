@@ -1204,7 +1204,7 @@ pub fn relight_moved_with(
         )));
     }
     let starts = plan.tile_starts();
-    let diffs: Vec<(usize, [f64; 3])> = plan
+    let diffs: Vec<(usize, [f64; 3], Rgb)> = plan
         .tiles
         .par_iter()
         .zip(near_bounce.par_iter())
@@ -1247,10 +1247,14 @@ pub fn relight_moved_with(
                     None => [0.0; 3],
                 };
                 let rho = target_albedo(albedo.map(|a| a[i]), photo[i], et, e_floor);
-                out.push((
-                    i,
-                    std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch] - blocked[ch])),
-                ));
+                let d: [f64; 3] =
+                    std::array::from_fn(|ch| rho[ch] * (b[ch] - de[ch] - blocked[ch]));
+                // the composite here too (in parallel; the scatter below is serial)
+                let obj = match obj_idx.binary_search(&i) {
+                    Ok(j) => obj_rad[j],
+                    Err(_) => [0.0; 3],
+                };
+                out.push((i, d, composite(photo[i], alpha[i], obj, d)));
             }
             out
         })
@@ -1269,14 +1273,10 @@ pub fn relight_moved_with(
         // Every object pixel with a target surface behind it is in `diffs`
         // (its tile has alpha > 0 and the pixel is kept); the others have
         // no difference.
-        for &(i, d) in &diffs {
+        for &(i, d, c) in &diffs {
             ds[i] = d.map(|v| v as f32);
             rs[i] = 1.0;
-            let obj = match obj_idx.binary_search(&i) {
-                Ok(j) => obj_rad[j],
-                Err(_) => [0.0; 3],
-            };
-            cs[i] = composite(photo[i], alpha[i], obj, d);
+            cs[i] = c;
         }
         for (&i, obj) in obj_idx.iter().zip(&obj_rad) {
             if scene.target[i].is_none() {
