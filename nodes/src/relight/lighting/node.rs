@@ -62,13 +62,15 @@ fn eval(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "EstimateLighting",
-        2,
+        3,
         "The photo's lighting estimated from its own shading, as an environment map for VplSample and Relight \
          when no capture of the light exists (3d-editing §VI, future work).\n\
          Lambertian surfaces of piecewise-constant albedo; low-frequency light as spherical harmonics of order 2 \
          (Ramamoorthi & Hanrahan 2001) fitted to the ratios of each pixel to its region's mean, plus a dominant \
          directional light (sun, lamp) searched over the sphere with its cast shadows marched through the depth \
-         map; robust weights for highlights and textures. The light's scale assumes a median albedo \
+         map (a light whose fit leaves the low-frequency part under a tenth of the mean irradiance is not \
+         believed: a sky darker than black beside a low \"sun\" is the fit trading one for the other); \
+         robust weights for highlights and textures. The light's scale assumes a median albedo \
          (assumed_albedo, grey world). A photo without shading variation gives an isotropic ambient map with \
          confidence 0 and says so. explain shows the light found, the ambient level and the confidence.",
         eval,
