@@ -972,6 +972,18 @@ pub fn estimate_lighting(
             100.0 * l.gain,
             samples.len()
         ),
+        (None, false) if !p.light => format!(
+            "ambient only, radiance {amb_l:.4}: the search for a dominant light is off (light = false); \
+             confidence {confidence:.2} ({} samples, {regions} regions)",
+            samples.len()
+        ),
+        (None, false) if best.is_none() => format!(
+            "ambient only, radiance {amb_l:.4}: no dominant light (no direction's fit leaves the \
+             low-frequency light {:.0} % of the mean irradiance: each would need a sky darker than black \
+             beside it); confidence {confidence:.2} ({} samples, {regions} regions)",
+            100.0 * MIN_AMBIENT_SHARE,
+            samples.len()
+        ),
         (None, false) if grazing => format!(
             "ambient only, radiance {amb_l:.4}: no dominant light (the best lies at the lowest elevation \
              searched, {:.0}°: a grazing light explaining gradients, not believed); confidence {confidence:.2} \
@@ -1028,13 +1040,15 @@ mod tests {
         estimate_lighting(&inp, &EstimateParams::default()).unwrap()
     }
 
+    /// The tests' path tracing: 128 paths per pixel, 3 bounces, seed 1.
+    const PT: PathTraceParams = PathTraceParams {
+        samples: 128,
+        bounces: 3,
+        seed: 1,
+    };
+
     fn path_traced(room: LightRoom, sky: Sky) -> LightingEstimate {
-        let pt = PathTraceParams {
-            samples: 128,
-            bounces: 3,
-            seed: 1,
-        };
-        let c = light_case(room, sky, 160, 120, 128, &pt).unwrap();
+        let c = light_case(room, sky, 160, 120, 128, &PT).unwrap();
         estimate(&c.photo, &c.depth, &c.k, None)
     }
 
@@ -1109,15 +1123,44 @@ mod tests {
     /// not believed ([`MIN_AMBIENT_SHARE`]), and the sky stays.
     #[test]
     fn a_light_that_leaves_no_ambient_is_not_believed() {
-        let pt = PathTraceParams {
-            samples: 128,
-            bounces: 3,
-            seed: 1,
-        };
-        let case = relight_case(Room::Occluded, Some(Sky::Overcast), 160, 120, 128, &pt).unwrap();
+        let case = relight_case(Room::Occluded, Some(Sky::Overcast), 160, 120, 128, &PT).unwrap();
         let est = estimate(&case.photo, &case.depth, &case.k, None);
         assert!(est.light.is_none(), "{}", est.report);
         assert!(luminance_f64(est.ambient) > 0.0, "{}", est.report);
+    }
+
+    /// A sunlit room whose photo shows a red floor and a wall alone (the
+    /// relight truth's `coloured floor`, sun + sky): no direction's fit
+    /// keeps a sky beside its light, and the report says that, not "the
+    /// best explains 0 %"; with the search off, it says it is off.
+    #[test]
+    fn the_report_says_why_no_light_was_kept() {
+        let case = relight_case(Room::ColouredFloor, None, 320, 240, 128, &PT).unwrap();
+        let est = estimate(&case.photo, &case.depth, &case.k, None);
+        assert!(est.light.is_none(), "{}", est.report);
+        assert!(
+            est.report.contains("no direction's fit leaves"),
+            "{}",
+            est.report
+        );
+        let inp = EstimateInputs {
+            color: &case.photo,
+            depth: &case.depth,
+            k: &case.k,
+            normals: None,
+            mask: None,
+        };
+        let off = EstimateParams {
+            light: false,
+            ..Default::default()
+        };
+        let est = estimate_lighting(&inp, &off).unwrap();
+        assert!(est.light.is_none());
+        assert!(
+            est.report.contains("search for a dominant light is off"),
+            "{}",
+            est.report
+        );
     }
 
     /// The share of the low-frequency light: all of it without a light,
