@@ -1273,10 +1273,10 @@ pub fn relight_moved_with(
         // Every object pixel with a target surface behind it is in `diffs`
         // (its tile has alpha > 0 and the pixel is kept); the others have
         // no difference.
-        for &(i, d, c) in &diffs {
+        for &(i, d, pixel) in &diffs {
             ds[i] = d.map(|v| v as f32);
             rs[i] = 1.0;
-            cs[i] = c;
+            cs[i] = pixel;
         }
         for (&i, obj) in obj_idx.iter().zip(&obj_rad) {
             if scene.target[i].is_none() {

@@ -62,7 +62,7 @@ fn eval(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "EstimateLighting",
-        4,
+        5,
         "The photo's lighting estimated from its own shading, as an environment map for VplSample and Relight \
          when no capture of the light exists (3d-editing §VI, future work).\n\
          Lambertian surfaces of piecewise-constant albedo; low-frequency light as spherical harmonics of order 2 \
