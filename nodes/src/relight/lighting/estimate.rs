@@ -132,18 +132,6 @@ const SHADOW_STEPS: usize = 24;
 /// "sun" at 12°, a sun found 24° off).
 const MIN_AMBIENT_SHARE: f64 = 0.1;
 
-/// Why the search for a light kept no direction (the report's reason).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum NoLight {
-    /// No search ran (the light is off, or the photo is flat).
-    NotSearched,
-    /// No direction lies above the lowest elevation searched.
-    NoDirection,
-    /// Every direction's fit gave the light no positive irradiance or left
-    /// the low-frequency light under [`MIN_AMBIENT_SHARE`].
-    NonePlausible,
-}
-
 /// The estimated directional light.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LightEstimate {
@@ -208,6 +196,13 @@ struct Sample {
     region: usize,
     /// The irradiance basis at `n`.
     phi: [f64; SH_TERMS],
+}
+
+impl Sample {
+    /// The low-frequency light's irradiance here, `φ·θ`.
+    fn ambient(&self, theta: &[f64; SH_TERMS]) -> f64 {
+        self.phi.iter().zip(theta).map(|(p, t)| p * t).sum()
+    }
 }
 
 /// Per-region means of the intensities (each channel and luminance).
@@ -301,7 +296,7 @@ struct Fit {
 fn ambient_share(samples: &[Sample], f: &Fit, col: &[f64], wts: &[f64]) -> f64 {
     let (mut amb, mut all) = (0.0f64, 0.0f64);
     for ((s, c), w) in samples.iter().zip(col).zip(wts) {
-        let a: f64 = s.phi.iter().zip(&f.theta).map(|(p, t)| p * t).sum();
+        let a = s.ambient(&f.theta);
         amb += w * a;
         all += w * (a + f.light * c);
     }
@@ -799,8 +794,8 @@ pub fn estimate_lighting(
     };
     // search for the light
     let mut best: Option<(DVec3, Fit, Vec<f64>, f64)> = None;
-    // why the search kept no direction (the report's reason)
-    let mut no_light = NoLight::NotSearched;
+    // the search had no direction above its lowest elevation (the report's reason)
+    let mut no_direction = false;
     if p.light && !flat {
         let min_up = p.min_elevation_deg.to_radians().sin();
         let dirs: Vec<DVec3> = fibonacci_sphere(p.directions.max(1))
@@ -811,11 +806,7 @@ pub fn estimate_lighting(
             .par_iter()
             .filter_map(|d| score(*d, &base).map(|(_, _, c)| (*d, c)))
             .collect();
-        no_light = if dirs.is_empty() {
-            NoLight::NoDirection
-        } else {
-            NoLight::NonePlausible
-        };
+        no_direction = dirs.is_empty();
         let mut centre = scored
             .iter()
             .min_by(|a, b| a.1.total_cmp(&b.1))
@@ -929,7 +920,7 @@ pub fn estimate_lighting(
         let mut ebar = vec![0.0f64; regions];
         let mut cnt = vec![0usize; regions];
         for (i, s) in samples.iter().enumerate() {
-            let amb: f64 = s.phi.iter().zip(&f.theta).map(|(a, b)| a * b).sum();
+            let amb = s.ambient(&f.theta);
             ebar[s.region] += amb + col.as_ref().map_or(0.0, |c| f.light * c[i]);
             cnt[s.region] += 1;
         }
@@ -998,7 +989,7 @@ pub fn estimate_lighting(
              confidence {confidence:.2} ({} samples, {regions} regions)",
             samples.len()
         ),
-        (None, false) if best.is_none() && no_light == NoLight::NoDirection => format!(
+        (None, false) if no_direction => format!(
             "ambient only, radiance {amb_l:.4}: no dominant light (no direction lies above the lowest \
              elevation searched, {:.0}°); confidence {confidence:.2} ({} samples, {regions} regions)",
             p.min_elevation_deg,
