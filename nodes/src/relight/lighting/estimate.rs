@@ -14,8 +14,16 @@
 //!   ([`sh`]: nine radiance coefficients `L_j`, `E = Σ L_j Â_l Y_j(n)`), plus
 //!   optionally one **dominant directional light** `d` of irradiance `s`
 //!   (sun, lamp), seen or not by each pixel according to the depth map:
-//!   `E(n_i) = Σ_j L_j Â_l Y_j(n_i) + s max(0, n_i·d) V_i(d)`. Light that
-//!   the room bounces is part of what the fit calls ambient.
+//!   `E(n_i) = Σ_j L_j Â_l Y_j(n_i) + s max(0, n_i·d) V_i(d)`.
+//! - Light the photo's own surfaces bounce onto each other is **not** part
+//!   of the map (with [`EstimateParams::bounce`], the default): it is known
+//!   from the pixels, `B_i` of [`super::bounce`], in the photo's units, and
+//!   `Relight` bounces the map's light off the same surfaces again. The
+//!   irradiance is then `S E(n_i) + B_i`, `S` the light's absolute scale,
+//!   and `E` counts the sky only where the photo's surfaces do not cover it
+//!   (`φ_i` less the covered part of [`super::bounce::Gathered`]). Light
+//!   bounced by what the photo does not show stays in the low-frequency
+//!   part.
 //!
 //! # The fit
 //!
@@ -23,8 +31,13 @@
 //! sample `i`, `E_i = φ_i·θ`. The unknown albedo of region `r` drops out of
 //! the ratio of a sample to its region's mean, `I_i / Ī_r = E_i / Ē_r`,
 //! which is **linear** in `θ`: `(y_i φ̄_r - φ_i)·θ = 0` with
-//! `y_i = I_i / Ī_r` and `φ̄_r` the region's mean of `φ`. With `L_00 = 1`
-//! fixed, this is a linear least-squares problem in the other terms,
+//! `y_i = I_i / Ī_r` and `φ̄_r` the region's mean of `φ`. With the bounce,
+//! `I_i / Ī_r = (S E_i + B_i) / (S Ē_r + B̄_r)` gives
+//! `(y_i φ̄_r - φ_i)·θ = β (B_i - y_i B̄_r)`, `β = 1/S`, linear for a given
+//! `β`; `β` comes from the albedo assumption below, first on the fit
+//! without light or bounce (for the search and the robust refit), then
+//! from the final fit, settled in three rounds per colour channel. With the mean of `E` over the samples fixed at 1,
+//! this is a linear least-squares problem in the other terms,
 //! regularised towards an isotropic light (ridge weights per order), solved
 //! by Cholesky in f64. A region facing one direction only (a flat wall)
 //! gives rows of zero: it carries no information, and neither does it bias
@@ -34,8 +47,8 @@
 //! Fibonacci sphere ([`EstimateParams::directions`]), then two finer grids
 //! around the best; its visibility `V_i(d)` is a march through the depth
 //! map (the cast shadows of what the photo shows). A direction whose fit
-//! leaves the low-frequency part under [`MIN_AMBIENT_SHARE`] of the mean
-//! irradiance takes no part in the search (a sky darker than black beside
+//! leaves the low-frequency part and the bounce together under
+//! [`MIN_AMBIENT_SHARE`] of the mean irradiance takes no part in the search (a sky darker than black beside
 //! a light is the fit trading one for the other). The light is kept when
 //! it explains at least [`EstimateParams::min_light_gain`] of what the
 //! ambient-only fit leaves and its irradiance is positive. At the chosen
@@ -45,11 +58,15 @@
 //! colour channel is then fitted with those weights.
 //!
 //! The albedo scale is not observable (brighter light on darker surfaces
-//! looks the same): it is fixed by assuming the median albedo of the
+//! looks the same; the bounce is brighter on brighter surfaces, but fitting
+//! its weight freely gave median reflectances from 0.05 to 0.86 on rooms
+//! of 0.5-0.6): it is fixed by assuming the median reflectance of the
 //! sampled surfaces is [`EstimateParams::assumed_albedo`] in every channel
 //! (grey world: a scene whose surfaces share a strong hue gives a light
-//! tinted by its complement). `Relight` is insensitive to that scale where
-//! the object is shaded by a ratio of irradiances of one map.
+//! tinted by its complement). A Lambertian surface of reflectance `r`
+//! shows `I = (r/π) E`, so the albedo `a` of the model above is `r/π`.
+//! `Relight` adds the photo's bounce, in the photo's units, to the map's
+//! light: the scale matters there.
 //!
 //! Directions no normal faces get the low-frequency value the fit gives
 //! them (the ridge keeps it near the isotropic level). A photo with too
@@ -67,6 +84,7 @@ use rayon::prelude::*;
 use crate::kit::color::luminance_f64;
 use crate::kit::linalg::cholesky_solve;
 use crate::relight::envmap::{SunBlend, paint_sun, pixel_direction};
+use crate::relight::lighting::bounce::{BOUNCE_PATCHES, gather, patches};
 use crate::relight::lighting::regions::{NO_REGION, RegionParams, albedo_regions};
 use crate::relight::lighting::sh::{self, SH_ORDER, SH_TERMS};
 use crate::relight::shading::target_surfaces;
@@ -92,7 +110,7 @@ node_params! {
         pub min_light_gain: f64 = 0.05, ParamKind::Float { min: 0.0, max: 1.0 };
         /// Below this RMS of relative shading variation the photo is treated as unlit by any direction (ambient only).
         pub min_variation: f64 = 0.02, ParamKind::Float { min: 0.0, max: 1.0 };
-        /// Median albedo assumed for the sampled surfaces (fixes the light's scale).
+        /// Median reflectance (diffuse albedo, 0-1) assumed for the sampled surfaces: fixes the light's scale (a surface of reflectance r under radiance L shows r L).
         pub assumed_albedo: f64 = 0.5, ParamKind::Float { min: 0.01, max: 1.0 };
         /// Angular diameter of the estimated light's disc in the map, degrees.
         pub light_size_deg: f64 = 3.0, ParamKind::Float { min: 0.1, max: 60.0 };
@@ -100,6 +118,8 @@ node_params! {
         pub shadow_reach_m: f64 = 3.0, ParamKind::Float { min: 0.0, max: 100.0 };
         /// Thickness assumed behind every depth pixel for shadows, metres.
         pub occluder_thickness_m: f64 = 0.4, ParamKind::Float { min: 0.001, max: 100.0 };
+        /// Leave out of the map the light the photo's surfaces bounce onto each other (Relight bounces it again from the same surfaces); off = all of it counts as sky.
+        pub bounce: bool = true, ParamKind::Bool;
     }
 }
 
@@ -196,6 +216,9 @@ struct Sample {
     region: usize,
     /// The irradiance basis at `n`.
     phi: [f64; SH_TERMS],
+    /// The irradiance the photo's surfaces bounce here ([`bounce`]), linear
+    /// RGB and luminance, in the photo's units; 0 with `bounce` off.
+    bounce: [f64; 4],
 }
 
 impl Sample {
@@ -222,28 +245,34 @@ fn region_means(samples: &[Sample], regions: usize) -> Vec<[f64; 4]> {
         .collect()
 }
 
+/// How shadow rays march ([`lit`]).
+#[derive(Debug, Clone, Copy)]
+struct Shadow {
+    /// How far, metres.
+    reach: f64,
+    /// The steps' geometric growth ([`shadow_ratio`]).
+    ratio: f64,
+    /// Thickness assumed behind every depth pixel, metres.
+    thickness: f64,
+}
+
 /// `V_i(d)`: whether the depth map leaves the ray from `pos` towards `d`
 /// open (module docs: a march of [`SHADOW_STEPS`] geometric steps up to
 /// `reach` metres; a point behind a depth pixel by less than `thickness`
 /// is in shadow; a ray leaving the frame or going behind the camera is
 /// open).
-fn lit(
-    depth: &DepthMap,
-    k: &Intrinsics,
-    pos: DVec3,
-    n: DVec3,
-    d: DVec3,
-    reach: f64,
-    thickness: f64,
-) -> bool {
+fn lit(depth: &DepthMap, k: &Intrinsics, pos: DVec3, n: DVec3, d: DVec3, sh: Shadow) -> bool {
+    let Shadow {
+        reach,
+        ratio,
+        thickness,
+    } = sh;
     let (w, h) = depth.dims();
     let start = pos + n * (0.01 + 0.01 * pos.z);
-    let t0 = 0.02f64;
+    let t0 = SHADOW_T0;
     if reach <= t0 {
         return true;
     }
-    // guard: reach > t0 > 0
-    let ratio = (reach / t0).powf(1.0 / (SHADOW_STEPS - 1) as f64);
     let mut t = t0;
     for _ in 0..SHADOW_STEPS {
         let q = start + d * t;
@@ -263,6 +292,16 @@ fn lit(
         t *= ratio;
     }
     true
+}
+
+/// First step of a shadow ray, metres.
+const SHADOW_T0: f64 = 0.02;
+
+/// The geometric growth of a shadow ray's steps to `reach` (> [`SHADOW_T0`]),
+/// [`lit`]'s `ratio`.
+fn shadow_ratio(reach: f64) -> f64 {
+    // guard: reach > t0 > 0 where called
+    (reach / SHADOW_T0).powf(1.0 / (SHADOW_STEPS - 1) as f64)
 }
 
 /// Unit directions of a Fibonacci sphere.
@@ -285,18 +324,22 @@ fn fibonacci_sphere(n: usize) -> Vec<DVec3> {
 struct Fit {
     theta: [f64; SH_TERMS],
     light: f64,
+    /// The bounce's weight `β` of its design (0 without).
+    beta: f64,
     rss: f64,
     resid: Vec<f64>,
 }
 
 /// The part of the samples' weighted mean irradiance that the fit's
-/// low-frequency light gives: `Σ w_i φ_i·θ / Σ w_i (φ_i·θ + s col_i)`
-/// (`col` the light's column, `s` its irradiance); 1 without a light, 0
-/// when the weights or the mean vanish (guard).
+/// low-frequency light and the photo's bounce give:
+/// `Σ w_i (φ_i·θ + β B_i) / Σ w_i (φ_i·θ + β B_i + s col_i)` (`col` the
+/// light's column, `s` its irradiance, `β B_i` the bounce in the fit's
+/// units); 1 without a light, 0 when the weights or the mean vanish
+/// (guard).
 fn ambient_share(samples: &[Sample], f: &Fit, col: &[f64], wts: &[f64]) -> f64 {
     let (mut amb, mut all) = (0.0f64, 0.0f64);
     for ((s, c), w) in samples.iter().zip(col).zip(wts) {
-        let a = s.ambient(&f.theta);
+        let a = s.ambient(&f.theta) + f.beta * s.bounce[3];
         amb += w * a;
         all += w * (a + f.light * c);
     }
@@ -336,15 +379,33 @@ fn huber_scale(r: &[f64]) -> f64 {
 
 /// The part of the ratio system (module docs) that does not depend on the
 /// light: for channel `ch` (0-2, 3 = luminance) and weights `wts`, each
-/// sample's ratio `y_i = I_i / Ī_r` (`None` in a black region) and its
-/// low-frequency row `y_i φ̄_r - φ_i`, and their weighted normal matrix, so
-/// that each direction the search tries adds only the light's column.
+/// sample's ratio `y_i = I_i / Ī_r` (`None` in a black region), its
+/// low-frequency row `y_i φ̄_r - φ_i` and its bounce term
+/// `b_i = β (B_i - y_i B̄_r)` (module docs; 0 without bounce), and their
+/// weighted normal matrix and `Σ w a b`, so that each direction the search
+/// tries adds only the light's column.
+/// How the ratio system holds the photo's bounce (module docs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum BounceTerm {
+    /// No bounce term (`bounce` off, or a flat photo).
+    Off,
+    /// `β` given: the bounce terms are the right-hand side.
+    Fixed(f64),
+}
+
 struct Design<'a> {
     samples: &'a [Sample],
+    /// The bounce's weight `β` (0 without).
+    beta: f64,
     wts: &'a [f64],
     regions: usize,
     y: Vec<Option<f64>>,
     rows: Vec<[f64; SH_TERMS]>,
+    /// The bounce terms `b_i`, and whether any is not 0.
+    b: Vec<f64>,
+    has_b: bool,
+    /// `Σ w a b` over the low-frequency rows.
+    g_sh: [f64; SH_TERMS],
     /// `Σ w a aᵀ` over the low-frequency rows (row-major, lower triangle).
     m_sh: [f64; SH_TERMS * SH_TERMS],
     /// Weighted mean of `φ`.
@@ -359,19 +420,27 @@ impl<'a> Design<'a> {
         ch: usize,
         wts: &'a [f64],
         regions: usize,
+        bounce: BounceTerm,
     ) -> Self {
+        let beta = match bounce {
+            BounceTerm::Fixed(b) => b,
+            _ => 0.0,
+        };
         let mut fbar = vec![[0.0f64; SH_TERMS]; regions];
+        let mut bbar = vec![0.0f64; regions];
         let mut cnt = vec![0usize; regions];
         for s in samples {
             for (a, b) in fbar[s.region].iter_mut().zip(&s.phi) {
                 *a += b;
             }
+            bbar[s.region] += s.bounce[ch];
             cnt[s.region] += 1;
         }
-        for (fb, n) in fbar.iter_mut().zip(&cnt) {
+        for ((fb, bb), n) in fbar.iter_mut().zip(bbar.iter_mut()).zip(&cnt) {
             // guard: every region kept has samples
             let inv = 1.0 / (*n).max(1) as f64;
             fb.iter_mut().for_each(|v| *v *= inv);
+            *bb *= inv;
         }
         let y: Vec<Option<f64>> = samples
             .iter()
@@ -389,10 +458,21 @@ impl<'a> Design<'a> {
                 std::array::from_fn(|j| y * fbar[s.region][j] - s.phi[j])
             })
             .collect();
+        let b: Vec<f64> = samples
+            .iter()
+            .zip(&y)
+            .map(|(s, y)| match y {
+                Some(y) if beta != 0.0 => beta * (s.bounce[ch] - y * bbar[s.region]),
+                _ => 0.0,
+            })
+            .collect();
+        let has_b = b.iter().any(|v| *v != 0.0);
+
         let mut m_sh = [0.0; SH_TERMS * SH_TERMS];
         let mut c_sh = [0.0; SH_TERMS];
+        let mut g_sh = [0.0; SH_TERMS];
         let mut wsum = 0.0;
-        for ((s, row), (y, w)) in samples.iter().zip(&rows).zip(y.iter().zip(wts)) {
+        for (((s, row), bi), (y, w)) in samples.iter().zip(&rows).zip(&b).zip(y.iter().zip(wts)) {
             if *w <= 0.0 || y.is_none() {
                 continue;
             }
@@ -401,15 +481,20 @@ impl<'a> Design<'a> {
                     m_sh[p * SH_TERMS + q] += w * row[p] * row[q];
                 }
                 c_sh[p] += w * s.phi[p];
+                g_sh[p] += w * row[p] * bi;
             }
             wsum += w;
         }
         Self {
             samples,
+            beta,
             wts,
             regions,
             y,
             rows,
+            b,
+            has_b,
+            g_sh,
             m_sh,
             c_sh,
             wsum,
@@ -419,11 +504,13 @@ impl<'a> Design<'a> {
     /// Solves the ratio system with the light's column `col` (`None` =
     /// ambient only).
     ///
-    /// With `a_i = y_i φ̄_r - φ_i` the rows, it minimises
-    /// `Σ w_i (a_i·θ)² + Σ_j λ_j θ_j²` under `c·θ = 1`, `c` the weighted
-    /// mean of `φ` (the mean irradiance over the samples is 1: no solution
-    /// can shrink the residual by dimming the light everywhere): with
-    /// `M = Σ w a aᵀ + diag(λ)`, `θ = M⁻¹c / (cᵀ M⁻¹ c)`. The ridge `λ` is
+    /// With `a_i = y_i φ̄_r - φ_i` the rows and `b_i` the bounce terms, it
+    /// minimises `Σ w_i (a_i·θ - b_i)² + Σ_j λ_j θ_j²` under `c·θ = 1`, `c`
+    /// the weighted mean of `φ` (the mean irradiance over the samples is 1:
+    /// no solution can shrink the residual by dimming the light
+    /// everywhere): with `M = Σ w a aᵀ + diag(λ)` and `g = Σ w a b`,
+    /// `θ = M⁻¹g + ν M⁻¹c`, `ν = (1 - cᵀM⁻¹g) / (cᵀ M⁻¹ c)` (without
+    /// bounce `g = 0` and `θ = M⁻¹c / (cᵀ M⁻¹ c)`). The ridge `λ` is
     /// [`RIDGE_L1`], [`RIDGE_L2`] or [`RIDGE_LIGHT`] times the total
     /// weight, and 1e-9 of it on `L_00` (which keeps `M` positive definite
     /// when the photo has no variation at all).
@@ -440,6 +527,8 @@ impl<'a> Design<'a> {
         }
         let mut c = vec![0.0f64; m];
         c[..SH_TERMS].copy_from_slice(&self.c_sh);
+        let mut g = vec![0.0f64; m];
+        g[..SH_TERMS].copy_from_slice(&self.g_sh);
         // the light's rows: y_i mean_r(col) - col_i
         let light_rows: Option<Vec<f64>> = col.map(|col| {
             let mut sum = vec![0.0f64; self.regions];
@@ -470,6 +559,7 @@ impl<'a> Design<'a> {
                 }
                 a[l * m + l] += w * r * r;
                 c[l] += w * col[i];
+                g[l] += w * r * self.b[i];
             }
             c[l] /= self.wsum; // guard: wsum > 0 checked above
         }
@@ -485,14 +575,26 @@ impl<'a> Design<'a> {
             };
             a[p * m + p] += ridge * self.wsum;
         }
+        let a_b = self.has_b.then(|| a.clone());
         let mut z = c.clone();
         cholesky_solve(&mut a, m, &mut z).ok()?;
         let cz: f64 = c.iter().zip(&z).map(|(u, v)| u * v).sum();
         if !(cz > 0.0 && cz.is_finite()) {
             return None; // guard: cᵀM⁻¹c > 0 for a positive definite M and c ≠ 0
         }
-        let x: Vec<f64> = z.iter().map(|v| v / cz).collect();
+        let x: Vec<f64> = match a_b {
+            None => z.iter().map(|v| v / cz).collect(),
+            Some(mut a_b) => {
+                let mut zg = g;
+                cholesky_solve(&mut a_b, m, &mut zg).ok()?;
+                let cg: f64 = c.iter().zip(&zg).map(|(u, v)| u * v).sum();
+                // guard: cz > 0 checked above
+                let nu = (1.0 - cg) / cz;
+                zg.iter().zip(&z).map(|(u, v)| u + nu * v).collect()
+            }
+        };
         let light = if col.is_some() { x[SH_TERMS] } else { 0.0 };
+        let beta = self.beta;
         let mut rss = 0.0;
         let resid: Vec<f64> = self
             .rows
@@ -506,6 +608,8 @@ impl<'a> Design<'a> {
                 if let Some(lr) = &light_rows {
                     r += lr[i] * light;
                 }
+                r -= self.b[i];
+
                 rss += self.wts[i].max(0.0) * r * r;
                 r
             })
@@ -515,10 +619,101 @@ impl<'a> Design<'a> {
         Some(Fit {
             theta,
             light,
+            beta,
             rss,
             resid,
         })
     }
+}
+
+/// Per sample of a region with positive irradiance, in channel `ch`:
+/// its region's mean intensity `Ī_r`, the fit's mean irradiance `ē_r`
+/// there (`e_i = φ_i·θ + s col_i`) and the mean bounce `B̄_r`.
+fn albedo_terms(
+    samples: &[Sample],
+    means: &[[f64; 4]],
+    ch: usize,
+    f: &Fit,
+    col: Option<&[f64]>,
+    regions: usize,
+) -> Vec<(f64, f64, f64)> {
+    let mut ebar = vec![0.0f64; regions];
+    let mut bbar = vec![0.0f64; regions];
+    let mut cnt = vec![0usize; regions];
+    for (i, s) in samples.iter().enumerate() {
+        ebar[s.region] += s.ambient(&f.theta) + col.map_or(0.0, |c| f.light * c[i]);
+        bbar[s.region] += s.bounce[ch];
+        cnt[s.region] += 1;
+    }
+    // guard: n >= 1; a region with no positive irradiance has no albedo
+    samples
+        .iter()
+        .filter_map(|s| {
+            let n = cnt[s.region].max(1) as f64;
+            let e = ebar[s.region] / n;
+            (e > 1e-12).then(|| (means[s.region][ch], e, bbar[s.region] / n))
+        })
+        .collect()
+}
+
+/// The median of `v` (upper middle), `None` when empty.
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    let mid = v.len() / 2;
+    Some(*v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1)
+}
+
+/// The median albedo `ρ = Ī_r / (S ē_r + B̄_r)` of [`albedo_terms`] at
+/// scale `sc > 0`.
+fn median_albedo(terms: &[(f64, f64, f64)], sc: f64) -> Option<f64> {
+    // guard: sc > 0, e > 1e-12 and b >= 0 (radiance gathered)
+    median(terms.iter().map(|(m, e, b)| m / (sc * e + b)).collect())
+}
+
+/// Lowest absolute scale [`absolute_scale`] gives with a bounce, as a
+/// fraction of the scale without: the photo's bounce alone cannot be more
+/// than three quarters of what the light gives a surface of the assumed
+/// albedo (else the bounce, gathered without shadows, is too bright).
+const MIN_BOUNCE_SCALE: f64 = 0.25;
+
+/// The absolute scale `S` of a fit in channel `ch` (module docs): the
+/// irradiance of the light is `S e_i` (`e_i = φ_i·θ + s col_i`, mean 1), and
+/// the albedo of region `r`, `Ī_r / (S ē_r + B̄_r)`, has its median over the
+/// samples at `assumed` (`ρ = r / π` for a reflectance `r`). Without
+/// bounce `S = median(Ī_r / ē_r) / assumed`; with it, the root of the
+/// decreasing median by bisection between [`MIN_BOUNCE_SCALE`] of that and
+/// that. `None` when no region has a positive irradiance.
+fn absolute_scale(
+    samples: &[Sample],
+    means: &[[f64; 4]],
+    ch: usize,
+    f: &Fit,
+    col: Option<&[f64]>,
+    regions: usize,
+    assumed: f64,
+) -> Option<f64> {
+    let terms = albedo_terms(samples, means, ch, f, col, regions);
+    // guard: assumed >= 0.01 / π (parameter range)
+    let s0 = median(terms.iter().map(|(m, e, _)| m / e).collect()).filter(|m| *m > 0.0)? / assumed;
+    if terms.iter().all(|t| t.2 == 0.0) {
+        return Some(s0);
+    }
+    let albedo_at = |sc: f64| median_albedo(&terms, sc).unwrap_or(0.0);
+    let (mut lo, mut hi) = (MIN_BOUNCE_SCALE * s0, s0);
+    if albedo_at(lo) <= assumed {
+        return Some(lo);
+    }
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if albedo_at(mid) > assumed {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Some(0.5 * (lo + hi))
 }
 
 /// Huber weights of residuals `r` (at [`huber_scale`]).
@@ -537,8 +732,9 @@ fn angles(d: DVec3) -> (f64, f64) {
 }
 
 /// The estimate when the photo holds nothing to fit: an isotropic map
-/// whose radiance `L` lights a surface of the assumed albedo `a` to the
-/// photo's mean colour `I` (`I = a π L`), confidence 0, and why.
+/// whose radiance `L` lights a surface of the assumed reflectance `r` to
+/// the photo's mean colour `I` (`I = r L`: irradiance `π L`, radiance out
+/// `r/π` of it), confidence 0, and why.
 fn fallback(color: &ColorImage, p: &EstimateParams, why: &str) -> LightingEstimate {
     let mut sum = [0.0f64; 3];
     let mut n = 0.0f64;
@@ -550,10 +746,10 @@ fn fallback(color: &ColorImage, p: &EstimateParams, why: &str) -> LightingEstima
             n += 1.0;
         }
     }
-    // guards: n >= 1 by max; assumed_albedo >= 0.01 (parameter range)
-    let l: [f64; 3] = sum.map(|s| s / n.max(1.0) / (p.assumed_albedo.max(0.01) * PI));
+    // guards: n >= 1 by max; assumed_albedo >= 0.01 (max, parameter range)
+    let l: [f64; 3] = sum.map(|s| s / n.max(1.0) / p.assumed_albedo.max(0.01));
     let (mw, mh) = (p.width.max(2), (p.width / 2).max(1));
-    let map = ColorImage::filled(mw, mh, l.map(|v| v as f32));
+    let map = ColorImage::filled(mw, mh, l.map(radiance_f32));
     let mut shc = [[0.0; SH_TERMS]; 3];
     for (c, v) in shc.iter_mut().zip(l) {
         c[0] = v / sh::basis(DVec3::Y)[0];
@@ -609,6 +805,17 @@ fn region_labels(
             }
         })
         .collect()
+}
+
+/// A map radiance as f32: negative and NaN give 0, beyond f32's range
+/// saturates at `f32::MAX` (a photo near f32's largest values over an
+/// albedo below 1 would give infinity).
+fn radiance_f32(v: f64) -> f32 {
+    if v > 0.0 {
+        v.min(f64::from(f32::MAX)) as f32
+    } else {
+        0.0
+    }
 }
 
 /// Angle between two directions in degrees (the error of a found light).
@@ -690,6 +897,7 @@ pub fn estimate_lighting(
                 rgbl: [c[0], c[1], c[2], luminance_f64(c)],
                 region: labels[i] as usize,
                 phi: sh::irradiance_basis(n),
+                bounce: [0.0; 4],
             });
         }
     }
@@ -707,7 +915,7 @@ pub fn estimate_lighting(
             regions += 1;
         }
     }
-    let samples: Vec<Sample> = raw
+    let mut samples: Vec<Sample> = raw
         .into_iter()
         .filter(|s| remap[s.region] != usize::MAX)
         .map(|mut s| {
@@ -750,26 +958,51 @@ pub fn estimate_lighting(
     let mean_n = samples.iter().map(|s| s.n).sum::<DVec3>() / samples.len() as f64;
     let spread = 1.0 - mean_n.length();
     let flat = variation < p.min_variation || spread < MIN_NORMAL_SPREAD;
+    // the photo's own bounce at every sample (not for a flat photo, whose
+    // estimate is the isotropic fallback)
+    if p.bounce && !flat {
+        let emitters = patches(inp.color, inp.depth, k, &surfaces, BOUNCE_PATCHES);
+        let points: Vec<(DVec3, DVec3)> = samples.iter().map(|s| (s.pos, s.n)).collect();
+        for (s, b) in samples.iter_mut().zip(gather(&points, &emitters)) {
+            let e = b.irradiance;
+            s.bounce = [e[0], e[1], e[2], luminance_f64(e)];
+            // the sky the photo's surfaces hide is not the map's to give
+            for (f, c) in s.phi.iter_mut().zip(&b.covered) {
+                *f -= c;
+            }
+        }
+    }
 
-    let base = Design::new(&samples, &means, 3, &base_w, regions);
+    // the bounce's weight in the fit's units, β = 1 / S (module docs), from
+    // the fit without light or bounce at the assumed reflectance
+    let rho = p.assumed_albedo / PI;
+    let mode = if p.bounce && !flat {
+        let b0 = Design::new(&samples, &means, 3, &base_w, regions, BounceTerm::Off).solve(None);
+        b0.and_then(|f| absolute_scale(&samples, &means, 3, &f, None, regions, rho))
+            .filter(|s| *s > 0.0 && s.is_finite())
+            .map_or(BounceTerm::Off, |s| BounceTerm::Fixed(1.0 / s)) // guard: s > 0
+    } else {
+        BounceTerm::Off
+    };
+    let base = Design::new(&samples, &means, 3, &base_w, regions, mode);
     let amb = base.solve(None);
 
+    // the march's step growth, once (lit does not march when reach <= t0)
+    let shadow = Shadow {
+        reach: p.shadow_reach_m,
+        ratio: if p.shadow_reach_m > SHADOW_T0 {
+            shadow_ratio(p.shadow_reach_m)
+        } else {
+            1.0
+        },
+        thickness: p.occluder_thickness_m,
+    };
     let light_col = |d: DVec3| -> Vec<f64> {
         samples
             .iter()
             .map(|s| {
                 let c = s.n.dot(d);
-                if c <= 0.0
-                    || !lit(
-                        inp.depth,
-                        k,
-                        s.pos,
-                        s.n,
-                        d,
-                        p.shadow_reach_m,
-                        p.occluder_thickness_m,
-                    )
-                {
+                if c <= 0.0 || !lit(inp.depth, k, s.pos, s.n, d, shadow) {
                     0.0
                 } else {
                     c
@@ -822,7 +1055,7 @@ pub fn estimate_lighting(
         }
         // two finer grids about the best: ±1 coarse spacing, then ±1/4 of one
         let coarse = (4.0 * PI / p.directions.max(1) as f64).sqrt();
-        let robust = Design::new(&samples, &means, 3, &search_w, regions);
+        let robust = Design::new(&samples, &means, 3, &search_w, regions, mode);
         for step in [coarse / 4.0, coarse / 16.0] {
             let Some(c) = centre else { break };
             let (t1, t2) = c.any_orthonormal_pair();
@@ -852,7 +1085,26 @@ pub fn estimate_lighting(
             0.0
         }
     });
-    let share = best.as_ref().map_or(0.0, |(_, f, _, _)| f.light);
+    // the mean irradiance of the samples in the fit's units: the light's
+    // and sky's 1 plus the bounce
+    let bounce_mean = |beta: f64, wts: &[f64]| {
+        let ws: f64 = wts.iter().sum();
+        // guard: no weight gives no bounce
+        if ws > 0.0 {
+            beta.max(0.0)
+                * wts
+                    .iter()
+                    .zip(&samples)
+                    .map(|(w, s)| w * s.bounce[3])
+                    .sum::<f64>()
+                / ws
+        } else {
+            0.0
+        }
+    };
+    let share = best.as_ref().map_or(0.0, |(_, f, _, _)| {
+        f.light / (1.0 + bounce_mean(f.beta, &base_w)) // guard: 1 + a mean >= 0
+    });
     // a light pressed against the search's lower limit is a grazing light
     // the fit uses to explain gradients (ambient occlusion, bounce), not a
     // sun: it is not believed
@@ -880,7 +1132,7 @@ pub fn estimate_lighting(
         let Some(f) = fit_l else { break };
         let hw = huber(&f.resid);
         wts = base_w.iter().zip(&hw).map(|(a, b)| a * b).collect();
-        fit_l = Design::new(&samples, &means, 3, &wts, regions)
+        fit_l = Design::new(&samples, &means, 3, &wts, regions, mode)
             .solve(col.as_deref())
             .or(Some(f));
     }
@@ -891,6 +1143,7 @@ pub fn estimate_lighting(
             t
         },
         light: 0.0,
+        beta: 0.0,
         rss: 0.0,
         resid: Vec::new(),
     };
@@ -903,50 +1156,74 @@ pub fn estimate_lighting(
         Some(f) if tss > 0.0 => (1.0 - f.rss / tss).clamp(0.0, 1.0),
         _ => 0.0,
     };
+    let inverse_scale = |f: &Fit, ch: usize| -> f64 {
+        absolute_scale(&samples, &means, ch, f, col.as_deref(), regions, rho)
+            .filter(|s| *s > 0.0 && s.is_finite())
+            .map_or(0.0, |s| 1.0 / s) // guard: s > 0
+    };
+    // the luminance fit's β, settled with its light and weights
+    let beta = match (&fit_l, mode) {
+        (Some(f), BounceTerm::Fixed(_)) => inverse_scale(f, 3),
+        _ => 0.0,
+    };
     let mut fits = [isotropic.clone(), isotropic.clone(), isotropic];
     if !flat {
         for (ch, f) in fits.iter_mut().enumerate() {
-            if let Some(s) = Design::new(&samples, &means, ch, &wts, regions).solve(col.as_deref())
-            {
-                *f = s;
+            // each channel's β settles with its fit at the same reflectance
+            let mut beta_c = beta;
+            for _ in 0..if beta > 0.0 { 3 } else { 1 } {
+                let term = if beta_c > 0.0 {
+                    BounceTerm::Fixed(beta_c)
+                } else {
+                    BounceTerm::Off
+                };
+                if let Some(s) =
+                    Design::new(&samples, &means, ch, &wts, regions, term).solve(col.as_deref())
+                {
+                    *f = s;
+                }
+                if beta_c > 0.0 {
+                    beta_c = inverse_scale(f, ch);
+                }
             }
         }
     }
 
-    // absolute scale per channel: the median albedo is `assumed_albedo`
-    let mut scale = [1.0f64; 3];
-    for ch in 0..3 {
-        let f = &fits[ch];
-        let mut ebar = vec![0.0f64; regions];
-        let mut cnt = vec![0usize; regions];
-        for (i, s) in samples.iter().enumerate() {
-            let amb = s.ambient(&f.theta);
-            ebar[s.region] += amb + col.as_ref().map_or(0.0, |c| f.light * c[i]);
-            cnt[s.region] += 1;
-        }
-        let mut albedo: Vec<f64> = samples
-            .iter()
-            .filter_map(|s| {
-                // guard: n >= 1; a region with no positive irradiance has no albedo
-                let e = ebar[s.region] / cnt[s.region].max(1) as f64;
-                (e > 1e-12).then(|| means[s.region][ch] / e)
-            })
-            .collect();
-        albedo.sort_by(|a, b| a.total_cmp(b));
-        if let Some(med) = albedo.get(albedo.len() / 2).copied().filter(|m| *m > 0.0) {
-            scale[ch] = med / p.assumed_albedo;
-        }
-    }
+    // absolute scale per channel at that reflectance
+    let scale: [f64; 3] = std::array::from_fn(|ch| {
+        absolute_scale(
+            &samples,
+            &means,
+            ch,
+            &fits[ch],
+            col.as_deref(),
+            regions,
+            rho,
+        )
+        .unwrap_or(1.0)
+    });
+    // the part of the mean irradiance the photo's surfaces bounce (left
+    // out of the map), at the luminance fit's weight
+    let bounce_part = {
+        let m = bounce_mean(beta, &wts);
+        m / (1.0 + m) // guard: m >= 0
+    };
     let shc: [[f64; SH_TERMS]; 3] = std::array::from_fn(|ch| fits[ch].theta.map(|t| t * scale[ch]));
     let light_irr: [f64; 3] = std::array::from_fn(|ch| (fits[ch].light * scale[ch]).max(0.0));
     // the map
     let (mw, mh) = (p.width.max(2), (p.width / 2).max(1));
     let mut map = ColorImage::from_fn(mw, mh, |x, y| {
         let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, mw, mh);
-        std::array::from_fn(|ch| sh::radiance(&shc[ch], d).max(0.0) as f32)
+        std::array::from_fn(|ch| radiance_f32(sh::radiance(&shc[ch], d)))
     });
     let light = dir.map(|d| {
         paint_sun(&mut map, d, p.light_size_deg, light_irr, SunBlend::Add);
+        // the disc's radiance saturates as the rest does (radiance_f32)
+        for px in map.as_mut_slice() {
+            for v in px.iter_mut() {
+                *v = radiance_f32(f64::from(*v));
+            }
+        }
         let (e, a) = angles(d);
         LightEstimate {
             direction: d,
@@ -1020,6 +1297,14 @@ pub fn estimate_lighting(
             100.0 * p.max_light_share,
             samples.len()
         ),
+    };
+    let report = if bounce_part > 0.0 {
+        format!(
+            "{report}; the photo's surfaces bounce {:.0} % of the mean irradiance, left out of the map",
+            100.0 * bounce_part
+        )
+    } else {
+        report
     };
     Ok(LightingEstimate {
         map,
@@ -1134,6 +1419,36 @@ mod tests {
         assert!(up > down, "up {up}, down {down}");
     }
 
+    /// The map's level: the rooms' surfaces have reflectances 0.45-0.6 and
+    /// the assumed median is 0.5, so the estimated sky lights an upward
+    /// surface about as the true map does (within 30 %; an albedo read as
+    /// `r` instead of `r/π` put it at a third). With `bounce` the report
+    /// says how much of the irradiance the photo's surfaces gave, without
+    /// it not.
+    #[test]
+    fn the_maps_level_is_the_truths_at_the_rooms_reflectance() {
+        let c = light_case(LightRoom::Objects, Sky::Overcast, 160, 120, 128, &PT).unwrap();
+        let est = estimate(&c.photo, &c.depth, &c.k, None);
+        let truth = sh::project_map(&c.env);
+        let up = |l: &[f64; SH_TERMS]| sh::irradiance(l, DVec3::NEG_Y);
+        let ratio = up(&est.sh[1]) / up(&truth[1]);
+        assert!((0.7..1.3).contains(&ratio), "{ratio}: {}", est.report);
+        assert!(est.report.contains("surfaces bounce"), "{}", est.report);
+        let inp = EstimateInputs {
+            color: &c.photo,
+            depth: &c.depth,
+            k: &c.k,
+            normals: None,
+            mask: None,
+        };
+        let off = EstimateParams {
+            bounce: false,
+            ..Default::default()
+        };
+        let est = estimate_lighting(&inp, &off).unwrap();
+        assert!(!est.report.contains("bounce"), "{}", est.report);
+    }
+
     /// An overcast room whose floor is most of the photo (the relight
     /// truth's `occluded`: a floor, a back wall and a box): a low light,
     /// whose cos is nearly the same over the whole floor, fits the shading
@@ -1206,17 +1521,20 @@ mod tests {
             rgbl: [0.5; 4],
             region: 0,
             phi: sh::irradiance_basis(n),
+            bounce: [0.25; 4],
         };
         let samples = [s(DVec3::NEG_Y), s(DVec3::NEG_Z)];
         let mut theta = [0.0; SH_TERMS];
         // the DC term alone: E = theta_0 phi_0, the same for every normal
         theta[0] = 1.0 / samples[0].phi[0];
-        let fit = |light: f64, theta: [f64; SH_TERMS]| Fit {
+        let fit_b = |light: f64, theta: [f64; SH_TERMS], beta: f64| Fit {
             theta,
             light,
+            beta,
             rss: 0.0,
             resid: Vec::new(),
         };
+        let fit = |light: f64, theta: [f64; SH_TERMS]| fit_b(light, theta, 0.0);
         let w = [1.0, 1.0];
         let col = [1.0, 1.0];
         assert!((ambient_share(&samples, &fit(0.0, theta), &col, &w) - 1.0).abs() < 1e-12);
@@ -1234,6 +1552,15 @@ mod tests {
         assert_eq!(
             ambient_share(&samples, &fit(1.0, theta), &col, &[0.0, 0.0]),
             0.0
+        );
+        // the bounce counts with the low-frequency part: β B = 1 beside a
+        // sky of 1 and a light of 1 gives 2/3; a sky of 0 beside them 1/2
+        assert!(
+            (ambient_share(&samples, &fit_b(1.0, theta, 4.0), &col, &w) - 2.0 / 3.0).abs() < 1e-12
+        );
+        assert!(
+            (ambient_share(&samples, &fit_b(1.0, [0.0; SH_TERMS], 4.0), &col, &w) - 0.5).abs()
+                < 1e-12
         );
     }
 
@@ -1292,8 +1619,9 @@ mod tests {
             "{}",
             est.report
         );
+        // a surface of reflectance 0.5 under isotropic radiance L shows 0.5 L
         let l = f64::from(est.map.get(0, 0)[1]);
-        assert!((l - 1.0 / PI).abs() < 1e-6, "{l}");
+        assert!((l - 1.0).abs() < 1e-6, "{l}");
         let small = DepthMap::filled(16, 24, 1.0);
         let inp = EstimateInputs {
             depth: &small,

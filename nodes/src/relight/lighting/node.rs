@@ -62,7 +62,7 @@ fn eval(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "EstimateLighting",
-        5,
+        6,
         "The photo's lighting estimated from its own shading, as an environment map for VplSample and Relight \
          when no capture of the light exists (3d-editing §VI, future work).\n\
          Lambertian surfaces of piecewise-constant albedo; low-frequency light as spherical harmonics of order 2 \
@@ -70,7 +70,10 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
          directional light (sun, lamp) searched over the sphere with its cast shadows marched through the depth \
          map (a light whose fit leaves the low-frequency part under a tenth of the mean irradiance is not \
          believed: a sky darker than black beside a low \"sun\" is the fit trading one for the other); \
-         robust weights for highlights and textures. The light's scale assumes a median albedo \
+         robust weights for highlights and textures. The light the photo's own surfaces bounce onto each other \
+         (a radiosity gather from its pixels), and the sky those surfaces hide, are left out of the map, since \
+         Relight bounces and shadows with the same surfaces (bounce = false counts it all as sky). The light's \
+         scale assumes a median reflectance \
          (assumed_albedo, grey world). A photo without shading variation gives an isotropic ambient map with \
          confidence 0 and says so. explain shows the light found, the ambient level and the confidence.",
         eval,
