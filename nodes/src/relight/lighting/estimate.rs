@@ -678,29 +678,21 @@ fn median_albedo(terms: &[(f64, f64, f64)], sc: f64) -> Option<f64> {
 /// albedo (else the bounce, gathered without shadows, is too bright).
 const MIN_BOUNCE_SCALE: f64 = 0.25;
 
-/// The absolute scale `S` of a fit in channel `ch` (module docs): the
-/// irradiance of the light is `S e_i` (`e_i = φ_i·θ + s col_i`, mean 1), and
-/// the albedo of region `r`, `Ī_r / (S ē_r + B̄_r)`, has its median over the
-/// samples at `assumed` (`ρ = r / π` for a reflectance `r`). Without
+/// The absolute scale `S` of a fit (module docs), from its
+/// [`albedo_terms`] in one channel: the irradiance of the light is `S e_i`
+/// (`e_i = φ_i·θ + s col_i`, mean 1), and the albedo of region `r`,
+/// `Ī_r / (S ē_r + B̄_r)`, has its median over the samples at `assumed`
+/// (`ρ = r / π` for a reflectance `r`). Without
 /// bounce `S = median(Ī_r / ē_r) / assumed`; with it, the root of the
 /// decreasing median by bisection between [`MIN_BOUNCE_SCALE`] of that and
 /// that. `None` when no region has a positive irradiance.
-fn absolute_scale(
-    samples: &[Sample],
-    means: &[[f64; 4]],
-    ch: usize,
-    f: &Fit,
-    col: Option<&[f64]>,
-    regions: usize,
-    assumed: f64,
-) -> Option<f64> {
-    let terms = albedo_terms(samples, means, ch, f, col, regions);
+fn absolute_scale(terms: &[(f64, f64, f64)], assumed: f64) -> Option<f64> {
     // guard: assumed >= 0.01 / π (parameter range)
     let s0 = median(terms.iter().map(|(m, e, _)| m / e).collect()).filter(|m| *m > 0.0)? / assumed;
     if terms.iter().all(|t| t.2 == 0.0) {
         return Some(s0);
     }
-    let albedo_at = |sc: f64| median_albedo(&terms, sc).unwrap_or(0.0);
+    let albedo_at = |sc: f64| median_albedo(terms, sc).unwrap_or(0.0);
     let (mut lo, mut hi) = (MIN_BOUNCE_SCALE * s0, s0);
     if albedo_at(lo) <= assumed {
         return Some(lo);
@@ -714,6 +706,14 @@ fn absolute_scale(
         }
     }
     Some(0.5 * (lo + hi))
+}
+
+/// The bounce's weight `β = 1/S` of an absolute scale `S`; 0 (no bounce)
+/// without a positive, finite scale (guard of the division).
+fn bounce_weight(scale: Option<f64>) -> f64 {
+    scale
+        .filter(|s| *s > 0.0 && s.is_finite())
+        .map_or(0.0, |s| 1.0 / s)
 }
 
 /// Huber weights of residuals `r` (at [`huber_scale`]).
@@ -978,9 +978,13 @@ pub fn estimate_lighting(
     let rho = p.assumed_albedo / PI;
     let mode = if p.bounce && !flat {
         let b0 = Design::new(&samples, &means, 3, &base_w, regions, BounceTerm::Off).solve(None);
-        b0.and_then(|f| absolute_scale(&samples, &means, 3, &f, None, regions, rho))
-            .filter(|s| *s > 0.0 && s.is_finite())
-            .map_or(BounceTerm::Off, |s| BounceTerm::Fixed(1.0 / s)) // guard: s > 0
+        let sc = b0.and_then(|f| {
+            absolute_scale(&albedo_terms(&samples, &means, 3, &f, None, regions), rho)
+        });
+        match bounce_weight(sc) {
+            b if b > 0.0 => BounceTerm::Fixed(b),
+            _ => BounceTerm::Off,
+        }
     } else {
         BounceTerm::Off
     };
@@ -1156,19 +1160,25 @@ pub fn estimate_lighting(
         Some(f) if tss > 0.0 => (1.0 - f.rss / tss).clamp(0.0, 1.0),
         _ => 0.0,
     };
-    let inverse_scale = |f: &Fit, ch: usize| -> f64 {
-        absolute_scale(&samples, &means, ch, f, col.as_deref(), regions, rho)
-            .filter(|s| *s > 0.0 && s.is_finite())
-            .map_or(0.0, |s| 1.0 / s) // guard: s > 0
+    // the absolute scale of a fit in a channel at that reflectance
+    let scale_of = |f: &Fit, ch: usize| {
+        absolute_scale(
+            &albedo_terms(&samples, &means, ch, f, col.as_deref(), regions),
+            rho,
+        )
     };
     // the luminance fit's β, settled with its light and weights
     let beta = match (&fit_l, mode) {
-        (Some(f), BounceTerm::Fixed(_)) => inverse_scale(f, 3),
+        (Some(f), BounceTerm::Fixed(_)) => bounce_weight(scale_of(f, 3)),
         _ => 0.0,
     };
     let mut fits = [isotropic.clone(), isotropic.clone(), isotropic];
-    if !flat {
-        for (ch, f) in fits.iter_mut().enumerate() {
+    // the absolute scale per channel at that reflectance: the one the last
+    // round computed for its fit, else computed once
+    let mut scale = [1.0f64; 3];
+    for (ch, f) in fits.iter_mut().enumerate() {
+        let mut known = None;
+        if !flat {
             // each channel's β settles with its fit at the same reflectance
             let mut beta_c = beta;
             for _ in 0..if beta > 0.0 { 3 } else { 1 } {
@@ -1182,26 +1192,15 @@ pub fn estimate_lighting(
                 {
                     *f = s;
                 }
+                known = None;
                 if beta_c > 0.0 {
-                    beta_c = inverse_scale(f, ch);
+                    known = scale_of(f, ch);
+                    beta_c = bounce_weight(known);
                 }
             }
         }
+        scale[ch] = known.or_else(|| scale_of(f, ch)).unwrap_or(1.0);
     }
-
-    // absolute scale per channel at that reflectance
-    let scale: [f64; 3] = std::array::from_fn(|ch| {
-        absolute_scale(
-            &samples,
-            &means,
-            ch,
-            &fits[ch],
-            col.as_deref(),
-            regions,
-            rho,
-        )
-        .unwrap_or(1.0)
-    });
     // the part of the mean irradiance the photo's surfaces bounce (left
     // out of the map), at the luminance fit's weight
     let bounce_part = {
