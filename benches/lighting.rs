@@ -204,7 +204,10 @@ fn main() {
          light; own sun at elevation 45, azimuth -30) ({w}x{h}, {spp} paths per pixel): `Relight` (scene-cached, 256 VPLs) with the true map, \
          and with the map `EstimateLighting` finds in the photo (the target's map on both sides, as \
          in `graphs/copy_paste_estimated_light.ron`); **no bounce**: the same with \
-         `bounce = false` (the light the photo's surfaces bounce counted as sky). PSNR in dB \
+         `bounce = false` (the light the photo's surfaces bounce counted as sky). The object is \
+         captured in the open: the truth's object alone sees the map's dim ground (reflectance \
+         about 0.05 under the overcast sky, less under the sun), the estimate's ground is `ground_albedo` (0.1) under the \
+         fitted sky. PSNR in dB \
          (sRGB); influence: outside the object where truth and photo differ by > 2/255.\n"
     );
     let _ = writeln!(

@@ -62,7 +62,7 @@ fn eval(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "EstimateLighting",
-        6,
+        7,
         "The photo's lighting estimated from its own shading, as an environment map for VplSample and Relight \
          when no capture of the light exists (3d-editing §VI, future work).\n\
          Lambertian surfaces of piecewise-constant albedo; low-frequency light as spherical harmonics of order 2 \
@@ -74,7 +74,9 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
          (a radiosity gather from its pixels), and the sky those surfaces hide, are left out of the map, since \
          Relight bounces and shadows with the same surfaces (bounce = false counts it all as sky). The light's \
          scale assumes a median reflectance \
-         (assumed_albedo, grey world). A photo without shading variation gives an isotropic ambient map with \
+         (assumed_albedo, grey world). Below the camera's horizon, which no photo shows (its own floor hides \
+         it), the map holds a ground of reflectance ground_albedo under the fitted sky: it lights only an \
+         object where it was captured. A photo without shading variation gives a uniform ambient sky with \
          confidence 0 and says so. explain shows the light found, the ambient level and the confidence.",
         eval,
     ))
