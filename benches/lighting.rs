@@ -206,7 +206,7 @@ fn main() {
          in `graphs/copy_paste_estimated_light.ron`); **no bounce**: the same with \
          `bounce = false` (the light the photo's surfaces bounce counted as sky). The object is \
          captured in the open: the truth's object alone sees the map's dim ground (reflectance \
-         about 0.05 under the overcast sky, less under the sun), the estimate's ground is `ground_albedo` (0.1) under the \
+         about 0.05 under the overcast sky, less under the sun), the estimate's ground is `ground_albedo` (0.1; with the bounce, without it the fit's extrapolation) under the \
          fitted sky. PSNR in dB \
          (sRGB); influence: outside the object where truth and photo differ by > 2/255.\n"
     );

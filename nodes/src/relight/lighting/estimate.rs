@@ -70,16 +70,20 @@
 //!
 //! Directions no normal faces get the low-frequency value the fit gives
 //! them (the ridge keeps it near the isotropic level), above the camera's
-//! horizontal plane. Below it the map holds a ground, a Lambertian plane
+//! horizontal plane. Below it (with [`EstimateParams::bounce`], the
+//! default; without it the fit's extrapolation stands for the light the
+//! photo's floor bounces, as before) the map holds a ground, a Lambertian plane
 //! of reflectance [`EstimateParams::ground_albedo`] under the fitted sky
 //! (`ground_radiance`): no photo shows it, since its own floor hides it
 //! from every point it shows (and `Relight` bounces that floor's light
 //! from the pixels), so the ground lights only an object where it was
 //! captured. The fit's extrapolation put a sky's brightness there, which
 //! lit the object's underside at its capture as brightly as its top and
-//! darkened it in the composite by 5-12 dB against the path-traced truth. A photo with too
+//! darkened it in the composite: against the path-traced truth the ground
+//! gains 1.6-9.8 dB on the object (docs/lighting.md). A photo with too
 //! little shading variation (below [`EstimateParams::min_variation`]: a
-//! flat wall) gives the ambient-only estimate, isotropic, with a
+//! flat wall) gives the ambient-only estimate, a uniform sky (over the
+//! ground), with a
 //! confidence near zero, and says so.
 
 use std::f64::consts::PI;
@@ -128,7 +132,7 @@ node_params! {
         pub occluder_thickness_m: f64 = 0.4, ParamKind::Float { min: 0.001, max: 100.0 };
         /// Leave out of the map the light the photo's surfaces bounce onto each other (Relight bounces it again from the same surfaces); off = all of it counts as sky.
         pub bounce: bool = true, ParamKind::Bool;
-        /// Reflectance of the ground below the horizon (0-1): the map holds there a Lambertian ground lit by the fitted sky. The photo's own floor hides it from every point the photo shows, so it only lights an object where it was captured; set it to the reflectance of what the object stood on.
+        /// Reflectance of the ground below the horizon (0-1): the map holds there a Lambertian ground lit by the fitted sky. The photo's own floor hides it from every point the photo shows, so it only lights an object where it was captured; set it to the reflectance of what the object stood on. With bounce off the fit's extrapolation stays there (it stands for the light the photo's floor bounces).
         pub ground_albedo: f64 = 0.1, ParamKind::Float { min: 0.0, max: 1.0 };
     }
 }
@@ -744,10 +748,11 @@ fn angles(d: DVec3) -> (f64, f64) {
 }
 
 /// The estimate when the photo holds nothing to fit: a uniform sky whose
-/// radiance `L` lights a surface of the assumed reflectance `r` to the
-/// photo's mean colour `I` (`I = r L`: irradiance `π L`, radiance out
-/// `r/π` of it) over the ground of [`ground_radiance`] (`ρ L`),
-/// confidence 0, and why.
+/// radiance `L` lights an up-facing surface of the assumed reflectance `r`
+/// to the photo's mean colour `I` (`I = r L`: irradiance `π L`, radiance
+/// out `r/π` of it), over the ground of [`ground_radiance`] (`ρ L`; with
+/// [`EstimateParams::bounce`] on, else uniform everywhere), confidence 0,
+/// and why.
 fn fallback(color: &ColorImage, p: &EstimateParams, why: &str) -> LightingEstimate {
     let mut sum = [0.0f64; 3];
     let mut n = 0.0f64;
@@ -769,7 +774,12 @@ fn fallback(color: &ColorImage, p: &EstimateParams, why: &str) -> LightingEstima
     let ground = ground_radiance(&shc, None, [0.0; 3], p.ground_albedo);
     let map = ColorImage::from_fn(mw, mh, |x, y| {
         let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, mw, mh);
-        if below_horizon(d) { ground } else { l }.map(radiance_f32)
+        if p.bounce && below_horizon(d) {
+            ground
+        } else {
+            l
+        }
+        .map(radiance_f32)
     });
     LightingEstimate {
         map,
@@ -865,7 +875,7 @@ fn ground_radiance(
     let facing = light.map_or(0.0, |d| d.dot(up).max(0.0));
     std::array::from_fn(|ch| {
         let e_up = (sh::irradiance(&shc[ch], up) + light_irr[ch] * facing).max(0.0);
-        rho.max(0.0) * e_up / PI
+        rho.max(0.0) * e_up / PI // guard: π is a constant
     })
 }
 
@@ -1265,7 +1275,7 @@ pub fn estimate_lighting(
     let ground = ground_radiance(&shc, dir, light_irr, p.ground_albedo);
     let mut map = ColorImage::from_fn(mw, mh, |x, y| {
         let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, mw, mh);
-        if below_horizon(d) {
+        if p.bounce && below_horizon(d) {
             ground.map(radiance_f32)
         } else {
             std::array::from_fn(|ch| radiance_f32(sh::radiance(&shc[ch], d)))
@@ -1504,12 +1514,6 @@ mod tests {
         assert!(!est.report.contains("bounce"), "{}", est.report);
     }
 
-    /// An overcast room whose floor is most of the photo (the relight
-    /// truth's `occluded`: a floor, a back wall and a box): a low light,
-    /// whose cos is nearly the same over the whole floor, fits the shading
-    /// as well as the sky does, with a negative sky beside it; such a fit
-    /// takes no part in the search ([`MIN_AMBIENT_SHARE`]; without the
-    /// rule it is kept), and the sky stays.
     /// The object pasted in the open room under an overcast sky, relit with
     /// the estimated map on both sides: the map's ground lights its
     /// underside at its capture as the truth's dim ground does, so the
@@ -1554,6 +1558,12 @@ mod tests {
         );
     }
 
+    /// An overcast room whose floor is most of the photo (the relight
+    /// truth's `occluded`: a floor, a back wall and a box): a low light,
+    /// whose cos is nearly the same over the whole floor, fits the shading
+    /// as well as the sky does, with a negative sky beside it; such a fit
+    /// takes no part in the search ([`MIN_AMBIENT_SHARE`]; without the
+    /// rule it is kept), and the sky stays.
     #[test]
     fn a_light_that_leaves_no_ambient_is_not_believed() {
         let case = relight_case(Room::Occluded, Some(Sky::Overcast), 160, 120, 128, &PT).unwrap();
@@ -1663,7 +1673,31 @@ mod tests {
         );
     }
 
-    /// A flat wall shows no shading variation: ambient only, isotropic,
+    /// The ground under a light alone at elevation `e` (no sky): `ρ s
+    /// sin(e) / π`, the light's irradiance on a horizontal plane; with no
+    /// light or a light below the horizon, the sky's part alone.
+    #[test]
+    fn the_ground_is_lit_by_the_sky_and_the_light() {
+        let e = 30f64.to_radians();
+        let d = DVec3::new(0.0, -e.sin(), e.cos());
+        let g = ground_radiance(&[[0.0; SH_TERMS]; 3], Some(d), [2.0, 1.0, 0.5], 0.2);
+        for (ch, s) in [2.0, 1.0, 0.5].into_iter().enumerate() {
+            let want = 0.2 * s * e.sin() / PI;
+            assert!((g[ch] - want).abs() < 1e-12, "{} {want}", g[ch]);
+        }
+        let below = ground_radiance(&[[0.0; SH_TERMS]; 3], Some(-d), [2.0; 3], 0.2);
+        assert_eq!(below, [0.0; 3]);
+        // a uniform sky of radiance 1: irradiance π above, ground ρ
+        let mut shc = [[0.0; SH_TERMS]; 3];
+        for c in &mut shc {
+            c[0] = 1.0 / sh::basis(DVec3::Y)[0];
+        }
+        let g = ground_radiance(&shc, None, [0.0; 3], 0.3);
+        assert!(g.iter().all(|v| (v - 0.3).abs() < 1e-9), "{g:?}");
+    }
+
+    /// A flat wall shows no shading variation: ambient only, a uniform sky
+    /// over the ground,
     /// confidence 0, and the report says why, under a sun as well.
     #[test]
     fn a_flat_wall_gives_ambient_only_and_says_so() {

@@ -75,8 +75,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
          Relight bounces and shadows with the same surfaces (bounce = false counts it all as sky). The light's \
          scale assumes a median reflectance \
          (assumed_albedo, grey world). Below the camera's horizon, which no photo shows (its own floor hides \
-         it), the map holds a ground of reflectance ground_albedo under the fitted sky: it lights only an \
-         object where it was captured. A photo without shading variation gives a uniform ambient sky with \
+         it), the map holds a ground of reflectance ground_albedo under the fitted sky (with bounce on): it \
+         lights only an object where it was captured. A photo without shading variation gives a uniform ambient sky with \
          confidence 0 and says so. explain shows the light found, the ambient level and the confidence.",
         eval,
     ))
