@@ -771,16 +771,10 @@ fn fallback(color: &ColorImage, p: &EstimateParams, why: &str) -> LightingEstima
     for (c, v) in shc.iter_mut().zip(l) {
         c[0] = v / sh::basis(DVec3::Y)[0];
     }
-    let ground = ground_radiance(&shc, None, [0.0; 3], p.ground_albedo);
-    let map = ColorImage::from_fn(mw, mh, |x, y| {
-        let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, mw, mh);
-        if p.bounce && below_horizon(d) {
-            ground
-        } else {
-            l
-        }
-        .map(radiance_f32)
-    });
+    let ground = p
+        .bounce
+        .then(|| ground_radiance(&shc, None, [0.0; 3], p.ground_albedo));
+    let map = paint_map(mw, mh, ground, |_| l);
     LightingEstimate {
         map,
         sh: shc,
@@ -850,6 +844,25 @@ fn radiance_f32(v: f64) -> f32 {
 /// [`LightEstimate`] are measured from the same plane).
 fn below_horizon(d: DVec3) -> bool {
     d.y > 0.0
+}
+
+/// The `w x h` map: radiance `sky(d)` in every direction `d`, or `ground`
+/// below the horizon when there is one (with [`EstimateParams::bounce`]);
+/// values beyond f32 saturate ([`radiance_f32`]).
+fn paint_map(
+    w: usize,
+    h: usize,
+    ground: Option<[f64; 3]>,
+    sky: impl Fn(DVec3) -> [f64; 3],
+) -> ColorImage {
+    ColorImage::from_fn(w, h, |x, y| {
+        let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, w, h);
+        match ground {
+            Some(g) if below_horizon(d) => g,
+            _ => sky(d),
+        }
+        .map(radiance_f32)
+    })
 }
 
 /// Radiance of the map's ground, per channel: a Lambertian plane of
@@ -1272,14 +1285,11 @@ pub fn estimate_lighting(
     let light_irr: [f64; 3] = std::array::from_fn(|ch| (fits[ch].light * scale[ch]).max(0.0));
     // the map
     let (mw, mh) = (p.width.max(2), (p.width / 2).max(1));
-    let ground = ground_radiance(&shc, dir, light_irr, p.ground_albedo);
-    let mut map = ColorImage::from_fn(mw, mh, |x, y| {
-        let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, mw, mh);
-        if p.bounce && below_horizon(d) {
-            ground.map(radiance_f32)
-        } else {
-            std::array::from_fn(|ch| radiance_f32(sh::radiance(&shc[ch], d)))
-        }
+    let ground = p
+        .bounce
+        .then(|| ground_radiance(&shc, dir, light_irr, p.ground_albedo));
+    let mut map = paint_map(mw, mh, ground, |d| {
+        std::array::from_fn(|ch| sh::radiance(&shc[ch], d))
     });
     let light = dir.map(|d| {
         paint_sun(&mut map, d, p.light_size_deg, light_irr, SunBlend::Add);
@@ -1726,7 +1736,7 @@ mod tests {
                 for x in 0..w {
                     let d = pixel_direction(x as f64 + 0.5, y as f64 + 0.5, w, h);
                     let v = est.map.get(x, y)[1];
-                    if d.y > 0.0 {
+                    if below_horizon(d) {
                         &mut ground_px
                     } else {
                         &mut sky_px
