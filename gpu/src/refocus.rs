@@ -413,10 +413,11 @@ pub fn render(
                 })
                 .reduce(|| false, |a, b| a | b);
             let img = Image::from_vec(w, h, data)?;
-            // The barrel's share of the unmoved pixels and the image-wide
-            // lens effects (magnification per channel, breathing, natural
+            // The gaps spherical aberration opens between the views, the
+            // barrel's share of the unmoved pixels and the image-wide lens
+            // effects (magnification per channel, breathing, natural
             // vignetting) on the host, as the CPU does.
-            let changed = changed || plan.effects.in_image(&plan.lens) || plan.barrel.is_some();
+            let changed = changed || plan.finishes(p);
             let img = plan.finish_image(img, aperture, p)?;
             // The device copy is the value only if nothing was corrected.
             if !changed {

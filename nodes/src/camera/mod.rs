@@ -8,6 +8,7 @@ mod lens_effects_tests;
 pub mod occlusion;
 pub mod refocus;
 pub mod response;
+pub mod view_filter;
 
 use depthgraph_graph::registry::{Registry, RegistryError};
 

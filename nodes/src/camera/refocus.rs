@@ -47,6 +47,7 @@ use crate::camera::lens::{
     effective_f_number, inv_depth,
 };
 use crate::camera::occlusion::{BackgroundLayer, LayerParams, background_layer};
+use crate::camera::view_filter::{Spacing, close_gaps};
 use crate::kit::grid::round_to_pixel;
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
@@ -99,6 +100,8 @@ node_params! {
         pub far_prior: bool = true, ParamKind::Bool;
         /// Spherical aberration: the aperture's rim focuses this many dioptres (1/m) nearer than its centre, in between with the squared radius (soft-edged bokeh on one side of the focus, bright-rimmed on the other); 0 = none (Refocus only).
         pub spherical_aberration_d: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
+        /// With spherical aberration: smooth the gaps it opens between the views (a bright point's bokeh falling apart into dots) by a Gaussian of this many times the spacing it adds at each pixel's depth; 0 = off, no effect on a thin lens (Refocus only).
+        pub view_filter: f64 = 0.5, ParamKind::Float { min: 0.0, max: 4.0 };
         /// Longitudinal chromatic aberration: red focuses this many dioptres nearer, blue as many farther; 0 = none (Refocus only).
         pub chromatic_longitudinal_d: f64 = 0.0, ParamKind::Float { min: -100.0, max: 100.0 };
         /// Lateral chromatic aberration: red magnified by 1 + this about the image centre, blue by 1 - this (colour fringes growing toward the edges); 0 = none (Refocus only).
@@ -320,16 +323,37 @@ impl BlurPlan {
         [self.c_scale * s[0], self.c_scale * s[1]]
     }
 
-    /// What both backends do to the averaged views: the barrel's share of
-    /// the pixels no view moves (optical vignetting without blur), then
-    /// the image-wide lens effects (magnification per channel, breathing,
+    /// The spacing of the views as [`crate::camera::view_filter`] reads it.
+    pub fn spacing(&self, p: &RefocusParams) -> Spacing<'_> {
+        Spacing {
+            points: &self.points,
+            c_scale: self.c_scale,
+            inv_u: self.inv_u,
+            spherical_d: self.effects.spherical_d,
+            k: p.view_filter,
+        }
+    }
+
+    /// Whether [`BlurPlan::finish_image`] changes the averaged views.
+    pub fn finishes(&self, p: &RefocusParams) -> bool {
+        self.effects.in_image(&self.lens)
+            || self.barrel.is_some()
+            || (p.view_filter > 0.0 && self.effects.spherical_d != 0.0)
+    }
+
+    /// What both backends do to the averaged views: the gaps spherical
+    /// aberration opens between them closed
+    /// ([`crate::camera::view_filter`]), the barrel's share of the pixels
+    /// no view moves (optical vignetting without blur), then the
+    /// image-wide lens effects (magnification per channel, breathing,
     /// natural vignetting).
     pub fn finish_image(
         &self,
-        mut out: ColorImage,
+        out: ColorImage,
         aperture: &Aperture,
         p: &RefocusParams,
     ) -> Result<ColorImage, NodeError> {
+        let mut out = close_gaps(out, &self.spacing(p), &self.src_inv_z);
         if let Some(b) = &self.barrel {
             let more;
             let pts = if self.points.len() >= FRACTION_SAMPLES {
@@ -1281,7 +1305,7 @@ fn eval_reverse(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Refocus",
-        2,
+        3,
         "Thin-lens depth of field by sampling the aperture (realistic-depth-blur Sec. 2.3): one sheared \
          pinhole view per aperture sample, forward-warped with a z-buffer, disocclusions inpainted with the \
          far-depth prior, averaged in linear radiance, then the exposure. Any aperture shape gives its bokeh.\n\
