@@ -541,6 +541,31 @@ impl Aperture {
         }
     }
 
+    /// The area the aperture's points are spread over, square aperture
+    /// diameters: the disc's `π/4`; a regular polygon of `n` blades
+    /// inscribed in the circle of radius 1/2, `n sin(2π/n) / 8`; a mask,
+    /// its pixels with any transmittance (their side `1 / max(w, h)`).
+    pub fn area(&self) -> f64 {
+        match self {
+            Aperture::Disc => std::f64::consts::FRAC_PI_4,
+            Aperture::Polygon { blades, .. } => {
+                let n = f64::from((*blades).max(3));
+                n * (std::f64::consts::TAU / n).sin() / 8.0
+            }
+            Aperture::Mask(m) => {
+                let (w, h) = m.dims();
+                let open = m
+                    .as_slice()
+                    .iter()
+                    .filter(|v| v.is_finite() && **v > 0.0)
+                    .count();
+                // guard: max(w, h, 1) >= 1
+                let side = 1.0 / w.max(h).max(1) as f64;
+                open as f64 * side * side
+            }
+        }
+    }
+
     /// True when `(x, y)` (aperture diameters, `y` down) is open. Only used
     /// for the analytic shapes; masks are sampled from their pixels.
     pub fn contains(&self, x: f64, y: f64) -> bool {

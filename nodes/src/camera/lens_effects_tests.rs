@@ -552,8 +552,8 @@ fn each_effect_matches_the_ray_traced_lens() {
 /// Spherical aberration spreads a bright point's views apart (module docs
 /// of `view_filter`): at 64 samples its bokeh is a scatter of dots. The
 /// filter brings it at least halfway to the converged bokeh (4096 views,
-/// no filter) in RMS, keeps its energy, and leaves the thin lens's bits
-/// alone.
+/// no filter) in RMS without widening it, keeps its energy (the spot lies
+/// far from the border), and leaves the thin lens's bits alone.
 #[test]
 fn the_view_filter_closes_the_gaps_spherical_aberration_opens() {
     let (w, h) = (96, 96);
@@ -587,6 +587,13 @@ fn the_view_filter_closes_the_gaps_spherical_aberration_opens() {
     let (e_dots, e_filtered) = (rms(&dots, &reference), rms(&filtered, &reference));
     eprintln!("RMS to the converged bokeh: {e_dots:.3} unfiltered, {e_filtered:.3} filtered");
     assert!(e_filtered < 0.5 * e_dots, "{e_filtered} vs {e_dots}");
+    // and no wider: the spot's diameter within a pixel of the converged one
+    let (d_ref, d_filtered) = (
+        spot_diameter(&reference, 48.0, 48.0, 1),
+        spot_diameter(&filtered, 48.0, 48.0, 1),
+    );
+    eprintln!("spot diameter: {d_ref:.2} converged, {d_filtered:.2} filtered");
+    assert!((d_filtered - d_ref).abs() < 1.0, "{d_filtered} vs {d_ref}");
     let total = |im: &ColorImage| im.as_slice().iter().map(|p| p[1] as f64).sum::<f64>();
     assert!(
         (total(&filtered) - 1.0e4).abs() < 1.0,

@@ -324,11 +324,12 @@ impl BlurPlan {
     }
 
     /// The spacing of the views as [`crate::camera::view_filter`] reads it.
-    pub fn spacing(&self, p: &RefocusParams) -> Spacing<'_> {
+    pub fn spacing(&self, aperture: &Aperture, p: &RefocusParams) -> Spacing<'_> {
         Spacing {
             points: &self.points,
             c_scale: self.c_scale,
             inv_u: self.inv_u,
+            area: aperture.area(),
             spherical_d: self.effects.spherical_d,
             k: p.view_filter,
         }
@@ -353,7 +354,7 @@ impl BlurPlan {
         aperture: &Aperture,
         p: &RefocusParams,
     ) -> Result<ColorImage, NodeError> {
-        let mut out = close_gaps(out, &self.spacing(p), &self.src_inv_z);
+        let mut out = close_gaps(out, &self.spacing(aperture, p), &self.src_inv_z);
         if let Some(b) = &self.barrel {
             let more;
             let pts = if self.points.len() >= FRACTION_SAMPLES {

@@ -33,15 +33,26 @@
 //! `σ = k sqrt(A / n) C sqrt(max(0, ⟨J⟩ / C² - a²))`,
 //!
 //! `k` = `view_filter`, `⟨J⟩` the mean of `J` over the views' own points
-//! (so any aperture shape), `a` from the pixel's own depth: the spacing
-//! the aberration adds to the thin lens's, in the root-mean-square sense.
-//! The thin lens gets `σ = 0` at every pixel and the image is returned bit
-//! for bit (nothing the sample count already budgets is touched). `A` is
-//! estimated as `2π` times the points' mean squared radius (exact for the
-//! disc, within 1 % for a hexagon). The Gaussian is separable, rows then
-//! columns, each output pixel with its own `σ`, cut at `2σ` and
-//! renormalised (the image's border, the cut); pixels with `σ <`
-//! [`MIN_SIGMA_PX`] keep their value. The blurred regions it smooths are
+//! (whatever the aperture's shape), `A` the aperture's area
+//! ([`crate::camera::lens::Aperture::area`]), `a` from the pixel's own
+//! depth: the spacing the aberration adds to the thin lens's, in the
+//! root-mean-square sense. The thin lens gets `σ = 0` at every pixel and
+//! the image is returned bit for bit (nothing the sample count already
+//! budgets is touched).
+//!
+//! Where both factors of `J` keep one sign over the aperture (`a S >= 0`,
+//! or `|a| >= 3 |S| t_max`), `⟨J⟩/C² - a² = 4 a S ⟨t⟩ + 3 S² ⟨t²⟩`
+//! exactly, from two moments of the points; only in the band between (the
+//! caustic's side of the focus, `3 |S| t_max` dioptres wide whatever the
+//! depths) is the mean of the absolute value tabulated, [`TABLE`]
+//! entries, linear between them. A far outlier in the depth map neither
+//! widens the table nor gets a filter of its own.
+//!
+//! The Gaussian is separable, rows then columns, each output pixel with
+//! its own `σ`, cut at `2σ` (and at the image's size) and renormalised
+//! over the pixels inside the image: no darkening at the border, where, as
+//! any renormalised gather, it does not keep the total exactly. Pixels
+//! with `σ <` [`MIN_SIGMA_PX`] keep their value. The blurred regions it smooths are
 //! already blurred by at least `C |a|` (and `C S` at the focus), many times
 //! `σ`, so it removes the dots and little else: on the tabletop at 256
 //! samples, `k = 0.5` gives 36.1 -> 38.5 dB at +0.8 D, 39.7 -> 39.9 at
@@ -55,8 +66,9 @@ use depthgraph_graph::value::Rgb;
 /// A pixel whose filter is narrower than this (pixels) keeps its value.
 pub const MIN_SIGMA_PX: f64 = 0.3;
 
-/// Entries of the table of `⟨J⟩` over the image's range of `a`.
-const TABLE: usize = 1024;
+/// Entries of the table of `⟨J⟩` over the caustic's band of `a` (module
+/// docs).
+pub const TABLE: usize = 1024;
 
 /// What the filter needs to know of the views (module docs).
 #[derive(Debug, Clone, Copy)]
@@ -67,90 +79,95 @@ pub struct Spacing<'a> {
     pub c_scale: f64,
     /// `1/u`.
     pub inv_u: f64,
+    /// The aperture's area, square aperture diameters
+    /// ([`crate::camera::lens::Aperture::area`]).
+    pub area: f64,
     /// `S`, dioptres.
     pub spherical_d: f64,
     /// `k`, times the added spacing; 0 = off.
     pub k: f64,
 }
 
-/// `⟨|(a + S t)(a + 3 S t)|⟩` over the points' `t = 4|s|²`.
-fn mean_jacobian(a: f64, s: f64, ts: &[f64]) -> f64 {
+/// `⟨|(a + S t)(a + 3 S t)|⟩ - a²` over the points' `t = 4|s|²`.
+fn added(a: f64, s: f64, ts: &[f64]) -> f64 {
     // guard: ts is not empty (callers check)
     ts.iter()
         .map(|t| ((a + s * t) * (a + 3.0 * s * t)).abs())
         .sum::<f64>()
         / ts.len() as f64
+        - a * a
 }
 
 /// The filter's `σ` (pixels) at every pixel of inverse depths `inv_z`
 /// (module docs); all zero when the filter or the aberration is off.
 pub fn sigmas(sp: &Spacing, inv_z: &[f64]) -> Vec<f64> {
     let n = sp.points.len();
-    if sp.k <= 0.0 || sp.spherical_d == 0.0 || n == 0 || !sp.c_scale.is_finite() {
+    let s = sp.spherical_d;
+    let on = sp.k > 0.0 && s != 0.0 && n > 0;
+    let scale = sp.k * (sp.area / n.max(1) as f64).sqrt() * sp.c_scale;
+    if !on || !scale.is_finite() || !s.is_finite() {
         return vec![0.0; inv_z.len()];
     }
     let ts: Vec<f64> = sp
         .points
         .iter()
-        .map(|s| 4.0 * (s[0] * s[0] + s[1] * s[1]))
+        .map(|p| 4.0 * (p[0] * p[0] + p[1] * p[1]))
         .collect();
-    // A = 2π E|s|² = (π/2) E[t] (exact for the disc)
-    let area = 0.5 * std::f64::consts::PI * ts.iter().sum::<f64>() / n as f64;
-    // guard: n >= 1
-    let scale = sp.k * (area / n as f64).sqrt() * sp.c_scale;
-    let a_of = |v: f64| sp.inv_u - v;
-    let (lo, hi) = inv_z
-        .iter()
-        .map(|v| a_of(*v))
-        .filter(|a| a.is_finite())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), a| {
-            (l.min(a), h.max(a))
-        });
-    // no finite a: lo = inf > hi = -inf
-    if lo > hi {
-        return vec![0.0; inv_z.len()];
-    }
-    // ⟨J⟩ tabulated over [lo, hi] (linear between entries: it is
-    // piecewise quadratic in a, continuous)
-    let step = (hi - lo) / (TABLE - 1) as f64;
+    // guard: n >= 1 (on)
+    let m1 = ts.iter().sum::<f64>() / n as f64;
+    let m2 = ts.iter().map(|t| t * t).sum::<f64>() / n as f64;
+    let t_max = ts.iter().copied().fold(0.0f64, f64::max);
+    // the band where a and a + 3 S t change sign: a between 0 and
+    // -3 S t_max; the table spans it, TABLE entries, ends included
+    let (b0, b1) = if s > 0.0 {
+        (-3.0 * s * t_max, 0.0)
+    } else {
+        (0.0, -3.0 * s * t_max)
+    };
+    // guard: TABLE - 1 > 0
+    let step = (b1 - b0) / (TABLE - 1) as f64;
     let table: Vec<f64> = (0..TABLE)
         .into_par_iter()
-        .map(|i| mean_jacobian(lo + step * i as f64, sp.spherical_d, &ts))
+        .map(|i| added(b0 + step * i as f64, s, &ts))
         .collect();
     inv_z
         .par_iter()
         .map(|v| {
-            let a = a_of(*v);
+            let a = sp.inv_u - v;
             if !a.is_finite() {
                 return 0.0;
             }
-            let j = if step > 0.0 {
+            let f = if a > b0 && a < b1 && step > 0.0 {
                 // guard: step > 0
-                let x = ((a - lo) / step).clamp(0.0, (TABLE - 1) as f64);
+                let x = (a - b0) / step;
                 let i = (x.floor() as usize).min(TABLE - 2);
-                let f = x - i as f64;
-                table[i] * (1.0 - f) + table[i + 1] * f
+                let w = x - i as f64;
+                table[i] * (1.0 - w) + table[i + 1] * w
             } else {
-                table[0]
+                // both factors keep a's sign: the mean of the product
+                4.0 * a * s * m1 + 3.0 * s * s * m2
             };
-            scale * (j - a * a).max(0.0).sqrt()
+            let sigma = scale * f.max(0.0).sqrt();
+            if sigma.is_finite() { sigma } else { 0.0 }
         })
         .collect()
 }
 
 /// One pass of the separable Gaussian: along rows (`along_x`) or columns,
-/// each pixel with its own `sigma` (module docs).
+/// each pixel with its own `sigma` (module docs); `w, h >= 1` (the
+/// caller's check).
 fn pass(src: &[Rgb], w: usize, h: usize, sigma: &[f64], along_x: bool) -> Vec<Rgb> {
     (0..w * h)
         .into_par_iter()
         .map(|i| {
             let sg = sigma[i];
-            if sg < MIN_SIGMA_PX {
+            if sg.is_nan() || sg < MIN_SIGMA_PX {
                 return src[i];
             }
             let (x, y) = (i % w, i / w);
             let (pos, len) = if along_x { (x, w) } else { (y, h) };
-            let r = (2.0 * sg).ceil() as usize;
+            // at most the row's or column's length (an inf sigma too)
+            let r = (2.0 * sg).ceil().min((len - 1) as f64) as usize;
             // guard: sg >= MIN_SIGMA_PX > 0
             let inv = 0.5 / (sg * sg);
             let at = |q: usize| {
@@ -220,7 +237,8 @@ mod tests {
 
     /// Without aberration the spacing is the thin lens's: σ = 0, and the
     /// image comes back bit for bit; with it, σ matches the closed form of
-    /// ⟨J⟩ for a uniform disc, (a + S)² + S²/3 ... evaluated directly.
+    /// ⟨J⟩ for a uniform disc, (a + S)², where both factors keep their
+    /// sign, and in the caustic's band the direct mean over the points.
     #[test]
     fn the_thin_lens_is_untouched_and_the_aberrations_spacing_is_its_closed_form() {
         let pts = disc_points(4096);
@@ -229,6 +247,7 @@ mod tests {
             points: &pts,
             c_scale: 40.0,
             inv_u: 1.0,
+            area: std::f64::consts::FRAC_PI_4,
             spherical_d: 0.0,
             k: 0.5,
         };
@@ -253,16 +272,46 @@ mod tests {
             let want = scale * (2.0 * a * s + s * s).sqrt();
             assert!((g - want).abs() < 0.01 * want, "a {a}: {g} vs {want}");
         }
-        // the other side of the focus with a caustic: smaller, not zero
-        // everywhere, never negative
-        let neg = sigmas(
-            &Spacing {
-                spherical_d: -s,
-                ..thin
-            },
-            &inv_z,
-        );
+        // the other side: a caustic's band (0 < a < 2.4) where the direct
+        // mean over the points decides, never negative, not zero throughout
+        let neg_sp = Spacing {
+            spherical_d: -s,
+            ..thin
+        };
+        let neg = sigmas(&neg_sp, &inv_z);
         assert!(neg.iter().all(|v| *v >= 0.0 && v.is_finite()));
+        assert!(neg.iter().any(|v| *v > 0.1), "{neg:?}");
+        let ts: Vec<f64> = pts
+            .iter()
+            .map(|p| 4.0 * (p[0] * p[0] + p[1] * p[1]))
+            .collect();
+        for (v, g) in inv_z.iter().zip(&neg) {
+            let want = added(1.0 - v, -s, &ts).max(0.0);
+            let got = (g / scale).powi(2);
+            assert!((got - want).abs() < 1e-4, "{v}: {got} vs {want}");
+        }
+    }
+
+    /// A depth far off the others (a stray near pixel) changes no other
+    /// pixel's filter, and gets a finite one itself.
+    #[test]
+    fn an_outlier_depth_changes_no_other_pixels_filter() {
+        let pts = disc_points(1024);
+        let sp = Spacing {
+            points: &pts,
+            c_scale: 40.0,
+            inv_u: 1.0,
+            area: std::f64::consts::FRAC_PI_4,
+            spherical_d: 0.8,
+            k: 0.5,
+        };
+        let inv_z: Vec<f64> = (0..64).map(|i| 0.2 + 0.04 * i as f64).collect();
+        let mut with = inv_z.clone();
+        with.push(1e14);
+        with.push(f64::NAN);
+        let (a, b) = (sigmas(&sp, &inv_z), sigmas(&sp, &with));
+        assert_eq!(a[..], b[..64]);
+        assert!(b[64..].iter().all(|v| v.is_finite() && *v >= 0.0));
     }
 
     /// A row of isolated dots (the views of one bright point) becomes the
