@@ -417,7 +417,7 @@ pub fn render(
             // barrel's share of the unmoved pixels and the image-wide lens
             // effects (magnification per channel, breathing, natural
             // vignetting) on the host, as the CPU does.
-            let changed = changed || plan.finishes(p);
+            let changed = changed || plan.finishes();
             let img = plan.finish_image(img, aperture, p)?;
             // The device copy is the value only if nothing was corrected.
             if !changed {

@@ -603,3 +603,41 @@ fn the_view_filter_closes_the_gaps_spherical_aberration_opens() {
     let (thin, thin_off) = (with(64, 0.0, 0.5), with(64, 0.0, 0.0));
     assert_eq!(thin.as_slice(), thin_off.as_slice());
 }
+
+/// `explain` says whether the views' gaps were smoothed and how wide the
+/// filter got, or that they were left; nothing about it on a thin lens.
+#[test]
+fn explain_reports_the_view_filter() {
+    let (c, d) = point_scene(64, 64);
+    let said = |s: f64, k: f64| {
+        let p = RefocusParams {
+            focus_m: 1.0,
+            f_number: 2.0,
+            sensor_width_mm: 3.0,
+            samples: 64,
+            spherical_aberration_d: s,
+            view_filter: k,
+            ..Default::default()
+        };
+        let (out, rep) = match refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())) {
+            Ok(r) => r,
+            Err(e) => panic!("{e}"),
+        };
+        let text = produced(crate::camera::refocus::RefocusOut { color: out }, &p, &rep)
+            .report
+            .unwrap_or_default();
+        (rep.view_filter_px, text)
+    };
+    let (px, text) = said(0.8, 0.5);
+    assert!(px > 0.3 && px.is_finite(), "{px}");
+    assert!(
+        text.contains("smoothed (view_filter 0.5): a Gaussian of up to"),
+        "{text}"
+    );
+    let (px, text) = said(0.8, 0.0);
+    assert_eq!(px, 0.0);
+    assert!(text.contains("view_filter 0: the gaps"), "{text}");
+    let (px, text) = said(0.0, 0.5);
+    assert_eq!(px, 0.0);
+    assert!(!text.contains("view_filter"), "{text}");
+}

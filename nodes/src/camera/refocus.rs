@@ -47,7 +47,7 @@ use crate::camera::lens::{
     effective_f_number, inv_depth,
 };
 use crate::camera::occlusion::{BackgroundLayer, LayerParams, background_layer};
-use crate::camera::view_filter::{Spacing, close_gaps};
+use crate::camera::view_filter::{MIN_SIGMA_PX, Spacing, close_gaps, sigmas};
 use crate::kit::grid::round_to_pixel;
 
 /// Side of the tiles that are skipped when nothing in reach is blurred.
@@ -167,6 +167,9 @@ pub struct RefocusReport {
     /// Fraction of the background layer's entries whose colour continues
     /// the background's texture (0 when `background_texture` is off).
     pub layer_textured: f64,
+    /// Largest `σ` of the filter that closes the gaps spherical aberration
+    /// opens between the views, pixels (0: not applied).
+    pub view_filter_px: f64,
 }
 
 /// The sample count `samples = 0` picks for a largest CoC of `max_coc_px`
@@ -301,6 +304,11 @@ pub struct BlurPlan {
     /// `background_layer` is off or nothing is behind anything). Its entry
     /// `k` takes part in the z-buffer as source index `w * h + k`.
     pub layer: BackgroundLayer,
+    /// Per pixel, the `σ` (pixels) of the filter that closes the gaps
+    /// spherical aberration opens between the views
+    /// ([`crate::camera::view_filter`]); empty when no pixel's reaches
+    /// [`MIN_SIGMA_PX`] (the thin lens, `view_filter = 0`).
+    pub view_sigma: Vec<f64>,
 }
 
 /// The z-buffer key of a source of inverse depth `v` and index `i`: the
@@ -323,23 +331,9 @@ impl BlurPlan {
         [self.c_scale * s[0], self.c_scale * s[1]]
     }
 
-    /// The spacing of the views as [`crate::camera::view_filter`] reads it.
-    pub fn spacing(&self, aperture: &Aperture, p: &RefocusParams) -> Spacing<'_> {
-        Spacing {
-            points: &self.points,
-            c_scale: self.c_scale,
-            inv_u: self.inv_u,
-            area: aperture.area(),
-            spherical_d: self.effects.spherical_d,
-            k: p.view_filter,
-        }
-    }
-
     /// Whether [`BlurPlan::finish_image`] changes the averaged views.
-    pub fn finishes(&self, p: &RefocusParams) -> bool {
-        self.effects.in_image(&self.lens)
-            || self.barrel.is_some()
-            || (p.view_filter > 0.0 && self.effects.spherical_d != 0.0)
+    pub fn finishes(&self) -> bool {
+        self.effects.in_image(&self.lens) || self.barrel.is_some() || !self.view_sigma.is_empty()
     }
 
     /// What both backends do to the averaged views: the gaps spherical
@@ -354,7 +348,7 @@ impl BlurPlan {
         aperture: &Aperture,
         p: &RefocusParams,
     ) -> Result<ColorImage, NodeError> {
-        let mut out = close_gaps(out, &self.spacing(aperture, p), &self.src_inv_z);
+        let mut out = close_gaps(out, &self.view_sigma);
         if let Some(b) = &self.barrel {
             let more;
             let pts = if self.points.len() >= FRACTION_SAMPLES {
@@ -416,6 +410,7 @@ impl BlurPlan {
             layer_fraction: self.layer.len() as f64 / (w * h).max(1) as f64,
             // Guard: max(1) keeps an empty layer at 0.
             layer_textured: self.layer.textured as f64 / self.layer.len().max(1) as f64,
+            view_filter_px: self.view_sigma.iter().copied().fold(0.0, f64::max),
         }
     }
 }
@@ -464,6 +459,7 @@ pub fn plan(
                 hole_fraction: 0.0,
                 layer_fraction: 0.0,
                 layer_textured: 0.0,
+                view_filter_px: 0.0,
             },
         ));
     }
@@ -502,6 +498,22 @@ pub fn plan(
     } else {
         BackgroundLayer::default()
     };
+    let view_sigma = {
+        let sp = Spacing {
+            points: &points,
+            c_scale: lens.coc_scale(w),
+            inv_u: lens.inv_focus(),
+            area: aperture.area(),
+            spherical_d: fx.spherical_d,
+            k: p.view_filter,
+        };
+        let s = sigmas(&sp, &src_inv_z);
+        if s.iter().any(|v| *v >= MIN_SIGMA_PX) {
+            s
+        } else {
+            Vec::new()
+        }
+    };
     Ok(Plan::Blur(Box::new(BlurPlan {
         w,
         h,
@@ -519,6 +531,7 @@ pub fn plan(
         effects: fx,
         barrel,
         layer,
+        view_sigma,
     })))
 }
 
@@ -1271,6 +1284,19 @@ pub fn produced(
         ));
     }
     lines.extend(skipped);
+    if report.view_filter_px > 0.0 {
+        lines.push(format!(
+            "the gaps spherical aberration opens between the {} views smoothed \
+             (view_filter {}): a Gaussian of up to {:.2} px",
+            report.samples, p.view_filter, report.view_filter_px
+        ));
+    } else if p.spherical_aberration_d != 0.0 && p.view_filter <= 0.0 && report.samples > 0 {
+        lines.push(
+            "view_filter 0: the gaps spherical aberration opens between the views are left \
+             (a bright point's bokeh may show the views as dots)"
+                .to_string(),
+        );
+    }
     if p.background_layer && report.samples > 0 {
         lines.push(format!(
             "background layer behind foreground edges: {:.1} % of the pixels",

@@ -200,20 +200,17 @@ fn pass(src: &[Rgb], w: usize, h: usize, sigma: &[f64], along_x: bool) -> Vec<Rg
         .collect()
 }
 
-/// The averaged views with the gaps between them closed (module docs);
-/// `inv_z` the pixels' inverse depths. The image itself, bit for bit, when
-/// no pixel's `σ` reaches [`MIN_SIGMA_PX`] (the thin lens, `k = 0`).
-pub fn close_gaps(image: ColorImage, sp: &Spacing, inv_z: &[f64]) -> ColorImage {
+/// The averaged views with the gaps between them closed (module docs),
+/// `sigma` per pixel from [`sigmas`]. The image itself, bit for bit, when
+/// no pixel's `σ` reaches [`MIN_SIGMA_PX`] or `sigma` does not fit the
+/// image (empty: the thin lens, `k = 0`).
+pub fn close_gaps(image: ColorImage, sigma: &[f64]) -> ColorImage {
     let (w, h) = image.dims();
-    if inv_z.len() != w * h || w == 0 || h == 0 {
+    if sigma.len() != w * h || w == 0 || h == 0 || sigma.iter().all(|s| *s < MIN_SIGMA_PX) {
         return image;
     }
-    let sigma = sigmas(sp, inv_z);
-    if sigma.iter().all(|s| *s < MIN_SIGMA_PX) {
-        return image;
-    }
-    let rows = pass(image.as_slice(), w, h, &sigma, true);
-    let cols = pass(&rows, w, h, &sigma, false);
+    let rows = pass(image.as_slice(), w, h, sigma, true);
+    let cols = pass(&rows, w, h, sigma, false);
     Image::from_vec(w, h, cols).unwrap_or(image)
 }
 
@@ -253,7 +250,7 @@ mod tests {
         };
         assert!(sigmas(&thin, &inv_z).iter().all(|s| *s == 0.0));
         let img = Image::from_vec(10, 5, (0..50).map(|i| [i as f32; 3]).collect()).unwrap();
-        let same = close_gaps(img.clone(), &thin, &inv_z);
+        let same = close_gaps(img.clone(), &sigmas(&thin, &inv_z));
         assert_eq!(same.as_slice(), img.as_slice());
         // S = 0.8: where (a + S t)(a + 3 S t) keeps its sign on [0, 1]
         // (a >= 0), ⟨J⟩ = ∫ a² + 4 a S t + 3 S² t² dt = a² + 2 a S + S²
