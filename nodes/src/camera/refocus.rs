@@ -430,7 +430,8 @@ pub fn plan(
     let (w, h) = color.dims();
     // The per-ray focus offsets (spherical, longitudinal chromatic) blur
     // every pixel by up to C max|S r^2 + k_c L| more.
-    let extra = lens.coc_scale(w) * fx.max_focus_offset(aperture.extent());
+    let (c_scale, inv_u) = (lens.coc_scale(w), lens.inv_focus());
+    let extra = c_scale * fx.max_focus_offset(aperture.extent());
     let coc = if extra > 0.0 {
         coc.map(|&c| (c as f64 + extra) as f32)
     } else {
@@ -490,7 +491,7 @@ pub fn plan(
             &src_inv_z,
             &active,
             &LayerParams {
-                reach_scale: lens.coc_scale(w) * aperture.extent(),
+                reach_scale: c_scale * aperture.extent(),
                 fill_h: p.fill_h,
                 texture: p.background_texture,
             },
@@ -501,12 +502,13 @@ pub fn plan(
     let view_sigma = {
         let sp = Spacing {
             points: &points,
-            c_scale: lens.coc_scale(w),
-            inv_u: lens.inv_focus(),
+            c_scale,
+            inv_u,
             area: aperture.area(),
             spherical_d: fx.spherical_d,
             k: p.view_filter,
         };
+        // empty, without a pass over the pixels, when the filter is off
         let s = sigmas(&sp, &src_inv_z);
         if s.iter().any(|v| *v >= MIN_SIGMA_PX) {
             s
@@ -520,8 +522,8 @@ pub fn plan(
         points,
         active,
         n_active,
-        c_scale: lens.coc_scale(w),
-        inv_u: lens.inv_focus(),
+        c_scale,
+        inv_u,
         src_inv_z,
         src_color,
         sources,

@@ -99,14 +99,15 @@ fn added(a: f64, s: f64, ts: &[f64]) -> f64 {
 }
 
 /// The filter's `σ` (pixels) at every pixel of inverse depths `inv_z`
-/// (module docs); all zero when the filter or the aberration is off.
+/// (module docs); empty (no allocation, no pass over the pixels) when the
+/// filter or the aberration is off: the thin lens's path.
 pub fn sigmas(sp: &Spacing, inv_z: &[f64]) -> Vec<f64> {
     let n = sp.points.len();
     let s = sp.spherical_d;
     let on = sp.k > 0.0 && s != 0.0 && n > 0;
     let scale = sp.k * (sp.area / n.max(1) as f64).sqrt() * sp.c_scale;
     if !on || !scale.is_finite() || !s.is_finite() {
-        return vec![0.0; inv_z.len()];
+        return Vec::new();
     }
     let ts: Vec<f64> = sp
         .points
@@ -249,6 +250,7 @@ mod tests {
             k: 0.5,
         };
         assert!(sigmas(&thin, &inv_z).iter().all(|s| *s == 0.0));
+        assert!(sigmas(&thin, &inv_z).is_empty());
         let img = Image::from_vec(10, 5, (0..50).map(|i| [i as f32; 3]).collect()).unwrap();
         let same = close_gaps(img.clone(), &sigmas(&thin, &inv_z));
         assert_eq!(same.as_slice(), img.as_slice());
