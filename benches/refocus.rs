@@ -15,7 +15,8 @@
 //! `DEPTHGRAPH_REFOCUS_ONLY=speed` (the 640x480 time alone), `=effects`
 //! (each lens effect's time beside the effects off, interleaved; only those
 //! whose name holds `DEPTHGRAPH_REFOCUS_EFFECT`) or
-//! `=occlusion` (the partial-occlusion table alone, images to the temp dir)
+//! `=occlusion` (the partial-occlusion table alone, images to the temp dir),
+//! `=frame` (the frame-border table alone)
 //! print one section and leave the docs alone.
 
 mod common;
@@ -126,6 +127,11 @@ fn main() {
     }
     if std::env::var("DEPTHGRAPH_REFOCUS_ONLY").as_deref() == Ok("area") {
         area_pixels(&mut doc, repeats, rays);
+        println!("{doc}");
+        return;
+    }
+    if std::env::var("DEPTHGRAPH_REFOCUS_ONLY").as_deref() == Ok("frame") {
+        frame_border(&mut doc, repeats, rays);
         println!("{doc}");
         return;
     }
@@ -317,6 +323,9 @@ fn main() {
 
     // ------------------------------------------------------------ pixel area
     area_pixels(&mut doc, repeats, rays);
+
+    // ------------------------------------------------------------ frame border
+    frame_border(&mut doc, repeats, rays);
 
     // ------------------------------------------------------------ shapes
     writeln!(doc, "\n## Bokeh shapes\n").ok();
@@ -642,6 +651,16 @@ fn edge_band(depth: &DepthMap, r: usize) -> Vec<bool> {
     band
 }
 
+/// The focus settings of the first table and the thin scene's (preset,
+/// label, focus in metres, background layer and texture on).
+const FOCUS_CASES: [(&str, &str, f64, bool); 5] = [
+    ("tabletop", "tabletop, near", 0.95, false),
+    ("tabletop", "tabletop, middle", 1.6, false),
+    ("tabletop", "tabletop, far", 2.8, false),
+    ("thin", "thin, on the poles", 1.2, true),
+    ("thin", "thin, on the wall", 2.0, true),
+];
+
 /// The focus settings of the first table and the thin scene's with pixels
 /// that integrate their square, as a sensor's do: the input is the 4x4 supersampled pinhole
 /// render (its depth still from the pixel centre, as a depth camera gives
@@ -664,14 +683,7 @@ fn area_pixels(doc: &mut String, repeats: usize, rays: usize) {
     )
     .ok();
     let inside = interior(w, h, FRAME_BORDER_PX);
-    let cases = [
-        ("tabletop", "tabletop, near", 0.95, false),
-        ("tabletop", "tabletop, middle", 1.6, false),
-        ("tabletop", "tabletop, far", 2.8, false),
-        ("thin", "thin, on the poles", 1.2, true),
-        ("thin", "thin, on the wall", 2.0, true),
-    ];
-    for (preset, label, focus, layer) in cases {
+    for (preset, label, focus, layer) in FOCUS_CASES {
         let scene = Scene::preset(preset, w, h).expect("preset");
         let area = render(&scene, &RenderOptions { supersample: 4 });
         let centre = render(&scene, &RenderOptions::default());
@@ -864,6 +876,76 @@ fn partial_occlusion(doc: &mut String, repeats: usize, rays: usize, out_dir: &Pa
          [background layer](refocus/occlusion_thin_near_layer.png), \
          [with texture](refocus/occlusion_thin_near_texture.png) (thin, focus on the poles); \
          `occlusion_thin_far_*.png` likewise."
+    )
+    .ok();
+}
+
+/// `frame_border` edge (the default) against reflect on the focus settings
+/// of the tables above: the whole frame, the band of the frame's outer
+/// pixels where a view reads past the border, and the time of each in the
+/// same run.
+fn frame_border(doc: &mut String, repeats: usize, rays: usize) {
+    use depthgraph::nodes::camera::frame_border::FrameBorder;
+    let (w, h) = (320, 240);
+    writeln!(
+        doc,
+        "\n## Beyond the frame's border\n\n\
+         A lens's rays near the border see the scene continue past the frame; the input stops \
+         there. `frame_border = edge` (the default) fills what a view uncovers at the border with \
+         the input's own pixel; `reflect` mirrors colour and depth about the border by the blur's \
+         reach, renders the wider frame with the same pixel pitch and crops it. {w}x{h}, 50 mm \
+         f/1.4, 256 samples, truth {rays} rays per pixel; the thin scene with the background layer \
+         and its texture. \"band\": the outer {FRAME_BORDER_PX} pixels.\n\n\
+         | scene, focus | border | PSNR | PSNR in the band | PSNR inside | time (ms) | ratio to edge |\n\
+         |---|---|---|---|---|---|---|"
+    )
+    .ok();
+    let inside = interior(w, h, FRAME_BORDER_PX);
+    let band: Vec<bool> = inside.iter().map(|i| !i).collect();
+    for (preset, label, focus, layer) in FOCUS_CASES {
+        let scene = Scene::preset(preset, w, h).expect("preset");
+        let pin = render(&scene, &RenderOptions::default());
+        let edge = RefocusParams {
+            background_layer: layer,
+            background_texture: layer,
+            ..lens_params(w, focus, 256)
+        };
+        let reflect = RefocusParams {
+            frame_border: FrameBorder::Reflect,
+            ..edge.clone()
+        };
+        let (gt, gt_s) = truth(&scene, &edge, rays);
+        eprintln!("truth {label}: {gt_s:.1} s");
+        let run = |p: &RefocusParams| {
+            refocus(&pin.color, &pin.depth, &Aperture::Disc, p, |_| Ok(())).expect("refocus")
+        };
+        // interleaved, so machine load falls on both alike
+        let (a, _) = run(&edge);
+        let ((b, rep), ms_a, ms_b, ratio) = timed_pair(repeats, || run(&edge), || run(&reflect));
+        for (name, img, ms, r) in [
+            ("edge".to_string(), &a, ms_a, 1.0),
+            (
+                format!("reflect ({} px)", rep.frame_pad_px),
+                &b,
+                ms_b,
+                ratio,
+            ),
+        ] {
+            writeln!(
+                doc,
+                "| {label} ({focus} m) | {name} | {:.2} | {:.2} | {:.2} | {ms:.0} | {r:.2} |",
+                display_psnr(img, &gt).unwrap_or(f64::NAN),
+                masked_psnr(img, &gt, &band),
+                masked_psnr(img, &gt, &inside),
+            )
+            .ok();
+        }
+    }
+    writeln!(
+        doc,
+        "\nThe mirror is a guess about what lies past the border: right where the scene continues \
+         smoothly (a wall, a floor), wrong where the border cuts an object, whose mirror image \
+         then blurs in (the thin scene's poles near the border, focus on the wall)."
     )
     .ok();
 }

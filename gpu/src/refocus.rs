@@ -287,6 +287,8 @@ pub fn render(
     let b_buf = s.uniform(&batch_bytes)?;
     let v_buf = s.upload(bytes_of(&blocks))?;
     let src_buf = s.upload(bytes_of(&src))?;
+    // the extended frame's colour when frame_border extended it
+    let color = plan.frame.as_ref().map_or(color, |(_, c)| c);
     let color_buf = s.image(color, bytes_of(color.as_slice()))?;
     let pix_buf = s.upload(bytes_of(&pix))?;
     let layer_buf = s.upload(bytes_of(&layer_px))?;

@@ -8,6 +8,7 @@ use common::*;
 use depthgraph_gpu::parity::color_within;
 use depthgraph_gpu::refocus::MIN_PSNR_DB;
 use depthgraph_graph::prelude::*;
+use depthgraph_nodes::camera::frame_border::FrameBorder;
 use depthgraph_nodes::camera::lens::{Aperture, ApertureShape};
 use depthgraph_nodes::camera::refocus::{Plan, RefocusParams, plan};
 
@@ -43,7 +44,19 @@ fn fixed_pixels(c: &ColorImage, d: &DepthMap, p: &RefocusParams) -> Vec<bool> {
     let a = Aperture::from_params(p.aperture, p.blades, p.rotation_deg, None).unwrap();
     match plan(c, d, &a, p).unwrap() {
         Plan::Sharp(..) => vec![true; c.len()],
-        Plan::Blur(b) => b.active.iter().map(|a| !a).collect(),
+        Plan::Blur(b) => {
+            let fixed: Vec<bool> = b.active.iter().map(|a| !a).collect();
+            match &b.frame {
+                // the extended frame's flags, cropped as the image is
+                Some((f, _)) => {
+                    let (pw, ph) = f.padded_dims();
+                    f.crop(&Image::<bool>::from_vec(pw, ph, fixed).unwrap())
+                        .as_slice()
+                        .to_vec()
+                }
+                None => fixed,
+            }
+        }
     }
 }
 
@@ -333,6 +346,45 @@ fn lens_effects_agree_with_the_cpu() {
         assert!(
             color_within(&x, &color_of(&off, "color"), &fixed, MIN_PSNR_DB).is_err(),
             "{p:?}: the effect changes nothing the check sees"
+        );
+    }
+}
+
+/// `frame_border` reflect on the device: the views warp the extended
+/// frame's colour (uploaded in place of the input) and the result comes
+/// back cropped; it agrees with the CPU's within the stated bound and
+/// explain says the same on both, with and without the background layer.
+/// The mirrored border changes the result by more than the bound.
+#[test]
+fn the_reflected_frame_agrees_with_the_cpu() {
+    let (c, d) = scene(120, 90);
+    let none = vec![false; c.len()];
+    for base in [
+        cases().remove(0),
+        RefocusParams {
+            background_layer: true,
+            ..cases().remove(1)
+        },
+    ] {
+        let p = RefocusParams {
+            frame_border: FrameBorder::Reflect,
+            ..base.clone()
+        };
+        let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+        assert_eq!(dev.origin.as_ref().unwrap().backend, "wgpu");
+        assert_eq!(cpu.report, dev.report);
+        let said = cpu.report.clone().unwrap_or_default();
+        assert!(said.contains("frame extended by"), "{said}");
+        let (x, y) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+        assert_eq!(y.dims(), c.dims());
+        let fixed = fixed_pixels(&c, &d, &p);
+        let psnr =
+            color_within(&x, &y, &fixed, MIN_PSNR_DB).unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        eprintln!("reflected frame, focus {}: PSNR {psnr:.1} dB", p.focus_m);
+        let edge = both("Refocus", &inputs(c.clone(), d.clone()), &base.to_values()).1;
+        assert!(
+            color_within(&y, &color_of(&edge, "color"), &none, MIN_PSNR_DB).is_err(),
+            "the mirrored border changes nothing the check sees"
         );
     }
 }

@@ -413,14 +413,12 @@ fn wall_scene(w: usize, h: usize) -> Scene {
     scene
 }
 
-/// Display PSNR (linear clamped to [0, 1]) over the pixels at least
-/// `margin` from the border: a single image cannot know what lies beyond
-/// its frame, which the lens's rays see.
-fn display_psnr(a: &ColorImage, b: &ColorImage, margin: usize) -> f64 {
+/// Display PSNR (linear clamped to [0, 1]) over the pixels where `keep(x, y)`.
+fn psnr_where(a: &ColorImage, b: &ColorImage, keep: impl Fn(usize, usize) -> bool) -> f64 {
     let (w, h) = a.dims();
     let (mut s, mut n) = (0.0f64, 0usize);
-    for y in margin..h.saturating_sub(margin) {
-        for x in margin..w.saturating_sub(margin) {
+    for y in 0..h {
+        for x in (0..w).filter(|&x| keep(x, y)) {
             for c in 0..3 {
                 let (p, q) = (a.get(x, y)[c], b.get(x, y)[c]);
                 s += (p.clamp(0.0, 1.0) as f64 - q.clamp(0.0, 1.0) as f64).powi(2);
@@ -430,6 +428,41 @@ fn display_psnr(a: &ColorImage, b: &ColorImage, margin: usize) -> f64 {
     }
     let mse = s / n.max(1) as f64;
     10.0 * (1.0 / mse.max(1e-20)).log10()
+}
+
+/// Display PSNR over the pixels at least `margin` from the border: a
+/// single image cannot know what lies beyond its frame, which the lens's
+/// rays see.
+fn display_psnr(a: &ColorImage, b: &ColorImage, margin: usize) -> f64 {
+    let (w, h) = a.dims();
+    psnr_where(a, b, |x, y| {
+        x >= margin && y >= margin && x + margin < w && y + margin < h
+    })
+}
+
+/// Display PSNR over the pixels less than `band` from the border.
+fn border_psnr(a: &ColorImage, b: &ColorImage, band: usize) -> f64 {
+    let (w, h) = a.dims();
+    psnr_where(a, b, |x, y| {
+        x < band || y < band || x + band >= w || y + band >= h
+    })
+}
+
+/// `scene` through the lens and the lens effects of `p`, 256 rays a
+/// pixel through a disc aperture (seed 5).
+fn ray_traced(scene: &Scene, p: &RefocusParams) -> ColorImage {
+    let opts = ThinLensRender {
+        lens: p.lens(),
+        aperture: Aperture::Disc,
+        samples: 256,
+        seed: 5,
+        effects: p.effects(),
+        pixel_area: false,
+    };
+    match render_thin_lens(scene, &opts, |_| Ok(())) {
+        Ok(t) => t,
+        Err(e) => panic!("{p:?}: {e}"),
+    }
 }
 
 /// Every effect against the ray-traced lens with the same effect (display
@@ -491,42 +524,14 @@ fn each_effect_matches_the_ray_traced_lens() {
             },
         ),
     ];
-    let plain = match render_thin_lens(
-        &scene,
-        &ThinLensRender {
-            lens: base.lens(),
-            aperture: Aperture::Disc,
-            samples: 256,
-            seed: 5,
-            effects: Default::default(),
-            pixel_area: false,
-        },
-        |_| Ok(()),
-    ) {
-        Ok(t) => t,
-        Err(e) => panic!("{e}"),
-    };
+    let plain = ray_traced(&scene, &base);
     // beyond the largest blur radius (about 7 px) and the breathing
     let margin = 16;
     let base_db = display_psnr(&run(&pin.color, &pin.depth, &base), &plain, margin);
     eprintln!("no effect: {base_db:.1} dB");
     assert!(base_db >= 38.0, "{base_db}");
     for (name, p) in cases {
-        let truth = match render_thin_lens(
-            &scene,
-            &ThinLensRender {
-                lens: p.lens(),
-                aperture: Aperture::Disc,
-                samples: 256,
-                seed: 5,
-                effects: p.effects(),
-                pixel_area: false,
-            },
-            |_| Ok(()),
-        ) {
-            Ok(t) => t,
-            Err(e) => panic!("{name}: {e}"),
-        };
+        let truth = ray_traced(&scene, &p);
         let ours = run(&pin.color, &pin.depth, &p);
         let without = run(
             &pin.color,
@@ -640,4 +645,73 @@ fn explain_reports_the_view_filter() {
     let (px, text) = said(0.0, 0.5);
     assert_eq!(px, 0.0);
     assert!(!text.contains("view_filter"), "{text}");
+}
+
+/// `frame_border` reflect against the ray-traced lens, whose rays see the
+/// wall continue past the frame: the border band (where a view reads
+/// beyond the input) comes clearly nearer the truth than with the edge
+/// behaviour, the pixels no view's read past the border reaches keep
+/// their bits, and explain says by how much the frame was extended.
+#[test]
+fn a_reflected_frame_continues_the_wall_past_the_border() {
+    let (w, h) = (128, 96);
+    let scene = wall_scene(w, h);
+    let pin = render(&scene, &RenderOptions::default());
+    let edge = RefocusParams {
+        focus_m: 1.0,
+        f_number: 1.4,
+        sensor_width_mm: 36.0 * w as f64 / 640.0,
+        samples: 256,
+        ..Default::default()
+    };
+    let reflect = RefocusParams {
+        frame_border: crate::camera::frame_border::FrameBorder::Reflect,
+        ..edge.clone()
+    };
+    let truth = ray_traced(&scene, &edge);
+    let go =
+        |p: &RefocusParams| match refocus(&pin.color, &pin.depth, &Aperture::Disc, p, |_| Ok(())) {
+            Ok(r) => r,
+            Err(e) => panic!("{e}"),
+        };
+    let ((a, rep_a), (b, rep_b)) = (go(&edge), go(&reflect));
+    assert_eq!(b.dims(), (w, h));
+    assert_eq!(rep_a.frame_pad_px, 0);
+    let pad = rep_b.frame_pad_px;
+    assert_eq!(
+        pad,
+        (rep_b.max_coc_px / 2.0).ceil() as usize + 1,
+        "{rep_b:?}"
+    );
+    let band = pad;
+    let (db_edge, db_reflect) = (border_psnr(&a, &truth, band), border_psnr(&b, &truth, band));
+    eprintln!(
+        "border band {band} px: edge {db_edge:.2} dB, reflect {db_reflect:.2} dB; interior {:.2} / {:.2}",
+        display_psnr(&a, &truth, band),
+        display_psnr(&b, &truth, band)
+    );
+    assert!(
+        db_reflect > db_edge + 3.0,
+        "{db_reflect:.2} vs {db_edge:.2}"
+    );
+    // Pixels farther than twice the reach from the border neither read past
+    // it nor are filled from what did (the views' fill marches stay within
+    // a reach of the pixel): the same bits.
+    let far = 2 * pad;
+    for y in far..h - far {
+        for x in far..w - far {
+            assert_eq!(a.get(x, y), b.get(x, y), "({x}, {y})");
+        }
+    }
+    let text = produced(
+        crate::camera::refocus::RefocusOut { color: b },
+        &reflect,
+        &rep_b,
+    )
+    .report
+    .unwrap_or_default();
+    assert!(
+        text.contains(&format!("frame extended by {pad} px on each side")),
+        "{text}"
+    );
 }

@@ -1,6 +1,7 @@
 //! The camera after the shot (realistic-depth-blur paper): intrinsics and
 //! their presets, the thin lens and its circle of confusion, refocusing with
 //! any aperture shape, and HDR merging of exposure brackets.
+pub mod frame_border;
 pub mod hdr;
 pub mod intrinsics;
 pub mod lens;

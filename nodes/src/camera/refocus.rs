@@ -42,6 +42,7 @@ use depthgraph_graph::registry::RegistryError;
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
+use crate::camera::frame_border::{Frame, FrameBorder, reach_px};
 use crate::camera::lens::{
     Aperture, ApertureShape, Barrel, LensEffects, ThinLens, apply_image_effects, bilinear,
     effective_f_number, inv_depth,
@@ -118,6 +119,8 @@ node_params! {
         pub background_layer: bool = false, ParamKind::Bool;
         /// With the background layer: continue the background's texture behind the edges along its dominant patch offsets (a checker, a brick wall continued behind a thin pole) instead of only interpolating its colour; off = interpolation (Refocus only).
         pub background_texture: bool = false, ParamKind::Bool;
+        /// Beyond the frame's border: edge = a view's hole there takes the input's own pixel (blurred borders continue their last row outward); reflect = colour and depth mirrored about the border as far as the blur reaches, rendered with the same lens and cropped away (Refocus only).
+        pub frame_border: FrameBorder = FrameBorder::Edge, ParamKind::Choice(FrameBorder::NAMES);
     }
 }
 
@@ -170,6 +173,9 @@ pub struct RefocusReport {
     /// Largest `σ` of the filter that closes the gaps spherical aberration
     /// opens between the views, pixels (0: not applied).
     pub view_filter_px: f64,
+    /// Pixels the frame was extended by on each side (`frame_border`
+    /// reflect; 0: not extended).
+    pub frame_pad_px: usize,
 }
 
 /// The sample count `samples = 0` picks for a largest CoC of `max_coc_px`
@@ -309,6 +315,10 @@ pub struct BlurPlan {
     /// ([`crate::camera::view_filter`]); empty when no pixel's reaches
     /// [`MIN_SIGMA_PX`] (the thin lens, `view_filter = 0`).
     pub view_sigma: Vec<f64>,
+    /// With `frame_border` reflect: how the input was extended, and the
+    /// extended colour (what the views warp; `w x h` above are its size).
+    /// The finished image is cropped back to the input's frame.
+    pub frame: Option<(Frame, Arc<ColorImage>)>,
 }
 
 /// The z-buffer key of a source of inverse depth `v` and index `i`: the
@@ -333,7 +343,10 @@ impl BlurPlan {
 
     /// Whether [`BlurPlan::finish_image`] changes the averaged views.
     pub fn finishes(&self) -> bool {
-        self.effects.in_image(&self.lens) || self.barrel.is_some() || !self.view_sigma.is_empty()
+        self.effects.in_image(&self.lens)
+            || self.barrel.is_some()
+            || !self.view_sigma.is_empty()
+            || self.frame.is_some()
     }
 
     /// What both backends do to the averaged views: the gaps spherical
@@ -341,7 +354,8 @@ impl BlurPlan {
     /// ([`crate::camera::view_filter`]), the barrel's share of the pixels
     /// no view moves (optical vignetting without blur), then the
     /// image-wide lens effects (magnification per channel, breathing,
-    /// natural vignetting).
+    /// natural vignetting), and the crop back to the input's frame when it
+    /// was extended.
     pub fn finish_image(
         &self,
         out: ColorImage,
@@ -359,7 +373,11 @@ impl BlurPlan {
             };
             darken_by_barrel(&mut out, b, pts, Some(&self.active));
         }
-        Ok(apply_image_effects(out, &self.effects, &self.lens))
+        let out = apply_image_effects(out, &self.effects, &self.lens);
+        Ok(match &self.frame {
+            Some((frame, _)) => frame.crop(&out),
+            None => out,
+        })
     }
 
     /// The green channel's extra shift of view `s` (spherical
@@ -411,6 +429,7 @@ impl BlurPlan {
             // Guard: max(1) keeps an empty layer at 0.
             layer_textured: self.layer.textured as f64 / self.layer.len().max(1) as f64,
             view_filter_px: self.view_sigma.iter().copied().fold(0.0, f64::max),
+            frame_pad_px: self.frame.as_ref().map_or(0, |(f, _)| f.pad),
         }
     }
 }
@@ -430,19 +449,88 @@ pub fn plan(
     let (w, h) = color.dims();
     // The per-ray focus offsets (spherical, longitudinal chromatic) blur
     // every pixel by up to C max|S r^2 + k_c L| more.
-    let (c_scale, inv_u) = (lens.coc_scale(w), lens.inv_focus());
-    let extra = c_scale * fx.max_focus_offset(aperture.extent());
+    let extra = lens.coc_scale(w) * fx.max_focus_offset(aperture.extent());
     let coc = if extra > 0.0 {
         coc.map(|&c| (c as f64 + extra) as f32)
     } else {
         coc
     };
-    let gain = 2f64.powf(p.exposure_stops);
     let max_coc = coc
         .as_slice()
         .par_iter()
         .fold(|| 0.0f64, |m, &c| m.max(c as f64))
         .reduce(|| 0.0, f64::max);
+    let frame = match p.frame_border {
+        FrameBorder::Edge => None,
+        FrameBorder::Reflect => {
+            // (a frame with no blur reads beyond it only through a channel's
+            // minification)
+            let blur = if max_coc >= MIN_COC_PX { max_coc } else { 0.0 };
+            Frame::new(w, h, reach_px(blur, &fx, &lens, w, h))
+        }
+    };
+    let Some(frame) = frame else {
+        return plan_frame(
+            color,
+            depth,
+            coc,
+            max_coc,
+            aperture,
+            p,
+            Lens { lens, fx },
+            None,
+        );
+    };
+    // The extended frame: its circles of confusion are the input's,
+    // mirrored (the widened sensor keeps the pixel pitch).
+    let wide = Lens {
+        lens: frame.lens(&lens),
+        fx,
+    };
+    let color = frame.extend(color);
+    let plan = plan_frame(
+        &color,
+        &frame.extend(depth),
+        frame.extend(&coc),
+        max_coc,
+        aperture,
+        p,
+        wide,
+        Some(frame),
+    )?;
+    Ok(match plan {
+        Plan::Sharp(out, report) => Plan::Sharp(frame.crop(&out), report),
+        Plan::Blur(mut b) => {
+            b.frame = Some((frame, Arc::new(color)));
+            Plan::Blur(b)
+        }
+    })
+}
+
+/// The lens of a plan and its effects (validated).
+struct Lens {
+    lens: ThinLens,
+    fx: LensEffects,
+}
+
+/// [`plan`] of a frame (the input's, or the input extended by `frame`)
+/// whose circles of confusion are `coc` (with the lens effects' extra blur),
+/// the largest `max_coc`.
+#[allow(clippy::too_many_arguments)]
+fn plan_frame(
+    color: &ColorImage,
+    depth: &DepthMap,
+    coc: Image<f32>,
+    max_coc: f64,
+    aperture: &Aperture,
+    p: &RefocusParams,
+    Lens { lens, fx }: Lens,
+    frame: Option<Frame>,
+) -> Result<Plan, NodeError> {
+    let (w, h) = color.dims();
+    let (c_scale, inv_u) = (lens.coc_scale(w), lens.inv_focus());
+    let gain = 2f64.powf(p.exposure_stops);
+    let frame_pad_px = frame.map_or(0, |f| f.pad);
     let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
     let barrel = fx.barrel(&lens, w, h);
     if max_coc < MIN_COC_PX || color.is_empty() {
@@ -461,6 +549,7 @@ pub fn plan(
                 layer_fraction: 0.0,
                 layer_textured: 0.0,
                 view_filter_px: 0.0,
+                frame_pad_px,
             },
         ));
     }
@@ -534,6 +623,7 @@ pub fn plan(
         barrel,
         layer,
         view_sigma,
+        frame: None,
     })))
 }
 
@@ -1298,6 +1388,13 @@ pub fn produced(
              (a bright point's bokeh may show the views as dots)"
                 .to_string(),
         );
+    }
+    if report.frame_pad_px > 0 {
+        lines.push(format!(
+            "frame extended by {} px on each side, colour and depth mirrored about the border \
+             (frame_border reflect), and cropped back",
+            report.frame_pad_px
+        ));
     }
     if p.background_layer && report.samples > 0 {
         lines.push(format!(

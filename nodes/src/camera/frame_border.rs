@@ -1,0 +1,213 @@
+//! What `Refocus` takes beyond the frame's border.
+//!
+//! A lens gathers light from a circle of confusion around every pixel, so
+//! near the frame's border the true image holds scene content that lies
+//! outside the input: each aperture view of Refocus moves the image by up
+//! to the blur's radius, and the strip it uncovers at the border has no
+//! source. With [`FrameBorder::Edge`] (the default, and the behaviour
+//! before this option) the view's hole fill takes the input's own pixel
+//! there, so a blurred border continues its last row or column outward:
+//! streaks that a real lens does not draw. [`FrameBorder::Reflect`]
+//! extends colour and depth by mirroring the input about its border (the
+//! border pixel once, `..., 2, 1, 0, 1, 2, ...`, as image filters commonly
+//! do) by as many pixels as a view can read ([`reach_px`]), renders the
+//! extended frame with the same lens (the sensor widened with the frame, so
+//! the pixel pitch, the image centre and every lens effect stay where they
+//! were) and crops the result back.
+//!
+//! The mirror is a guess about unseen content: it continues texture and
+//! depth where the scene continues smoothly past the border (a wall, a
+//! floor, a table), and it is wrong where an object is cut by the border
+//! (its mirror image blurs in). Measured against ray-traced thin-lens truth
+//! in `docs/refocus.md`.
+
+use depthgraph_graph::value::Image;
+
+use crate::camera::lens::{LensEffects, ThinLens};
+
+depthgraph_graph::param_choice! {
+    /// What Refocus takes beyond the frame's border (the `frame_border`
+    /// parameter).
+    pub enum FrameBorder {
+        /// The border pixel: a view's hole at the border takes the input's
+        /// own colour (blurred borders continue their last row outward).
+        Edge = "edge",
+        /// Colour and depth mirrored about the border, as far as a view
+        /// reads, rendered and cropped away.
+        Reflect = "reflect",
+    }
+}
+
+/// How a frame was extended: `pad` pixels on every side of a `w x h`
+/// input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Frame {
+    /// Pixels added on each side.
+    pub pad: usize,
+    /// The input's width.
+    pub w: usize,
+    /// The input's height.
+    pub h: usize,
+}
+
+impl Frame {
+    /// The extended frame's width and height.
+    pub fn padded_dims(&self) -> (usize, usize) {
+        (self.w + 2 * self.pad, self.h + 2 * self.pad)
+    }
+
+    /// The lens of the extended frame: the sensor widened in proportion,
+    /// so the pixel pitch (and with it every circle of confusion, the
+    /// image centre and the field angle of every input pixel) is the
+    /// input's.
+    pub fn lens(&self, lens: &ThinLens) -> ThinLens {
+        // Guard: w >= 1 (a frame is only made for a non-empty input).
+        let widen = (self.w + 2 * self.pad) as f64 / self.w.max(1) as f64;
+        ThinLens {
+            sensor_width_mm: lens.sensor_width_mm * widen,
+            ..*lens
+        }
+    }
+
+    /// The frame to extend a `w x h` input by `reach` pixels, or `None`
+    /// when nothing reaches past the border. The mirror repeats no pixel,
+    /// so it extends by at most `min(w, h) - 1`; a view reading farther
+    /// meets the edge behaviour there.
+    pub fn new(w: usize, h: usize, reach: usize) -> Option<Self> {
+        let pad = reach.min(w.min(h).saturating_sub(1));
+        (pad > 0).then_some(Self { pad, w, h })
+    }
+
+    /// `img` (the input's size) extended by mirroring about its border.
+    pub fn extend<T: Copy, K>(&self, img: &Image<T, K>) -> Image<T, K> {
+        let (pw, ph) = self.padded_dims();
+        let src = img.as_slice();
+        let pad = self.pad as isize;
+        Image::from_fn(pw, ph, |x, y| {
+            let (sx, sy) = (
+                mirror(x as isize - pad, self.w),
+                mirror(y as isize - pad, self.h),
+            );
+            src[sy * self.w + sx]
+        })
+    }
+
+    /// The input's part of an extended image (the inverse of
+    /// [`Frame::extend`] on the pixels it kept).
+    pub fn crop<T: Copy, K>(&self, img: &Image<T, K>) -> Image<T, K> {
+        let (pw, src) = (img.width(), img.as_slice());
+        Image::from_fn(self.w, self.h, |x, y| {
+            src[(y + self.pad) * pw + x + self.pad]
+        })
+    }
+}
+
+/// Index `i` of a line of `n` pixels mirrored about its ends without
+/// repeating them (`-1 -> 1`, `n -> n - 2`); valid for `-(n - 1) <= i <=
+/// 2 (n - 1)`, which [`Frame::new`]'s cap keeps.
+fn mirror(i: isize, n: usize) -> usize {
+    let last = n as isize - 1;
+    let j = if i < 0 {
+        -i
+    } else if i > last {
+        2 * last - i
+    } else {
+        i
+    };
+    j.clamp(0, last.max(0)) as usize
+}
+
+/// Pixels beyond the border that Refocus can read for a largest circle of
+/// confusion of `max_coc` pixels (its diameter, with the blur the lens
+/// effects add): a view moves a pixel by at most its radius; the one-pixel
+/// margin covers the bilinear and march reads next to it. A channel
+/// minified about the centre (lateral chromatic aberration, focus
+/// breathing's inverse) reads `(1/M - 1)` of the half-diagonal's larger
+/// side farther. 0 when nothing moves.
+pub fn reach_px(max_coc: f64, fx: &LensEffects, lens: &ThinLens, w: usize, h: usize) -> usize {
+    let half = 0.5 * w.max(h) as f64;
+    let minify = (0..3)
+        .map(|c| {
+            let m = fx.magnification(lens, c);
+            // Guard: m > 0 for validated effects; a non-positive or
+            // non-finite m reads nothing beyond (validate rejects it).
+            if m > 0.0 && m.is_finite() {
+                (1.0 / m - 1.0).max(0.0)
+            } else {
+                0.0
+            }
+        })
+        .fold(0.0f64, f64::max);
+    let reach = 0.5 * max_coc.max(0.0) + half * minify;
+    if !(reach.is_finite()) || reach <= 0.0 {
+        return 0;
+    }
+    // (cast saturates; Frame::new caps it at the image's size)
+    (reach.ceil() + 1.0) as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mirror_repeats_no_border_pixel() {
+        let got: Vec<usize> = (-3..8).map(|i| mirror(i, 5)).collect();
+        assert_eq!(got, vec![3, 2, 1, 0, 1, 2, 3, 4, 3, 2, 1]);
+    }
+
+    #[test]
+    fn extend_then_crop_is_the_input_and_the_margin_mirrors_it() {
+        let img: Image<u32> = Image::from_fn(5, 4, |x, y| (10 * y + x) as u32);
+        let f = Frame::new(5, 4, 2).unwrap();
+        let big = f.extend(&img);
+        assert_eq!(big.dims(), (9, 8));
+        // the column left of x = 0 is x = 1, the row above y = 0 is y = 1
+        assert_eq!(*big.get(1, 2), *img.get(1, 0));
+        assert_eq!(*big.get(2, 1), *img.get(0, 1));
+        assert_eq!(*big.get(0, 0), *img.get(2, 2));
+        assert_eq!(*big.get(8, 7), *img.get(2, 1));
+        assert_eq!(f.crop(&big), img);
+    }
+
+    #[test]
+    fn the_pad_is_capped_by_the_smaller_side_and_none_when_nothing_reaches() {
+        assert_eq!(Frame::new(100, 3, 50).map(|f| f.pad), Some(2));
+        assert_eq!(Frame::new(100, 1, 50), None);
+        assert_eq!(Frame::new(100, 80, 0), None);
+    }
+
+    #[test]
+    fn the_widened_lens_keeps_the_pixel_pitch() {
+        let lens = ThinLens {
+            focal_length_mm: 50.0,
+            f_number: 2.0,
+            focus_m: 2.0,
+            sensor_width_mm: 36.0,
+        };
+        let f = Frame::new(640, 480, 13).unwrap();
+        let wide = f.lens(&lens);
+        let (pw, _) = f.padded_dims();
+        let rel = wide.coc_scale(pw) / lens.coc_scale(640) - 1.0;
+        assert!(rel.abs() < 1e-12, "{rel}");
+    }
+
+    #[test]
+    fn reach_is_the_blur_radius_plus_a_margin_and_grows_with_minification() {
+        let lens = ThinLens {
+            focal_length_mm: 50.0,
+            f_number: 2.0,
+            focus_m: 2.0,
+            sensor_width_mm: 36.0,
+        };
+        let none = LensEffects::default();
+        assert_eq!(reach_px(0.0, &none, &lens, 640, 480), 0);
+        assert_eq!(reach_px(24.0, &none, &lens, 640, 480), 13);
+        let lateral = LensEffects {
+            chromatic_lateral: 0.01,
+            ..LensEffects::default()
+        };
+        // blue is minified by 1 - 0.01: it reads (1/0.99 - 1) 320 = 3.2 px farther
+        assert_eq!(reach_px(24.0, &lateral, &lens, 640, 480), 17);
+    }
+}
