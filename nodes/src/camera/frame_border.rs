@@ -38,6 +38,11 @@ depthgraph_graph::param_choice! {
     }
 }
 
+/// The widest extension, as a share of the input's smaller side: the
+/// extended frame holds at most `(1 + 2 * 0.25)^2 = 2.25` times the input's
+/// pixels.
+pub const MAX_PAD_SHARE: f64 = 0.25;
+
 /// How a frame was extended: `pad` pixels on every side of a `w x h`
 /// input.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -70,11 +75,14 @@ impl Frame {
     }
 
     /// The frame to extend a `w x h` input by `reach` pixels, or `None`
-    /// when nothing reaches past the border. The mirror repeats no pixel,
-    /// so it extends by at most `min(w, h) - 1`; a view reading farther
-    /// meets the edge behaviour there.
+    /// when nothing reaches past the border. It extends by at most
+    /// [`MAX_PAD_SHARE`] of the smaller side (the mirror repeats no pixel,
+    /// and a blur wider than that would multiply the pixels, and the
+    /// memory, to mirror content ever farther from what the input shows);
+    /// a view reading farther meets the edge behaviour there.
     pub fn new(w: usize, h: usize, reach: usize) -> Option<Self> {
-        let pad = reach.min(w.min(h).saturating_sub(1));
+        let cap = (w.min(h) as f64 * MAX_PAD_SHARE) as usize;
+        let pad = reach.min(cap).min(w.min(h).saturating_sub(1));
         (pad > 0).then_some(Self { pad, w, h })
     }
 
@@ -159,7 +167,7 @@ mod tests {
     #[test]
     fn extend_then_crop_is_the_input_and_the_margin_mirrors_it() {
         let img: Image<u32> = Image::from_fn(5, 4, |x, y| (10 * y + x) as u32);
-        let f = Frame::new(5, 4, 2).unwrap();
+        let f = Frame { pad: 2, w: 5, h: 4 };
         let big = f.extend(&img);
         assert_eq!(big.dims(), (9, 8));
         // the column left of x = 0 is x = 1, the row above y = 0 is y = 1
@@ -171,9 +179,11 @@ mod tests {
     }
 
     #[test]
-    fn the_pad_is_capped_by_the_smaller_side_and_none_when_nothing_reaches() {
-        assert_eq!(Frame::new(100, 3, 50).map(|f| f.pad), Some(2));
-        assert_eq!(Frame::new(100, 1, 50), None);
+    fn the_pad_is_capped_at_a_quarter_of_the_smaller_side_and_none_when_nothing_reaches() {
+        assert_eq!(Frame::new(100, 80, 50).map(|f| f.pad), Some(20));
+        assert_eq!(Frame::new(100, 80, 7).map(|f| f.pad), Some(7));
+        assert_eq!(Frame::new(100, 3, 50), None);
+        assert_eq!(Frame::new(100, 12, 50).map(|f| f.pad), Some(3));
         assert_eq!(Frame::new(100, 80, 0), None);
     }
 

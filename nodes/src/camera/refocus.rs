@@ -160,7 +160,8 @@ pub struct RefocusReport {
     pub max_coc_px: f64,
     /// Views averaged (0 when nothing needed blurring).
     pub samples: usize,
-    /// Fraction of the image's pixels that were warped.
+    /// Fraction of the image's pixels that were warped (of the extended
+    /// frame's, when `frame_border` extended it).
     pub active_fraction: f64,
     /// Mean fraction of warped pixels that were holes and got inpainted.
     pub hole_fraction: f64,
