@@ -61,6 +61,13 @@ impl Frame {
         (self.w + 2 * self.pad, self.h + 2 * self.pad)
     }
 
+    /// Whether pixel `i` of the extended frame is one of the input's.
+    pub fn holds(&self, i: usize) -> bool {
+        let (pw, _) = self.padded_dims();
+        let (x, y) = (i % pw.max(1), i / pw.max(1));
+        (self.pad..self.pad + self.w).contains(&x) && (self.pad..self.pad + self.h).contains(&y)
+    }
+
     /// The lens of the extended frame: the sensor widened in proportion,
     /// so the pixel pitch (and with it every circle of confusion, the
     /// image centre and the field angle of every input pixel) is the
@@ -176,6 +183,11 @@ mod tests {
         assert_eq!(*big.get(0, 0), *img.get(2, 2));
         assert_eq!(*big.get(8, 7), *img.get(2, 1));
         assert_eq!(f.crop(&big), img);
+        // the input's pixels of the extended frame, and no other
+        let held: Vec<usize> = (0..9 * 8).filter(|&i| f.holds(i)).collect();
+        assert_eq!(held.len(), 5 * 4);
+        assert!(f.holds(2 * 9 + 2) && f.holds(5 * 9 + 6));
+        assert!(!f.holds(2 * 9 + 1) && !f.holds(6 * 9 + 2) && !f.holds(2 * 9 + 7));
     }
 
     #[test]

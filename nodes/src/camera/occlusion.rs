@@ -83,6 +83,7 @@
 use depthgraph_graph::value::Rgb;
 use rayon::prelude::*;
 
+use crate::camera::frame_border::Frame;
 use crate::kit::color::luminance_f64;
 use crate::kit::grid::round_to_pixel;
 
@@ -125,6 +126,12 @@ pub struct LayerParams {
     /// Continue the background's texture along its dominant patch offsets
     /// instead of only interpolating its colour (module docs).
     pub texture: bool,
+    /// When the image is an input extended past its border (`Refocus`'s
+    /// `frame_border`), the extension: the texture's statistics and sources
+    /// are the input's own pixels only (a mirror does not continue a
+    /// periodic texture; its copies would carry the mirror's flip into the
+    /// frame).
+    pub frame: Option<Frame>,
 }
 
 /// The background layer: the pixels that have something behind them.
@@ -301,7 +308,10 @@ pub fn background_layer(
     if p.texture && !layer.is_empty() {
         ring.sort_unstable();
         ring.dedup();
-        continue_texture(w, h, color, inv_z, &ring, p.fill_h, &mut layer);
+        if let Some(f) = &p.frame {
+            ring.retain(|&i| f.holds(i as usize));
+        }
+        continue_texture(w, h, color, inv_z, &ring, p, &mut layer);
     }
     layer
 }
@@ -411,17 +421,23 @@ fn dominant_offsets(
 }
 
 /// Step 2 of the module docs: every layer pixel's colour copied along the
-/// best-matching dominant offset, where one fits.
+/// best-matching dominant offset, where one fits (statistics and sources
+/// from the input's own pixels, [`LayerParams::frame`]).
 fn continue_texture(
     w: usize,
     h: usize,
     color: &[Rgb],
     inv_z: &[f64],
     ring: &[u32],
-    fill_h: f64,
+    p: &LayerParams,
     layer: &mut BackgroundLayer,
 ) {
-    let mut known = vec![true; w * h];
+    let fill_h = p.fill_h;
+    // the input's own pixels (not the extension past its border)
+    let mut known: Vec<bool> = match &p.frame {
+        Some(f) => (0..w * h).map(|i| f.holds(i)).collect(),
+        None => vec![true; w * h],
+    };
     for &i in &layer.pixels {
         known[i as usize] = false;
     }
@@ -538,6 +554,7 @@ mod tests {
             reach_scale,
             fill_h: 0.05,
             texture: false,
+            frame: None,
         };
         (
             w,
@@ -625,6 +642,7 @@ mod tests {
             reach_scale: 20.0,
             fill_h: 0.05,
             texture,
+            frame: None,
         };
         background_layer(w, h, color, inv_z, &vec![true; w * h], &p)
     }
@@ -662,6 +680,65 @@ mod tests {
         );
     }
 
+    /// An input extended past its border by a mirror (`frame_border`
+    /// reflect): the mirror flips the checker at the border, so copies from
+    /// the extension would carry the flip into the frame; with the frame
+    /// given, the layer inside the input is continued from the input alone,
+    /// as well as without any extension.
+    #[test]
+    fn an_extended_frame_takes_its_texture_from_the_input_alone() {
+        use depthgraph_graph::value::Image;
+        // the checker scene's columns 14.. : the bar at 6..10, near the border
+        let (w0, h) = (64, 40);
+        let (color0, inv_z0, truth0) = checker_scene(w0, h, 6);
+        let w = w0 - 14;
+        let cols =
+            |v: &[Rgb]| -> Vec<Rgb> { (0..w * h).map(|i| v[(i / w) * w0 + 14 + i % w]).collect() };
+        let (color, truth) = (cols(&color0), cols(&truth0));
+        let inv_z: Vec<f64> = (0..w * h)
+            .map(|i| inv_z0[(i / w) * w0 + 14 + i % w])
+            .collect();
+        let f = Frame { pad: 12, w, h };
+        let (Ok(c), Ok(v)) = (
+            Image::<Rgb>::from_vec(w, h, color.clone()),
+            Image::<f64>::from_vec(w, h, inv_z.clone()),
+        ) else {
+            panic!("sizes");
+        };
+        let (c, v) = (f.extend(&c), f.extend(&v));
+        let (pw, ph) = f.padded_dims();
+        let layer = |frame: Option<Frame>| {
+            let p = LayerParams {
+                reach_scale: 20.0,
+                fill_h: 0.05,
+                texture: true,
+                frame,
+            };
+            background_layer(pw, ph, c.as_slice(), v.as_slice(), &vec![true; pw * ph], &p)
+        };
+        // mean |error| of green over the entries inside the input, each
+        // entry's input index given by `at`
+        let err = |l: &BackgroundLayer, at: &dyn Fn(usize) -> Option<usize>| -> f64 {
+            let e: Vec<f64> = l
+                .pixels
+                .iter()
+                .zip(&l.color)
+                .filter_map(|(&i, c)| {
+                    let j = at(i as usize)?;
+                    Some((f64::from(c[1]) - f64::from(truth[j][1])).abs())
+                })
+                .collect();
+            assert!(!e.is_empty());
+            e.iter().sum::<f64>() / e.len() as f64
+        };
+        let padded = |i: usize| f.holds(i).then(|| (i / pw - f.pad) * w + i % pw - f.pad);
+        let reference = err(&layer_of(w, h, &color, &inv_z, true), &|i| Some(i));
+        let (given, ignored) = (err(&layer(Some(f)), &padded), err(&layer(None), &padded));
+        eprintln!("reference {reference:.4}, frame given {given:.4}, ignored {ignored:.4}");
+        assert!(given <= reference + 1e-3, "{given} vs {reference}");
+        assert!(ignored > given + 0.01, "{ignored} vs {given}");
+    }
+
     #[test]
     fn texture_keeps_the_interpolation_of_a_smooth_background() {
         // the bar scene's wall changes smoothly with x: nothing to continue
@@ -685,6 +762,7 @@ mod tests {
             reach_scale: 50.0,
             fill_h: 0.05,
             texture: false,
+            frame: None,
         };
         assert!(background_layer(w, h, &color, &flat, &want, &p).is_empty());
         let (color, inv_z) = bar_scene(30, 8);
@@ -692,6 +770,7 @@ mod tests {
             reach_scale: 0.1,
             fill_h: 0.05,
             texture: false,
+            frame: None,
         };
         assert!(background_layer(30, 8, &color, &inv_z, &vec![true; 240], &p).is_empty());
         // Mismatched lengths: no layer rather than a panic.

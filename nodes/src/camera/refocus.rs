@@ -584,6 +584,7 @@ fn plan_frame(
                 reach_scale: c_scale * aperture.extent(),
                 fill_h: p.fill_h,
                 texture: p.background_texture,
+                frame,
             },
         )
     } else {
