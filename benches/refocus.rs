@@ -892,7 +892,8 @@ fn frame_border(doc: &mut String, repeats: usize, rays: usize) {
         "\n## Beyond the frame's border\n\n\
          A lens's rays near the border see the scene continue past the frame; the input stops \
          there. `frame_border = edge` (the default) fills what a view uncovers at the border with \
-         the input's own pixel; `reflect` mirrors colour and depth about the border by the blur's \
+         the input's own pixel; `reflect` mirrors the colour about the border and continues the depth's \
+         planes through it (`Frame::extend_depth`) by the blur's \
          reach, renders the wider frame with the same pixel pitch and crops it. {w}x{h}, 50 mm \
          f/1.4, 256 samples, truth {rays} rays per pixel; the thin scene with the background layer \
          and its texture. \"band\": the outer {FRAME_BORDER_PX} pixels.\n\n\

@@ -8,20 +8,21 @@
 //! before this option) the view's hole fill takes the input's own pixel
 //! there, so a blurred border continues its last row or column outward:
 //! streaks that a real lens does not draw. [`FrameBorder::Reflect`]
-//! extends colour and depth by mirroring the input about its border (the
-//! border pixel once, `..., 2, 1, 0, 1, 2, ...`, as image filters commonly
-//! do) by as many pixels as a view can read ([`reach_px`]), renders the
-//! extended frame with the same lens (the sensor widened with the frame, so
-//! the pixel pitch, the image centre and every lens effect stay where they
-//! were) and crops the result back.
+//! extends the input by as many pixels as a view can read ([`reach_px`]):
+//! its colour mirrored about the border (the border pixel once,
+//! `..., 2, 1, 0, 1, 2, ...`, as image filters commonly do), its depth's
+//! planes continued through the border ([`Frame::extend_depth`]: a mirror
+//! would fold a slanted floor back); it renders the extended frame with
+//! the same lens (the sensor widened with the frame, so the pixel pitch,
+//! the image centre and every lens effect stay where they were) and crops
+//! the result back.
 //!
-//! The mirror is a guess about unseen content: it continues texture and
-//! depth where the scene continues smoothly past the border (a wall, a
-//! floor, a table), and it is wrong where an object is cut by the border
-//! (its mirror image blurs in). Measured against ray-traced thin-lens truth
-//! in `docs/refocus.md`.
+//! The extension is a guess about unseen content: right where the scene
+//! continues smoothly past the border (a wall, a floor, a table), wrong
+//! where an object is cut by the border (its mirror image blurs in).
+//! Measured against ray-traced thin-lens truth in `docs/refocus.md`.
 
-use depthgraph_graph::value::Image;
+use depthgraph_graph::value::{DepthMap, Image};
 
 use crate::camera::lens::{LensEffects, ThinLens};
 
@@ -32,8 +33,9 @@ depthgraph_graph::param_choice! {
         /// The border pixel: a view's hole at the border takes the input's
         /// own colour (blurred borders continue their last row outward).
         Edge = "edge",
-        /// Colour and depth mirrored about the border, as far as a view
-        /// reads, rendered and cropped away.
+        /// Colour mirrored about the border and the depth's planes
+        /// continued through it, as far as a view reads, rendered and
+        /// cropped away.
         Reflect = "reflect",
     }
 }
@@ -104,6 +106,68 @@ impl Frame {
                 mirror(y as isize - pad, self.h),
             );
             src[sy * self.w + sx]
+        })
+    }
+
+    /// `depth` (the input's size) extended past its border: the inverse
+    /// depth continued through the border pixel, `v = 2 v_b - v_m` with
+    /// `v_b` the nearest border pixel's and `v_m` the mirrored pixel's (a
+    /// point reflection about the border pixel). A plane's inverse depth
+    /// is affine in the pixel coordinates, so a floor, a wall or a table
+    /// seen at an angle continues exactly where the plain mirror folds it
+    /// back. Where the line from the border pixel to the mirrored one
+    /// crosses a depth step (neighbours whose `|v_1 - v_2| / (v_1 + v_2)`
+    /// exceeds `fill_h`, `Refocus`'s split of a foreground from a
+    /// background) or a pixel without depth, or where the continuation
+    /// would pass infinity (`v <= 0`), the mirrored depth stays: a point
+    /// reflection across a step would invent a surface nearer than either
+    /// side.
+    pub fn extend_depth(&self, depth: &DepthMap, fill_h: f64) -> DepthMap {
+        let (pw, ph) = self.padded_dims();
+        let (w, src) = (self.w, depth.as_slice());
+        let pad = self.pad as isize;
+        let inv = |i: usize| {
+            let z = src[i];
+            if DepthMap::is_valid(z) {
+                // Guard: a valid depth is finite and > 0.
+                1.0 / f64::from(z)
+            } else {
+                0.0
+            }
+        };
+        // Guard: a + b > 0 when both are.
+        let step = |a: f64, b: f64| a <= 0.0 || b <= 0.0 || (a - b).abs() / (a + b) > fill_h;
+        Image::from_fn(pw, ph, |x, y| {
+            let (ix, iy) = (x as isize - pad, y as isize - pad);
+            let (mx, my) = (mirror(ix, self.w), mirror(iy, self.h));
+            let bx = ix.clamp(0, self.w as isize - 1) as usize;
+            let by = iy.clamp(0, self.h as isize - 1) as usize;
+            let (m, b) = (my * w + mx, by * w + bx);
+            if m == b {
+                return src[m]; // the input's own pixel (or its border), as it is
+            }
+            // the line from b to m, pixel by pixel
+            let n = mx.abs_diff(bx).max(my.abs_diff(by));
+            let (dx, dy) = (mx as f64 - bx as f64, my as f64 - by as f64);
+            let mut prev = inv(b);
+            for t in 1..=n {
+                // Guard: n >= 1 (m != b).
+                let f = t as f64 / n as f64;
+                let qx = (bx as f64 + f * dx).round() as usize;
+                let qy = (by as f64 + f * dy).round() as usize;
+                let v = inv(qy * w + qx);
+                if step(prev, v) {
+                    return src[m];
+                }
+                prev = v;
+            }
+            let v = 2.0 * inv(b) - inv(m);
+            if v > 0.0 {
+                // Guard: v > 0 checked.
+                (1.0 / v) as f32
+            } else {
+                src[m]
+            }
         })
     }
 
@@ -188,6 +252,42 @@ mod tests {
         assert_eq!(held.len(), 5 * 4);
         assert!(f.holds(2 * 9 + 2) && f.holds(5 * 9 + 6));
         assert!(!f.holds(2 * 9 + 1) && !f.holds(6 * 9 + 2) && !f.holds(2 * 9 + 7));
+    }
+
+    #[test]
+    fn extended_depth_continues_a_plane_and_mirrors_across_a_step() {
+        // a slanted plane: inverse depth affine in x and y
+        let (w, h) = (12, 9);
+        let plane = DepthMap::from_fn(w, h, |x, y| {
+            (1.0 / (0.5 + 0.02 * x as f64 + 0.01 * y as f64)) as f32
+        });
+        let f = Frame { pad: 4, w, h };
+        let ext = f.extend_depth(&plane, 0.05);
+        for (x, y) in [(0usize, 0usize), (1, 6), (17, 3), (19, 16), (8, 0)] {
+            let (ix, iy) = (x as f64 - 4.0, y as f64 - 4.0);
+            let want = 1.0 / (0.5 + 0.02 * ix + 0.01 * iy);
+            let got = f64::from(*ext.get(x, y));
+            assert!(
+                (got - want).abs() < 1e-5 * want,
+                "({x}, {y}): {got} vs {want}"
+            );
+        }
+        // the input's own pixels keep their bits
+        assert_eq!(f.crop(&ext), plane);
+        // a step at the border (a near column 0 before a far wall): the
+        // mirror, not a surface nearer than both sides
+        let step = DepthMap::from_fn(w, h, |x, _| if x == 0 { 1.0 } else { 3.0 });
+        let ext = f.extend_depth(&step, 0.05);
+        assert_eq!(*ext.get(2, 5), 3.0);
+        assert_eq!(*ext.get(3, 5), 3.0);
+        // no depth stays no depth
+        let holes = DepthMap::filled(w, h, 0.0);
+        assert!(
+            f.extend_depth(&holes, 0.05)
+                .as_slice()
+                .iter()
+                .all(|z| *z == 0.0)
+        );
     }
 
     #[test]

@@ -119,7 +119,7 @@ node_params! {
         pub background_layer: bool = false, ParamKind::Bool;
         /// With the background layer: continue the background's texture behind the edges along its dominant patch offsets (a checker, a brick wall continued behind a thin pole) instead of only interpolating its colour; off = interpolation (Refocus only).
         pub background_texture: bool = false, ParamKind::Bool;
-        /// Beyond the frame's border: edge = a view's hole there takes the input's own pixel (blurred borders continue their last row outward); reflect = colour and depth mirrored about the border as far as the blur reaches, rendered with the same lens and cropped away (Refocus only).
+        /// Beyond the frame's border: edge = a view's hole there takes the input's own pixel (blurred borders continue their last row outward); reflect = colour mirrored about the border and the depth's planes continued through it, as far as the blur reaches, rendered with the same lens and cropped away (Refocus only).
         pub frame_border: FrameBorder = FrameBorder::Edge, ParamKind::Choice(FrameBorder::NAMES);
     }
 }
@@ -444,18 +444,21 @@ pub fn plan(
 ) -> Result<Plan, NodeError> {
     check_inputs(color, depth)?;
     let lens = p.lens();
-    let coc = crate::camera::lens::coc_map(depth, &lens)?;
     let fx = p.effects();
     fx.validate()?;
     let (w, h) = color.dims();
     // The per-ray focus offsets (spherical, longitudinal chromatic) blur
     // every pixel by up to C max|S r^2 + k_c L| more.
     let extra = lens.coc_scale(w) * fx.max_focus_offset(aperture.extent());
-    let coc = if extra > 0.0 {
-        coc.map(|&c| (c as f64 + extra) as f32)
-    } else {
-        coc
+    let blur_map = |depth: &DepthMap, lens: &ThinLens| -> Result<Image<f32>, NodeError> {
+        let coc = crate::camera::lens::coc_map(depth, lens)?;
+        Ok(if extra > 0.0 {
+            coc.map(|&c| (c as f64 + extra) as f32)
+        } else {
+            coc
+        })
     };
+    let coc = blur_map(depth, &lens)?;
     let max_coc = coc
         .as_slice()
         .par_iter()
@@ -482,23 +485,17 @@ pub fn plan(
             None,
         );
     };
-    // The extended frame: its circles of confusion are the input's,
-    // mirrored (the widened sensor keeps the pixel pitch).
+    // The extended frame: the widened sensor keeps the pixel pitch, so the
+    // circles of confusion are those of its depth under the same lens (the
+    // largest stays the input's: it decides the sample count alike).
     let wide = Lens {
         lens: frame.lens(&lens),
         fx,
     };
     let color = frame.extend(color);
-    let plan = plan_frame(
-        &color,
-        &frame.extend(depth),
-        frame.extend(&coc),
-        max_coc,
-        aperture,
-        p,
-        wide,
-        Some(frame),
-    )?;
+    let depth = frame.extend_depth(depth, p.fill_h);
+    let coc = blur_map(&depth, &wide.lens)?;
+    let plan = plan_frame(&color, &depth, coc, max_coc, aperture, p, wide, Some(frame))?;
     Ok(match plan {
         Plan::Sharp(out, report) => Plan::Sharp(frame.crop(&out), report),
         Plan::Blur(mut b) => {
@@ -1393,8 +1390,8 @@ pub fn produced(
     }
     if report.frame_pad_px > 0 {
         lines.push(format!(
-            "frame extended by {} px on each side, colour and depth mirrored about the border \
-             (frame_border reflect), and cropped back",
+            "frame extended by {} px on each side (frame_border reflect: the colour mirrored, \
+             the depth's planes continued) and cropped back",
             report.frame_pad_px
         ));
     }
