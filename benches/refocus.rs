@@ -944,11 +944,11 @@ fn frame_border(doc: &mut String, repeats: usize, rays: usize) {
     }
     writeln!(
         doc,
-        "\nThe mirror is a guess about what lies past the border: right where the scene continues \
-         smoothly (a wall, a floor), wrong where the border cuts an object, whose mirror image \
-         then blurs in. The background layer's texture is continued from the input's own pixels \
-         only: a mirror flips a periodic texture at the border, and copying from it cost the thin \
-         scene focused on the wall 0.44 dB against edge."
+        "\nThe extension is a guess about what lies past the border: right where the scene \
+         continues smoothly (a wall, a floor), wrong where the border cuts an object, whose mirror \
+         image then blurs in, or where a texture's next stripe begins just past it. The background \
+         layer's texture is continued from the input's own pixels only (a mirror flips a periodic \
+         texture at the border)."
     )
     .ok();
 }

@@ -287,9 +287,13 @@ pub fn render(
     let b_buf = s.uniform(&batch_bytes)?;
     let v_buf = s.upload(bytes_of(&blocks))?;
     let src_buf = s.upload(bytes_of(&src))?;
-    // the extended frame's colour when frame_border extended it
-    let color = plan.frame.as_ref().map_or(color, |(_, c)| c);
-    let color_buf = s.image(color, bytes_of(color.as_slice()))?;
+    // the extended frame's (sanitised) colour when frame_border extended
+    // it: uploaded, not kept (no other node holds it); else the input,
+    // found resident when a device node made it
+    let color_buf = match plan.frame {
+        Some(_) => Arc::new(s.upload(bytes_of(&plan.src_color))?),
+        None => s.image(color, bytes_of(color.as_slice()))?,
+    };
     let pix_buf = s.upload(bytes_of(&pix))?;
     let layer_buf = s.upload(bytes_of(&layer_px))?;
     let zbuf = s.scratch(8 * (n * slots) as u64)?;

@@ -48,7 +48,7 @@ fn fixed_pixels(c: &ColorImage, d: &DepthMap, p: &RefocusParams) -> Vec<bool> {
             let fixed: Vec<bool> = b.active.iter().map(|a| !a).collect();
             match &b.frame {
                 // the extended frame's flags, cropped as the image is
-                Some((f, _)) => {
+                Some(f) => {
                     let (pw, ph) = f.padded_dims();
                     f.crop(&Image::<bool>::from_vec(pw, ph, fixed).unwrap())
                         .as_slice()

@@ -23,6 +23,7 @@
 //! Measured against ray-traced thin-lens truth in `docs/refocus.md`.
 
 use depthgraph_graph::value::{DepthMap, Image};
+use rayon::prelude::*;
 
 use crate::camera::lens::{LensEffects, ThinLens};
 
@@ -111,64 +112,42 @@ impl Frame {
 
     /// `depth` (the input's size) extended past its border: the inverse
     /// depth continued through the border pixel, `v = 2 v_b - v_m` with
-    /// `v_b` the nearest border pixel's and `v_m` the mirrored pixel's (a
-    /// point reflection about the border pixel). A plane's inverse depth
-    /// is affine in the pixel coordinates, so a floor, a wall or a table
-    /// seen at an angle continues exactly where the plain mirror folds it
-    /// back. Where the line from the border pixel to the mirrored one
-    /// crosses a depth step (neighbours whose `|v_1 - v_2| / (v_1 + v_2)`
-    /// exceeds `fill_h`, `Refocus`'s split of a foreground from a
-    /// background) or a pixel without depth, or where the continuation
-    /// would pass infinity (`v <= 0`), the mirrored depth stays: a point
-    /// reflection across a step would invent a surface nearer than either
-    /// side.
+    /// `v_b` the border pixel's and `v_m` the mirrored pixel's (a point
+    /// reflection about the border pixel), first along the columns, then
+    /// along the rows of the result (the corners: a plane continued along
+    /// both). A plane's inverse depth is affine in the pixel coordinates,
+    /// so a floor, a wall or a table seen at an angle continues exactly
+    /// where the plain mirror folds it back. Where the line from the border
+    /// pixel to the mirrored one crosses a depth step (neighbours whose
+    /// `|v_1 - v_2| / (v_1 + v_2)` exceeds `fill_h`, `Refocus`'s split of a
+    /// foreground from a background) or a pixel without depth, or where
+    /// the continuation would pass infinity (`v <= 0`), the mirrored depth
+    /// stays: a point reflection across a step would invent a surface
+    /// nearer than either side. Linear in the extended frame's pixels
+    /// (each line's first step from either end is found once).
     pub fn extend_depth(&self, depth: &DepthMap, fill_h: f64) -> DepthMap {
         let (pw, ph) = self.padded_dims();
-        let (w, src) = (self.w, depth.as_slice());
-        let pad = self.pad as isize;
-        let inv = |i: usize| {
-            let z = src[i];
-            if DepthMap::is_valid(z) {
-                // Guard: a valid depth is finite and > 0.
-                1.0 / f64::from(z)
-            } else {
-                0.0
-            }
-        };
-        // Guard: a + b > 0 when both are.
-        let step = |a: f64, b: f64| a <= 0.0 || b <= 0.0 || (a - b).abs() / (a + b) > fill_h;
-        Image::from_fn(pw, ph, |x, y| {
-            let (ix, iy) = (x as isize - pad, y as isize - pad);
-            let (mx, my) = (mirror(ix, self.w), mirror(iy, self.h));
-            let bx = ix.clamp(0, self.w as isize - 1) as usize;
-            let by = iy.clamp(0, self.h as isize - 1) as usize;
-            let (m, b) = (my * w + mx, by * w + bx);
-            if m == b {
-                return src[m]; // the input's own pixel (or its border), as it is
-            }
-            // the line from b to m, pixel by pixel
-            let n = mx.abs_diff(bx).max(my.abs_diff(by));
-            let (dx, dy) = (mx as f64 - bx as f64, my as f64 - by as f64);
-            let mut prev = inv(b);
-            for t in 1..=n {
-                // Guard: n >= 1 (m != b).
-                let f = t as f64 / n as f64;
-                let qx = (bx as f64 + f * dx).round() as usize;
-                let qy = (by as f64 + f * dy).round() as usize;
-                let v = inv(qy * w + qx);
-                if step(prev, v) {
-                    return src[m];
-                }
-                prev = v;
-            }
-            let v = 2.0 * inv(b) - inv(m);
-            if v > 0.0 {
-                // Guard: v > 0 checked.
-                (1.0 / v) as f32
-            } else {
-                src[m]
-            }
-        })
+        let src = depth.as_slice();
+        let (w, h) = (self.w, self.h);
+        // the columns, extended (in parallel)
+        let cols: Vec<Vec<f32>> = (0..w)
+            .into_par_iter()
+            .map(|x| {
+                let col: Vec<f32> = (0..h).map(|y| src[y * w + x]).collect();
+                continue_line(&col, self.pad, fill_h)
+            })
+            .collect();
+        // then every row of the result (in parallel, in order)
+        let data: Vec<f32> = (0..ph)
+            .into_par_iter()
+            .flat_map_iter(|y| {
+                let row: Vec<f32> = cols.iter().map(|c| c[y]).collect();
+                continue_line(&row, self.pad, fill_h)
+            })
+            .collect();
+        debug_assert_eq!(data.len(), pw * ph);
+        // (the buffer holds pw * ph values by construction)
+        Image::from_vec(pw, ph, data).unwrap_or_else(|_| self.extend(depth))
     }
 
     /// The input's part of an extended image (the inverse of
@@ -179,6 +158,53 @@ impl Frame {
             src[(y + self.pad) * pw + x + self.pad]
         })
     }
+}
+
+/// A line of depths extended by `pad` on each end ([`Frame::extend_depth`]):
+/// the inverse depth point-reflected about the end pixel while the line
+/// from the end inward stays smooth, else mirrored.
+fn continue_line(line: &[f32], pad: usize, fill_h: f64) -> Vec<f32> {
+    let n = line.len();
+    let inv = |z: f32| {
+        if DepthMap::is_valid(z) {
+            // Guard: a valid depth is finite and > 0.
+            1.0 / f64::from(z)
+        } else {
+            0.0
+        }
+    };
+    // Guard: a + b > 0 when both are.
+    let step = |a: f64, b: f64| a <= 0.0 || b <= 0.0 || (a - b).abs() / (a + b) > fill_h;
+    // the first index (from each end) whose pixel is across a step from
+    // the one before it: mirrored pixels nearer the end than it continue
+    let smooth_from = |at: &dyn Fn(usize) -> f64| -> usize {
+        (1..n).find(|&k| step(at(k - 1), at(k))).unwrap_or(n)
+    };
+    let head = smooth_from(&|k| inv(line[k]));
+    let tail = smooth_from(&|k| inv(line[n - 1 - k]));
+    let extend = |k: usize, end: usize, inner: usize, reach: usize| -> f32 {
+        // k >= 1 pixels past the end pixel `end`; `inner` the mirrored one
+        let m = line[inner];
+        if k >= reach {
+            return m;
+        }
+        let v = 2.0 * inv(line[end]) - inv(m);
+        if v > 0.0 {
+            // Guard: v > 0 checked.
+            (1.0 / v) as f32
+        } else {
+            m
+        }
+    };
+    let mut out = Vec::with_capacity(n + 2 * pad);
+    out.extend(
+        (1..=pad)
+            .rev()
+            .map(|k| extend(k, 0, mirror(-(k as isize), n), head)),
+    );
+    out.extend_from_slice(line);
+    out.extend((1..=pad).map(|k| extend(k, n - 1, mirror((n - 1 + k) as isize, n), tail)));
+    out
 }
 
 /// Index `i` of a line of `n` pixels mirrored about its ends without
@@ -218,8 +244,11 @@ pub fn reach_px(max_coc: f64, fx: &LensEffects, lens: &ThinLens, w: usize, h: us
         })
         .fold(0.0f64, f64::max);
     let reach = 0.5 * max_coc.max(0.0) + half * minify;
-    if !(reach.is_finite()) || reach <= 0.0 {
+    if reach.is_nan() || reach <= 0.0 {
         return 0;
+    }
+    if reach.is_infinite() {
+        return usize::MAX; // Frame::new caps it
     }
     // (cast saturates; Frame::new caps it at the image's size)
     (reach.ceil() + 1.0) as usize

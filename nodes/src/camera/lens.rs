@@ -460,8 +460,16 @@ pub fn inv_depth(z: f32) -> f64 {
 /// `C |1/z - 1/u|` with `C` = [`ThinLens::coc_scale`].
 pub fn coc_map(depth: &DepthMap, lens: &ThinLens) -> Result<Image<f32>, NodeError> {
     lens.validate()?;
-    let c = lens.coc_scale(depth.width());
-    let inv_u = lens.inv_focus();
+    Ok(coc_map_with(
+        depth,
+        lens.coc_scale(depth.width()),
+        lens.inv_focus(),
+    ))
+}
+
+/// [`coc_map`] with the constant `C` and the focus's inverse `1/u` given
+/// (a frame extended past the input's border keeps the input's `C`).
+pub fn coc_map_with(depth: &DepthMap, c: f64, inv_u: f64) -> Image<f32> {
     // pixels in parallel (rayon's collect keeps their order)
     let (w, h) = depth.dims();
     let data: Vec<f32> = depth
@@ -469,7 +477,8 @@ pub fn coc_map(depth: &DepthMap, lens: &ThinLens) -> Result<Image<f32>, NodeErro
         .par_iter()
         .map(|&z| (c * (inv_depth(z) - inv_u).abs()) as f32)
         .collect();
-    Ok(Image::from_vec(w, h, data)?)
+    // (the buffer holds w * h values by construction)
+    Image::from_vec(w, h, data).unwrap_or_else(|_| Image::filled(w, h, 0.0))
 }
 
 /// The shape of the aperture, in a frame where the aperture has diameter 1

@@ -45,7 +45,7 @@ use rayon::prelude::*;
 use crate::camera::frame_border::{Frame, FrameBorder, reach_px};
 use crate::camera::lens::{
     Aperture, ApertureShape, Barrel, LensEffects, ThinLens, apply_image_effects, bilinear,
-    effective_f_number, inv_depth,
+    coc_map_with, effective_f_number, inv_depth,
 };
 use crate::camera::occlusion::{BackgroundLayer, LayerParams, background_layer};
 use crate::camera::view_filter::{MIN_SIGMA_PX, Spacing, close_gaps, sigmas};
@@ -119,7 +119,7 @@ node_params! {
         pub background_layer: bool = false, ParamKind::Bool;
         /// With the background layer: continue the background's texture behind the edges along its dominant patch offsets (a checker, a brick wall continued behind a thin pole) instead of only interpolating its colour; off = interpolation (Refocus only).
         pub background_texture: bool = false, ParamKind::Bool;
-        /// Beyond the frame's border: edge = a view's hole there takes the input's own pixel (blurred borders continue their last row outward); reflect = colour mirrored about the border and the depth's planes continued through it, as far as the blur reaches, rendered with the same lens and cropped away (Refocus only).
+        /// Beyond the frame's border: edge = a view's hole there takes the input's own pixel (blurred borders continue their last row outward); reflect = colour mirrored about the border and the depth's planes continued through it, as far as the blur reaches (at most a quarter of the smaller side), rendered with the same lens and cropped away (Refocus only).
         pub frame_border: FrameBorder = FrameBorder::Edge, ParamKind::Choice(FrameBorder::NAMES);
     }
 }
@@ -163,10 +163,12 @@ pub struct RefocusReport {
     /// Fraction of the image's pixels that were warped (of the extended
     /// frame's, when `frame_border` extended it).
     pub active_fraction: f64,
-    /// Mean fraction of warped pixels that were holes and got inpainted.
+    /// Mean fraction of warped pixels that were holes and got inpainted
+    /// (of the extended frame's, when `frame_border` extended it).
     pub hole_fraction: f64,
     /// Fraction of the image's pixels with a background layer entry (0 when
-    /// `background_layer` is off).
+    /// `background_layer` is off; of the extended frame's pixels when
+    /// `frame_border` extended it).
     pub layer_fraction: f64,
     /// Fraction of the background layer's entries whose colour continues
     /// the background's texture (0 when `background_texture` is off).
@@ -216,19 +218,22 @@ fn sane(c: Rgb) -> Rgb {
 }
 
 /// Tiles (in a `tw x th` grid) that a pixel with a CoC of at least half a
-/// pixel can reach, as a per-pixel flag.
-fn active_pixels(coc: &Image<f32>, extent: f64) -> (Vec<bool>, usize) {
+/// pixel can reach, as a per-pixel flag. The grid's lines pass through
+/// pixel `(origin, origin)` (0: the image's corner).
+fn active_pixels(coc: &Image<f32>, extent: f64, origin: usize) -> (Vec<bool>, usize) {
     let (w, h) = coc.dims();
-    let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    // pixel x lies in tile (x + shift) / TILE
+    let shift = (TILE - origin % TILE) % TILE;
+    let (tw, th) = ((w + shift).div_ceil(TILE), (h + shift).div_ceil(TILE));
     // each row of tiles in parallel
     let mut tile_max = vec![0.0f32; tw * th];
     tile_max
         .par_chunks_mut(tw.max(1))
         .enumerate()
         .for_each(|(ty, tiles)| {
-            for y in ty * TILE..((ty + 1) * TILE).min(h) {
+            for y in (ty * TILE).saturating_sub(shift)..((ty + 1) * TILE - shift).min(h) {
                 for (x, &c) in coc.row(y).iter().enumerate() {
-                    let t = &mut tiles[x / TILE];
+                    let t = &mut tiles[(x + shift) / TILE];
                     *t = t.max(c);
                 }
             }
@@ -255,7 +260,7 @@ fn active_pixels(coc: &Image<f32>, extent: f64) -> (Vec<bool>, usize) {
     }
     let flags: Vec<bool> = (0..w * h)
         .into_par_iter()
-        .map(|i| active_tile[(i / w / TILE) * tw + (i % w) / TILE])
+        .map(|i| active_tile[((i / w + shift) / TILE) * tw + (i % w + shift) / TILE])
         .collect();
     let count = flags.par_iter().filter(|f| **f).count();
     (flags, count)
@@ -316,10 +321,10 @@ pub struct BlurPlan {
     /// ([`crate::camera::view_filter`]); empty when no pixel's reaches
     /// [`MIN_SIGMA_PX`] (the thin lens, `view_filter = 0`).
     pub view_sigma: Vec<f64>,
-    /// With `frame_border` reflect: how the input was extended, and the
-    /// extended colour (what the views warp; `w x h` above are its size).
-    /// The finished image is cropped back to the input's frame.
-    pub frame: Option<(Frame, Arc<ColorImage>)>,
+    /// With `frame_border` reflect: how the input was extended (`w x h`
+    /// above and every per-pixel list are the extended frame's; the
+    /// finished image is cropped back to the input's frame).
+    pub frame: Option<Frame>,
 }
 
 /// The z-buffer key of a source of inverse depth `v` and index `i`: the
@@ -376,7 +381,7 @@ impl BlurPlan {
         }
         let out = apply_image_effects(out, &self.effects, &self.lens);
         Ok(match &self.frame {
-            Some((frame, _)) => frame.crop(&out),
+            Some(frame) => frame.crop(&out),
             None => out,
         })
     }
@@ -430,7 +435,7 @@ impl BlurPlan {
             // Guard: max(1) keeps an empty layer at 0.
             layer_textured: self.layer.textured as f64 / self.layer.len().max(1) as f64,
             view_filter_px: self.view_sigma.iter().copied().fold(0.0, f64::max),
-            frame_pad_px: self.frame.as_ref().map_or(0, |(f, _)| f.pad),
+            frame_pad_px: self.frame.map_or(0, |f| f.pad),
         }
     }
 }
@@ -444,21 +449,24 @@ pub fn plan(
 ) -> Result<Plan, NodeError> {
     check_inputs(color, depth)?;
     let lens = p.lens();
+    lens.validate()?;
     let fx = p.effects();
     fx.validate()?;
     let (w, h) = color.dims();
+    // The input's C (an extended frame keeps it, so its views shift alike).
+    let c_scale = lens.coc_scale(w);
     // The per-ray focus offsets (spherical, longitudinal chromatic) blur
     // every pixel by up to C max|S r^2 + k_c L| more.
-    let extra = lens.coc_scale(w) * fx.max_focus_offset(aperture.extent());
-    let blur_map = |depth: &DepthMap, lens: &ThinLens| -> Result<Image<f32>, NodeError> {
-        let coc = crate::camera::lens::coc_map(depth, lens)?;
-        Ok(if extra > 0.0 {
+    let extra = c_scale * fx.max_focus_offset(aperture.extent());
+    let blur_map = |depth: &DepthMap| -> Image<f32> {
+        let coc = coc_map_with(depth, c_scale, lens.inv_focus());
+        if extra > 0.0 {
             coc.map(|&c| (c as f64 + extra) as f32)
         } else {
             coc
-        })
+        }
     };
-    let coc = blur_map(depth, &lens)?;
+    let coc = blur_map(depth);
     let max_coc = coc
         .as_slice()
         .par_iter()
@@ -481,33 +489,44 @@ pub fn plan(
             max_coc,
             aperture,
             p,
-            Lens { lens, fx },
+            Lens { lens, c_scale, fx },
             None,
         );
     };
-    // The extended frame: the widened sensor keeps the pixel pitch, so the
-    // circles of confusion are those of its depth under the same lens (the
-    // largest stays the input's: it decides the sample count alike).
+    // The extended frame: the widened sensor keeps the pixel pitch (for
+    // the image-wide effects and the barrel), the blur keeps the input's C,
+    // so its circles of confusion are those of its depth (the largest stays
+    // the input's: it decides the sample count alike).
     let wide = Lens {
         lens: frame.lens(&lens),
+        c_scale,
         fx,
     };
-    let color = frame.extend(color);
     let depth = frame.extend_depth(depth, p.fill_h);
-    let coc = blur_map(&depth, &wide.lens)?;
-    let plan = plan_frame(&color, &depth, coc, max_coc, aperture, p, wide, Some(frame))?;
+    let coc = blur_map(&depth);
+    let plan = plan_frame(
+        &frame.extend(color),
+        &depth,
+        coc,
+        max_coc,
+        aperture,
+        p,
+        wide,
+        Some(frame),
+    )?;
     Ok(match plan {
         Plan::Sharp(out, report) => Plan::Sharp(frame.crop(&out), report),
         Plan::Blur(mut b) => {
-            b.frame = Some((frame, Arc::new(color)));
+            b.frame = Some(frame);
             Plan::Blur(b)
         }
     })
 }
 
-/// The lens of a plan and its effects (validated).
+/// The lens of a plan, the input's `C` and the lens effects (validated).
 struct Lens {
     lens: ThinLens,
+    c_scale: f64,
     fx: LensEffects,
 }
 
@@ -522,11 +541,11 @@ fn plan_frame(
     max_coc: f64,
     aperture: &Aperture,
     p: &RefocusParams,
-    Lens { lens, fx }: Lens,
+    Lens { lens, c_scale, fx }: Lens,
     frame: Option<Frame>,
 ) -> Result<Plan, NodeError> {
     let (w, h) = color.dims();
-    let (c_scale, inv_u) = (lens.coc_scale(w), lens.inv_focus());
+    let inv_u = lens.inv_focus();
     let gain = 2f64.powf(p.exposure_stops);
     let frame_pad_px = frame.map_or(0, |f| f.pad);
     let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
@@ -557,7 +576,9 @@ fn plan_frame(
         p.samples
     };
     let points = aperture.samples(n, p.seed)?;
-    let (active, n_active) = active_pixels(&coc, aperture.extent());
+    // (tiles anchored at the input's corner: its pixels get the tiles, and
+    // the flags, they get without an extension)
+    let (active, n_active) = active_pixels(&coc, aperture.extent(), frame.map_or(0, |f| f.pad));
     // (per-pixel maps in parallel: rayon's collect keeps the order)
     let src_inv_z: Vec<f64> = depth.as_slice().par_iter().map(|&z| inv_depth(z)).collect();
     let src_color: Vec<Rgb> = color.as_slice().par_iter().map(|&c| sane(c)).collect();
@@ -1450,6 +1471,39 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The active tiles of a frame extended by `pad` (its extension not
+    /// blurred) are the input's own, wherever `pad` puts the grid: the
+    /// tiles are anchored at the input's corner.
+    #[test]
+    fn active_tiles_of_an_extended_frame_are_the_inputs() {
+        let (w, h) = (70, 45);
+        let coc = Image::<f32>::from_fn(w, h, |x, y| {
+            if (30..33).contains(&x) && y == 20 {
+                3.0
+            } else {
+                0.1
+            }
+        });
+        let (flags, n) = active_pixels(&coc, 1.0, 0);
+        assert!(n > 0 && n < w * h);
+        for pad in [1usize, 3, 7, 9, 16, 21] {
+            let f = Frame { pad, w, h };
+            let (pw, ph) = f.padded_dims();
+            let wide = Image::<f32>::from_fn(pw, ph, |x, y| {
+                if f.holds(y * pw + x) {
+                    *coc.get(x - pad, y - pad)
+                } else {
+                    0.0
+                }
+            });
+            let (wf, _) = active_pixels(&wide, 1.0, pad);
+            let Ok(wf) = Image::<bool>::from_vec(pw, ph, wf) else {
+                panic!("sizes");
+            };
+            assert_eq!(f.crop(&wf).as_slice(), flags.as_slice(), "pad {pad}");
+        }
+    }
 
     /// A 3 mm sensor, so that the small test images get large blurs.
     fn params(focus_m: f64, f_number: f64, samples: usize) -> RefocusParams {
