@@ -9,7 +9,7 @@ pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send
     rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
-        .expect("a test thread pool")
+        .unwrap_or_else(|e| panic!("no test thread pool of {threads} threads: {e}"))
         .install(f)
 }
 

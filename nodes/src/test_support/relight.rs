@@ -189,7 +189,9 @@ pub(crate) fn slab_shadow_is_analytic(
         "the region is not limited: {untouched} untouched"
     );
     // the slab itself: fully lit from above, keeps its pasted color
-    let i = (0..w * h).find(|&i| alpha.as_slice()[i] > 0.0).unwrap();
+    let Some(i) = (0..w * h).find(|&i| alpha.as_slice()[i] > 0.0) else {
+        panic!("the slab has no pasted pixel");
+    };
     let c = r.color.as_slice()[i];
     assert!((c[1] - 0.6).abs() < 1e-3, "{c:?}");
 }

@@ -9,6 +9,9 @@
 use std::path::{Path, PathBuf};
 
 use super::*;
+
+/// A test that fails with the error of the step that went wrong.
+type TestResult = Result<(), Box<dyn std::error::Error>>;
 use crate::sim::sensor::{BracketParams, simulate_bracket};
 
 /// A scene of grey and coloured patches over a log ramp: radiance 0.004 to
@@ -79,7 +82,7 @@ fn mean_log_error(out: &ColorImage, truth: &ColorImage, times: &[f64]) -> f64 {
 }
 
 #[test]
-fn two_three_and_five_exposures_recover_the_exact_radiance() {
+fn two_three_and_five_exposures_recover_the_exact_radiance() -> TestResult {
     let (truth, _) = patch_scene();
     // the exact curve's own error is the floor (noise and quantisation);
     // recovered curves must stay within 50 % of it (measured: 0 to 36 %)
@@ -88,20 +91,20 @@ fn two_three_and_five_exposures_recover_the_exact_radiance() {
         vec![-3.0, 0.0, 3.0],
         vec![-4.0, -2.0, 0.0, 2.0, 4.0],
     ] {
-        let stack = simulate_bracket(&truth, &bracket(&stops)).unwrap();
-        let exact = merge_hdr(&stack, &ResponseCurve::gamma(2.2)).unwrap();
+        let stack = simulate_bracket(&truth, &bracket(&stops))?;
+        let exact = merge_hdr(&stack, &ResponseCurve::gamma(2.2))?;
         let floor = mean_log_error(&exact.color, &truth, &stack.times_s);
         for (name, curve) in [
             (
                 "recover",
-                recover_response(&stack, &ResponseParams::default()).unwrap(),
+                recover_response(&stack, &ResponseParams::default())?,
             ),
             (
                 "polynomial",
-                recover_polynomial(&stack, &PolynomialParams::default()).unwrap(),
+                recover_polynomial(&stack, &PolynomialParams::default())?,
             ),
         ] {
-            let merged = merge_hdr(&stack, &curve).unwrap();
+            let merged = merge_hdr(&stack, &curve)?;
             let err = mean_log_error(&merged.color, &truth, &stack.times_s);
             assert!(
                 err < 1.5 * floor,
@@ -110,6 +113,7 @@ fn two_three_and_five_exposures_recover_the_exact_radiance() {
             );
         }
     }
+    Ok(())
 }
 
 /// Largest relative spread of the channels, `max/min - 1`, of the mean
@@ -136,11 +140,11 @@ fn worst_tint(out: &ColorImage, neutral: &[(usize, usize, f32)], times: &[f64]) 
 }
 
 #[test]
-fn grey_stays_grey_with_three_exposures() {
+fn grey_stays_grey_with_three_exposures() -> TestResult {
     let (truth, neutral) = patch_scene();
-    let stack = simulate_bracket(&truth, &bracket(&[-3.0, 0.0, 3.0])).unwrap();
-    let curve = recover_response(&stack, &ResponseParams::default()).unwrap();
-    let merged = merge_hdr(&stack, &curve).unwrap();
+    let stack = simulate_bracket(&truth, &bracket(&[-3.0, 0.0, 3.0]))?;
+    let curve = recover_response(&stack, &ResponseParams::default())?;
+    let merged = merge_hdr(&stack, &curve)?;
     let tint = worst_tint(&merged.color, &neutral, &stack.times_s);
     assert!(
         tint < 0.03,
@@ -152,12 +156,13 @@ fn grey_stays_grey_with_three_exposures() {
     for v in shifted.g[2].iter_mut() {
         *v += 0.05;
     }
-    let off = merge_hdr(&stack, &shifted).unwrap();
+    let off = merge_hdr(&stack, &shifted)?;
     assert!(worst_tint(&off.color, &neutral, &stack.times_s) > 0.04);
+    Ok(())
 }
 
 #[test]
-fn a_white_region_fixes_a_camera_white_balance() {
+fn a_white_region_fixes_a_camera_white_balance() -> TestResult {
     // a camera whose blue channel sees 60 % and red 80 % of the light: its
     // own neutral is not the scene's, and a grey reference fixes that
     let (truth, neutral) = patch_scene();
@@ -165,16 +170,16 @@ fn a_white_region_fixes_a_camera_white_balance() {
         let p = truth.get(x, y);
         [0.8 * p[0], p[1], 0.6 * p[2]]
     });
-    let stack = simulate_bracket(&cast, &bracket(&[-3.0, 0.0, 3.0])).unwrap();
-    let curve = recover_response(&stack, &ResponseParams::default()).unwrap();
-    let plain = merge_hdr(&stack, &curve).unwrap();
+    let stack = simulate_bracket(&cast, &bracket(&[-3.0, 0.0, 3.0]))?;
+    let curve = recover_response(&stack, &ResponseParams::default())?;
+    let plain = merge_hdr(&stack, &curve)?;
     assert!(worst_tint(&plain.color, &neutral, &stack.times_s) > 0.3);
     // patch 20 (x 48..60, y 48..56) is neutral in the scene
     let p = MergeParams {
         white: Some([50, 49, 58, 55]),
         ..Default::default()
     };
-    let white = merge_hdr_with(&stack, &curve, &p).unwrap();
+    let white = merge_hdr_with(&stack, &curve, &p)?;
     let tint = worst_tint(&white.color, &neutral, &stack.times_s);
     // (sensor noise alone tints these patch means by about 3 %)
     assert!(
@@ -196,10 +201,11 @@ fn a_white_region_fixes_a_camera_white_balance() {
         .to_string();
         assert!(e.contains("white"), "{e}");
     }
+    Ok(())
 }
 
 #[test]
-fn confidence_is_zero_where_no_exposure_sees_and_full_where_one_sees_well() {
+fn confidence_is_zero_where_no_exposure_sees_and_full_where_one_sees_well() -> TestResult {
     let img = Image::from_fn(3, 1, |x, _| [[1e-6f32, 0.3, 1e4][x]; 3]);
     let stack = simulate_bracket(
         &img,
@@ -207,19 +213,20 @@ fn confidence_is_zero_where_no_exposure_sees_and_full_where_one_sees_well() {
             noise_sigma: 0.0,
             ..bracket(&[-1.0, 0.0, 1.0])
         },
-    )
-    .unwrap();
-    let m = merge_hdr(&stack, &ResponseCurve::gamma(2.2)).unwrap();
+    )?;
+    let m = merge_hdr(&stack, &ResponseCurve::gamma(2.2))?;
     assert_eq!(m.confidence.as_slice(), &[0.0, 1.0, 0.0]);
     assert_eq!(m.fallback.as_slice(), &[1.0, 0.0, 1.0]);
     // the brightest pixel takes the shortest exposure's lower bound
     let sat = m.color.get(2, 0)[0] as f64;
     assert!((sat - 1.0 / 0.5).abs() < 1e-3, "{sat}");
+    Ok(())
 }
 
 #[test]
-fn known_shifts_are_recovered_to_the_pixel() {
-    let scene = crate::sim::synthetic::Scene::preset("tabletop", 160, 120).unwrap();
+fn known_shifts_are_recovered_to_the_pixel() -> TestResult {
+    let scene =
+        crate::sim::synthetic::Scene::preset("tabletop", 160, 120).ok_or("no tabletop preset")?;
     let hdr = crate::sim::synthetic::render(&scene, &Default::default()).color;
     // neighbours in time differ by at most 15 pixels per axis, the reach of
     // the 3 pyramid levels a 120-pixel-high image allows
@@ -233,15 +240,14 @@ fn known_shifts_are_recovered_to_the_pixel() {
                 .collect(),
             ..bracket(&[-2.0, -1.0, 0.0, 1.0, 2.0])
         },
-    )
-    .unwrap();
-    let a = align_bracket(&stack, &AlignParams::default()).unwrap();
+    )?;
+    let a = align_bracket(&stack, &AlignParams::default())?;
     // the reference is the median exposure (stop 0, shift (0, 0)); every
     // exposure is moved back by its own shift
     let want: Vec<(i64, i64)> = shifts.iter().map(|(x, y)| (-x, -y)).collect();
     assert_eq!(a.shifts, want);
     // aligned images agree with the tripod bracket where covered
-    let tripod = simulate_bracket(&hdr, &bracket(&[-2.0, -1.0, 0.0, 1.0, 2.0])).unwrap();
+    let tripod = simulate_bracket(&hdr, &bracket(&[-2.0, -1.0, 0.0, 1.0, 2.0]))?;
     let mut same = 0usize;
     let mut covered = 0usize;
     for (j, img) in a.stack.images.iter().enumerate() {
@@ -254,6 +260,7 @@ fn known_shifts_are_recovered_to_the_pixel() {
     }
     assert!(same as f64 > 0.97 * covered as f64, "{same} of {covered}");
     assert!(a.covered.as_slice().contains(&0.0));
+    Ok(())
 }
 
 fn memorial_dir() -> Option<PathBuf> {
@@ -270,24 +277,21 @@ fn memorial_dir() -> Option<PathBuf> {
     }
 }
 
-fn memorial_stack(dir: &Path) -> ExposureStack {
+fn memorial_stack(dir: &Path) -> Result<ExposureStack, NodeError> {
     load_bracket(&LoadBracketParams {
         list: dir.join("image_list.txt").display().to_string(),
         mask_pure_blue: true,
         ..Default::default()
     })
-    .unwrap()
 }
 
 #[test]
-fn memorial_three_exposures_agree_with_all_sixteen() {
-    let Some(dir) = memorial_dir() else { return };
-    let full = memorial_stack(&dir);
-    let all = merge_hdr(
-        &full,
-        &recover_response(&full, &ResponseParams::default()).unwrap(),
-    )
-    .unwrap();
+fn memorial_three_exposures_agree_with_all_sixteen() -> TestResult {
+    let Some(dir) = memorial_dir() else {
+        return Ok(());
+    };
+    let full = memorial_stack(&dir)?;
+    let all = merge_hdr(&full, &recover_response(&full, &ResponseParams::default())?)?;
     // 4 s, 1 s and 1/4 s: two stops apart, the bracket of a phone's HDR mode
     let pick = [3usize, 5, 7];
     let three = ExposureStack {
@@ -295,8 +299,8 @@ fn memorial_three_exposures_agree_with_all_sixteen() {
         times_s: pick.iter().map(|j| full.times_s[*j]).collect(),
     };
     assert_eq!(three.times_s, vec![4.0, 1.0, 0.25]);
-    let curve = recover_response(&three, &ResponseParams::default()).unwrap();
-    let m3 = merge_hdr(&three, &curve).unwrap();
+    let curve = recover_response(&three, &ResponseParams::default())?;
+    let m3 = merge_hdr(&three, &curve)?;
     // pixels the three exposures see: some exposure with every channel in
     // 32..=223, and valid in every one of the 16
     let seen = seen_well(&three, 32.0 / 255.0, 223.0 / 255.0);
@@ -311,18 +315,21 @@ fn memorial_three_exposures_agree_with_all_sixteen() {
         .collect();
     let n = mask.iter().filter(|m| **m).count();
     assert!(n > 100_000, "{n} pixels compared");
-    let stops = mean_stops_apart(&m3.color, &all.color, &mask).unwrap();
+    let stops = mean_stops_apart(&m3.color, &all.color, &mask).ok_or("sizes differ")?;
     eprintln!("memorial 3 vs 16: {stops:.4} stops over {n} pixels");
     assert!(
         stops < 0.15,
         "3 of 16 exposures: {stops:.3} stops from all 16"
     );
+    Ok(())
 }
 
 #[test]
-fn memorial_shifted_by_hand_is_realigned() {
-    let Some(dir) = memorial_dir() else { return };
-    let full = memorial_stack(&dir);
+fn memorial_shifted_by_hand_is_realigned() -> TestResult {
+    let Some(dir) = memorial_dir() else {
+        return Ok(());
+    };
+    let full = memorial_stack(&dir)?;
     // every other exposure, 5 of them moved by known amounts (the crop keeps
     // the pure-blue border out: it is missing, NaN, after masking)
     let pick = [1usize, 4, 7, 10, 13];
@@ -343,9 +350,10 @@ fn memorial_shifted_by_hand_is_realigned() {
         images,
         times_s: pick.iter().map(|j| full.times_s[*j]).collect(),
     };
-    let a = align_bracket(&stack, &AlignParams::default()).unwrap();
+    let a = align_bracket(&stack, &AlignParams::default())?;
     let want: Vec<(i64, i64)> = shifts.iter().map(|(x, y)| (-x, -y)).collect();
     assert_eq!(a.shifts, want);
+    Ok(())
 }
 
 /// RMS over channels and `mask` of `ln a - ln b` minus its mean per channel.
@@ -364,19 +372,15 @@ fn rms_ln(a: &ColorImage, b: &ColorImage, mask: &[bool]) -> f64 {
 }
 
 #[test]
-fn memorial_agrees_with_debevecs_own_merge() {
-    let Some(dir) = memorial_dir() else { return };
-    let full = memorial_stack(&dir);
+fn memorial_agrees_with_debevecs_own_merge() -> TestResult {
+    let Some(dir) = memorial_dir() else {
+        return Ok(());
+    };
+    let full = memorial_stack(&dir)?;
     let path = dir.join("memorial.hdr");
-    let bytes = std::fs::read(&path).unwrap();
-    let reference = crate::io::radiance::decode_rgbe(&bytes, &path, &Default::default())
-        .unwrap()
-        .image;
-    let m = merge_hdr(
-        &full,
-        &recover_response(&full, &ResponseParams::default()).unwrap(),
-    )
-    .unwrap();
+    let bytes = std::fs::read(&path)?;
+    let reference = crate::io::radiance::decode_rgbe(&bytes, &path, &Default::default())?.image;
+    let m = merge_hdr(&full, &recover_response(&full, &ResponseParams::default())?)?;
     let valid: Vec<bool> = (0..m.color.len())
         .map(|i| {
             let (p, q) = (m.color.as_slice()[i], reference.as_slice()[i]);
@@ -403,4 +407,5 @@ fn memorial_agrees_with_debevecs_own_merge() {
     // 0.365 (docs/hdr.md); the hat weights alone gave 0.353 and 0.389
     assert!(all < 0.25, "RMS ln error {all}");
     assert!(darkest < 0.33, "darkest fifth {darkest}");
+    Ok(())
 }
