@@ -108,13 +108,14 @@ fn main() {
          ## Against known maps\n\nPath-traced rooms ({w}x{h}, {spp} paths per pixel, {bounces} bounces) lit \
          only by a map: `objects` (a sphere, a box and a cylinder on a grey floor before a wall), \
          `flat wall` (a wall facing the camera, nothing else). **error**: angle between the found \
-         light and the map's sun. **E error**: relative RMS difference of the estimated map's \
+         light and the map's sun; **fit alone**: the same with `refine_shadows = false` (the direction of the fit's \
+         sparse samples, not refined by the cast shadows' edges). **E error**: relative RMS difference of the estimated map's \
          order-2 irradiance from the true map's over all normals, raw / after the best scale (the \
          scale rests on the assumed median reflectance 0.5; the rooms' surfaces have 0.45-0.6). Time: median of 3.\n"
     );
     let _ = writeln!(
         doc,
-        "| room | sky | found | error (°) | confidence | E error | E error, scaled | ms |\n|---|---|---|---:|---:|---:|---:|---:|"
+        "| room | sky | found | error (°) | fit alone (°) | confidence | E error | E error, scaled | ms | ms, fit alone |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|"
     );
     let skies = [
         (
@@ -165,6 +166,11 @@ fn main() {
     for (room, sky) in skies.into_iter().filter(|_| part("known")) {
         let c = light_case(room, sky, w, h, 256, &pt).expect("case");
         let (est, ms) = timed(3, || estimate(&c.photo, &c.depth, &c.k));
+        let unrefined = EstimateParams {
+            refine_shadows: false,
+            ..Default::default()
+        };
+        let (alone, ms_alone) = timed(3, || estimate_with(&c.photo, &c.depth, &c.k, &unrefined));
         let (raw, scaled) = irradiance_error(&est.map, &c.env);
         let (sky_name, truth) = match sky {
             Sky::Sun {
@@ -180,18 +186,19 @@ fn main() {
             .light
             .map(|l| format!("light ({:.1}, {:.1})", l.elevation_deg, l.azimuth_deg))
             .unwrap_or_else(|| "ambient only".into());
-        let err = match (est.light, truth) {
+        let err_of = |e: &LightingEstimate| match (e.light, truth) {
             (Some(l), Some(t)) => format!("{:.1}", angle_deg(l.direction, t)),
             (None, None) => "right".into(),
             _ => "missed".into(),
         };
+        let (err, err_alone) = (err_of(&est), err_of(&alone));
         let room_name = match room {
             LightRoom::Objects => "objects",
             LightRoom::FlatWall => "flat wall",
         };
         let _ = writeln!(
             doc,
-            "| {room_name} | {sky_name} | {found} | {err} | {:.2} | {raw:.2} | {scaled:.2} | {ms:.0} |",
+            "| {room_name} | {sky_name} | {found} | {err} | {err_alone} | {:.2} | {raw:.2} | {scaled:.2} | {ms:.0} | {ms_alone:.0} |",
             est.confidence
         );
         eprintln!("{room_name} {sky_name}: {}", est.report);
@@ -204,7 +211,7 @@ fn main() {
          light; own sun at elevation 45, azimuth -30) ({w}x{h}, {spp} paths per pixel): `Relight` (scene-cached, 256 VPLs) with the true map, \
          and with the map `EstimateLighting` finds in the photo (the target's map on both sides, as \
          in `graphs/copy_paste_estimated_light.ron`); **no bounce**: the same with \
-         `bounce = false` (the light the photo's surfaces bounce counted as sky). The object is \
+         `bounce = false` (the light the photo's surfaces bounce counted as sky); **fit alone**: `refine_shadows = false`. The object is \
          captured in the open: the truth's object alone sees the map's dim ground (reflectance \
          about 0.05 under the overcast sky, less under the sun), the estimate's ground is `ground_albedo` (0.1; with the bounce, without it the fit's extrapolation) under the \
          fitted sky. PSNR in dB \
@@ -212,7 +219,7 @@ fn main() {
     );
     let _ = writeln!(
         doc,
-        "| scene | estimate | influence: naive | true map | estimated | no bounce | object: naive | true map | estimated | no bounce |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "| scene | estimate | influence: naive | true map | estimated | no bounce | fit alone | object: naive | true map | estimated | no bounce |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     let p = RelightParams::default();
     let rooms = Room::ALL.into_iter().chain([Room::Furnished]);
@@ -251,18 +258,29 @@ fn main() {
                 &case.k,
                 &no_bounce,
             ));
+            let unrefined = EstimateParams {
+                refine_shadows: false,
+                ..Default::default()
+            };
+            let alone_r = relit_est(&estimate_with(
+                &case.photo,
+                &case.depth,
+                &case.k,
+                &unrefined,
+            ));
             let found = est
                 .light
                 .map(|l| format!("light ({:.0}, {:.0})", l.elevation_deg, l.azimuth_deg))
                 .unwrap_or_else(|| "ambient only".into());
             let _ = writeln!(
                 doc,
-                "| {} | {found} | {:.1} | {:.1} | **{:.1}** | {:.1} | {:.1} | {:.1} | **{:.1}** | {:.1} |",
+                "| {} | {found} | {:.1} | {:.1} | **{:.1}** | {:.1} | {:.1} | {:.1} | {:.1} | **{:.1}** | {:.1} |",
                 case.name,
                 true_r.naive_influence_db,
                 true_r.influence_db,
                 est_r.influence_db,
                 nb_r.influence_db,
+                alone_r.influence_db,
                 true_r.naive_object_db,
                 true_r.object_db,
                 est_r.object_db,
@@ -296,7 +314,12 @@ fn main() {
     let (est, ms) = timed(5, || {
         estimate_lighting(&inp, &EstimateParams::default()).expect("estimate")
     });
-    eprintln!("640x480 tabletop: {ms:.0} ms (median of 5)");
+    let unrefined = EstimateParams {
+        refine_shadows: false,
+        ..Default::default()
+    };
+    let (_, ms_alone) = timed(5, || estimate_lighting(&inp, &unrefined).expect("estimate"));
+    eprintln!("640x480 tabletop: {ms:.0} ms (median of 5), fit alone {ms_alone:.0} ms");
     let err = est
         .light
         .map(|l| format!("{:.1}°", angle_deg(l.direction, sun_direction(35.0, 40.0))))
@@ -304,7 +327,7 @@ fn main() {
     let _ = writeln!(
         doc,
         "\n## Time at 640x480\n\nThe SyntheticScene tabletop (sun at elevation 35, azimuth 40; \
-         textured surfaces), given normals: **{ms:.0} ms** (median of 5), the sun found {err} off.\n"
+         textured surfaces), given normals: **{ms:.0} ms** (median of 5; {ms_alone:.0} ms with `refine_shadows = false`), the sun found {err} off.\n"
     );
     let root = std::env::var("DEPTHGRAPH_ROOT")
         .map(PathBuf::from)

@@ -46,7 +46,14 @@
 //! The light's direction is found by search: every direction of a
 //! Fibonacci sphere ([`EstimateParams::directions`]), then two finer grids
 //! around the best; its visibility `V_i(d)` is a march through the depth
-//! map (the cast shadows of what the photo shows). A direction whose fit
+//! map (the cast shadows of what the photo shows), behind each depth pixel
+//! as far as [`super::thickness`] estimates the body there is deep (a body
+//! as deep as it is wide, at most [`EstimateParams::occluder_thickness_m`]).
+//! The samples are sparse and the march coarse, which places a cast
+//! shadow's edge to a few pixels and the light to 3-8°; with
+//! [`EstimateParams::refine_shadows`] (the default) the edges themselves
+//! then move the direction, at full resolution ([`super::shadow_edges`]:
+//! 0.1-1.3° on the path-traced rooms of docs/lighting.md). A direction whose fit
 //! leaves the low-frequency part and the bounce together under
 //! [`MIN_AMBIENT_SHARE`] of the mean irradiance takes no part in the search (a sky darker than black beside
 //! a light is the fit trading one for the other). The light is kept when
@@ -99,6 +106,8 @@ use crate::relight::envmap::{SunBlend, paint_sun, pixel_direction};
 use crate::relight::lighting::bounce::{BOUNCE_PATCHES, gather, patches};
 use crate::relight::lighting::regions::{NO_REGION, RegionParams, albedo_regions};
 use crate::relight::lighting::sh::{self, SH_ORDER, SH_TERMS};
+use crate::relight::lighting::shadow_edges::{EdgeParams, March, Refined, refine_direction};
+use crate::relight::lighting::thickness::occluder_thickness;
 use crate::relight::shading::target_surfaces;
 
 node_params! {
@@ -116,6 +125,8 @@ node_params! {
         pub min_light_share: f64 = 0.75, ParamKind::Float { min: 0.0, max: 100.0 };
         /// Largest irradiance of the light as a multiple of the mean irradiance of the samples: a brighter one is not believed (the fit let it explain textures with its shadows).
         pub max_light_share: f64 = 3.0, ParamKind::Float { min: 0.0, max: 1000.0 };
+        /// Refine the light's direction by the edges of the cast shadows, at full resolution (shadow_edges): the fit's sparse samples place it to a few degrees.
+        pub refine_shadows: bool = true, ParamKind::Bool;
         /// Lowest elevation searched for the light, degrees (light from the horizon or below is rare, and a grazing light's long shadows can be made to match any texture).
         pub min_elevation_deg: f64 = 5.0, ParamKind::Float { min: -90.0, max: 90.0 };
         /// Fraction of the ambient-only fit's residual the light must explain to be kept.
@@ -128,7 +139,7 @@ node_params! {
         pub light_size_deg: f64 = 3.0, ParamKind::Float { min: 0.1, max: 60.0 };
         /// How far shadow rays march through the depth map, metres.
         pub shadow_reach_m: f64 = 3.0, ParamKind::Float { min: 0.0, max: 100.0 };
-        /// Thickness assumed behind every depth pixel for shadows, metres.
+        /// Largest thickness behind a depth pixel for shadows, metres (each pixel's is estimated: a body as deep as it is wide, thickness.rs).
         pub occluder_thickness_m: f64 = 0.4, ParamKind::Float { min: 0.001, max: 100.0 };
         /// Leave out of the map the light the photo's surfaces bounce onto each other (Relight bounces it again from the same surfaces); off = all of it counts as sky.
         pub bounce: bool = true, ParamKind::Bool;
@@ -263,18 +274,18 @@ fn region_means(samples: &[Sample], regions: usize) -> Vec<[f64; 4]> {
 
 /// How shadow rays march ([`lit`]).
 #[derive(Debug, Clone, Copy)]
-struct Shadow {
+struct Shadow<'a> {
     /// How far, metres.
     reach: f64,
     /// The steps' geometric growth ([`shadow_ratio`]).
     ratio: f64,
-    /// Thickness assumed behind every depth pixel, metres.
-    thickness: f64,
+    /// Thickness behind each depth pixel, metres ([`occluder_thickness`]).
+    thickness: &'a [f32],
 }
 
 /// `V_i(d)`: whether the depth map leaves the ray from `pos` towards `d`
 /// open (module docs: a march of [`SHADOW_STEPS`] geometric steps up to
-/// `reach` metres; a point behind a depth pixel by less than `thickness`
+/// `reach` metres; a point behind a depth pixel by less than its thickness
 /// is in shadow; a ray leaving the frame or going behind the camera is
 /// open).
 fn lit(depth: &DepthMap, k: &Intrinsics, pos: DVec3, n: DVec3, d: DVec3, sh: Shadow) -> bool {
@@ -298,10 +309,12 @@ fn lit(depth: &DepthMap, k: &Intrinsics, pos: DVec3, n: DVec3, d: DVec3, sh: Sha
         if px.x < 0.0 || px.y < 0.0 || px.x >= w as f64 || px.y >= h as f64 {
             return true;
         }
-        let z = f64::from(*depth.get(px.x as usize, px.y as usize));
+        let (x, y) = (px.x as usize, px.y as usize);
+        let z = f64::from(*depth.get(x, y));
         if DepthMap::is_valid(z as f32) {
             let tol = 0.01 + 0.01 * q.z;
-            if z < q.z - tol && q.z - z < thickness {
+            let thick = thickness.get(y * w + x).map_or(0.0, |t| f64::from(*t));
+            if z < q.z - tol && q.z - z < thick {
                 return false;
             }
         }
@@ -1066,6 +1079,7 @@ pub fn estimate_lighting(
     let amb = base.solve(None);
 
     // the march's step growth, once (lit does not march when reach <= t0)
+    let thickness = occluder_thickness(inp.depth, k, p.occluder_thickness_m);
     let shadow = Shadow {
         reach: p.shadow_reach_m,
         ratio: if p.shadow_reach_m > SHADOW_T0 {
@@ -1073,7 +1087,7 @@ pub fn estimate_lighting(
         } else {
             1.0
         },
-        thickness: p.occluder_thickness_m,
+        thickness: &thickness,
     };
     let light_col = |d: DVec3| -> Vec<f64> {
         samples
@@ -1194,25 +1208,80 @@ pub fn estimate_lighting(
         && gain >= p.min_light_gain
         && share >= p.min_light_share
         && share <= p.max_light_share;
-    let (dir, col) = match (&best, keep) {
+    let (mut dir, mut col) = match (&best, keep) {
         (Some((d, _, col, _)), true) => (Some(*d), Some(col.clone())),
         _ => (None, None),
     };
+    // the direction refined by the cast shadows' edges, where the fit there
+    // stays plausible
+    let mut refined = None;
+    if let Some(d) = dir
+        && p.refine_shadows
+    {
+        let march = March {
+            t0: SHADOW_T0,
+            reach: p.shadow_reach_m,
+            thickness: &thickness,
+            slack: March::FINE_SLACK,
+            // one step per pixel at 320 across, as the labels
+            step_px: (w / 320).max(1) as f64,
+        };
+        let min_up = p.min_elevation_deg.to_radians().sin();
+        let edges = EdgeParams::default();
+        let refine = |from: DVec3| {
+            refine_direction(
+                inp.color, inp.depth, k, &surfaces, &labels, from, min_up, march, &edges,
+            )
+        };
+        // a second round from where the first stopped when that lies at the
+        // edge of its radius (the fit may be further off)
+        let mut found = refine(d);
+        if let Some(r) = found
+            && angle_deg(d, r.direction) >= 0.8 * edges.radius_deg
+            && let Some(r2) = refine(r.direction)
+        {
+            found = Some(Refined {
+                disagree_before: r.disagree_before,
+                band: r.band,
+                ..r2
+            });
+        }
+        if let Some(r) = found
+            && let Some((_, c, _)) = score(r.direction, &base)
+        {
+            dir = Some(r.direction);
+            col = Some(c);
+            refined = Some((r, angle_deg(d, r.direction)));
+        }
+    }
 
     // robust refit (luminance), then each channel with its weights
-    let mut wts = base_w.clone();
-    let mut fit_l = if flat {
-        None
-    } else {
-        base.solve(col.as_deref())
+    let robust = |col: Option<&[f64]>| -> (Option<Fit>, Vec<f64>) {
+        let mut wts = base_w.clone();
+        let mut fit_l = if flat { None } else { base.solve(col) };
+        for _ in 0..4 {
+            let Some(f) = fit_l else { break };
+            let hw = huber(&f.resid);
+            wts = base_w.iter().zip(&hw).map(|(a, b)| a * b).collect();
+            fit_l = Design::new(&samples, &means, 3, &wts, regions, mode)
+                .solve(col)
+                .or(Some(f));
+        }
+        (fit_l, wts)
     };
-    for _ in 0..4 {
-        let Some(f) = fit_l else { break };
-        let hw = huber(&f.resid);
-        wts = base_w.iter().zip(&hw).map(|(a, b)| a * b).collect();
-        fit_l = Design::new(&samples, &means, 3, &wts, regions, mode)
-            .solve(col.as_deref())
-            .or(Some(f));
+    let (mut fit_l, mut wts) = robust(col.as_deref());
+    // the search's rule (MIN_AMBIENT_SHARE) on the robust fit too: its
+    // weights can hand the sky's light to a low light (an overcast room
+    // without the bounce: a light at 10° with no sky beside it); the light
+    // is dropped and the sky fitted alone
+    let mut traded = None;
+    if let (Some(f), Some(c)) = (&fit_l, &col) {
+        let a = ambient_share(&samples, f, c, &wts);
+        if a < MIN_AMBIENT_SHARE {
+            traded = Some(a);
+            (dir, col) = (None, None);
+            (fit_l, wts) = robust(None);
+        }
     }
     let isotropic = Fit {
         theta: {
@@ -1354,6 +1423,14 @@ pub fn estimate_lighting(
             100.0 * MIN_AMBIENT_SHARE,
             samples.len()
         ),
+        (None, false) if traded.is_some() => format!(
+            "ambient only, radiance {amb_l:.4}: no dominant light (the robust fit with the best left the \
+             low-frequency light {:.0} % of the mean irradiance, {:.0} % needed: the light traded for the \
+             sky); confidence {confidence:.2} ({} samples, {regions} regions)",
+            100.0 * traded.unwrap_or(0.0).max(0.0),
+            100.0 * MIN_AMBIENT_SHARE,
+            samples.len()
+        ),
         (None, false) if grazing => format!(
             "ambient only, radiance {amb_l:.4}: no dominant light (the best lies at the lowest elevation \
              searched, {:.0}°: a grazing light explaining gradients, not believed); confidence {confidence:.2} \
@@ -1372,6 +1449,14 @@ pub fn estimate_lighting(
             100.0 * p.max_light_share,
             samples.len()
         ),
+    };
+    let report = match refined {
+        Some((r, moved)) if light.is_some() => format!(
+            "{report}; the light moved {moved:.1}° by the cast shadows' edges ({} of {} edge pixels \
+             disagreed with it, {} now)",
+            r.disagree_before, r.band, r.disagree_after
+        ),
+        _ => report,
     };
     let report = if bounce_part > 0.0 {
         format!(
@@ -1408,6 +1493,16 @@ mod tests {
         k: &Intrinsics,
         n: Option<&NormalMap>,
     ) -> LightingEstimate {
+        estimate_with(c, d, k, n, &EstimateParams::default())
+    }
+
+    fn estimate_with(
+        c: &ColorImage,
+        d: &DepthMap,
+        k: &Intrinsics,
+        n: Option<&NormalMap>,
+        p: &EstimateParams,
+    ) -> LightingEstimate {
         let inp = EstimateInputs {
             color: c,
             depth: d,
@@ -1415,7 +1510,33 @@ mod tests {
             normals: n,
             mask: None,
         };
-        estimate_lighting(&inp, &EstimateParams::default()).unwrap()
+        estimate_lighting(&inp, p).unwrap()
+    }
+
+    /// The scores of `case` relit with `map` (256 VPLs, scene cached,
+    /// default parameters).
+    fn relit_scores(
+        case: &crate::sim::relight_truth::RelightCase,
+        map: &ColorImage,
+    ) -> crate::sim::relight_truth::Scores {
+        use crate::relight::scene_cached::{RelightScene, relight_moved};
+        use crate::relight::shading::RelightParams;
+        use crate::relight::vpl::{VplParams, sample_vpls};
+        let inp = case.inputs();
+        let p = RelightParams::default();
+        let vpls = sample_vpls(
+            map,
+            &VplParams {
+                count: 256,
+                seed: 1,
+                ..Default::default()
+            },
+        );
+        let sc = RelightScene::new(&inp.scene(), &vpls, &p).unwrap();
+        crate::sim::relight_truth::score(
+            case,
+            &relight_moved(&sc, &inp, &p).unwrap().unwrap().color,
+        )
     }
 
     /// The tests' path tracing: 128 paths per pixel, 3 bounces, seed 1.
@@ -1483,6 +1604,96 @@ mod tests {
         }
     }
 
+    /// The cast shadows' edges place the sun: on the path-traced rooms of
+    /// [`finds_the_sun_of_path_traced_rooms`] within 3° at 160x120 (a
+    /// degree at 320x240, docs/lighting.md), and on average less than half
+    /// as far off as the fit's sparse samples alone (`refine_shadows =
+    /// false`: 3-8°).
+    #[test]
+    fn the_shadows_edges_place_the_sun_to_a_degree() {
+        let (mut worst, mut sum_on, mut sum_off) = (0.0f64, 0.0, 0.0);
+        for (e, a) in [(50.0, -40.0), (40.0, 70.0), (60.0, -80.0), (30.0, 20.0)] {
+            let sky = Sky::Sun {
+                elevation_deg: e,
+                azimuth_deg: a,
+            };
+            let c = light_case(LightRoom::Objects, sky, 160, 120, 128, &PT).unwrap();
+            let err = |refine: bool| {
+                let p = EstimateParams {
+                    refine_shadows: refine,
+                    ..Default::default()
+                };
+                let est = estimate_with(&c.photo, &c.depth, &c.k, None, &p);
+                let l = est
+                    .light
+                    .unwrap_or_else(|| panic!("no light: {}", est.report));
+                (angle_deg(l.direction, sun_direction(e, a)), est.report)
+            };
+            let ((on, report), (off, _)) = (err(true), err(false));
+            eprintln!("({e}, {a}): refined {on:.2}°, fit alone {off:.2}°: {report}");
+            assert!(report.contains("cast shadows' edges"), "{report}");
+            worst = worst.max(on);
+            sum_on += on;
+            sum_off += off;
+        }
+        eprintln!(
+            "worst {worst:.2}, mean refined {:.2}, fit alone {:.2}",
+            sum_on / 4.0,
+            sum_off / 4.0
+        );
+        assert!(worst < 3.0, "{worst:.2}°");
+        assert!(sum_on < 0.5 * sum_off, "{sum_on:.2} against {sum_off:.2}");
+    }
+
+    /// The furnished room (a sphere pasted before a sphere, a box and a
+    /// cylinder under a sun): relit with the map estimated from the photo,
+    /// the object's shadow and bounce come within 3 dB of the true map's
+    /// (the issue's bar; with the sun of the fit alone it is 4-6 dB below).
+    #[test]
+    fn relit_with_the_estimated_sun_the_shadow_is_within_3_db_of_the_true_maps() {
+        let case = relight_case(Room::Furnished, None, 320, 240, 128, &PT).unwrap();
+        let relit = |map: &ColorImage| relit_scores(&case, map);
+        let est = |refine: bool| {
+            let p = EstimateParams {
+                refine_shadows: refine,
+                ..Default::default()
+            };
+            estimate_with(&case.photo, &case.depth, &case.k, None, &p)
+        };
+        let t = relit(&case.env);
+        let (on, off) = (est(true), est(false));
+        let (e, f) = (relit(&on.map), relit(&off.map));
+        eprintln!(
+            "influence: true map {:.2}, estimated {:.2}, fit alone {:.2}; {}",
+            t.influence_db, e.influence_db, f.influence_db, on.report
+        );
+        assert!(
+            e.influence_db >= t.influence_db - 3.0,
+            "influence {:.1} dB, true map {:.1}: {}",
+            e.influence_db,
+            t.influence_db,
+            on.report
+        );
+    }
+
+    /// Without the bounce, the overcast `occluded` room's robust fit hands
+    /// the sky to a light at 10° (the search's candidate kept a sky): the
+    /// rule of the search holds for the robust fit too, the light is
+    /// dropped and the report says why.
+    #[test]
+    fn a_light_the_robust_fit_trades_for_the_sky_is_dropped() {
+        let case = relight_case(Room::Occluded, Some(Sky::Overcast), 320, 240, 128, &PT).unwrap();
+        let p = EstimateParams {
+            bounce: false,
+            ..Default::default()
+        };
+        let est = estimate_with(&case.photo, &case.depth, &case.k, None, &p);
+        eprintln!("{}", est.report);
+        assert!(est.light.is_none(), "{}", est.report);
+        assert!(est.report.contains("traded for the sky"), "{}", est.report);
+        assert!(est.ambient[1] > 0.1, "{:?}", est.ambient);
+    }
+
     /// An overcast sky has no sun: the estimate keeps the low-frequency
     /// light only, brighter above than below.
     #[test]
@@ -1532,25 +1743,8 @@ mod tests {
     /// influence region stays within 3 dB of the true map's.
     #[test]
     fn the_maps_ground_relights_the_objects_underside() {
-        use crate::relight::scene_cached::{RelightScene, relight_moved};
-        use crate::relight::shading::RelightParams;
-        use crate::relight::vpl::{VplParams, sample_vpls};
-        use crate::sim::relight_truth::score;
         let case = relight_case(Room::Open, Some(Sky::Overcast), 160, 120, 128, &PT).unwrap();
-        let inp = case.inputs();
-        let p = RelightParams::default();
-        let relit = |map: &ColorImage| {
-            let vpls = sample_vpls(
-                map,
-                &VplParams {
-                    count: 256,
-                    seed: 1,
-                    ..Default::default()
-                },
-            );
-            let sc = RelightScene::new(&inp.scene(), &vpls, &p).unwrap();
-            score(&case, &relight_moved(&sc, &inp, &p).unwrap().unwrap().color)
-        };
+        let relit = |map: &ColorImage| relit_scores(&case, map);
         let est = estimate(&case.photo, &case.depth, &case.k, None);
         let (e, t) = (relit(&est.map), relit(&case.env));
         assert!(
