@@ -323,6 +323,11 @@ fn lit(depth: &DepthMap, k: &Intrinsics, pos: DVec3, n: DVec3, d: DVec3, sh: Sha
     true
 }
 
+/// Rounds of the refinement by the cast shadows' edges, each within
+/// [`EdgeParams::radius_deg`] of where the last stopped: the fit's sparse
+/// samples on a depth camera's noisy depth left the light up to 11° off.
+const REFINE_ROUNDS: usize = 3;
+
 /// First step of a shadow ray, metres.
 const SHADOW_T0: f64 = 0.02;
 
@@ -1233,17 +1238,24 @@ pub fn estimate_lighting(
                 inp.color, inp.depth, k, &surfaces, &labels, from, min_up, march, &edges,
             )
         };
-        // a second round from where the first stopped when that lies at the
-        // edge of its radius (the fit may be further off)
+        // further rounds (at most REFINE_ROUNDS in all) from where the last
+        // stopped while that lies at the edge of its radius (the fit may be
+        // further off)
         let mut found = refine(d);
-        if let Some(r) = found
-            && angle_deg(d, r.direction) >= 0.8 * edges.radius_deg
-            && let Some(r2) = refine(r.direction)
-        {
+        let mut from = d;
+        for _ in 1..REFINE_ROUNDS {
+            let Some(r) = found else { break };
+            if angle_deg(from, r.direction) < 0.8 * edges.radius_deg {
+                break;
+            }
+            let Some(next) = refine(r.direction) else {
+                break;
+            };
+            from = r.direction;
             found = Some(Refined {
                 disagree_before: r.disagree_before,
                 band: r.band,
-                ..r2
+                ..next
             });
         }
         if let Some(r) = found
