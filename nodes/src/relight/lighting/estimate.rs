@@ -1084,8 +1084,14 @@ pub fn estimate_lighting(
     let base = Design::new(&samples, &means, 3, &base_w, regions, mode);
     let amb = base.solve(None);
 
+    // how deep each depth pixel's body is, for the shadow rays (none are
+    // marched without the search)
+    let thickness = if p.light && !flat {
+        occluder_thickness(inp.depth, k, p.occluder_thickness_m)
+    } else {
+        Vec::new()
+    };
     // the march's step growth, once (lit does not march when reach <= t0)
-    let thickness = occluder_thickness(inp.depth, k, p.occluder_thickness_m);
     let shadow = Shadow {
         reach: p.shadow_reach_m,
         ratio: if p.shadow_reach_m > SHADOW_T0 {
