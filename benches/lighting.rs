@@ -99,6 +99,11 @@ fn main() {
         std::env::var("DEPTHGRAPH_LIGHTING_PARTS").unwrap_or_else(|_| "known,relight,time".into());
     let part = |name: &str| parts.split(',').any(|p| p.trim() == name);
     let all = ["known", "relight", "time"].iter().all(|p| part(p));
+    // the same estimate without the shadow-edge refinement (the tables' "fit alone")
+    let unrefined = EstimateParams {
+        refine_shadows: false,
+        ..Default::default()
+    };
     let mut doc = String::new();
     let _ = writeln!(
         doc,
@@ -168,10 +173,6 @@ fn main() {
     for (room, sky) in skies.into_iter().filter(|_| part("known")) {
         let c = light_case(room, sky, w, h, 256, &pt).expect("case");
         let (est, ms) = timed(3, || estimate(&c.photo, &c.depth, &c.k));
-        let unrefined = EstimateParams {
-            refine_shadows: false,
-            ..Default::default()
-        };
         let (alone, ms_alone) = timed(3, || estimate_with(&c.photo, &c.depth, &c.k, &unrefined));
         let (raw, scaled) = irradiance_error(&est.map, &c.env);
         let (sky_name, truth) = match sky {
@@ -260,10 +261,6 @@ fn main() {
                 &case.k,
                 &no_bounce,
             ));
-            let unrefined = EstimateParams {
-                refine_shadows: false,
-                ..Default::default()
-            };
             let alone_r = relit_est(&estimate_with(
                 &case.photo,
                 &case.depth,
@@ -316,10 +313,6 @@ fn main() {
     let (est, ms) = timed(5, || {
         estimate_lighting(&inp, &EstimateParams::default()).expect("estimate")
     });
-    let unrefined = EstimateParams {
-        refine_shadows: false,
-        ..Default::default()
-    };
     let (_, ms_alone) = timed(5, || estimate_lighting(&inp, &unrefined).expect("estimate"));
     eprintln!("640x480 tabletop: {ms:.0} ms (median of 5), fit alone {ms_alone:.0} ms");
     let err = est

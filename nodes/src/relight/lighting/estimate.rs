@@ -107,7 +107,9 @@ use crate::relight::envmap::{SunBlend, paint_sun, pixel_direction};
 use crate::relight::lighting::bounce::{BOUNCE_PATCHES, gather, patches};
 use crate::relight::lighting::regions::{NO_REGION, RegionParams, albedo_regions};
 use crate::relight::lighting::sh::{self, SH_ORDER, SH_TERMS};
-use crate::relight::lighting::shadow_edges::{EdgeParams, March, Refined, refine_direction};
+use crate::relight::lighting::shadow_edges::{
+    EdgeParams, March, Refined, hidden_at, ray_start, refine_direction,
+};
 use crate::relight::lighting::thickness::occluder_thickness;
 use crate::relight::shading::target_surfaces;
 
@@ -295,8 +297,7 @@ fn lit(depth: &DepthMap, k: &Intrinsics, pos: DVec3, n: DVec3, d: DVec3, sh: Sha
         ratio,
         thickness,
     } = sh;
-    let (w, h) = depth.dims();
-    let start = pos + n * (0.01 + 0.01 * pos.z);
+    let start = ray_start(pos, n, FIT_SLACK);
     let t0 = SHADOW_T0;
     if reach <= t0 {
         return true;
@@ -307,22 +308,21 @@ fn lit(depth: &DepthMap, k: &Intrinsics, pos: DVec3, n: DVec3, d: DVec3, sh: Sha
         let Some(px) = k.project(q) else {
             return true;
         };
-        if px.x < 0.0 || px.y < 0.0 || px.x >= w as f64 || px.y >= h as f64 {
-            return true;
-        }
-        let (x, y) = (px.x as usize, px.y as usize);
-        let z = f64::from(*depth.get(x, y));
-        if DepthMap::is_valid(z as f32) {
-            let tol = 0.01 + 0.01 * q.z;
-            let thick = thickness.get(y * w + x).map_or(0.0, |t| f64::from(*t));
-            if z < q.z - tol && q.z - z < thick {
-                return false;
-            }
+        match hidden_at(depth, thickness, px, q.z, FIT_SLACK) {
+            None => return true,
+            Some(true) => return false,
+            Some(false) => {}
         }
         t *= ratio;
     }
     true
 }
+
+/// The fit's shadow rays start this far from their surface and a depth
+/// pixel hides a point behind it by more than this: 1 cm + 1 % of the
+/// depth (a depth camera's noise; the refinement's finer march allows
+/// [`March::FINE_SLACK`]).
+const FIT_SLACK: (f64, f64) = (0.01, 0.01);
 
 /// Rounds of the refinement by the cast shadows' edges, each within
 /// [`EdgeParams::radius_deg`] of where the last stopped: the fit's sparse

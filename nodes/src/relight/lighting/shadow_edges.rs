@@ -42,7 +42,7 @@
 //! slack).
 
 use depthgraph_graph::prelude::*;
-use glam::DVec3;
+use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 
 use crate::kit::color::luminance_f64;
@@ -135,8 +135,7 @@ pub fn lit_by_pixels(
     m: March,
 ) -> bool {
     let (w, h) = depth.dims();
-    let (abs, rel) = m.slack;
-    let start = pos + n * (abs + rel * pos.z);
+    let start = ray_start(pos, n, m.slack);
     let a = start + d * m.t0;
     let mut t1 = m.reach;
     if d.z < 0.0 {
@@ -160,25 +159,49 @@ pub fn lit_by_pixels(
     for s in 0..=steps {
         // guard: steps >= 1
         let l = s as f64 / steps as f64;
-        let u = pa + (pb - pa) * l;
-        if u.x < 0.0 || u.y < 0.0 || u.x >= w as f64 || u.y >= h as f64 {
-            return true;
-        }
         // perspective-correct depth along the segment; guard: both inverse
         // depths > 0, so their blend is too
         let qz = 1.0 / ((1.0 - l) * ia + l * ib);
-        let (x, y) = (u.x as usize, u.y as usize);
-        let z = *depth.get(x, y);
-        if DepthMap::is_valid(z) {
-            let z = f64::from(z);
-            let tol = abs + rel * qz;
-            let thick = m.thickness.get(y * w + x).map_or(0.0, |t| f64::from(*t));
-            if z < qz - tol && qz - z < thick {
-                return false;
-            }
+        match hidden_at(depth, m.thickness, pa + (pb - pa) * l, qz, m.slack) {
+            None => return true,
+            Some(true) => return false,
+            Some(false) => {}
         }
     }
     true
+}
+
+/// A shadow ray's start: the surface point `pos` lifted along its normal
+/// `n` by `slack` (metres, plus a fraction of its depth), clear of its own
+/// depth pixel.
+pub(crate) fn ray_start(pos: DVec3, n: DVec3, (abs, rel): (f64, f64)) -> DVec3 {
+    pos + n * (abs + rel * pos.z)
+}
+
+/// The depth map's test of a ray point at depth `qz` seen at image point
+/// `u`: `None` outside the frame (the ray leaves it: open), else whether
+/// the depth pixel there hides the point (behind it by more than the
+/// tolerance `slack`, less than the pixel's `thickness`; no depth hides
+/// nothing). The test of both marches, the fit's and [`lit_by_pixels`].
+pub(crate) fn hidden_at(
+    depth: &DepthMap,
+    thickness: &[f32],
+    u: DVec2,
+    qz: f64,
+    (abs, rel): (f64, f64),
+) -> Option<bool> {
+    let (w, h) = depth.dims();
+    if u.x < 0.0 || u.y < 0.0 || u.x >= w as f64 || u.y >= h as f64 {
+        return None;
+    }
+    let (x, y) = (u.x as usize, u.y as usize);
+    let z = *depth.get(x, y);
+    if !DepthMap::is_valid(z) {
+        return Some(false);
+    }
+    let z = f64::from(z);
+    let thick = thickness.get(y * w + x).map_or(0.0, |t| f64::from(*t));
+    Some(z < qz - (abs + rel * qz) && qz - z < thick)
 }
 
 /// What [`refine_direction`] found.
