@@ -471,6 +471,32 @@ impl ShadowMap {
         }
     }
 
+    /// The rectangle `[u_min, u_max, v_min, v_max]` of light coordinates
+    /// ([`ShadowMap::light_coords`]) covered by the texels that hold an
+    /// occluder (their outer edges); `None` for an empty map. A point
+    /// outside it looks up an empty texel or none: it is visible.
+    pub fn occupied(&self) -> Option<[f64; 4]> {
+        let res = self.res.max(1);
+        let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+        for (k, t) in self.t.iter().enumerate() {
+            // a NaN or -inf texel sees everything (`occluder_lc`'s callers)
+            if *t == f32::NEG_INFINITY || t.is_nan() {
+                continue;
+            }
+            let (x, y) = (k % res, k / res);
+            (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+        }
+        (x0 != usize::MAX).then(|| {
+            let edge = |o: f64, i: usize| o + i as f64 * self.texel_m;
+            [
+                edge(self.u0, x0),
+                edge(self.u0, x1 + 1),
+                edge(self.v0, y0),
+                edge(self.v0, y1 + 1),
+            ]
+        })
+    }
+
     /// Whether `other` has the same direction and frame.
     pub fn same_frame(&self, other: &ShadowMap) -> bool {
         self.dir == other.dir && self.eu == other.eu && self.ev == other.ev

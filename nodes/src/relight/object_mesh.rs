@@ -527,6 +527,57 @@ mod tests {
         }
     }
 
+    /// The occupied rectangle of a map ([`ShadowMap::occupied`]) holds
+    /// every texel with an occluder and is tight: every point outside it
+    /// looks up an empty texel (or none), and each of its four edges
+    /// borders an occupied texel; the shadow of the sphere's front, seen
+    /// obliquely, spans 1.4 to 2.2 radii each way.
+    #[test]
+    fn a_maps_occupied_rectangle_holds_its_occluders_tightly() {
+        let k = cam(160, 120);
+        let (c, r) = (DVec3::new(0.05, 0.0, 1.5), 0.16);
+        let front = crate::test_support::relight::sphere_depth(&k, c, r, false);
+        let mesh = ObjectMesh::new(&front, None, &k, 1);
+        let dir = DVec3::new(0.3, 0.8, -0.5).normalize();
+        let win = windows(&[dir], &mesh.verts)[0].unwrap();
+        let m = mesh.shadow_map(&win, 64).unwrap();
+        let [u0, u1, v0, v1] = m.occupied().unwrap();
+        let step = m.texel_m;
+        // the texel a point with light coordinates (u, v) looks up
+        let at = |u: f64, v: f64| m.occluder_lc(DVec3::new(u, v, 0.0));
+        let (mut outside, mut empty) = (0, 0);
+        let (mut edges, mut hit) = ([false; 4], 0);
+        for i in -90..=90 {
+            for j in -90..=90 {
+                let (u, v) = (
+                    0.5 * (u0 + u1) + i as f64 * 0.5 * step,
+                    0.5 * (v0 + v1) + j as f64 * 0.5 * step,
+                );
+                let occ = at(u, v);
+                if u < u0 || u >= u1 || v < v0 || v >= v1 {
+                    outside += 1;
+                    empty += usize::from(occ == f32::NEG_INFINITY);
+                } else if occ.is_finite() {
+                    hit += 1;
+                    edges[0] |= u < u0 + step;
+                    edges[1] |= u >= u1 - step;
+                    edges[2] |= v < v0 + step;
+                    edges[3] |= v >= v1 - step;
+                }
+            }
+        }
+        assert!(outside > 1000 && hit > 1000, "{outside} {hit}");
+        assert_eq!(empty, outside);
+        assert_eq!(edges, [true; 4]);
+        for side in [u1 - u0, v1 - v0] {
+            assert!(side > 1.4 * r && side < 2.2 * r, "{side}");
+        }
+        // an empty map has no rectangle
+        let mut blank = m.clone();
+        blank.t.fill(f32::NEG_INFINITY);
+        assert_eq!(blank.occupied(), None);
+    }
+
     /// A depth jump inside the object (two slabs at 1.0 and 1.5 m) is not
     /// bridged: seen from the side, nothing lies between the slabs' depths.
     #[test]

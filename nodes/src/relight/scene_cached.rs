@@ -366,6 +366,8 @@ struct ObjectMaps {
     radius: f64,
     /// Largest texel side of the maps, metres.
     max_texel: f64,
+    /// Per group: its map's [`ShadowMap::occupied`] rectangle.
+    occupied: Vec<Option<[f64; 4]>>,
 }
 
 impl ObjectMaps {
@@ -373,6 +375,22 @@ impl ObjectMaps {
     #[inline]
     fn get(&self, j: usize) -> Option<&ShadowMap> {
         self.of.get(j).and_then(|&g| self.maps[g].as_ref())
+    }
+
+    /// Whether VPL `j`'s map may shadow a point within `r` of `c`: the
+    /// ball reaches its [`ShadowMap::occupied`] rectangle (plus half a
+    /// texel against rounding). Where it does not, every point of the ball
+    /// looks up an empty texel: the VPL reaches it past the object.
+    fn may_shadow(&self, j: usize, c: DVec3, r: f64) -> bool {
+        let Some(&g) = self.of.get(j) else {
+            return false;
+        };
+        let (Some(m), Some([u0, u1, v0, v1])) = (self.maps[g].as_ref(), self.occupied[g]) else {
+            return false;
+        };
+        let lc = m.light_coords(c);
+        let r = r + 0.5 * m.texel_m;
+        lc.x + r >= u0 && lc.x - r <= u1 && lc.y + r >= v0 && lc.y - r <= v1
     }
 
     /// The margin of the mesh VPL `j`'s map was drawn from (0 without one).
@@ -559,12 +577,17 @@ fn object_maps(
         .map(|m| m.texel_m)
         .fold(0.0f64, f64::max);
     let margins: Vec<f64> = jobs.iter().map(|(_, mesh, _)| mesh.margin).collect();
+    let occupied = maps
+        .par_iter()
+        .map(|m| m.as_ref().and_then(ShadowMap::occupied))
+        .collect();
     ObjectMaps {
         maps,
         of,
         radius: margins.iter().copied().fold(0.0, f64::max),
         margins,
         max_texel,
+        occupied,
     }
 }
 
@@ -1114,8 +1137,10 @@ pub fn relight_moved_with(
     };
     let fill_grid = Nested::<6>::new(w, h, fill_step);
     let fill_node = |i: usize| scene.target[i].as_ref().map(fill_here);
-    // Per tile: the VPLs its cone meets (the direct term's plan), whether
-    // it is within the bounce's reach and the bounce VPLs that face it.
+    // Per tile: the VPLs its cone meets and whose object map may shadow it
+    // (`ObjectMaps::may_shadow`: the others' lookups find empty texels
+    // at every pixel of the tile; the direct term's plan), whether it is
+    // within the bounce's reach and the bounce VPLs that face it.
     // Tiles whose cone meets no VPL group, out of the bounce's reach and
     // without object pixels are skipped whole.
     let planned: Vec<(DirectTile, bool, Vec<usize>)> = scene
@@ -1126,7 +1151,9 @@ pub fn relight_moved_with(
             let mut vpls: Vec<usize> = (0..scene.groups.axis.len())
                 .filter(|&g| scene.groups.meets(g, &tcone))
                 .flat_map(|g| scene.groups.members[g].iter().copied())
-                .filter(|&j| om.get(j).is_some() && tcone.contains(scene.dirs[j]))
+                .filter(|&j| {
+                    tcone.contains(scene.dirs[j]) && om.may_shadow(j, tile.centre, tile.radius)
+                })
                 .collect();
             // the object maps' groups together (each pixel sums in this order)
             vpls.sort_unstable_by_key(|&j| (om.of[j], j));
