@@ -31,7 +31,9 @@
 //!   of the object unoccluded; the maps of dim groups of VPLs at half the
 //!   resolution from the layers pooled over blocks, [`FINE_MAP_SHARE`],
 //!   [`COARSE_POOL`]); then the object's shading, the bounces,
-//!   and the target pixels whose cone meets a VPL; the smooth terms (the
+//!   and the target pixels whose cone meets a VPL (per tile of pixels,
+//!   only the VPLs whose object map holds an occluder the tile may look
+//!   up: [`ShadowMap::occupied`]); the smooth terms (the
 //!   object's irradiance, its bounce onto the scene, the fill light) on
 //!   lattices of pixels ([`crate::relight::lattice`], `lattice_step`).
 //!
