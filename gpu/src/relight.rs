@@ -11,7 +11,7 @@
 //! decisions are the CPU's — each visibility test whose f32 value lies
 //! within its rounding bound of the threshold marks the pixel, and the host
 //! recomputes marked pixels with the CPU's own
-//! [`evaluate_pixel`](depthgraph_nodes::relight::direct::evaluate_pixel) —
+//! [`evaluate_pixel`] —
 //! so the pixels the object shades (`hit`) are the same set; the sums are
 //! compensated f32 sums of f32 terms `Φ cos`, within
 //! `|Δ| <= DE_TOL * (Σ_k Φ_k + ΔE)` of the CPU's f64 sums ([`DE_TOL`]:

@@ -9,7 +9,7 @@
 //! - [`registry`]: node kinds by name, with backends;
 //! - [`document`] and [`ron_text`]: the RON pipeline format with positions;
 //! - [`pipeline`]: checking a document into a runnable [`Pipeline`](pipeline::Pipeline);
-//! - [`ports`]: input and output ports declared once, as struct fields ([`ports!`]);
+//! - [`ports`](mod@crate::ports): input and output ports declared once, as struct fields ([`ports!`]);
 //! - [`bytes`]: the checked little-endian byte writer and reader of the caches;
 //! - [`key`], [`cache`], [`codec`], [`scheduler`], [`trace`]: Merkle keys,
 //!   memory and disk caches, the demand-driven parallel scheduler and its

@@ -341,7 +341,7 @@ pub trait NodeParams: Sized + Default + Clone + Send + Sync + 'static {
     fn to_values(&self) -> ParamMap;
 }
 
-/// Turns a default written in [`node_params!`] into the field's type: the
+/// Turns a default written in [`node_params!`](crate::node_params) into the field's type: the
 /// value itself, or a `&str` for a `String` field.
 pub trait ParamDefault<T> {
     /// The default as a value of the field's type.

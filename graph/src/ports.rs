@@ -1,5 +1,5 @@
 //! Ports declared once: a struct of inputs (or of outputs) whose fields are
-//! the ports. [`ports!`](crate::ports) generates the schema's port list
+//! the ports. [`ports!`](macro@crate::ports) generates the schema's port list
 //! from the fields (name, type from the field's Rust type, optional when
 //! the field is an `Option`, doc from the doc comment), the typed reading
 //! of the inputs and the building of the outputs, so a node's adapter is
@@ -79,7 +79,7 @@ pub trait OutPort {
     fn into_value(self) -> Value;
 }
 
-/// A struct of input ports ([`ports!`](crate::ports) with `inputs`).
+/// A struct of input ports ([`ports!`](macro@crate::ports) with `inputs`).
 pub trait InputPorts: Sized {
     /// The ports, in declaration order.
     fn specs() -> Vec<PortSpec>;
@@ -87,7 +87,7 @@ pub trait InputPorts: Sized {
     fn take(inputs: &Inputs) -> Result<Self, NodeError>;
 }
 
-/// A struct of output ports ([`ports!`](crate::ports) with `outputs`).
+/// A struct of output ports ([`ports!`](macro@crate::ports) with `outputs`).
 pub trait OutputPorts {
     /// The ports, in declaration order.
     fn specs() -> Vec<PortSpec>;
@@ -239,7 +239,7 @@ impl OutPort for PathBuf {
     }
 }
 
-/// Declares a struct of input or output ports (see the [module](crate::ports)).
+/// Declares a struct of input or output ports (see the [module](mod@crate::ports)).
 #[macro_export]
 macro_rules! ports {
     (

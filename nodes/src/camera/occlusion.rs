@@ -69,7 +69,7 @@
 //!    counted offsets are kept (each at least twice).
 //! 2. *Choice*: each layer pixel `p` of inverse depth `v` takes the offset
 //!    whose source `p + o` is background of the same band (not a layer
-//!    pixel, `v` and `v_q` not [`farther`] from each other) and whose
+//!    pixel, `v` and `v_q` not `farther` from each other) and whose
 //!    neighbourhood (radius [`MATCH_RADIUS`]) matches `p`'s known
 //!    background best (clamped colour, mean squared difference over at
 //!    least [`MIN_MATCHED`] pixels known around both), and copies its

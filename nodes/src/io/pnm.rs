@@ -25,7 +25,7 @@ pub struct Pnm {
 
 /// Reads a binary PGM/PPM (`P5`/`P6`). 16-bit samples are big-endian as the
 /// format says, unless `little_endian_16` (the NYU Depth v2 raw dumps store
-/// little-endian samples under a PGM header, see `nyu_raw` in [`LoadDepthParams`]).
+/// little-endian samples under a PGM header, see `nyu_raw` in [`LoadDepthParams`](crate::io::LoadDepthParams)).
 pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
     decode_pnm(
         &read_file(path)?,

@@ -322,7 +322,7 @@ impl<'a> ObjectVolume<'a> {
     }
 
     /// Whether the segment from `a` to `b` passes through the volume
-    /// (tested at [`VOLUME_STEPS`] points of its chord through the ball,
+    /// (tested at `VOLUME_STEPS` points of its chord through the ball,
     /// ends excluded by 1 % of the chord).
     pub fn blocks(&self, a: DVec3, b: DVec3) -> bool {
         let v = b - a;

@@ -1,5 +1,5 @@
 //! Imperfect shadow maps (ISM; 3d-editing §IV.A: "Instant radiosity with
-//! imperfect shadow map (ISM) [8] is exploited [...] The ISM uses shadow maps
+//! imperfect shadow map (ISM) \[8\] is exploited [...] The ISM uses shadow maps
 //! based on the approximated point samples of the scene", and eq. 6, the
 //! near-object importance of the point samples).
 //!
@@ -96,7 +96,7 @@ pub fn importance(p: DVec3, centres: &[DVec3], min_d: f64) -> f64 {
 pub const MAX_SLANT: f64 = 20.0;
 
 /// Two neighbouring pixels are on one surface when their depths differ by
-/// at most this fraction ([`pixel_area`], [`surface_steps`], the object's
+/// at most this fraction ([`pixel_area`], `surface_steps`, the object's
 /// mesh).
 pub const SAME_SURFACE: f64 = 0.1;
 

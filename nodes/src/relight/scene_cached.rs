@@ -439,7 +439,7 @@ fn share_directions(dirs: &[DVec3]) -> (Vec<DVec3>, Vec<usize>) {
 
 /// A group of VPL directions whose power is below this share of all the
 /// VPLs' gets its object map at half the resolution, from a mesh at the
-/// matching stride ([`ObjectMeshes`]). A map's texel shifts the edge of
+/// matching stride (`ObjectMeshes`). A map's texel shifts the edge of
 /// the shadow it casts by up to half a texel; the error that makes in
 /// irradiance is that shift times the group's power, and the errors of
 /// many dim groups, in directions spread over the sky, blur into one

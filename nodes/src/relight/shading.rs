@@ -91,7 +91,7 @@ depthgraph_graph::param_choice! {
     }
 }
 
-/// The inputs of [`relight`], all `k.width x k.height`.
+/// The inputs of [`relight`](crate::relight::paired::relight), all `k.width x k.height`.
 #[derive(Debug, Clone, Copy)]
 pub struct RelightInputs<'a> {
     /// The target photo `P`, linear RGB.
@@ -217,7 +217,7 @@ impl<'a> RelightInputs<'a> {
     }
 }
 
-/// Result of [`relight`].
+/// Result of [`relight`](crate::relight::paired::relight).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Relit {
     /// `I_m` (eq. 5).

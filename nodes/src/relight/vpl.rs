@@ -1,6 +1,6 @@
 //! `VplSample`: virtual point lights from an environment map by importance
 //! sampling (3d-editing §IV.A: "We approximate the environment map with VPLs
-//! using importance sampling"; instant radiosity, the paper's ref. [8]).
+//! using importance sampling"; instant radiosity, the paper's ref. \[8\]).
 //!
 //! An environment is infinitely far, so its VPLs are **directional** lights:
 //! a unit direction `ω_k` towards the light and a power `Φ_k` (linear RGB)

@@ -16,7 +16,7 @@ pub const MAX_DEGREE: usize = 8;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PolynomialParams {
     /// Degree `N` of the inverse response `I(M) = Σ_{n=0}^{N} c_n M^n`
-    /// (1 to [`MAX_DEGREE`]).
+    /// (1 to `MAX_DEGREE`).
     pub degree: usize,
     /// Pixels sampled per channel over the radiance range, on top of the
     /// coverage pass (as [`super::ResponseParams::samples`]).

@@ -36,7 +36,7 @@ pub struct ResponseParams {
     /// Pixels sampled per channel over the radiance range (`N` of eq. 5;
     /// the paper asks for `N (P - 1) > 255` with `P` exposures), on top of
     /// the coverage pass that takes up to two pixels at every level of
-    /// every exposure (see [`select_samples`]).
+    /// every exposure (see `select_samples`).
     pub samples: usize,
     /// Relative smoothness `λ` (dimensionless): the smoothness term of
     /// eq. 5 weighs `λ` times the data term's mean weight per level, so the
@@ -506,9 +506,9 @@ fn tie_channels(g: &mut [[f64; LEVELS]; 3], support: &[[u32; LEVELS]; 3]) {
 /// Recovers the response `g` of each channel from a stack (eq. 3-5 of
 /// Debevec & Malik). Pixels are sampled per channel, deterministically:
 /// every level of every exposure, plus `p.samples` spread over the radiance
-/// range in flat regions ([`select_samples`]). Each channel's solution is
-/// then shaped ([`shape_curve`]: non-decreasing, straight ends where no
-/// data reached) and the channels are tied ([`tie_channels`]: one offset
+/// range in flat regions (`select_samples`). Each channel's solution is
+/// then shaped (`shape_curve`: non-decreasing, straight ends where no
+/// data reached) and the channels are tied (`tie_channels`: one offset
 /// each, mean `g(128)` over channels 0).
 ///
 /// The least-squares problem has unknowns `g(0..255)` and `ln E_i` for the

@@ -29,7 +29,7 @@ use super::prune::*;
 /// Patch distances use box sums per search offset, so the cost is
 /// `O(pixels x search window)`.
 ///
-/// Holes stay holes (use [`nlmeans_inpaint`] to fill them). The output
+/// Holes stay holes (use [`nlmeans_inpaint`](crate::depth::nlmeans::nlmeans_inpaint) to fill them). The output
 /// confidence is the similarity-weighted mean input confidence of the window
 /// (1 inside clean data). Weights are normalised as they are accumulated
 /// (module docs), so they never all underflow; a pixel without any source

@@ -395,7 +395,7 @@ pub(super) fn inpaint_state(
 
 /// Iterative NL-means inpainting with confidence propagation (eq. 5): each
 /// iteration estimates every hole that has known pixels within
-/// `search_radius` from them (eq. 1 with the weights of [`nlmeans_filter`],
+/// `search_radius` from them (eq. 1 with the weights of [`nlmeans_filter`](crate::depth::nlmeans::nlmeans_filter),
 /// the depth patch term counting only known pixels), and gives it the
 /// confidence `sum_j s(i, j) zeta(j) / sum_j s(i, j)` (the normalisation
 /// `Z_i` relative to a fully known window), so confidence decays into the

@@ -139,7 +139,7 @@ node_params! {
     }
 }
 
-/// Parameters of [`prune_outliers`] (the outlier fields of the node
+/// Parameters of [`prune_outliers`](crate::depth::nlmeans::prune_outliers) (the outlier fields of the node
 /// parameter structs; see [`NLMeansDepthParams::prune_params`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PruneParams {

@@ -13,7 +13,7 @@ use super::params::*;
 // ---------------------------------------------------------------------------
 
 /// Prunes outliers with the paper's mixture model (Sec. 2.2, after its
-/// reference [12]): the conditional density of a pixel's depth given its
+/// reference \[12\]): the conditional density of a pixel's depth given its
 /// neighbourhood without itself, `p(v(i) | v(N_i*))`, is a mixture of a
 /// normal for valid measurements and a uniform for outliers,
 ///

@@ -278,7 +278,7 @@ pub struct UpsampleJob<'a> {
     pub spatial: f64,
 }
 
-/// [`UpsampleJob`] on the CPU: the pass of [`nlmeans_upsample_with`].
+/// [`UpsampleJob`] on the CPU: the pass of [`nlmeans_upsample_with`](crate::depth::nlmeans::nlmeans_upsample_with).
 pub fn cpu_upsample_pass(
     job: &UpsampleJob,
     progress: &mut dyn FnMut(f32) -> Result<(), NodeError>,

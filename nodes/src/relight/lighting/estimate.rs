@@ -56,7 +56,7 @@
 //! ([`super::shadow_edges`]:
 //! 0.1-1.3° on the path-traced rooms of docs/lighting.md). A direction whose fit
 //! leaves the low-frequency part and the bounce together under
-//! [`MIN_AMBIENT_SHARE`] of the mean irradiance takes no part in the search (a sky darker than black beside
+//! `MIN_AMBIENT_SHARE` of the mean irradiance takes no part in the search (a sky darker than black beside
 //! a light is the fit trading one for the other). The light is kept when
 //! it explains at least [`EstimateParams::min_light_gain`] of what the
 //! ambient-only fit leaves and its irradiance is positive. At the chosen

@@ -49,7 +49,7 @@ use crate::kit::color::luminance_f64;
 use crate::relight::lighting::regions::NO_REGION;
 use crate::relight::shading::Surf;
 
-/// Tolerances of [`refine_direction`].
+/// Tolerances of `refine_direction`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EdgeParams {
     /// Largest move from the fit's direction, degrees.
@@ -204,7 +204,7 @@ pub(crate) fn hidden_at(
     Some(z < qz - (abs + rel * qz) && qz - z < thick)
 }
 
-/// What [`refine_direction`] found.
+/// What `refine_direction` found.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Refined {
     /// The refined unit direction.
