@@ -368,7 +368,8 @@ struct ObjectMaps {
     radius: f64,
     /// Largest texel side of the maps, metres.
     max_texel: f64,
-    /// Per group: its map's [`ShadowMap::occupied`] rectangle.
+    /// Per group: its map's [`ShadowMap::occupied`] rectangle, once
+    /// [`ObjectMaps::with_occupied`] found them (empty before).
     occupied: Vec<Option<[f64; 4]>>,
 }
 
@@ -383,16 +384,32 @@ impl ObjectMaps {
     /// ball reaches its [`ShadowMap::occupied`] rectangle (plus half a
     /// texel against rounding). Where it does not, every point of the ball
     /// looks up an empty texel: the VPL reaches it past the object.
+    /// Without the rectangles ([`ObjectMaps::with_occupied`]), every VPL
+    /// with a map may.
     fn may_shadow(&self, j: usize, c: DVec3, r: f64) -> bool {
-        let Some(&g) = self.of.get(j) else {
+        let Some(m) = self.get(j) else {
             return false;
         };
-        let (Some(m), Some([u0, u1, v0, v1])) = (self.maps[g].as_ref(), self.occupied[g]) else {
+        let Some(rect) = self.of.get(j).and_then(|&g| self.occupied.get(g)) else {
+            return true;
+        };
+        let Some([u0, u1, v0, v1]) = *rect else {
             return false;
         };
         let lc = m.light_coords(c);
         let r = r + 0.5 * m.texel_m;
         lc.x + r >= u0 && lc.x - r <= u1 && lc.y + r >= v0 && lc.y - r <= v1
+    }
+
+    /// The maps' [`ShadowMap::occupied`] rectangles found, for
+    /// [`ObjectMaps::may_shadow`].
+    fn with_occupied(mut self) -> Self {
+        self.occupied = self
+            .maps
+            .par_iter()
+            .map(|m| m.as_ref().and_then(ShadowMap::occupied))
+            .collect();
+        self
     }
 
     /// The margin of the mesh VPL `j`'s map was drawn from (0 without one).
@@ -579,17 +596,13 @@ fn object_maps(
         .map(|m| m.texel_m)
         .fold(0.0f64, f64::max);
     let margins: Vec<f64> = jobs.iter().map(|(_, mesh, _)| mesh.margin).collect();
-    let occupied = maps
-        .par_iter()
-        .map(|m| m.as_ref().and_then(ShadowMap::occupied))
-        .collect();
     ObjectMaps {
         maps,
         of,
         radius: margins.iter().copied().fold(0.0, f64::max),
         margins,
         max_texel,
-        occupied,
+        occupied: Vec::new(),
     }
 }
 
@@ -844,7 +857,7 @@ pub fn relight_moved_with(
     let (c, radius) = centre_and_radius(positions);
     let volume = inp.volume(back.as_ref(), c, radius);
     let meshes = ObjectMeshes::new(inp.pasted_depth, back.as_ref(), k, c, radius, p);
-    let om = object_maps(&meshes, &scene.dirs, &scene.vpls, p);
+    let om = object_maps(&meshes, &scene.dirs, &scene.vpls, p).with_occupied();
     // A ray meets the object's splats only within this distance of c; the
     // texel adds the lookup's quantisation.
     let reach = radius + om.radius + om.max_texel;
