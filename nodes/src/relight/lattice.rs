@@ -103,24 +103,29 @@ impl<const N: usize> Lattice<N> {
     }
 
     /// The pixel indices of the nodes pixel `(x, y)` blends (itself
-    /// where it is a node; none outside the image).
-    pub fn corners(&self, x: usize, y: usize) -> Vec<usize> {
-        if x >= self.w || y >= self.h {
-            return Vec::new();
+    /// where it is a node; none outside the image), without allocating.
+    pub fn corners(&self, x: usize, y: usize) -> impl Iterator<Item = usize> {
+        let mut out = [0usize; 4];
+        let mut n = 0;
+        if x < self.w && y < self.h {
+            let (xa, xb, tx) = bracket(x, self.step, self.w);
+            let (ya, yb, ty) = bracket(y, self.step, self.h);
+            out[0] = self.pixel(xa, ya);
+            n = 1;
+            if tx > 0.0 {
+                out[n] = self.pixel(xb, ya);
+                n += 1;
+            }
+            if ty > 0.0 {
+                out[n] = self.pixel(xa, yb);
+                n += 1;
+            }
+            if tx > 0.0 && ty > 0.0 {
+                out[n] = self.pixel(xb, yb);
+                n += 1;
+            }
         }
-        let (xa, xb, tx) = bracket(x, self.step, self.w);
-        let (ya, yb, ty) = bracket(y, self.step, self.h);
-        let mut out = vec![self.pixel(xa, ya)];
-        if tx > 0.0 {
-            out.push(self.pixel(xb, ya));
-        }
-        if ty > 0.0 {
-            out.push(self.pixel(xa, yb));
-        }
-        if tx > 0.0 && ty > 0.0 {
-            out.push(self.pixel(xb, yb));
-        }
-        out
+        out.into_iter().take(n)
     }
 
     /// The value of the node at pixel index `i` (evaluated by `eval` if

@@ -711,30 +711,43 @@ fn lattice_irradiance(
     if step <= 1 {
         return exact(surfs);
     }
-    let surf_at = |i: usize| obj_idx.binary_search(&i).ok().map(|j| &surfs[j]);
+    // pixel index -> place in `obj_idx` (sorted)
+    let place = |i: usize| obj_idx.binary_search(&i).ok();
+    let surf_at = |i: usize| place(i).map(|j| &surfs[j]);
     let mut out: Vec<Option<[f64; 6]>> = vec![None; obj_idx.len()];
-    // every node computed so far, by pixel: the coarse lattice's nodes
+    // every node computed so far, by place: the coarse lattice's nodes
     // are the fine one's too, and are not computed again
-    let mut known: std::collections::BTreeMap<usize, [f64; 6]> = Default::default();
+    let mut known: Vec<Option<[f64; 6]>> = vec![None; obj_idx.len()];
     for grid in [
         Lattice::<6>::new(w, h, 2 * step),
         Lattice::<6>::new(w, h, step),
     ] {
         let open: Vec<usize> = (0..obj_idx.len()).filter(|&j| out[j].is_none()).collect();
         // the object's nodes the open pixels blend and no lattice computed
-        // yet, each once, in order
-        let mut nodes: Vec<usize> = open
-            .iter()
-            .flat_map(|&j| grid.corners(obj_idx[j] % w, obj_idx[j] / w))
-            .filter(|&n| surf_at(n).is_some() && !known.contains_key(&n))
+        // yet, each once, in pixel order (the places' order)
+        let corners: Vec<[Option<usize>; 4]> = open
+            .par_iter()
+            .map(|&j| {
+                let mut c = [None; 4];
+                for (slot, n) in c
+                    .iter_mut()
+                    .zip(grid.corners(obj_idx[j] % w, obj_idx[j] / w))
+                {
+                    *slot = place(n).filter(|&q| known[q].is_none());
+                }
+                c
+            })
             .collect();
-        nodes.sort_unstable();
-        nodes.dedup();
-        let node_surfs: Vec<Surf> = nodes.iter().filter_map(|&n| surf_at(n).copied()).collect();
-        for (&n, v) in nodes.iter().zip(exact(&node_surfs)) {
-            known.insert(n, flat(&v));
+        let mut need = vec![false; obj_idx.len()];
+        for q in corners.iter().flatten().flatten() {
+            need[*q] = true;
         }
-        let eval = |i: usize| known.get(&i).copied();
+        let nodes: Vec<usize> = (0..obj_idx.len()).filter(|&q| need[q]).collect();
+        let node_surfs: Vec<Surf> = nodes.iter().map(|&q| surfs[q]).collect();
+        for (&q, v) in nodes.iter().zip(exact(&node_surfs)) {
+            known[q] = Some(flat(&v));
+        }
+        let eval = |i: usize| place(i).and_then(|q| known[q]);
         let blended: Vec<Option<[f64; 6]>> = open
             .par_iter()
             .map(|&j| {
