@@ -802,16 +802,7 @@ mod tests {
         }
     }
 
-    fn k(w: usize, h: usize) -> Intrinsics {
-        Intrinsics {
-            fx: w as f64,
-            fy: w as f64,
-            cx: w as f64 / 2.0,
-            cy: h as f64 / 2.0,
-            width: w,
-            height: h,
-        }
-    }
+    use crate::test_support::square_camera as k;
 
     fn both(depth: &DepthMap, color: &ColorImage, p: &PullPushParams) -> [Filled; 2] {
         let kk = k(depth.width(), depth.height());

@@ -3,6 +3,19 @@
 #![cfg(test)]
 
 pub(crate) mod relight;
+/// A `w x h` camera whose focal length is `w` pixels (about 53° across)
+/// with the principal point at the image's centre.
+pub(crate) fn square_camera(w: usize, h: usize) -> depthgraph_graph::prelude::Intrinsics {
+    depthgraph_graph::prelude::Intrinsics {
+        fx: w as f64,
+        fy: w as f64,
+        cx: w as f64 / 2.0,
+        cy: h as f64 / 2.0,
+        width: w,
+        height: h,
+    }
+}
+
 /// Runs `f` on a rayon pool of `threads` threads (the tests that a
 /// result does not depend on the thread count).
 pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {

@@ -31,6 +31,11 @@ use crate::kit::grid::neighbours4;
 /// Label of pixels in no region (no depth, no normal, masked out, black).
 pub const NO_REGION: u32 = u32::MAX;
 
+/// Neighbouring depths whose ratio exceeds this lie on two surfaces (an
+/// occlusion edge): the regions' default and the runs of
+/// [`super::thickness`].
+pub const DEPTH_STEP_RATIO: f64 = 1.04;
+
 /// Tolerances of [`albedo_regions`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RegionParams {
@@ -45,7 +50,7 @@ pub struct RegionParams {
 impl Default for RegionParams {
     fn default() -> Self {
         Self {
-            max_depth_ratio: 1.04,
+            max_depth_ratio: DEPTH_STEP_RATIO,
             max_crease_deg: 25.0,
             max_chroma: 0.08,
         }

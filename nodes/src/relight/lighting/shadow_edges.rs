@@ -400,23 +400,12 @@ mod tests {
     /// A floor plane at y = 0.5 (camera y down) seen from the camera, with
     /// the pole [`BOX_LO`]-[`BOX_HI`] standing on it: depth and surfaces.
     fn floor_with_pole(w: usize, h: usize) -> (DepthMap, Intrinsics, Vec<Option<Surf>>) {
-        let k = Intrinsics {
-            fx: w as f64,
-            fy: w as f64,
-            cx: w as f64 / 2.0,
-            cy: h as f64 / 2.0,
-            width: w,
-            height: h,
-        };
+        let k = crate::test_support::square_camera(w, h);
         let mut depth: DepthMap = Image::filled(w, h, 0.0f32);
         let mut surfaces = vec![None; w * h];
         for y in 0..h {
             for x in 0..w {
-                let ray = DVec3::new(
-                    (x as f64 + 0.5 - k.cx) / k.fx,
-                    (y as f64 + 0.5 - k.cy) / k.fy,
-                    1.0,
-                );
+                let ray = k.unproject(x as f64 + 0.5, y as f64 + 0.5, 1.0);
                 // the pole (slabs), else the floor
                 let (lo, hi) = (BOX_LO, BOX_HI);
                 let (mut t_in, mut t_out, mut axis) = (0.0f64, f64::INFINITY, 2);

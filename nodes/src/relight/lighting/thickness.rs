@@ -27,8 +27,8 @@ use depthgraph_graph::prelude::*;
 use rayon::prelude::*;
 
 /// Neighbours whose depths differ by more than this ratio lie on two
-/// surfaces (the ratio the albedo regions use).
-pub const STEP_RATIO: f64 = 1.04;
+/// surfaces (the albedo regions' ratio).
+pub const STEP_RATIO: f64 = super::regions::DEPTH_STEP_RATIO;
 
 /// Whether two depths lie on one surface (both valid, ratio at most
 /// [`STEP_RATIO`]).
