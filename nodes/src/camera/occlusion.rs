@@ -75,7 +75,10 @@
 //!    least [`MIN_MATCHED`] pixels known around both), and copies its
 //!    colour where that mismatch is below [`TEXTURE_GAIN`] times the
 //!    spread of `p`'s known background about its mean (a texture the
-//!    offset continues). A pixel with no such offset keeps the
+//!    offset continues), each channel kept within the range of `p`'s known
+//!    background (as it is, not clamped): a glint or an emitter matches as
+//!    white in clamped colours but is not the texture, and copied behind an
+//!    edge it would blur into a bright ghost. A pixel with no such offset keeps the
 //!    interpolated colour, as does a smooth background;
 //!    the depth stays the interpolated one either way (a plane is
 //!    continued exactly by interpolation).
@@ -474,6 +477,17 @@ fn continue_texture(
             if n0 < MIN_MATCHED {
                 return None;
             }
+            // the range of p's known background, per channel (as it is, not
+            // clamped): what the copy may bring (module docs, step 2)
+            let mut range = [[f32::INFINITY, f32::NEG_INFINITY]; 3];
+            for (dx, dy, _) in &near {
+                if let Some(a) = at(px + dx, py + dy) {
+                    for k in 0..3 {
+                        range[k][0] = range[k][0].min(color[a][k]);
+                        range[k][1] = range[k][1].max(color[a][k]);
+                    }
+                }
+            }
             // the spread of p's known background: what the mean (about what
             // interpolation gives) misses
             let (mut s1, mut s2) = ([0.0f64; 3], 0.0f64);
@@ -512,7 +526,14 @@ fn continue_texture(
             }
             // a texture the offset predicts well beyond its mean
             best.filter(|&(e, _)| e < TEXTURE_GAIN * spread)
-                .map(|(_, src)| color[src])
+                .map(|(_, src)| {
+                    let c = color[src];
+                    // guard: a channel without a finite value nearby keeps the copy's
+                    std::array::from_fn(|k| {
+                        let [lo, hi] = range[k];
+                        if lo <= hi { c[k].max(lo).min(hi) } else { c[k] }
+                    })
+                })
         })
         .collect();
     for (c, new) in layer.color.iter_mut().zip(copied) {
@@ -645,6 +666,48 @@ mod tests {
             frame: None,
         };
         background_layer(w, h, color, inv_z, &vec![true; w * h], &p)
+    }
+
+    /// A bright emitter in the texture (a lamp's glint on a white square)
+    /// matches as white (the patches compare clamped colours), but it is
+    /// not the texture: a copy brings no colour outside the range of the
+    /// background around the pixel it fills.
+    #[test]
+    fn texture_copies_no_emitter_behind_a_thin_bar() {
+        let (w, h) = (64, 40);
+        let (mut color, inv_z, truth) = checker_scene(w, h, 6);
+        // a glint at the centre of every bright square
+        let mut glints = 0;
+        for y in (0..h).filter(|y| y % 6 == 3) {
+            for x in (0..w).filter(|x| x % 6 == 3 && !(20..24).contains(x)) {
+                let i = y * w + x;
+                if truth[i][1] > 0.5 {
+                    color[i] = [40.0; 3];
+                    glints += 1;
+                }
+            }
+        }
+        assert!(glints > 10);
+        let tex = layer_of(w, h, &color, &inv_z, true);
+        assert!(
+            tex.textured * 10 >= tex.len() * 9,
+            "{} of {} copied",
+            tex.textured,
+            tex.len()
+        );
+        let brightest = tex.color.iter().flatten().fold(0.0f32, |m, v| m.max(*v));
+        assert!(
+            brightest <= 0.8,
+            "a glint copied behind the bar: {brightest}"
+        );
+        let err = tex
+            .pixels
+            .iter()
+            .zip(&tex.color)
+            .map(|(&i, c)| (f64::from(c[1]) - f64::from(truth[i as usize][1])).abs())
+            .sum::<f64>()
+            / tex.len() as f64;
+        assert!(err < 0.05, "the checker continued: mean error {err}");
     }
 
     #[test]
