@@ -116,7 +116,8 @@ fn main() {
          light and the map's sun; **fit alone**: the same with `refine_shadows = false` (the direction of the fit's \
          sparse samples, not refined by the cast shadows' edges). The sun at (35, 150) stands behind the \
          back wall, whose shadow covers every surface the photo shows: that photo is lit by the sky alone, \
-         and the light found in it is no sun. **E error**: relative RMS difference of the estimated map's \
+         and no light found in it could be its sun (a direction 30° from the fit's best explains as much: \
+         `max_ambiguity`). **E error**: relative RMS difference of the estimated map's \
          order-2 irradiance from the true map's over all normals, raw / after the best scale (the \
          scale rests on the assumed median reflectance 0.5; the rooms' surfaces have 0.45-0.6). Time: median of 3.\n"
     );

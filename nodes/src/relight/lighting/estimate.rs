@@ -59,7 +59,14 @@
 //! `MIN_AMBIENT_SHARE` of the mean irradiance takes no part in the search (a sky darker than black beside
 //! a light is the fit trading one for the other). The light is kept when
 //! it explains at least [`EstimateParams::min_light_gain`] of what the
-//! ambient-only fit leaves and its irradiance is positive. At the chosen
+//! ambient-only fit leaves and its irradiance is positive, and only when the
+//! photo tells its direction: no direction of the coarse search more than
+//! 30° from it may explain [`EstimateParams::max_ambiguity`] (85 %) as much
+//! or more. A floor and a wall lit by a sun, with nothing casting a shadow,
+//! fit a whole arc of directions alike (on the path-traced rooms of
+//! docs/lighting.md such rivals explain 93-100 % as much, beside 25-64 %
+//! where the photo shows the sun's shadows); a light picked from that arc
+//! is invented, and its shadows fall the wrong way. At the chosen
 //! direction, iteratively reweighted least squares (Huber weights, scale
 //! from the median absolute residual) lowers the pull of specular
 //! highlights, textures and shadows the depth map cannot explain. Each
@@ -132,6 +139,8 @@ node_params! {
         pub refine_shadows: bool = true, ParamKind::Bool;
         /// Lowest elevation searched for the light, degrees (light from the horizon or below is rare, and a grazing light's long shadows can be made to match any texture).
         pub min_elevation_deg: f64 = 5.0, ParamKind::Float { min: -90.0, max: 90.0 };
+        /// A light is kept only when no direction more than 30° from it (AMBIGUOUS_DEG) explains this share or more of what it explains: else the photo does not tell where the light is (a floor and a wall lit by a sun fit a whole arc of directions alike), and no sun is invented. 1 = off.
+        pub max_ambiguity: f64 = 0.85, ParamKind::Float { min: 0.0, max: 1.0 };
         /// Fraction of the ambient-only fit's residual the light must explain to be kept.
         pub min_light_gain: f64 = 0.05, ParamKind::Float { min: 0.0, max: 1.0 };
         /// Below this RMS of relative shading variation the photo is treated as unlit by any direction (ambient only).
@@ -168,6 +177,11 @@ const MIN_NORMAL_SPREAD: f64 = 0.015;
 /// A light found within this many degrees above the search's lowest
 /// elevation is pressed against that limit and is not believed.
 const GRAZING_MARGIN_DEG: f64 = 2.0;
+/// How far (degrees) a rival direction lies from the best for
+/// [`EstimateParams::max_ambiguity`]: three times the 10° a found light
+/// is meant to lie within. The coarse search's directions lie about 12°
+/// apart, so the rivals are its directions beyond this angle.
+const AMBIGUOUS_DEG: f64 = 30.0;
 /// Marching steps of a shadow ray.
 const SHADOW_STEPS: usize = 24;
 /// Smallest part of the samples' mean irradiance the low-frequency light
@@ -389,6 +403,33 @@ fn ambient_share(samples: &[Sample], f: &Fit, col: &[f64], wts: &[f64]) -> f64 {
 /// Huber's loss of residuals `r` with weights `w` at scale `k`
 /// (quadratic within `k`, linear beyond: what the search minimises, so a
 /// texture the model cannot explain pulls less than a shadow it can).
+/// How well the best rival of the coarse search's best direction `best`
+/// does: among the `scored` directions (direction, Huber cost) more than
+/// [`AMBIGUOUS_DEG`] from `best`, the largest gain over the ambient-only
+/// cost `amb_cost` (`1 - cost / amb_cost`) as a share of the best's gain,
+/// and that rival. `None` when the best explains nothing (a gain of 0 or
+/// less, or no finite ambient cost: the share has no meaning) or no
+/// direction lies that far.
+fn ambiguity_of(scored: &[(DVec3, f64)], best: DVec3, amb_cost: f64) -> Option<(f64, DVec3)> {
+    if !(amb_cost > 0.0 && amb_cost.is_finite()) {
+        return None;
+    }
+    let best_cost = scored.iter().map(|(_, c)| *c).fold(f64::INFINITY, f64::min);
+    // guard: amb_cost > 0 and finite (above)
+    let gain = |c: f64| 1.0 - c / amb_cost;
+    let g_best = gain(best_cost);
+    // (a NaN gain fails the test too)
+    if g_best.is_nan() || g_best <= 0.0 {
+        return None;
+    }
+    let (rival, cost) = scored
+        .iter()
+        .filter(|(d, _)| angle_deg(*d, best) > AMBIGUOUS_DEG)
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    // guard: g_best > 0
+    Some((gain(*cost) / g_best, *rival))
+}
+
 fn huber_cost(r: &[f64], w: &[f64], k: f64) -> f64 {
     r.iter()
         .zip(w)
@@ -1133,6 +1174,8 @@ pub fn estimate_lighting(
     let mut best: Option<(DVec3, Fit, Vec<f64>, f64)> = None;
     // the search had no direction above its lowest elevation (the report's reason)
     let mut no_direction = false;
+    // the best rival's gain over the best's ([`ambiguity_of`])
+    let mut ambiguity: Option<(f64, DVec3)> = None;
     if p.light && !flat {
         let min_up = p.min_elevation_deg.to_radians().sin();
         let dirs: Vec<DVec3> = fibonacci_sphere(p.directions.max(1))
@@ -1149,6 +1192,7 @@ pub fn estimate_lighting(
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .map(|(d, _)| *d);
         let coarse_best = centre;
+        ambiguity = centre.and_then(|c| ambiguity_of(&scored, c, amb_cost));
         // the fine search with the robust weights of the coarse best
         let mut search_w = base_w.clone();
         if let Some(c) = centre
@@ -1215,11 +1259,15 @@ pub fn estimate_lighting(
     let grazing = best
         .as_ref()
         .is_some_and(|(d, _, _, _)| angles(*d).0 < p.min_elevation_deg + GRAZING_MARGIN_DEG);
-    let keep = best.is_some()
+    // a light the other rules keep, but whose direction a rival 30° away
+    // fits about as well (EstimateParams::max_ambiguity)
+    let believed = best.is_some()
         && !grazing
         && gain >= p.min_light_gain
         && share >= p.min_light_share
         && share <= p.max_light_share;
+    let ambiguous = believed && ambiguity.is_some_and(|(a, _)| a >= p.max_ambiguity);
+    let keep = believed && !ambiguous;
     let (mut dir, mut col) = match (&best, keep) {
         (Some((d, _, col, _)), true) => (Some(*d), Some(col.clone())),
         _ => (None, None),
@@ -1450,6 +1498,19 @@ pub fn estimate_lighting(
             100.0 * MIN_AMBIENT_SHARE,
             samples.len()
         ),
+        (None, false) if ambiguous && traded.is_none() => {
+            let (a, rival) = ambiguity.unwrap_or((0.0, DVec3::Y));
+            let (re, ra) = angles(rival);
+            format!(
+                "ambient only, radiance {amb_l:.4}: no dominant light (a direction more than \
+                 {AMBIGUOUS_DEG:.0}° from the best, elevation {re:.0}°, azimuth {ra:.0}°, explains {:.0} % \
+                 as much as it, under {:.0} % needed: the photo does not tell where the light is); confidence \
+                 {confidence:.2} ({} samples, {regions} regions)",
+                100.0 * a,
+                100.0 * p.max_ambiguity,
+                samples.len()
+            )
+        }
         (None, false) if grazing => format!(
             "ambient only, radiance {amb_l:.4}: no dominant light (the best lies at the lowest elevation \
              searched, {:.0}°: a grazing light explaining gradients, not believed); confidence {confidence:.2} \
@@ -1816,6 +1877,49 @@ mod tests {
         let est = estimate(&case.photo, &case.depth, &case.k, None);
         assert!(est.light.is_none(), "{}", est.report);
         assert!(luminance_f64(est.ambient) > 0.0, "{}", est.report);
+    }
+
+    /// A sun that lights a floor and a wall but casts no shadow the photo
+    /// shows (the relight truth's near-wall and coloured-floor rooms: the
+    /// object is pasted later): a whole arc of directions fits the shading
+    /// alike, and the estimate claims no sun and says why; with the rule
+    /// off (`max_ambiguity` 1) it picks one from the arc, tens of degrees
+    /// from the truth.
+    #[test]
+    fn a_light_the_photo_does_not_place_is_not_invented() {
+        // the rooms' own suns
+        for (room, e, a) in [
+            (Room::NearWall, 40.0, 70.0),
+            (Room::ColouredFloor, 55.0, -20.0),
+        ] {
+            let sky = Sky::Sun {
+                elevation_deg: e,
+                azimuth_deg: a,
+            };
+            let case = relight_case(room, Some(sky), 160, 120, 128, &PT).unwrap();
+            let est = estimate(&case.photo, &case.depth, &case.k, None);
+            assert!(est.light.is_none(), "{room:?}: {}", est.report);
+            assert!(
+                est.report.contains("does not tell where the light is"),
+                "{room:?}: {}",
+                est.report
+            );
+            assert!(luminance_f64(est.ambient) > 0.0, "{}", est.report);
+            let off = EstimateParams {
+                max_ambiguity: 1.0,
+                ..Default::default()
+            };
+            let invented = estimate_with(&case.photo, &case.depth, &case.k, None, &off);
+            let l = invented
+                .light
+                .unwrap_or_else(|| panic!("{room:?}, rule off: {}", invented.report));
+            let truth = sun_direction(e, a);
+            assert!(
+                angle_deg(l.direction, truth) > 20.0,
+                "{room:?}: the arc's pick {:.1}° off",
+                angle_deg(l.direction, truth)
+            );
+        }
     }
 
     /// The report says why no light was kept where the search could keep
