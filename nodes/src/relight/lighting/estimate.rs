@@ -64,7 +64,7 @@
 //! 30° from it may explain [`EstimateParams::max_ambiguity`] (85 %) as much
 //! or more. A floor and a wall lit by a sun, with nothing casting a shadow,
 //! fit a whole arc of directions alike (on the path-traced rooms of
-//! docs/lighting.md such rivals explain 93-100 % as much, beside 25-64 %
+//! docs/lighting.md such rivals explain 94-100 % as much, beside 25-64 %
 //! where the photo shows the sun's shadows); a light picked from that arc
 //! is invented, and its shadows fall the wrong way. At the chosen
 //! direction, iteratively reweighted least squares (Huber weights, scale
@@ -400,9 +400,6 @@ fn ambient_share(samples: &[Sample], f: &Fit, col: &[f64], wts: &[f64]) -> f64 {
     }
 }
 
-/// Huber's loss of residuals `r` with weights `w` at scale `k`
-/// (quadratic within `k`, linear beyond: what the search minimises, so a
-/// texture the model cannot explain pulls less than a shadow it can).
 /// How well the best rival of the coarse search's best direction `best`
 /// does: among the `scored` directions (direction, Huber cost) more than
 /// [`AMBIGUOUS_DEG`] from `best`, the largest gain over the ambient-only
@@ -430,6 +427,9 @@ fn ambiguity_of(scored: &[(DVec3, f64)], best: DVec3, amb_cost: f64) -> Option<(
     Some((gain(*cost) / g_best, *rival))
 }
 
+/// Huber's loss of residuals `r` with weights `w` at scale `k`
+/// (quadratic within `k`, linear beyond: what the search minimises, so a
+/// texture the model cannot explain pulls less than a shadow it can).
 fn huber_cost(r: &[f64], w: &[f64], k: f64) -> f64 {
     r.iter()
         .zip(w)
@@ -1266,7 +1266,9 @@ pub fn estimate_lighting(
         && gain >= p.min_light_gain
         && share >= p.min_light_share
         && share <= p.max_light_share;
-    let ambiguous = believed && ambiguity.is_some_and(|(a, _)| a >= p.max_ambiguity);
+    // (1 = off: a rival ties the best at most, a share of exactly 1)
+    let ambiguous =
+        believed && p.max_ambiguity < 1.0 && ambiguity.is_some_and(|(a, _)| a >= p.max_ambiguity);
     let keep = believed && !ambiguous;
     let (mut dir, mut col) = match (&best, keep) {
         (Some((d, _, col, _)), true) => (Some(*d), Some(col.clone())),
@@ -1877,6 +1879,32 @@ mod tests {
         let est = estimate(&case.photo, &case.depth, &case.k, None);
         assert!(est.light.is_none(), "{}", est.report);
         assert!(luminance_f64(est.ambient) > 0.0, "{}", est.report);
+    }
+
+    /// The rival is the best direction beyond 30°: neighbours within it
+    /// do not count, the share is of the gains over the ambient-only cost,
+    /// and a best that explains nothing has no share.
+    #[test]
+    fn the_ambiguity_is_the_best_rivals_share_of_the_gain() {
+        let at = |deg: f64| {
+            let r = deg.to_radians();
+            DVec3::new(r.sin(), -r.cos(), 0.0)
+        };
+        // the best (cost 0.2), a neighbour at 10° nearly as good, rivals at 40° and 90°
+        let scored = [
+            (at(0.0), 0.2),
+            (at(10.0), 0.21),
+            (at(40.0), 0.3),
+            (at(90.0), 0.6),
+        ];
+        let (a, rival) = ambiguity_of(&scored, at(0.0), 1.0).unwrap();
+        assert!((a - 0.7 / 0.8).abs() < 1e-12, "{a}");
+        assert!(angle_deg(rival, at(40.0)) < 1e-9);
+        // nothing beyond 30°, a best no better than the ambient, no ambient cost
+        assert!(ambiguity_of(&scored[..2], at(0.0), 1.0).is_none());
+        assert!(ambiguity_of(&scored, at(0.0), 0.2).is_none());
+        assert!(ambiguity_of(&scored, at(0.0), f64::INFINITY).is_none());
+        assert!(ambiguity_of(&scored, at(0.0), 0.0).is_none());
     }
 
     /// A sun that lights a floor and a wall but casts no shadow the photo
