@@ -67,8 +67,10 @@ pub const SPIKE_TOLERANCE: f64 = 0.05;
 
 /// Isolated spikes of a ground truth: valid pixels none of whose valid
 /// 8-neighbours lies within [`SPIKE_TOLERANCE`] of their depth (true where
-/// one is). A surface, however thin or slanted, has a neighbour along it
-/// within a few per cent (a one-pixel wire has two), so a pixel with none
+/// one is). A plane keeps its depth along a line of the image (its line of
+/// equal depth), so however slanted it is, one of the eight neighbours lies
+/// near that line and within a few per cent; a one-pixel wire has two along
+/// it. A pixel with none
 /// is an error of the truth's own measurement: Middlebury's structured-light
 /// disparity holds a few (Dolls: one pixel at 2.86 m amid a doll at
 /// 1.63 m), and a hole filler cannot be asked to find them. The accuracy
