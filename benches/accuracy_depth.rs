@@ -34,6 +34,16 @@ use depthgraph::nodes::sim::sensor::{KinectParams, simulate_kinect};
 
 type MethodFn = fn(&DepthMap, &TruthScene) -> DepthMap;
 
+/// Whether pixel `i` of scene `s` is scored (every method alike): its
+/// truth inside the simulated sensor's working range (`KinectParams`,
+/// 0.4-8 m; beyond it, e.g. the corridor's far end at 25 m, there is
+/// nothing to fill from) and not one of the truth's isolated `spikes`.
+fn scored(s: &TruthScene, spikes: &[bool], i: usize) -> bool {
+    let kp = KinectParams::default();
+    let t = s.depth.as_slice()[i] as f64;
+    t >= kp.min_depth_m && t <= kp.max_depth_m && !spikes[i]
+}
+
 /// DualPullPush on the scene's colour and intrinsics (the input back when it refuses).
 fn dual_fill(d: &DepthMap, s: &TruthScene, p: &PullPushParams) -> DepthMap {
     let w = Weights::Dual {
@@ -270,6 +280,8 @@ fn main() {
         }
     }
     punched.resize(scenes.len(), true);
+    // the truth's isolated spikes are scored for no method (truth_spikes), once per scene
+    let spikes: Vec<Vec<bool>> = scenes.iter().map(|s| truth_spikes(&s.depth)).collect();
     let peers_on = std::env::var("DEPTHGRAPH_PEERS")
         .map(|v| v != "0")
         .unwrap_or(true);
@@ -299,12 +311,7 @@ fn main() {
         };
         // Holes measured: lost by the sensor where the truth lies inside its working range
         // (beyond it, e.g. the corridor's far end at 25 m, there is nothing to fill from).
-        // the truth's isolated spikes are scored for no method (truth_spikes)
-        let spikes = truth_spikes(&s.depth);
-        let in_range = |i: usize| {
-            let t = s.depth.as_slice()[i] as f64;
-            t >= kp.min_depth_m && t <= kp.max_depth_m && !spikes[i]
-        };
+        let in_range = |i: usize| scored(s, &spikes[si], i);
         let hole = |i: usize| !DepthMap::is_valid(input.as_slice()[i]) && in_range(i);
         let holes_n = (0..input.len())
             .filter(|i| hole(*i) && DepthMap::is_valid(s.depth.as_slice()[*i]))
@@ -369,12 +376,7 @@ fn main() {
                     if peer_note.is_empty() {
                         peer_note = format!("OpenCV {}", json["opencv"].as_str().unwrap_or("?"));
                     }
-                    let kp = KinectParams::default();
-                    let spikes = truth_spikes(&s.depth);
-                    let in_range = |i: usize| {
-                        let t = s.depth.as_slice()[i] as f64;
-                        t >= kp.min_depth_m && t <= kp.max_depth_m && !spikes[i]
-                    };
+                    let in_range = |i: usize| scored(s, &spikes[*si], i);
                     let hole = |i: usize| !DepthMap::is_valid(input.as_slice()[i]) && in_range(i);
                     for (key, label) in [
                         ("opencv_telea", "OpenCV inpaint Telea (r=5)"),
@@ -421,10 +423,8 @@ fn main() {
     });
     let spike_counts: Vec<(String, usize)> = scenes
         .iter()
-        .map(|s| {
-            let n = truth_spikes(&s.depth).iter().filter(|b| **b).count();
-            (s.name.clone(), n)
-        })
+        .zip(&spikes)
+        .map(|(s, m)| (s.name.clone(), m.iter().filter(|b| **b).count()))
         .collect();
     let mut md = report(&rows, &missing, &data, &peer_note, repeats, &spike_counts);
     md.push_str(&against_ns(&rows, &order));

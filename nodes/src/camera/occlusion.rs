@@ -466,11 +466,11 @@ fn continue_texture(
             let band = |j: usize| known[j] && same_band(v, inv_z[j], fill_h);
             // p's known background around it (offset, clamped colour), read
             // once for the spread and for every offset's match
-            let near: Vec<(i64, i64, [f64; 3])> = (-MATCH_RADIUS..=MATCH_RADIUS)
+            let near: Vec<(i64, i64, [f64; 3], Rgb)> = (-MATCH_RADIUS..=MATCH_RADIUS)
                 .flat_map(|dy| (-MATCH_RADIUS..=MATCH_RADIUS).map(move |dx| (dx, dy)))
                 .filter_map(|(dx, dy)| {
                     let a = at(px + dx, py + dy).filter(|&a| band(a))?;
-                    Some((dx, dy, clamped(color[a])))
+                    Some((dx, dy, clamped(color[a]), color[a]))
                 })
                 .collect();
             let n0 = near.len();
@@ -480,18 +480,16 @@ fn continue_texture(
             // the range of p's known background, per channel (as it is, not
             // clamped): what the copy may bring (module docs, step 2)
             let mut range = [[f32::INFINITY, f32::NEG_INFINITY]; 3];
-            for (dx, dy, _) in &near {
-                if let Some(a) = at(px + dx, py + dy) {
-                    for k in 0..3 {
-                        range[k][0] = range[k][0].min(color[a][k]);
-                        range[k][1] = range[k][1].max(color[a][k]);
-                    }
+            for (_, _, _, c) in &near {
+                for k in 0..3 {
+                    range[k][0] = range[k][0].min(c[k]);
+                    range[k][1] = range[k][1].max(c[k]);
                 }
             }
             // the spread of p's known background: what the mean (about what
             // interpolation gives) misses
             let (mut s1, mut s2) = ([0.0f64; 3], 0.0f64);
-            for (_, _, c) in &near {
+            for (_, _, c, _) in &near {
                 for k in 0..3 {
                     s1[k] += c[k];
                     s2 += c[k] * c[k];
@@ -508,7 +506,7 @@ fn continue_texture(
                     continue;
                 }
                 let (mut sum, mut m) = (0.0f64, 0usize);
-                for (dx, dy, ca) in &near {
+                for (dx, dy, ca, _) in &near {
                     if let Some(b) = at(px + o[0] + dx, py + o[1] + dy).filter(|&b| band(b)) {
                         let cb = clamped(color[b]);
                         sum += (0..3).map(|k| (ca[k] - cb[k]).powi(2)).sum::<f64>();

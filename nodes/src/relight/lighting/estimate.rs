@@ -400,21 +400,27 @@ fn ambient_share(samples: &[Sample], f: &Fit, col: &[f64], wts: &[f64]) -> f64 {
     }
 }
 
+/// The share of the ambient-only fit's cost `amb_cost` that a fit of cost
+/// `cost` removes, `1 - cost / amb_cost`; `None` without a finite,
+/// positive ambient cost (nothing to compare with).
+fn gain_over(cost: f64, amb_cost: f64) -> Option<f64> {
+    // guard: amb_cost > 0 and finite
+    (amb_cost > 0.0 && amb_cost.is_finite()).then(|| 1.0 - cost / amb_cost)
+}
+
 /// How well the best rival of the coarse search's best direction `best`
-/// does: among the `scored` directions (direction, Huber cost) more than
-/// [`AMBIGUOUS_DEG`] from `best`, the largest gain over the ambient-only
-/// cost `amb_cost` (`1 - cost / amb_cost`) as a share of the best's gain,
-/// and that rival. `None` when the best explains nothing (a gain of 0 or
-/// less, or no finite ambient cost: the share has no meaning) or no
-/// direction lies that far.
-fn ambiguity_of(scored: &[(DVec3, f64)], best: DVec3, amb_cost: f64) -> Option<(f64, DVec3)> {
-    if !(amb_cost > 0.0 && amb_cost.is_finite()) {
-        return None;
-    }
-    let best_cost = scored.iter().map(|(_, c)| *c).fold(f64::INFINITY, f64::min);
-    // guard: amb_cost > 0 and finite (above)
-    let gain = |c: f64| 1.0 - c / amb_cost;
-    let g_best = gain(best_cost);
+/// (of cost `best_cost`) does: among the `scored` directions (direction,
+/// Huber cost) more than [`AMBIGUOUS_DEG`] from `best`, the largest gain
+/// ([`gain_over`] the ambient-only cost `amb_cost`) as a share of the
+/// best's gain, and that rival. `None` when the best explains nothing (a
+/// gain of 0 or less, or no finite ambient cost: the share has no meaning)
+/// or no direction lies that far.
+fn ambiguity_of(
+    scored: &[(DVec3, f64)],
+    (best, best_cost): (DVec3, f64),
+    amb_cost: f64,
+) -> Option<(f64, DVec3)> {
+    let g_best = gain_over(best_cost, amb_cost)?;
     // (a NaN gain fails the test too)
     if g_best.is_nan() || g_best <= 0.0 {
         return None;
@@ -424,7 +430,7 @@ fn ambiguity_of(scored: &[(DVec3, f64)], best: DVec3, amb_cost: f64) -> Option<(
         .filter(|(d, _)| angle_deg(*d, best) > AMBIGUOUS_DEG)
         .min_by(|a, b| a.1.total_cmp(&b.1))?;
     // guard: g_best > 0
-    Some((gain(*cost) / g_best, *rival))
+    Some((gain_over(*cost, amb_cost)? / g_best, *rival))
 }
 
 /// Huber's loss of residuals `r` with weights `w` at scale `k`
@@ -1187,12 +1193,10 @@ pub fn estimate_lighting(
             .filter_map(|d| score(*d, &base).map(|(_, _, c)| (*d, c)))
             .collect();
         no_direction = dirs.is_empty();
-        let mut centre = scored
-            .iter()
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-            .map(|(d, _)| *d);
+        let coarse = scored.iter().min_by(|a, b| a.1.total_cmp(&b.1)).copied();
+        let mut centre = coarse.map(|(d, _)| d);
         let coarse_best = centre;
-        ambiguity = centre.and_then(|c| ambiguity_of(&scored, c, amb_cost));
+        ambiguity = coarse.and_then(|b| ambiguity_of(&scored, b, amb_cost));
         // the fine search with the robust weights of the coarse best
         let mut search_w = base_w.clone();
         if let Some(c) = centre
@@ -1226,13 +1230,10 @@ pub fn estimate_lighting(
             .flatten()
             .find_map(|d| score(d, &base).map(|(f, col, c)| (d, f, col, c)));
     }
-    let gain = best.as_ref().map_or(0.0, |(_, _, _, c)| {
-        if amb_cost > 0.0 && amb_cost.is_finite() {
-            1.0 - c / amb_cost
-        } else {
-            0.0
-        }
-    });
+    let gain = best
+        .as_ref()
+        .and_then(|(_, _, _, c)| gain_over(*c, amb_cost))
+        .unwrap_or(0.0);
     // the mean irradiance of the samples in the fit's units: the light's
     // and sky's 1 plus the bounce
     let bounce_mean = |beta: f64, wts: &[f64]| {
@@ -1897,14 +1898,15 @@ mod tests {
             (at(40.0), 0.3),
             (at(90.0), 0.6),
         ];
-        let (a, rival) = ambiguity_of(&scored, at(0.0), 1.0).unwrap();
+        let best = (at(0.0), 0.2);
+        let (a, rival) = ambiguity_of(&scored, best, 1.0).unwrap();
         assert!((a - 0.7 / 0.8).abs() < 1e-12, "{a}");
         assert!(angle_deg(rival, at(40.0)) < 1e-9);
         // nothing beyond 30°, a best no better than the ambient, no ambient cost
-        assert!(ambiguity_of(&scored[..2], at(0.0), 1.0).is_none());
-        assert!(ambiguity_of(&scored, at(0.0), 0.2).is_none());
-        assert!(ambiguity_of(&scored, at(0.0), f64::INFINITY).is_none());
-        assert!(ambiguity_of(&scored, at(0.0), 0.0).is_none());
+        assert!(ambiguity_of(&scored[..2], best, 1.0).is_none());
+        assert!(ambiguity_of(&scored, best, 0.2).is_none());
+        assert!(ambiguity_of(&scored, best, f64::INFINITY).is_none());
+        assert!(ambiguity_of(&scored, best, 0.0).is_none());
     }
 
     /// A sun that lights a floor and a wall but casts no shadow the photo
