@@ -118,21 +118,6 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
             "a pipeline file is required (or --collect DIR)".into(),
         )));
     };
-    let mut reg = depthgraph::nodes::registry().context("building the node registry")?;
-    let chosen = match Backend::resolve(args.backend)
-        .and_then(|b| depthgraph::backend::apply(b, &mut reg))
-    {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return Ok(ExitCode::from(match e {
-                depthgraph::backend::BackendError::BadVariable(_) => 2,
-                depthgraph::backend::BackendError::NoDevice(_) => {
-                    FailureKind::Unavailable.exit_code()
-                }
-            }));
-        }
-    };
     let doc = match read_document(file, &args.sets) {
         Ok(d) => d,
         Err(LoadError::Check(errs)) => {
@@ -157,10 +142,30 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
         Ok(s) => s,
         Err(e) => return Ok(fail(&BatchError::Usage(e.to_string()))),
     };
-    // the pipeline as its first frame would run it: checked once up front
+    // the pipeline as its first frame would run it: checked once up front,
+    // on the CPU kinds (the same kinds, ports and parameters) before any
+    // device is probed, then with the backend's
     let first = match selection {
         FrameSelection::Range { start, .. } => start,
         FrameSelection::All => 0,
+    };
+    let mut reg = depthgraph::nodes::registry().context("building the node registry")?;
+    if let Err(e) = doc.for_frame(first).and_then(|d| Pipeline::check(&d, &reg)) {
+        return Ok(fail(&BatchError::Check(CheckErrors(e))));
+    }
+    let chosen = match Backend::resolve(args.backend)
+        .and_then(|b| depthgraph::backend::apply(b, &mut reg))
+    {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return Ok(ExitCode::from(match e {
+                depthgraph::backend::BackendError::BadVariable(_) => 2,
+                depthgraph::backend::BackendError::NoDevice(_) => {
+                    FailureKind::Unavailable.exit_code()
+                }
+            }));
+        }
     };
     let p = match doc.for_frame(first).and_then(|d| Pipeline::check(&d, &reg)) {
         Ok(p) => p,

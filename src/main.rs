@@ -199,8 +199,15 @@ fn registry() -> Result<Registry> {
 
 /// The registry with the device kinds `args.backend` calls for; `Err` with
 /// the exit code when the backend cannot be had (the reason printed once).
+/// The pipeline is read and checked first, against the CPU kinds (the
+/// same kinds, ports and parameters): a missing file, a typo or a bad
+/// `--set` fails (exit code 2) before any device is probed.
 fn registry_for(args: &RunArgs) -> Result<std::result::Result<(Registry, Chosen), ExitCode>> {
     let mut reg = registry()?;
+    if let Err(e) = load_pipeline_frame(&args.file, &args.sets, args.frame, &reg) {
+        report_load_error(&e);
+        return Ok(Err(ExitCode::from(2)));
+    }
     let chosen =
         Backend::resolve(args.backend).and_then(|b| depthgraph::backend::apply(b, &mut reg));
     match chosen {

@@ -163,6 +163,56 @@ fn gpu_without_a_matching_adapter_fails_before_running() {
     assert!(String::from_utf8_lossy(&r.stderr).contains("expected auto, cpu or gpu"));
 }
 
+/// A pipeline that cannot run is reported before any device is probed:
+/// a missing file or a `--set` naming no node exits with 2 (a usage
+/// error) and says so, even where the backend asked for would fail (69).
+#[test]
+fn a_bad_pipeline_fails_before_the_device_is_probed() {
+    let out = tempfile::tempdir().unwrap();
+    let o = out.path().to_str().unwrap();
+    let demo = root().join("graphs/demo.ron");
+    let seq = root().join("graphs/sequence_demo.ron");
+    let missing = root().join("graphs/no-such-pipeline.ron");
+    let (demo, seq, missing) = (
+        demo.to_str().unwrap(),
+        seq.to_str().unwrap(),
+        missing.to_str().unwrap(),
+    );
+    let no_gpu = [("WGPU_ADAPTER_NAME", "no-such-adapter-xyz")];
+    let cases: [(&[&str], &str); 5] = [
+        (&["run", missing], "no-such-pipeline.ron"),
+        (&["explain", missing], "no-such-pipeline.ron"),
+        (
+            &["run", demo, "--set", "nosuch.x=1"],
+            "no node named `nosuch`",
+        ),
+        (
+            &["batch", missing, "--frames", "0..2"],
+            "no-such-pipeline.ron",
+        ),
+        (
+            &["batch", seq, "--frames", "0..2", "--set", "nosuch.x=1"],
+            "no node named `nosuch`",
+        ),
+    ];
+    for (args, says) in cases {
+        let mut all: Vec<&str> = args.to_vec();
+        all.extend(["--backend", "gpu", "--no-cache", "-q", "--out", o]);
+        let r = cli(&all, &no_gpu);
+        let stderr = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(stderr.contains(says), "{args:?}: {stderr}");
+        assert!(
+            !stderr.contains("no-such-adapter-xyz") && !stderr.contains("--backend gpu"),
+            "{args:?}: the device was probed: {stderr}"
+        );
+    }
+    assert!(
+        std::fs::read_dir(out.path()).unwrap().next().is_none(),
+        "nothing written"
+    );
+}
+
 #[cfg(feature = "gpu")]
 #[test]
 fn run_on_gpu_and_cpu_write_images_that_agree() {
