@@ -301,8 +301,9 @@ node_params! {
         /// "nyu_raw": NYU Depth v2 raw Kinect dump (16-bit PGM whose samples are little-endian raw
         /// disparity): z = 351.3 / (1092.5 - raw) metres, raw >= 1093 or 0 a hole; scale is unused.
         pub encoding: DepthEncoding = DepthEncoding::Depth, ParamKind::Choice(DepthEncoding::NAMES);
-        /// Stored units per metre (depth) or per pixel of disparity. 0 = auto: 1000 (millimetres) for
-        /// integer files, 1 for float files. TUM uses 5000; Middlebury 2003 quarter-size disparity 4.
+        /// Stored units per metre (depth) or per pixel of disparity. 0 = auto: depth 1000 (millimetres)
+        /// from integer files, 1 from float files; disparity 1 (pixels) from either. TUM uses 5000;
+        /// Middlebury 2003 quarter-size disparity 4.
         pub scale: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e9 };
         /// Disparity only: focal length in pixels at the disparity's resolution.
         pub focal_px: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e7 };
@@ -477,14 +478,16 @@ pub fn decode_depth(
     check_depth_params(path, p)?;
     let nyu = p.encoding == DepthEncoding::NyuRaw;
     let raw = read_raw_depth(bytes, path, nyu, lim)?;
+    let disparity = p.encoding == DepthEncoding::Disparity;
+    // auto: millimetres for integer depth; pixels for disparity (no
+    // integer disparity format stores thousandths of a pixel)
     let scale = if p.scale > 0.0 {
         p.scale
-    } else if raw.integer {
+    } else if raw.integer && !disparity {
         1000.0
     } else {
         1.0
     };
-    let disparity = p.encoding == DepthEncoding::Disparity;
     if disparity && (p.focal_px <= 0.0 || p.baseline_m <= 0.0) {
         return Err(NodeError::param(
             if p.focal_px <= 0.0 {
@@ -521,11 +524,10 @@ pub fn decode_depth(
             } else {
                 v as f64 / scale
             };
-            if z.is_finite() && z > 0.0 {
-                z as f32
-            } else {
-                0.0
-            }
+            // (finite in f32: a depth beyond f32's range, e.g. from a
+            // disparity of 1e-38, is no measurement either)
+            let z = z as f32;
+            if z.is_finite() && z > 0.0 { z } else { 0.0 }
         })
         .collect();
     Image::from_vec(raw.samples.width, raw.samples.height, values)
@@ -1099,6 +1101,63 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.to_string().contains("focal_px"), "{e}");
+    }
+
+    /// An integer disparity file is in pixels unless `scale` says otherwise
+    /// (auto's millimetres are for depth: read as thousandths of a pixel,
+    /// Middlebury's 8-bit disparities all came out at about `fb / doffs`).
+    #[test]
+    fn integer_disparities_are_pixels_by_default() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("disp.png");
+        image::GrayImage::from_raw(2, 1, vec![100, 0])
+            .unwrap()
+            .save(&path)
+            .unwrap();
+        let p = LoadDepthParams {
+            encoding: DepthEncoding::Disparity,
+            focal_px: 3740.0,
+            baseline_m: 0.160,
+            doffs_px: 200.0,
+            ..Default::default()
+        };
+        let d = load_depth(&path, &p).unwrap();
+        assert!(
+            (d.get(0, 0) - (0.160 * 3740.0 / 300.0) as f32).abs() < 1e-5,
+            "{}",
+            d.get(0, 0)
+        );
+        // 0 in an integer file is no measurement
+        assert_eq!(*d.get(1, 0), 0.0);
+        // an explicit scale still applies (Middlebury 2003 quarter size: 4 per pixel)
+        let q = load_depth(&path, &LoadDepthParams { scale: 4.0, ..p }).unwrap();
+        assert!((q.get(0, 0) - (0.160 * 3740.0 / 225.0) as f32).abs() < 1e-5);
+    }
+
+    /// A depth finite in f64 but beyond f32's range is a hole, never +inf.
+    #[test]
+    fn a_depth_beyond_f32_is_a_hole() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("d.pfm");
+        write_pfm(&path, 2, 1, &[1e-38, 50.0]);
+        let disp = LoadDepthParams {
+            encoding: DepthEncoding::Disparity,
+            focal_px: 1870.0,
+            baseline_m: 0.160,
+            ..Default::default()
+        };
+        let d = load_depth(&path, &disp).unwrap();
+        assert_eq!(*d.get(0, 0), 0.0, "a disparity of 1e-38 is 3e40 m away");
+        assert!((d.get(1, 0) - (0.160 * 1870.0 / 50.0) as f32).abs() < 1e-5);
+        write_pfm(&path, 2, 1, &[3e38, 2.0]);
+        let depth = LoadDepthParams {
+            scale: 0.5,
+            ..Default::default()
+        };
+        let d = load_depth(&path, &depth).unwrap();
+        assert_eq!(*d.get(0, 0), 0.0, "3e38 / 0.5 overflows f32");
+        assert_eq!(*d.get(1, 0), 4.0);
+        assert!(d.as_slice().iter().all(|z| z.is_finite()));
     }
 
     #[test]

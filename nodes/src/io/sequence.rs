@@ -238,9 +238,20 @@ pub fn frames(p: &LoadSequenceParams) -> Result<Vec<FramePair>, NodeError> {
                     continue;
                 }
                 let cols: Vec<&str> = line.split_whitespace().collect();
+                let stamp = |t: &str| t.parse::<f64>().is_ok_and(f64::is_finite);
                 let (c, d) = match cols.as_slice() {
                     [c, d] => (c, d),
-                    [_, c, _, d] => (c, d),
+                    [t, c, u, d] if stamp(t) && stamp(u) => (c, d),
+                    [_, _, _, _] => {
+                        return Err(bad(
+                            source,
+                            format!(
+                                "line {}: four columns must be `t color t depth` with numeric timestamps \
+                                 (paths cannot hold spaces)",
+                                n + 1
+                            ),
+                        ));
+                    }
                     _ => {
                         return Err(bad(
                             source,
@@ -445,6 +456,27 @@ mod tests {
             .save(dir.join(&d))
             .unwrap();
         (c, d)
+    }
+
+    /// A four-column list line is `t color t depth` only with numeric
+    /// timestamps: paths with spaces are an error naming the line, not a
+    /// silent pairing of their halves.
+    #[test]
+    fn a_list_line_of_paths_with_spaces_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let list = dir.path().join("l.txt");
+        fs::write(&list, "1.0 a.png 1.0 a_d.png\nmy color.png my depth.png\n").unwrap();
+        let p = LoadSequenceParams {
+            source: list.to_string_lossy().into_owned(),
+            ..Default::default()
+        };
+        let e = frames(&p).unwrap_err().to_string();
+        assert!(e.contains("line 2") && e.contains("timestamps"), "{e}");
+        fs::write(&list, "1.0 a.png 1.0 a_d.png\n").unwrap();
+        let f = frames(&p).unwrap();
+        assert_eq!(f.len(), 1);
+        assert_eq!(f[0].color, dir.path().join("a.png"));
+        assert_eq!(f[0].depth, dir.path().join("a_d.png"));
     }
 
     #[test]
