@@ -176,6 +176,14 @@ impl DiskCache {
             return (out, tmps);
         };
         for d in dirs.flatten() {
+            // only the store's own folders (two hex digits, `entry_name`):
+            // a cache folder shared with other files (`--cache-dir .`)
+            // keeps them
+            let folder = d.file_name();
+            let folder = folder.to_str().unwrap_or("");
+            if !(folder.len() == 2 && folder.chars().all(|c| c.is_ascii_hexdigit())) {
+                continue;
+            }
             let Ok(files) = fs::read_dir(d.path()) else {
                 continue;
             };
@@ -194,7 +202,7 @@ impl DiskCache {
                     out.push((p, m.len(), t));
                 } else if is_untagged_entry(name) {
                     out.push((p, m.len(), SystemTime::UNIX_EPOCH));
-                } else if name.ends_with(".tmp") {
+                } else if is_temp_entry(name) {
                     tmps.push((p, t));
                 }
             }
@@ -245,7 +253,7 @@ pub trait BlobStore: Send + Sync {
 }
 
 /// Node outputs in a [`BlobStore`], under the disk cache's entry names
-/// (`ab/<key>.dg4.bin`), so entries of another codec version never meet.
+/// (`ab/<key>.dg5.bin`), so entries of another codec version never meet.
 /// Remote failures are misses: a cache that cannot be reached is not an
 /// error of the run (the command line checks the store once at start).
 #[derive(Clone)]
@@ -356,12 +364,23 @@ fn host_tag() -> String {
     }
 }
 
-/// `ab/<key>.dg4.bin`: where both the disk cache and a shared store keep
+/// `ab/<key>.dg5.bin`: where both the disk cache and a shared store keep
 /// `key`'s entry (the first two hex digits as a folder, the codec's version
 /// tag in the name).
 fn entry_name(key: &Key) -> String {
     let hex = key.to_hex();
     format!("{}/{hex}.{}.bin", &hex[..2], codec::VERSION_TAG)
+}
+
+/// `.<64 hex digits>.<suffix>.tmp`: a writer's temporary file
+/// ([`DiskCache::put`]).
+fn is_temp_entry(name: &str) -> bool {
+    name.strip_prefix('.')
+        .and_then(|n| n.strip_suffix(".tmp"))
+        .and_then(|n| n.split_once('.'))
+        .is_some_and(|(h, rest)| {
+            h.len() == 64 && h.chars().all(|c| c.is_ascii_hexdigit()) && !rest.is_empty()
+        })
 }
 
 /// `<64 hex digits>.bin`: an entry of the layout before version tags.
@@ -450,13 +469,16 @@ mod tests {
             c.put(&key(5), &out(16)).unwrap();
             assert_eq!(fs::read(&p).unwrap(), full);
         }
-        // one flipped payload byte fails the decode or its checksum
-        let mut bad = full.clone();
-        let last = bad.len() - 1;
-        bad[last] ^= 0x40;
-        fs::write(&p, &bad).unwrap();
-        let got = c.get(&key(5), &Default::default());
-        assert!(got.is_none_or(|o| o.values != out(16).values));
+        // one flipped bit anywhere, a pixel's included, is a miss (the
+        // entry's checksum), and the damaged file is removed
+        for at in [9, full.len() / 2, full.len() - 40, full.len() - 1] {
+            let mut bad = full.clone();
+            bad[at] ^= 0x40;
+            fs::write(&p, &bad).unwrap();
+            assert!(c.get(&key(5), &Default::default()).is_none(), "byte {at}");
+            assert!(!p.exists(), "byte {at}");
+            c.put(&key(5), &out(16)).unwrap();
+        }
     }
 
     #[test]
@@ -465,8 +487,8 @@ mod tests {
         let c = DiskCache::new(dir.path(), 1 << 20);
         c.put(&key(1), &out(4)).unwrap();
         let sub = c.path(&key(1)).parent().unwrap().to_path_buf();
-        let stale = sub.join(".dead.123.4.tmp");
-        let fresh = sub.join(".live.123.5.tmp");
+        let stale = sub.join(format!(".{}.123.4.tmp", key(2).to_hex()));
+        let fresh = sub.join(format!(".{}.123.5.tmp", key(3).to_hex()));
         fs::write(&stale, b"half an entry").unwrap();
         fs::write(&fresh, b"being written").unwrap();
         let old = SystemTime::now() - STALE_TMP - std::time::Duration::from_secs(60);
@@ -480,6 +502,50 @@ mod tests {
         assert!(!stale.exists());
         assert!(fresh.exists());
         assert!(c.get(&key(1), &Default::default()).is_some());
+    }
+
+    /// A cache folder that holds other files too (`--cache-dir .`) keeps
+    /// them: only the store's own temporary files and entries, in its
+    /// two-hex-digit folders, are ever removed.
+    #[test]
+    fn trim_leaves_files_that_are_not_the_stores_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = DiskCache::new(dir.path(), 1);
+        let old = SystemTime::now() - STALE_TMP - std::time::Duration::from_secs(60);
+        let mine = [
+            dir.path().join("out").join("draft.tmp"),
+            dir.path()
+                .join("out")
+                .join(format!("{}.bin", key(7).to_hex())),
+            dir.path().join("ab").join("notes.tmp"),
+            dir.path().join("ab").join(".x.tmp"),
+        ];
+        for f in &mine {
+            fs::create_dir_all(f.parent().unwrap()).unwrap();
+            fs::write(f, b"the user's").unwrap();
+            fs::File::options()
+                .append(true)
+                .open(f)
+                .unwrap()
+                .set_modified(old)
+                .unwrap();
+        }
+        // a stale temporary file of the store's own goes
+        let sub = dir.path().join(&key(1).to_hex()[..2]);
+        fs::create_dir_all(&sub).unwrap();
+        let stale = sub.join(format!(".{}.1.2.tmp", key(1).to_hex()));
+        fs::write(&stale, b"half an entry").unwrap();
+        fs::File::options()
+            .append(true)
+            .open(&stale)
+            .unwrap()
+            .set_modified(old)
+            .unwrap();
+        c.trim().unwrap();
+        assert!(!stale.exists());
+        for f in &mine {
+            assert!(f.exists(), "{} removed", f.display());
+        }
     }
 
     #[derive(Default)]
@@ -511,12 +577,12 @@ mod tests {
             out(8).values
         );
         let name = RemoteCache::name(&key(4));
-        assert!(name.ends_with(".dg4.bin") && name.starts_with("04/"));
+        assert!(name.ends_with(".dg5.bin") && name.starts_with("04/"));
         blobs
             .0
             .lock()
             .unwrap()
-            .insert(name, b"DGCACHE4 damaged".to_vec());
+            .insert(name, b"DGCACHE5 damaged".to_vec());
         assert!(c.get(&key(4), &Default::default()).is_none());
     }
 

@@ -2,7 +2,9 @@
 //!
 //! Little-endian, versioned, with lengths checked against the remaining
 //! bytes before anything is allocated, so a truncated or corrupt cache file
-//! is a miss, never a panic or a huge allocation.
+//! is a miss, never a panic or a huge allocation. Every entry ends with the
+//! blake3 hash of all its bytes before it: a flipped bit anywhere (a pixel,
+//! a float, a name) is a miss too, never a result served as another one.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -14,13 +16,16 @@ use crate::value::{
     ExposureStack, ExtensionDecoder, Image, Intrinsics, Mesh, PointCloud, Value, Vpl,
 };
 
-const MAGIC: &[u8; 8] = b"DGCACHE4";
+const MAGIC: &[u8; 8] = b"DGCACHE5";
+
+/// Bytes of the checksum that ends every entry (blake3).
+const CHECKSUM_LEN: usize = 32;
 
 /// The codec's version as it appears in entry file names
-/// ([`DiskCache`](crate::cache::DiskCache) keeps `<key>.dg4.bin`): workers
+/// ([`DiskCache`](crate::cache::DiskCache) keeps `<key>.dg5.bin`): workers
 /// of another depthgraph version sharing a store never read, overwrite or
 /// evict each other's entries.
-pub const VERSION_TAG: &str = "dg4";
+pub const VERSION_TAG: &str = "dg5";
 
 /// Encodes outputs (values, the pass-through reason and the report).
 pub fn encode(out: &Outputs) -> Vec<u8> {
@@ -41,16 +46,24 @@ pub fn encode(out: &Outputs) -> Vec<u8> {
         w.str(k);
         put_value(&mut w, v);
     }
+    let sum = blake3::hash(&w.0);
+    w.0.extend_from_slice(sum.as_bytes());
     w.0
 }
 
 /// Decoders of extension values by type name.
 pub type Decoders = BTreeMap<&'static str, ExtensionDecoder>;
 
-/// Decodes what [`encode`] wrote; `None` for anything malformed, and for an
-/// extension value without a decoder in `decoders` or whose bytes fail
-/// their checksum.
+/// Decodes what [`encode`] wrote; `None` for anything malformed or whose
+/// bytes fail the entry's checksum, and for an extension value without a
+/// decoder in `decoders` or whose bytes fail their own checksum.
 pub fn decode(bytes: &[u8], decoders: &Decoders) -> Option<Outputs> {
+    // the whole entry's checksum first: nothing damaged is decoded
+    let body_len = bytes.len().checked_sub(CHECKSUM_LEN)?;
+    let (bytes, sum) = bytes.split_at(body_len);
+    if blake3::hash(bytes).as_bytes() != sum {
+        return None;
+    }
     let mut r = Reader {
         r: ByteReader::new(bytes),
         decoders,
