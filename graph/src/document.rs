@@ -130,6 +130,7 @@ impl Document {
             )]);
         };
         let mut saw_version = false;
+        errors.extend(repeated_fields(fields, "the pipeline", file));
         for (key, val) in fields {
             match key.value.as_str() {
                 "version" => {
@@ -447,6 +448,31 @@ pub fn ron_to_text(v: &RonValue) -> String {
     }
 }
 
+/// A field written twice in one struct of `what` (the pipeline, a node,
+/// its `params` or `inputs`): the RON reader keeps both, and which one
+/// counts is not for the document to leave open (a `--set` replaced the
+/// first while the last was used).
+fn repeated_fields(
+    fields: &[(Spanned<String>, Spanned<RonValue>)],
+    what: &str,
+    file: &str,
+) -> Vec<CheckError> {
+    fields
+        .iter()
+        .enumerate()
+        .filter_map(|(i, (k, _))| {
+            let (first, _) = fields[..i].iter().find(|(p, _)| p.value == k.value)?;
+            Some(CheckError::Format {
+                loc: Location::new(file, k.pos),
+                message: format!(
+                    "{what}: `{}` is given twice (first at line {}, column {})",
+                    k.value, first.pos.line, first.pos.col
+                ),
+            })
+        })
+        .collect()
+}
+
 fn parse_node(
     key: &Spanned<RonValue>,
     val: &Spanned<RonValue>,
@@ -478,6 +504,7 @@ fn parse_node(
     let mut decl = NodeDecl::new(name, "");
     decl.name.pos = key.pos;
     let mut saw_kind = false;
+    errors.extend(repeated_fields(fields, &format!("node `{name}`"), file));
     for (k, v) in fields {
         match k.value.as_str() {
             "kind" => match &v.value {
@@ -494,7 +521,14 @@ fn parse_node(
                 }),
             },
             "params" => match &v.value {
-                RonValue::Struct { fields, .. } => decl.params = fields.clone(),
+                RonValue::Struct { fields, .. } => {
+                    errors.extend(repeated_fields(
+                        fields,
+                        &format!("node `{name}` params"),
+                        file,
+                    ));
+                    decl.params = fields.clone();
+                }
                 RonValue::Tuple { items, .. } if items.is_empty() => {}
                 other => errors.push(CheckError::Format {
                     loc: loc(v.pos),
@@ -506,6 +540,11 @@ fn parse_node(
             },
             "inputs" => match &v.value {
                 RonValue::Struct { fields, .. } => {
+                    errors.extend(repeated_fields(
+                        fields,
+                        &format!("node `{name}` inputs"),
+                        file,
+                    ));
                     for (port, src) in fields {
                         match &src.value {
                             RonValue::Str(s) => decl.inputs.push((
@@ -647,6 +686,35 @@ mod tests {
         let again = Document::parse(&d.to_ron(), "t.ron").unwrap();
         assert_eq!(again.to_ron(), d.to_ron());
         assert_eq!(again.nodes[0].params.len(), 2);
+    }
+
+    /// A field written twice (a parameter, an input, a node's `kind`, a
+    /// top-level field) is an error at the second, naming the first: the
+    /// RON reader keeps both, and a `--set` replaced the first while the
+    /// last one ran.
+    #[test]
+    fn a_field_given_twice_is_an_error_at_the_second() {
+        let text = r#"(
+    version: 1,
+    nodes: {
+        "a": (kind: "Source", params: (x: 2.0, x: 5.0)),
+        "b": (kind: "Sink", inputs: (v: "a.out", v: "c.out")),
+        "c": (kind: "Source", kind: "Sink"),
+    },
+    outputs: ["b"],
+    outputs: ["a"],
+)"#;
+        let errs = Document::parse(text, "t.ron").unwrap_err();
+        let msgs: Vec<String> = errs.iter().map(|e| e.to_string()).collect();
+        let has = |s: &str| msgs.iter().any(|m| m.contains(s));
+        assert!(
+            has("t.ron:4:48: node `a` params: `x` is given twice (first at line 4, column 40)"),
+            "{msgs:?}"
+        );
+        assert!(has("node `b` inputs: `v` is given twice"), "{msgs:?}");
+        assert!(has("node `c`: `kind` is given twice"), "{msgs:?}");
+        assert!(has("the pipeline: `outputs` is given twice"), "{msgs:?}");
+        assert_eq!(errs.len(), 4, "{msgs:?}");
     }
 
     #[test]
