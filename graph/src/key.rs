@@ -115,8 +115,8 @@ pub fn derived_key(
 
 /// `key` with the contents of the files a node reads mixed in, in the
 /// order given: the blake3 digest of each file's bytes, or a marker for a
-/// file that cannot be read (the load then fails with its own error, and a
-/// file that appears later gives another key).
+/// file that cannot be read or is not a regular file (the load then fails
+/// with its own error, and a file that appears later gives another key).
 pub fn with_file_contents(key: Key, files: &[std::path::PathBuf]) -> Key {
     if files.is_empty() {
         return key;
@@ -127,7 +127,14 @@ pub fn with_file_contents(key: Key, files: &[std::path::PathBuf]) -> Key {
     h.update(key.as_bytes());
     h.update(&(files.len() as u64).to_le_bytes());
     for f in files {
-        let digest = std::fs::File::open(f).and_then(|file| {
+        // a regular file only: a FIFO or `/dev/zero` would never end (its
+        // load fails with its own error)
+        // (looked at before it is opened: opening a FIFO waits for a writer)
+        let digest = std::fs::metadata(f).and_then(|m| {
+            if !m.is_file() {
+                return Err(std::io::Error::other("not a regular file"));
+            }
+            let file = std::fs::File::open(f)?;
             let mut d = blake3::Hasher::new();
             d.update_reader(file)?;
             Ok(d.finalize())

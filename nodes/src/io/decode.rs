@@ -41,9 +41,44 @@ impl Limits {
     }
 }
 
-/// The bytes of `path`; an error naming the file when it cannot be read.
-pub(super) fn read_file(path: &Path) -> Result<Vec<u8>, NodeError> {
-    fs::read(path).map_err(|error| NodeError::read(path, error))
+/// Bytes a file may hold per pixel of the budget: four channels of f32
+/// (an uncompressed RGBA EXR; PFM holds 12), compressed formats less.
+const MAX_FILE_BYTES_PER_PIXEL: u64 = 16;
+
+/// Bytes a file may hold beyond its pixels (headers, metadata, extra
+/// channels of a small image).
+const FILE_SLACK_BYTES: u64 = 64 << 20;
+
+/// The bytes of `path`; an error naming the file when it cannot be read,
+/// is not a regular file (a directory, a FIFO, `/dev/zero`: read whole
+/// they never end), or holds more than an image within `lim` can
+/// (`MAX_FILE_BYTES_PER_PIXEL` per pixel and `FILE_SLACK_BYTES`), checked
+/// before it is read.
+pub(super) fn read_file(path: &Path, lim: &Limits) -> Result<Vec<u8>, NodeError> {
+    // (looked at before it is opened: opening a FIFO waits for a writer)
+    let meta = fs::metadata(path).map_err(|error| NodeError::read(path, error))?;
+    if !meta.is_file() {
+        return Err(decode_err(path, "not a regular file"));
+    }
+    let file = fs::File::open(path).map_err(|error| NodeError::read(path, error))?;
+    let cap = (lim.max_pixels as u64)
+        .saturating_mul(MAX_FILE_BYTES_PER_PIXEL)
+        .saturating_add(FILE_SLACK_BYTES);
+    if meta.len() > cap {
+        return Err(decode_err(
+            path,
+            format!(
+                "{} bytes, more than an image within the pixel budget ({} pixels) holds ({cap} bytes)",
+                meta.len(),
+                lim.max_pixels
+            ),
+        ));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    // (a file that grows meanwhile stops at the cap too)
+    std::io::Read::read_to_end(&mut std::io::Read::take(file, cap), &mut bytes)
+        .map_err(|error| NodeError::read(path, error))?;
+    Ok(bytes)
 }
 
 /// A decoding error of `path`.

@@ -64,7 +64,7 @@ pub fn load_mask(p: &LoadMaskParams) -> Result<Mask, NodeError> {
 /// before the pixels are decoded).
 pub fn load_mask_with(p: &LoadMaskParams, lim: &Limits) -> Result<Mask, NodeError> {
     let path = super::given(&p.path)?;
-    decode_mask(&read_file(path)?, path, p, lim)
+    decode_mask(&read_file(path, lim)?, path, p, lim)
 }
 
 /// [`load_mask`] of a file's bytes (`path` names it in errors; `p.path`

@@ -183,7 +183,7 @@ pub fn load_color_with(
     color_space: ColorSpace,
     lim: &Limits,
 ) -> Result<ColorImage, NodeError> {
-    decode_color(&read_file(path)?, path, color_space, lim)
+    decode_color(&read_file(path, lim)?, path, color_space, lim)
 }
 
 /// [`load_color`] of a file's bytes: `path` names the file in errors and
@@ -449,7 +449,7 @@ pub fn load_depth_with(
 ) -> Result<DepthMap, NodeError> {
     // the parameters are checked before the file is read
     check_depth_params(path, p)?;
-    decode_depth(&read_file(path)?, path, p, lim)
+    decode_depth(&read_file(path, lim)?, path, p, lim)
 }
 
 fn check_depth_params(path: &Path, p: &LoadDepthParams) -> Result<(), NodeError> {
@@ -1158,6 +1158,59 @@ mod tests {
         assert_eq!(*d.get(0, 0), 0.0, "3e38 / 0.5 overflows f32");
         assert_eq!(*d.get(1, 0), 4.0);
         assert!(d.as_slice().iter().all(|z| z.is_finite()));
+    }
+
+    /// A path that is not a regular file (a FIFO, which a read waits on
+    /// for ever, or `/dev/zero`, which never ends) is an error at once, and
+    /// so is a file larger than any image within the budget holds.
+    #[test]
+    fn a_path_that_is_not_a_regular_file_is_an_error_at_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe.png");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        assert!(made.is_ok_and(|s| s.success()), "mkfifo");
+        let (tx, rx) = std::sync::mpsc::channel();
+        let paths = [
+            fifo.clone(),
+            PathBuf::from("/dev/zero"),
+            dir.path().to_path_buf(),
+        ];
+        std::thread::spawn(move || {
+            for p in paths {
+                let d = load_depth(&p, &LoadDepthParams::default()).map(|_| ());
+                let c = load_color(&p, ColorSpace::Srgb).map(|_| ());
+                let key = depthgraph_graph::key::with_file_contents(
+                    depthgraph_graph::key::Key::from_bytes([0; 32]),
+                    std::slice::from_ref(&p),
+                );
+                let _ = tx.send((p, d, c, key));
+            }
+        });
+        for _ in 0..3 {
+            // (a regression would wait on the FIFO or read /dev/zero for ever)
+            let (p, d, c, _) = rx
+                .recv_timeout(std::time::Duration::from_secs(20))
+                .expect("every path answers at once");
+            let (d, c) = (d.unwrap_err().to_string(), c.unwrap_err().to_string());
+            if p.is_dir() {
+                assert!(d.contains(&p.display().to_string()), "{d}");
+            } else {
+                assert!(d.contains("not a regular file"), "{d}");
+                assert!(c.contains("not a regular file"), "{c}");
+            }
+        }
+        // more bytes than the budget's pixels hold: refused before reading
+        // (a sparse file: nothing is written)
+        let big = dir.path().join("big.pfm");
+        let f = fs::File::create(&big).unwrap();
+        f.set_len(65 << 20).unwrap();
+        let e = load_depth_with(&big, &LoadDepthParams::default(), &Limits { max_pixels: 4 })
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("more than an image within the pixel budget"),
+            "{e}"
+        );
     }
 
     #[test]

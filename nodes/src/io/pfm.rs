@@ -9,7 +9,11 @@ use super::decode::{Limits, Samples, check_dims, decode_err, read_file};
 /// Reads a PFM file (grey `Pf`, or `PF` whose first channel is used);
 /// rows are stored bottom-up; a negative scale means little-endian.
 pub fn read_pfm(path: &Path) -> Result<Samples, NodeError> {
-    decode_pfm(&read_file(path)?, path, &Limits::default())
+    decode_pfm(
+        &read_file(path, &Limits::default())?,
+        path,
+        &Limits::default(),
+    )
 }
 
 /// [`read_pfm`] of a file's bytes (`path` names it in errors). The header

@@ -28,7 +28,7 @@ pub struct Pnm {
 /// little-endian samples under a PGM header, see `nyu_raw` in [`LoadDepthParams`](crate::io::LoadDepthParams)).
 pub fn read_pnm(path: &Path, little_endian_16: bool) -> Result<Pnm, NodeError> {
     decode_pnm(
-        &read_file(path)?,
+        &read_file(path, &Limits::default())?,
         path,
         little_endian_16,
         &Limits::default(),

@@ -87,6 +87,13 @@ fn bad(path: &Path, message: impl Into<String>) -> NodeError {
 }
 
 fn read_text(path: &Path) -> Result<String, NodeError> {
+    // a regular file only (a FIFO or `/dev/zero` would never end)
+    if !fs::metadata(path)
+        .map_err(|e| NodeError::read(path, e))?
+        .is_file()
+    {
+        return Err(bad(path, "not a regular file"));
+    }
     let bytes = fs::read(path).map_err(|e| NodeError::read(path, e))?;
     String::from_utf8(bytes).map_err(|_| bad(path, "not UTF-8 text"))
 }
