@@ -720,6 +720,31 @@ node_params! {
     }
 }
 
+/// The depths a preview maps to its first and last colours, as
+/// `SaveDepthParams` says: `max_m` when set (> 0), else the data's 98th
+/// percentile; `min_m` when set or when `max_m` is, else the 2nd
+/// percentile. Both set with `max_m <= min_m` is an error naming `max_m`.
+fn preview_range(depth: &DepthMap, p: &SaveDepthParams) -> Result<(f32, f32), NodeError> {
+    if p.max_m > 0.0 && p.max_m <= p.min_m {
+        return Err(NodeError::param(
+            "max_m",
+            format!("{} m is not beyond min_m ({} m)", p.max_m, p.min_m),
+        ));
+    }
+    let (auto_lo, auto_hi) = depth_range(depth, 0.02, 0.98);
+    let hi = if p.max_m > 0.0 {
+        p.max_m as f32
+    } else {
+        auto_hi
+    };
+    let lo = if p.min_m > 0.0 || p.max_m > 0.0 {
+        p.min_m as f32
+    } else {
+        auto_lo
+    };
+    Ok((lo, hi))
+}
+
 /// Writes a depth map (see [`SaveDepthParams`] for the forms). In png16, depths
 /// beyond 65535 units are stored as 65535 and holes as 0; the count of clipped
 /// pixels is returned.
@@ -773,11 +798,7 @@ pub fn save_depth(
         }
         // `Auto` was resolved to Exr or Png16 above
         DepthFormat::Preview | DepthFormat::Auto => {
-            let (lo, hi) = if p.max_m > p.min_m {
-                (p.min_m as f32, p.max_m as f32)
-            } else {
-                depth_range(depth, 0.02, 0.98)
-            };
+            let (lo, hi) = preview_range(depth, p)?;
             let rgb = colormap_depth(depth, lo, hi);
             let data: Vec<u8> = rgb.as_slice().iter().flat_map(|p| p.map(srgb8)).collect();
             let buf = image::RgbImage::from_raw(w, h, data)
@@ -1211,6 +1232,32 @@ mod tests {
             e.contains("more than an image within the pixel budget"),
             "{e}"
         );
+    }
+
+    /// The preview's range follows its parameters' docs: a set `min_m`
+    /// holds with the 98th percentile above it, a set `max_m` with 0
+    /// below, both as given, neither the data's percentiles; a `max_m`
+    /// not beyond `min_m` is an error naming it.
+    #[test]
+    fn a_previews_range_keeps_what_is_set() {
+        let d = DepthMap::from_fn(100, 1, |x, _| 1.0 + x as f32 * 0.1);
+        let (alo, ahi) = depth_range(&d, 0.02, 0.98);
+        let at = |min_m, max_m| {
+            preview_range(
+                &d,
+                &SaveDepthParams {
+                    min_m,
+                    max_m,
+                    ..Default::default()
+                },
+            )
+        };
+        assert_eq!(at(0.0, 0.0).unwrap(), (alo, ahi));
+        assert_eq!(at(2.0, 0.0).unwrap(), (2.0, ahi));
+        assert_eq!(at(0.0, 5.0).unwrap(), (0.0, 5.0));
+        assert_eq!(at(2.0, 5.0).unwrap(), (2.0, 5.0));
+        let e = at(5.0, 3.0).unwrap_err().to_string();
+        assert!(e.contains("max_m"), "{e}");
     }
 
     #[test]
