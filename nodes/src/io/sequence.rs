@@ -122,15 +122,39 @@ fn tum_list(path: &Path, dir: &Path) -> Result<Vec<(f64, PathBuf)>, NodeError> {
     Ok(out)
 }
 
+/// Candidate pairs [`associate`] weighs at most (24 bytes each): a real
+/// capture has one or two per colour frame; lists of repeated timestamps
+/// or a tolerance of minutes over thousands of frames would ask for
+/// gigabytes.
+pub const MAX_ASSOCIATION_CANDIDATES: usize = 1 << 24;
+
 /// TUM's association: candidate pairs with `|ta - tb| < max_difference`,
 /// taken closest first, each colour and depth frame at most once; the
-/// result in colour-time order. Returns index pairs into `a` and `b`.
-pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Vec<(usize, usize)> {
+/// result in colour-time order. Returns index pairs into `a` and `b`, or
+/// the number of candidates when more than [`MAX_ASSOCIATION_CANDIDATES`]
+/// fall within the tolerance (counted before any is stored).
+pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Result<Vec<(usize, usize)>, usize> {
     // b's indices sorted by time, for a window search per colour stamp
     let mut bs: Vec<usize> = (0..b.len()).collect();
     bs.sort_by(|&i, &j| b[i].total_cmp(&b[j]).then(i.cmp(&j)));
     let times: Vec<f64> = bs.iter().map(|&i| b[i]).collect();
-    let mut cand: Vec<(f64, usize, usize)> = Vec::new();
+    // the window of each colour stamp: its depth stamps from `lo` on
+    let window = |ta: f64| {
+        let lo = times.partition_point(|&t| ta - t >= max_difference);
+        let hi = lo + times[lo..].partition_point(|&t| t - ta < max_difference);
+        (lo, hi)
+    };
+    let count: usize = a
+        .iter()
+        .map(|&ta| {
+            let (lo, hi) = window(ta);
+            hi - lo
+        })
+        .fold(0usize, usize::saturating_add);
+    if count > MAX_ASSOCIATION_CANDIDATES {
+        return Err(count);
+    }
+    let mut cand: Vec<(f64, usize, usize)> = Vec::with_capacity(count);
     for (i, &ta) in a.iter().enumerate() {
         // the window uses the same differences as the test below, so a pair
         // exactly at the rounding edge of the limit is judged once, alike
@@ -156,7 +180,7 @@ pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Vec<(usize, usize
         }
     }
     out.sort_by(|x, y| a[x.0].total_cmp(&a[y.0]).then(x.0.cmp(&y.0)));
-    out
+    Ok(out)
 }
 
 /// Whether `name` matches the glob `pat` (`*` any run, `?` one character).
@@ -228,7 +252,18 @@ pub fn frames(p: &LoadSequenceParams) -> Result<Vec<FramePair>, NodeError> {
             let depth = tum_list(&source.join("depth.txt"), source)?;
             let ta: Vec<f64> = rgb.iter().map(|r| r.0).collect();
             let tb: Vec<f64> = depth.iter().map(|d| d.0).collect();
-            Ok(associate(&ta, &tb, p.max_difference_s)
+            let pairs = associate(&ta, &tb, p.max_difference_s).map_err(|n| {
+                bad(
+                    source,
+                    format!(
+                        "{n} colour and depth frames lie within max_difference_s ({} s) of each \
+                         other, more than the {MAX_ASSOCIATION_CANDIDATES} the association weighs \
+                         (repeated timestamps in rgb.txt or depth.txt, or too large a tolerance)",
+                        p.max_difference_s
+                    ),
+                )
+            })?;
+            Ok(pairs
                 .into_iter()
                 .map(|(i, j)| FramePair {
                     color: rgb[i].1.clone(),
@@ -403,19 +438,19 @@ mod tests {
         // colour at 0, 1, 2; depth at 0.01, 0.99, 1.005, 5
         let a = [0.0, 1.0, 2.0];
         let b = [0.01, 0.99, 1.005, 5.0];
-        assert_eq!(associate(&a, &b, 0.02), vec![(0, 0), (1, 2)]);
+        assert_eq!(associate(&a, &b, 0.02), Ok(vec![(0, 0), (1, 2)]));
         // depth 1.005 is nearer to colour 1 than 0.99, so 0.99 stays unused;
         // a larger tolerance still pairs each frame once
-        assert_eq!(associate(&a, &b, 2.0), vec![(0, 0), (1, 2), (2, 1)]);
-        assert!(associate(&a, &[], 1.0).is_empty());
+        assert_eq!(associate(&a, &b, 2.0), Ok(vec![(0, 0), (1, 2), (2, 1)]));
+        assert_eq!(associate(&a, &[], 1.0), Ok(vec![]));
         // a pair just inside the limit in floating point is paired, one at it is not
         let (ta, tb) = (1305031102.199999, 1305031102.179999);
         assert!((ta - tb) < 0.02);
-        assert_eq!(associate(&[ta], &[tb], 0.02), vec![(0, 0)]);
-        assert_eq!(
-            associate(&[1.5], &[1.25], 0.25),
-            Vec::<(usize, usize)>::new()
-        );
+        assert_eq!(associate(&[ta], &[tb], 0.02), Ok(vec![(0, 0)]));
+        assert_eq!(associate(&[1.5], &[1.25], 0.25), Ok(vec![]));
+        // 5000 repeated stamps a side: 25 M candidates, counted, not stored
+        let same = vec![7.0; 5000];
+        assert_eq!(associate(&same, &same, 0.02), Err(25_000_000));
     }
 
     #[test]
