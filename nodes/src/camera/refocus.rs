@@ -1256,13 +1256,22 @@ pub fn reverse_mapped_dof(
     let gain = 2f64.powf(p.exposure_stops);
     let (w, h) = color.dims();
     let src: Vec<Rgb> = color.as_slice().iter().map(|&c| sane(c)).collect();
-    // Kernels for diameters in half-pixel steps, built once.
+    // Kernels for the diameters in half-pixel steps that some pixel uses,
+    // built once.
     let max_coc = coc.as_slice().iter().fold(0.0f32, |m, &c| m.max(c));
     let max_diam = (w.max(h) as f64 * 2.0).min(max_coc as f64);
     let steps = (max_diam * 2.0).ceil() as usize + 1;
+    let index = |c: f64| ((c.min(max_diam) * 2.0).round() as usize).min(steps);
+    let used = reverse_kernels_used(coc.as_slice(), max_diam, steps, aperture)?;
     let kernels: Vec<Vec<(isize, isize)>> = (0..=steps)
         .into_par_iter()
-        .map(|s| kernel(aperture, s as f64 * 0.5))
+        .map(|s| {
+            if used[s] {
+                kernel(aperture, s as f64 * 0.5)
+            } else {
+                Vec::new()
+            }
+        })
         .collect();
     let data: Vec<Rgb> = (0..w * h)
         .into_par_iter()
@@ -1272,7 +1281,7 @@ pub fn reverse_mapped_dof(
             if c < MIN_COC_PX {
                 return src[t].map(|v| (v as f64 * gain) as f32);
             }
-            let k = &kernels[((c.min(max_diam) * 2.0).round() as usize).min(steps)];
+            let k = &kernels[index(c)];
             let (mut sum, mut n) = ([0.0f64; 3], 0usize);
             for &(ox, oy) in k {
                 let (qx, qy) = (x + ox, y + oy);
@@ -1292,6 +1301,74 @@ pub fn reverse_mapped_dof(
     Ok(Image::from_vec(w, h, data)?)
 }
 
+/// Which kernel sizes (half-pixel steps of the diameter, `0..=steps`,
+/// diameters clamped to `max_diam`) the circles of confusion `coc` use,
+/// for [`reverse_mapped_dof`]; an error naming `f_number` when their
+/// reads and kernel tests exceed `MAX_REVERSE_OPS` or the used kernels'
+/// offsets `MAX_REVERSE_KERNEL_CELLS`.
+fn reverse_kernels_used(
+    coc: &[f32],
+    max_diam: f64,
+    steps: usize,
+    aperture: &Aperture,
+) -> Result<Vec<bool>, NodeError> {
+    let index = |c: f64| ((c.min(max_diam) * 2.0).round() as usize).min(steps);
+    let max_coc = coc.iter().fold(0.0f32, |m, &c| m.max(c));
+    // The kernel of step `s` holds at most this many offsets.
+    let cells = |s: usize| {
+        let r = (s as f64 * 0.5 * aperture.extent()).ceil();
+        (2.0 * r + 1.0).powi(2)
+    };
+    let mut used = vec![false; steps + 1];
+    let mut reads = 0.0f64;
+    for &c in coc {
+        let c = c as f64;
+        if c >= MIN_COC_PX {
+            let s = index(c);
+            used[s] = true;
+            reads += cells(s);
+        }
+    }
+    // building a mask's kernel tests every offset against its samples
+    let per_cell = if matches!(aperture, Aperture::Mask(_)) {
+        MASK_KERNEL_SAMPLES as f64
+    } else {
+        1.0
+    };
+    let (kernel_cells, build): (f64, f64) = (0..=steps)
+        .filter(|&s| used[s])
+        .map(|s| (cells(s), cells(s) * per_cell))
+        .fold((0.0, 0.0), |(a, b), (c, d)| (a + c, b + d));
+    if reads + build > MAX_REVERSE_OPS || kernel_cells > MAX_REVERSE_KERNEL_CELLS {
+        return Err(NodeError::param(
+            "f_number",
+            format!(
+                "the reverse-mapped blur's largest circle of confusion is {max_coc:.0} px: its \
+                 kernels would take {:.1e} offsets and {:.1e} reads and tests, beyond the {:.0e} \
+                 and {:.0e} it allows (a larger f_number or a smaller aperture_diameter_mm, or a focus nearer the scene's depths; Refocus has no such limit)",
+                kernel_cells,
+                reads + build,
+                MAX_REVERSE_KERNEL_CELLS,
+                MAX_REVERSE_OPS
+            ),
+        ));
+    }
+    Ok(used)
+}
+
+/// Aperture samples a mask's kernel tests each offset against.
+const MASK_KERNEL_SAMPLES: usize = 4096;
+
+/// The reverse-mapped blur's budget of pixel reads (every pixel's kernel)
+/// plus kernel tests (each offset, times a mask's samples): about a
+/// minute on two cores. Its kernels grow with the square of the circle of
+/// confusion and are read whole at every pixel: a lens that blurs by
+/// thousands of pixels would run for hours.
+const MAX_REVERSE_OPS: f64 = 1e11;
+
+/// The offsets its kernels may hold together (16 bytes each: 1 GiB).
+const MAX_REVERSE_KERNEL_CELLS: f64 = (1u64 << 26) as f64;
+
 /// Pixel offsets inside `aperture` scaled to `diameter` pixels; always
 /// includes `(0, 0)`.
 fn kernel(aperture: &Aperture, diameter: f64) -> Vec<(isize, isize)> {
@@ -1301,7 +1378,7 @@ fn kernel(aperture: &Aperture, diameter: f64) -> Vec<(isize, isize)> {
         return out;
     }
     let mask_points = match aperture {
-        Aperture::Mask(_) => aperture.samples(4096, 0).ok(),
+        Aperture::Mask(_) => aperture.samples(MASK_KERNEL_SAMPLES, 0).ok(),
         _ => None,
     };
     for oy in -r..=r {
@@ -1804,6 +1881,36 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The reverse-mapped blur builds only the kernel sizes some pixel
+    /// uses (one pixel 1 cm from a 640x480 camera blurs by the 1280 px cap:
+    /// every size up to it took 17 GB), and a blur it cannot afford is an
+    /// error naming `f_number` before anything is built.
+    #[test]
+    fn the_reverse_mapped_blur_builds_only_the_kernels_it_uses() {
+        let (w, h) = (640, 480);
+        let max_diam = 2.0 * w as f64;
+        let steps = (max_diam * 2.0).ceil() as usize + 1;
+        let mut coc = vec![0.0f32; w * h];
+        coc[0] = 5000.0;
+        coc[1] = 3.0;
+        let used = reverse_kernels_used(&coc, max_diam, steps, &Aperture::Disc).unwrap();
+        let sizes: Vec<usize> = (0..=steps).filter(|&s| used[s]).collect();
+        assert_eq!(sizes, vec![6, steps - 1]);
+        // every pixel at that blur: 5e11 reads, refused with the parameter's name
+        let all = vec![5000.0f32; w * h];
+        let e = reverse_kernels_used(&all, max_diam, steps, &Aperture::Disc)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("f_number") && e.contains("5000 px"), "{e}");
+        // the sharp pixels need none
+        assert!(
+            reverse_kernels_used(&vec![0.2f32; w * h], max_diam, steps, &Aperture::Disc)
+                .unwrap()
+                .iter()
+                .all(|u| !u)
+        );
     }
 
     #[test]
