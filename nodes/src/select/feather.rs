@@ -155,11 +155,14 @@ pub fn plan(mask: &Mask, p: &FeatherParams) -> Result<FeatherPlan, NodeError> {
     if !any {
         return Ok(FeatherPlan::Unchanged(Image::from_vec(w, h, m)?));
     }
+    // (under about 1e-162 px, 2 sigma^2 underflows to 0: the side taps are
+    // exp(-inf) = 0 and the centre, set to 1 rather than exp(-0 / 0) = NaN,
+    // leaves the mask as it is)
     let two_s2 = 2.0 * p.sigma_px * p.sigma_px;
     let raw: Vec<f64> = (0..=2 * r)
         .map(|i| {
             let d = i as f64 - r as f64;
-            (-d * d / two_s2).exp()
+            if i == r { 1.0 } else { (-d * d / two_s2).exp() }
         })
         .collect();
     // Guard: the centre tap is exp(0) = 1, so total >= 1.
@@ -384,6 +387,20 @@ mod tests {
         let (f, changed) =
             feather(&Image::filled(5, 4, 1.0f32), &FeatherParams::default()).unwrap();
         assert!(!changed && f.as_slice().iter().all(|v| *v == 1.0));
+        // a sigma whose square underflows: the mask as it was, not NaN
+        let tiny = disc(16, 12, 8.0, 6.0, 4.0);
+        for mode in [FeatherMode::Centered, FeatherMode::Inside] {
+            let (f, _) = feather(
+                &tiny,
+                &FeatherParams {
+                    sigma_px: 1e-200,
+                    mode,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+            assert_eq!(f.as_slice(), tiny.as_slice(), "{mode:?}");
+        }
         // huge sigma on a tiny mask
         let (f, _) = feather(
             &disc(6, 5, 3.0, 2.5, 1.5),
