@@ -42,7 +42,8 @@ use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::camera::lens::Aperture;
 use depthgraph_nodes::camera::refocus::{
-    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, plan, produced, zkey,
+    BlurPlan, Plan, RefocusIn, RefocusOut, RefocusParams, RefocusReport, exposed_f32, plan,
+    produced, zkey,
 };
 
 use crate::session::{Bind, Session, bytes_of, entry, f32s, u32s, uniform_blocks};
@@ -412,7 +413,7 @@ pub fn render(
                     if a {
                         return false;
                     }
-                    let exact = src.map(|v| (v as f64 * plan.gain) as f32);
+                    let exact = src.map(|v| exposed_f32(v as f64 * plan.gain));
                     let differs = exact.map(f32::to_bits) != px.map(f32::to_bits);
                     *px = exact;
                     differs

@@ -209,6 +209,44 @@ fn inactive_pixels_are_bit_identical_at_a_fractional_exposure() {
     assert!(e.contains("inactive"), "{e}");
 }
 
+/// A finite colour at the largest exposure gain stays finite on the device
+/// as on the CPU (f32's largest value where the product passes it), blurred
+/// pixels and inactive ones alike.
+#[test]
+fn a_bright_colour_at_the_largest_exposure_stays_finite_on_the_device() {
+    let (w, h) = (96, 72);
+    let c = ColorImage::from_fn(w, h, |x, y| {
+        if (x + y) % 7 == 0 {
+            [1e30; 3]
+        } else {
+            [0.5; 3]
+        }
+    });
+    let d = DepthMap::from_fn(w, h, |x, y| if x < 16 && y < 16 { 6.0 } else { 2.0 });
+    let p = RefocusParams {
+        focus_m: 2.0,
+        f_number: 2.0,
+        sensor_width_mm: 6.0,
+        samples: 16,
+        exposure_stops: 30.0,
+        ..Default::default()
+    };
+    let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+    let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
+    let fixed = fixed_pixels(&c, &d, &p);
+    assert!(fixed.iter().any(|f| *f) && fixed.iter().any(|f| !*f));
+    for img in [&a, &b] {
+        assert!(img.as_slice().iter().flatten().all(|v| v.is_finite()));
+        assert!(img.as_slice().iter().flatten().any(|v| *v == f32::MAX));
+    }
+    // the inactive pixels: the CPU's bits
+    for (t, f) in fixed.iter().enumerate() {
+        if *f {
+            assert_eq!(a.as_slice()[t], b.as_slice()[t], "pixel {t}");
+        }
+    }
+}
+
 #[test]
 fn a_sharp_scene_passes_through_alike() {
     let c = ColorImage::filled(16, 16, [0.5; 3]);

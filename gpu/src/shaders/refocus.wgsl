@@ -475,6 +475,9 @@ fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     } else {
         c = src_color(t) * G.gain;
     }
+    // held within f32's range, as the CPU's exposed_f32 (a bright input
+    // times 2^exposure_stops can pass it)
+    c = min(c, vec3<f32>(0x1.fffffep+127f));
     out_rgb[3u * t] = c.x;
     out_rgb[3u * t + 1u] = c.y;
     out_rgb[3u * t + 2u] = c.z;

@@ -213,6 +213,13 @@ fn check_inputs(color: &ColorImage, depth: &DepthMap) -> Result<(), NodeError> {
 /// Linear color with non-finite channels replaced by 0 and negatives
 /// clamped to 0 (radiance is never negative).
 #[inline]
+/// `v` (a finite, exposed colour value) as f32, held within f32's range:
+/// a finite input times `2^exposure_stops` (up to 2^30) can pass f32's
+/// largest value, which `as` turns into +inf.
+pub fn exposed_f32(v: f64) -> f32 {
+    v.clamp(-f64::from(f32::MAX), f64::from(f32::MAX)) as f32
+}
+
 fn sane(c: Rgb) -> Rgb {
     c.map(|v| if v.is_finite() { v.max(0.0) } else { 0.0 })
 }
@@ -548,7 +555,7 @@ fn plan_frame(
     let inv_u = lens.inv_focus();
     let gain = 2f64.powf(p.exposure_stops);
     let frame_pad_px = frame.map_or(0, |f| f.pad);
-    let exposed = |c: Rgb| sane(c).map(|v| (v as f64 * gain) as f32);
+    let exposed = |c: Rgb| sane(c).map(|v| exposed_f32(v as f64 * gain));
     let barrel = fx.barrel(&lens, w, h);
     if max_coc < MIN_COC_PX || color.is_empty() {
         let mut out = color.map(|&c| exposed(c));
@@ -942,9 +949,9 @@ pub fn refocus(
                 } else {
                     acc[t]
                 };
-                sum.map(|v| (v * inv_n) as f32)
+                sum.map(|v| exposed_f32(v * inv_n))
             } else {
-                src_color[t].map(|v| (v as f64 * gain) as f32)
+                src_color[t].map(|v| exposed_f32(v as f64 * gain))
             }
         })
         .collect();
@@ -1279,7 +1286,7 @@ pub fn reverse_mapped_dof(
             let c = coc.as_slice()[t] as f64;
             let (x, y) = ((t % w) as isize, (t / w) as isize);
             if c < MIN_COC_PX {
-                return src[t].map(|v| (v as f64 * gain) as f32);
+                return src[t].map(|v| exposed_f32(v as f64 * gain));
             }
             let k = &kernels[index(c)];
             let (mut sum, mut n) = ([0.0f64; 3], 0usize);
@@ -1295,7 +1302,7 @@ pub fn reverse_mapped_dof(
             }
             // Guard: every kernel holds (0, 0), which is inside the image.
             let inv = gain / n.max(1) as f64;
-            sum.map(|v| (v * inv) as f32)
+            sum.map(|v| exposed_f32(v * inv))
         })
         .collect();
     Ok(Image::from_vec(w, h, data)?)
@@ -1911,6 +1918,29 @@ mod tests {
                 .iter()
                 .all(|u| !u)
         );
+    }
+
+    /// A finite colour times the largest exposure gain stays finite: f32's
+    /// largest value, never +inf, in the blurred and the sharp pixels and
+    /// in the reverse-mapped blur.
+    #[test]
+    fn a_bright_colour_at_the_largest_exposure_stays_finite() {
+        let (w, h) = (32, 24);
+        let c = ColorImage::from_fn(w, h, |x, _| if x % 5 == 0 { [1e30; 3] } else { [0.5; 3] });
+        let d = DepthMap::from_fn(w, h, |x, _| if x < 16 { 1.0 } else { 3.0 });
+        let p = RefocusParams {
+            exposure_stops: 30.0,
+            ..params(1.0, 1.4, 16)
+        };
+        // blurred, and (a plane in focus) passed through with the gain
+        let flat = DepthMap::filled(w, h, 1.0);
+        for depth in [&d, &flat] {
+            let (out, _) = refocus(&c, depth, &Aperture::Disc, &p, |_| Ok(())).unwrap();
+            assert!(out.as_slice().iter().flatten().all(|v| v.is_finite()));
+            assert!(out.as_slice().iter().flatten().any(|v| *v == f32::MAX));
+            let rev = reverse_mapped_dof(&c, depth, &Aperture::Disc, &p).unwrap();
+            assert!(rev.as_slice().iter().flatten().all(|v| v.is_finite()));
+        }
     }
 
     #[test]
