@@ -395,7 +395,6 @@ mod tests {
                 &FeatherParams {
                     sigma_px: 1e-200,
                     mode,
-                    ..Default::default()
                 },
             )
             .unwrap();
