@@ -668,10 +668,27 @@ pub fn read_job(out: &Path) -> Result<JobFile, BatchError> {
     })
 }
 
+/// What [`collect`] found.
+#[derive(Debug)]
+pub struct Collected {
+    /// The records of the frames the job file expects, one per frame.
+    pub records: Vec<FrameRecord>,
+    /// Their count against the job's frames.
+    pub summary: BatchSummary,
+    /// The manifest written; `None` when no task of the submission has
+    /// written a part (every frame missing): a manifest already there (an
+    /// earlier job's, collected before a refused or dry-run submission
+    /// named another) is left as it is.
+    pub manifest: Option<PathBuf>,
+    /// The submission the job file names.
+    pub submission: String,
+}
+
 /// Merges the parts of a Slurm batch into `DIR/manifest.jsonl`: every
 /// frame the job file expects, the last part's record of each frame. A
-/// frame no part reports is counted as missing.
-pub fn collect(out: &Path) -> Result<(Vec<FrameRecord>, BatchSummary), BatchError> {
+/// frame no part reports is counted as missing; when no part exists at
+/// all nothing is written ([`Collected::manifest`]).
+pub fn collect(out: &Path) -> Result<Collected, BatchError> {
     let job = read_job(out)?;
     let mut by_frame: BTreeMap<u64, FrameRecord> = BTreeMap::new();
     if !valid_submission_id(&job.submission) {
@@ -681,11 +698,13 @@ pub fn collect(out: &Path) -> Result<(Vec<FrameRecord>, BatchSummary), BatchErro
             message: format!("`{}` is not a submission id", job.submission),
         });
     }
+    let mut parts = 0usize;
     for task in 0..job.tasks {
         let part = part_path(out, &job.submission, task);
         if !part.exists() {
             continue;
         }
+        parts += 1;
         for r in read_manifest(&part)? {
             by_frame.insert(r.frame, r);
         }
@@ -695,9 +714,20 @@ pub fn collect(out: &Path) -> Result<(Vec<FrameRecord>, BatchSummary), BatchErro
         .into_values()
         .filter(|r| wanted.contains(&r.frame))
         .collect();
-    write_manifest(&out.join("manifest.jsonl"), &records)?;
+    let manifest = if parts > 0 {
+        let path = out.join("manifest.jsonl");
+        write_manifest(&path, &records)?;
+        Some(path)
+    } else {
+        None
+    };
     let summary = BatchSummary::of(&records, &job.frames);
-    Ok((records, summary))
+    Ok(Collected {
+        records,
+        summary,
+        manifest,
+        submission: job.submission,
+    })
 }
 
 #[cfg(test)]

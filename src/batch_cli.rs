@@ -9,9 +9,9 @@ use anyhow::{Context, Result};
 use clap::Args;
 use depthgraph::backend::Backend;
 use depthgraph::batch::{
-    BatchError, BatchSummary, FrameRecord, FrameRunner, JobFile, ManifestWriter, SlurmPlan,
-    check_outputs_per_frame, collect, part_path, peak_rss_mib, sequence_length, slurm_script,
-    task_count, task_frames, write_job, write_manifest,
+    BatchError, BatchSummary, Collected, FrameRecord, FrameRunner, JobFile, ManifestWriter,
+    SlurmPlan, check_outputs_per_frame, collect, part_path, peak_rss_mib, sequence_length,
+    slurm_script, task_count, task_frames, write_job, write_manifest,
 };
 use depthgraph::graph::frames::FrameSelection;
 use depthgraph::graph::prelude::*;
@@ -105,11 +105,7 @@ fn report(summary: &BatchSummary, records: &[FrameRecord]) {
 pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     if let Some(dir) = &args.collect {
         return Ok(match collect(dir) {
-            Ok((records, summary)) => {
-                report(&summary, &records);
-                eprintln!("wrote {}", dir.join("manifest.jsonl").display());
-                ExitCode::from(summary.exit_code())
-            }
+            Ok(c) => collected(&c, dir),
             Err(e) => fail(&e),
         });
     }
@@ -395,10 +391,13 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         eprintln!("error: {e}");
         return Ok(ExitCode::from(e.kind().exit_code()));
     }
-    if let Err(e) = write_job(&out, &job) {
-        return Ok(fail(&e));
-    }
     if args.dry_run {
+        // (the job file for a submission by hand; a real one is written
+        // once sbatch has accepted it, so a refused one leaves the last
+        // job's file, and with it what --collect reads, as it was)
+        if let Err(e) = write_job(&out, &job) {
+            return Ok(fail(&e));
+        }
         println!("{script}");
         eprintln!(
             "dry run: {} frames in {tasks} array tasks of {k}; nothing submitted (submit with: sbatch {})",
@@ -464,13 +463,24 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
     }
     eprintln!("job {id} ended; collecting");
     Ok(match collect(&out) {
-        Ok((records, summary)) => {
-            report(&summary, &records);
-            eprintln!("wrote {}", out.join("manifest.jsonl").display());
-            ExitCode::from(summary.exit_code())
-        }
+        Ok(c) => collected(&c, &out),
         Err(e) => fail(&e),
     })
+}
+
+/// Reports what `collect` found in `dir`; the exit code of its summary.
+fn collected(c: &Collected, dir: &Path) -> ExitCode {
+    report(&c.summary, &c.records);
+    match &c.manifest {
+        Some(m) => eprintln!("wrote {}", m.display()),
+        None => eprintln!(
+            "no task of submission {} has written its part yet ({}): nothing collected, {} left as it is",
+            c.submission,
+            dir.join("parts").join(&c.submission).display(),
+            dir.join("manifest.jsonl").display()
+        ),
+    }
+    ExitCode::from(c.summary.exit_code())
 }
 
 /// Frames that are not one contiguous range, as a range with a step when

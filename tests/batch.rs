@@ -420,6 +420,64 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     );
     assert!(m.iter().all(|l| l.exit_code == 0));
     assert_eq!(frame_files(&out), frame_files(&local));
+
+    // A refused submission into the same folder leaves the finished job's
+    // file, and what --collect gives, as they were.
+    let job_before = std::fs::read(out.join("slurm/job.json")).unwrap();
+    let manifest_before = std::fs::read(out.join("manifest.jsonl")).unwrap();
+    let fake = d.join("fakebin");
+    std::fs::create_dir_all(&fake).unwrap();
+    let sbatch = fake.join("sbatch");
+    std::fs::write(
+        &sbatch,
+        "#!/bin/sh\necho 'sbatch: error: invalid partition specified: typo' >&2\nexit 1\n",
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&sbatch, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let path = format!(
+        "{}:{}",
+        fake.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let again = |extra: &[&str], env: &[(&str, &str)]| {
+        let mut a = vec![
+            s(&pipe),
+            "--frames",
+            "0..20",
+            "--out",
+            s(&out),
+            "--cache-dir",
+            s(&cache),
+            "--slurm",
+        ];
+        a.extend_from_slice(extra);
+        batch(&a, env)
+    };
+    let o = again(&["--partition", "typo"], &[("PATH", &path)]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("invalid partition"), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(out.join("slurm/job.json")).unwrap(),
+        job_before
+    );
+    let o = batch(&["--collect", s(&out)], &[]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(out.join("manifest.jsonl")).unwrap(),
+        manifest_before
+    );
+    // A dry run names a new submission, none of whose tasks has run:
+    // --collect says so and leaves the manifest as it was.
+    let o = again(&["--dry-run"], &[]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    let o = batch(&["--collect", s(&out)], &[]);
+    assert_eq!(code(&o), 75, "{}", stderr(&o));
+    assert!(stderr(&o).contains("nothing collected"), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(out.join("manifest.jsonl")).unwrap(),
+        manifest_before
+    );
 }
 
 #[test]
