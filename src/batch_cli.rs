@@ -375,6 +375,23 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
             .map(|s| s.to_string_lossy())
             .unwrap_or_default()
     );
+    // a line break would end an #SBATCH line (the rest runs as a command,
+    // and sbatch ignores every directive after it): refused, not quoted
+    let texts = [
+        name.clone(),
+        workdir.display().to_string(),
+        out.display().to_string(),
+    ];
+    if let Some(bad) = texts
+        .iter()
+        .chain(&cmd)
+        .chain(plan.partition.iter())
+        .find(|t| t.contains(['\n', '\r']))
+    {
+        return Ok(fail(&BatchError::Usage(format!(
+            "{bad:?} holds a line break, which an sbatch script cannot carry"
+        ))));
+    }
     let script = slurm_script(&name, &cmd, &workdir, &out, tasks, &plan);
     let mut job = JobFile {
         submission,

@@ -537,6 +537,25 @@ fn batches_that_cannot_be_right_are_refused_before_running() {
     );
     assert_eq!(code(&o), 2, "{}", stderr(&o));
     assert!(stderr(&o).contains("--slurm"), "{}", stderr(&o));
+    // a line break cannot go into an #SBATCH line (the rest would run as a
+    // command): refused, and no script written
+    let o = batch(
+        &[
+            s(&pipe),
+            "--frames",
+            "0..2",
+            "--out",
+            s(&out),
+            "--slurm",
+            "--dry-run",
+            "--partition",
+            "debug\ntouch pwned",
+        ],
+        &[],
+    );
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("line break"), "{}", stderr(&o));
+    assert!(!out.join("slurm/batch.sbatch").exists());
     // a pipeline without a frame index
     let o = batch(
         &[
