@@ -447,6 +447,15 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         .and_then(|l| l.split(';').next())
         .map(|s| s.trim().to_string())
         .filter(|s| !s.is_empty());
+    // `--parsable` prints `id;cluster` on a multi-cluster setup: squeue
+    // must be asked on that cluster (elsewhere the id is unknown, which
+    // read as a job that ended)
+    let cluster = stdout
+        .lines()
+        .next()
+        .and_then(|l| l.split_once(';'))
+        .map(|(_, c)| c.trim().to_string())
+        .filter(|c| !c.is_empty());
     if id.is_none() && !output.status.success() {
         let why = String::from_utf8_lossy(&output.stderr).trim().to_string();
         eprintln!("error: sbatch refused the job: {why}");
@@ -465,7 +474,23 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
     if let Err(e) = write_job(&out, &job) {
         return Ok(fail(&e));
     }
-    let id = id.unwrap_or_else(|| "?".into());
+    let Some(id) = id else {
+        // accepted, but with no id to ask about
+        eprintln!(
+            "submitted, but sbatch printed no job id{}; when the job ends: depthgraph batch --collect {}",
+            if args.wait {
+                ", so it cannot be waited for"
+            } else {
+                ""
+            },
+            out.display()
+        );
+        return Ok(ExitCode::from(if args.wait {
+            FailureKind::Transient.exit_code()
+        } else {
+            0
+        }));
+    };
     if !args.wait {
         println!("{id}");
         eprintln!(
@@ -474,7 +499,7 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         );
         return Ok(ExitCode::SUCCESS);
     }
-    if let Err(e) = wait_for_job(&id) {
+    if let Err(e) = wait_for_job(&id, cluster.as_deref()) {
         eprintln!("error: {e}");
         return Ok(ExitCode::from(FailureKind::Transient.exit_code()));
     }
@@ -514,16 +539,18 @@ fn frames_text(frames: &[u64]) -> String {
     }
 }
 
-/// Waits until no task of job `id` is pending or running, asking `squeue`
-/// once a second (`sbatch --wait` polls with growing pauses, up to tens of
+/// Waits until no task of job `id` (on `cluster`, where sbatch named one)
+/// is pending or running, asking `squeue` once a second (`sbatch --wait` polls with growing pauses, up to tens of
 /// seconds after the job ended). A controller that does not answer for a
 /// minute is an error.
-fn wait_for_job(id: &str) -> std::result::Result<(), String> {
+fn wait_for_job(id: &str, cluster: Option<&str>) -> std::result::Result<(), String> {
     let mut unanswered = 0u32;
     loop {
-        let q = std::process::Command::new("squeue")
-            .args(["-h", "-j", id, "-o", "%i"])
-            .output();
+        let mut squeue = std::process::Command::new("squeue");
+        if let Some(c) = cluster {
+            squeue.args(["-M", c]);
+        }
+        let q = squeue.args(["-h", "-j", id, "-o", "%i"]).output();
         match q {
             Ok(o) if o.status.success() => {
                 unanswered = 0;

@@ -480,6 +480,65 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     );
 }
 
+/// On a multi-cluster setup `sbatch --parsable` prints `id;cluster`, and
+/// `--wait` asks squeue on that cluster (elsewhere the id is unknown,
+/// which read as a job that had ended: it collected at once, mid-job).
+#[test]
+fn a_multi_cluster_job_is_waited_for_on_its_cluster() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let pipe = moving(d);
+    let out = d.join("out");
+    let fake = d.join("fakebin");
+    std::fs::create_dir_all(&fake).unwrap();
+    let log = d.join("squeue.log");
+    let scripts = [
+        ("sbatch", "#!/bin/sh\necho '4242;clusterB'\n".to_string()),
+        (
+            "squeue",
+            format!(
+                "#!/bin/sh\necho \"$@\" >> '{}'\ncase \"$*\" in *'-M clusterB'*) exit 0;; esac\n\
+                 echo 'slurm_load_jobs error: Invalid job id specified' >&2\nexit 1\n",
+                log.display()
+            ),
+        ),
+    ];
+    for (name, text) in scripts {
+        let f = fake.join(name);
+        std::fs::write(&f, text).unwrap();
+        std::fs::set_permissions(&f, std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
+    let path = format!(
+        "{}:{}",
+        fake.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let o = batch(
+        &[
+            s(&pipe),
+            "--frames",
+            "0..4",
+            "--out",
+            s(&out),
+            "--no-cache",
+            "--slurm",
+            "--wait",
+        ],
+        &[("PATH", &path)],
+    );
+    // the fake job ran nothing: every frame missing, nothing collected
+    assert_eq!(code(&o), 75, "{}", stderr(&o));
+    assert!(stderr(&o).contains("nothing collected"), "{}", stderr(&o));
+    let asked = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        asked.contains("-M clusterB") && asked.contains("-j 4242"),
+        "{asked}"
+    );
+    let job = std::fs::read_to_string(out.join("slurm/job.json")).unwrap();
+    assert!(job.contains("\"4242\""), "{job}");
+}
+
 #[test]
 fn batches_that_cannot_be_right_are_refused_before_running() {
     let dir = tempfile::tempdir().unwrap();
