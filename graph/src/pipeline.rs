@@ -376,33 +376,86 @@ impl Pipeline {
     }
 }
 
-/// Orders the members of a cycle along its wires, for the message.
+/// A cycle through the first of `members` (a strongly connected
+/// component, or one node wired to itself) along its wires, for the
+/// message: the shortest, found breadth first from that node to the nodes
+/// that consume it, and so on back to it (`a -> a` for a node wired to
+/// itself). A greedy walk could circle inside the component and never
+/// return to its start (`a -> b -> c -> b -> c`).
 fn cycle_path(
     members: &[usize],
     inputs: &[BTreeMap<String, Source>],
     names: &[&str],
 ) -> Vec<String> {
     let start = members[0];
-    let mut path = vec![names[start].to_string()];
-    let mut cur = start;
-    for _ in 0..members.len() {
-        // find a member whose input comes from `cur`
-        let next = members.iter().copied().find(|m| {
-            inputs[*m].values().any(|s| s.node == cur) && (*m != start || path.len() > 1)
-        });
-        match next {
-            Some(n) if n == start => {
+    // the members that take an input from `cur`, in index order
+    let consumers = |cur: usize| {
+        members
+            .iter()
+            .copied()
+            .filter(move |m| inputs[*m].values().any(|s| s.node == cur))
+    };
+    let mut prev: BTreeMap<usize, usize> = BTreeMap::new();
+    let mut queue = std::collections::VecDeque::from([start]);
+    while let Some(cur) = queue.pop_front() {
+        for m in consumers(cur) {
+            if m == start {
+                // back from `cur` to the start along the recorded steps
+                let mut back = Vec::new();
+                let mut at = cur;
+                while at != start {
+                    back.push(at);
+                    at = prev[&at];
+                }
+                back.reverse();
+                let mut path = vec![names[start].to_string()];
+                path.extend(back.iter().map(|&i| names[i].to_string()));
                 path.push(names[start].to_string());
-                break;
+                return path;
             }
-            Some(n) => {
-                path.push(names[n].to_string());
-                cur = n;
+            if let std::collections::btree_map::Entry::Vacant(e) = prev.entry(m) {
+                e.insert(cur);
+                queue.push_back(m);
             }
-            None => break,
         }
     }
-    path
+    // (a component always holds a cycle through each member; the members
+    // as they are, should the wires say otherwise)
+    members.iter().map(|&i| names[i].to_string()).collect()
+}
+
+#[cfg(test)]
+mod cycle_tests {
+    use super::*;
+
+    fn wires(edges: &[(usize, usize)], n: usize) -> Vec<BTreeMap<String, Source>> {
+        let mut inputs = vec![BTreeMap::new(); n];
+        for (k, &(from, to)) in edges.iter().enumerate() {
+            inputs[to].insert(
+                format!("in{k}"),
+                Source {
+                    node: from,
+                    port: "out".into(),
+                },
+            );
+        }
+        inputs
+    }
+
+    /// The message's cycle returns to its start: through a component whose
+    /// inner loop (b, c) a greedy walk kept circling, and for a node wired
+    /// to itself.
+    #[test]
+    fn the_cycle_named_returns_to_its_start() {
+        let names = ["a", "b", "c", "d"];
+        let inputs = wires(&[(0, 1), (1, 2), (2, 1), (2, 3), (3, 0)], 4);
+        assert_eq!(
+            cycle_path(&[0, 1, 2, 3], &inputs, &names),
+            ["a", "b", "c", "d", "a"]
+        );
+        let own = wires(&[(0, 0)], 1);
+        assert_eq!(cycle_path(&[0], &own, &names), ["a", "a"]);
+    }
 }
 
 /// Converts a written value to the parameter's kind, or says why not.
