@@ -424,40 +424,6 @@ fn cycle_path(
     members.iter().map(|&i| names[i].to_string()).collect()
 }
 
-#[cfg(test)]
-mod cycle_tests {
-    use super::*;
-
-    fn wires(edges: &[(usize, usize)], n: usize) -> Vec<BTreeMap<String, Source>> {
-        let mut inputs = vec![BTreeMap::new(); n];
-        for (k, &(from, to)) in edges.iter().enumerate() {
-            inputs[to].insert(
-                format!("in{k}"),
-                Source {
-                    node: from,
-                    port: "out".into(),
-                },
-            );
-        }
-        inputs
-    }
-
-    /// The message's cycle returns to its start: through a component whose
-    /// inner loop (b, c) a greedy walk kept circling, and for a node wired
-    /// to itself.
-    #[test]
-    fn the_cycle_named_returns_to_its_start() {
-        let names = ["a", "b", "c", "d"];
-        let inputs = wires(&[(0, 1), (1, 2), (2, 1), (2, 3), (3, 0)], 4);
-        assert_eq!(
-            cycle_path(&[0, 1, 2, 3], &inputs, &names),
-            ["a", "b", "c", "d", "a"]
-        );
-        let own = wires(&[(0, 0)], 1);
-        assert_eq!(cycle_path(&[0], &own, &names), ["a", "a"]);
-    }
-}
-
 /// Converts a written value to the parameter's kind, or says why not.
 pub fn convert(kind: &ParamKind, v: &RonValue) -> Result<ParamValue, String> {
     let num = |v: &RonValue| match v {
@@ -519,5 +485,39 @@ pub fn convert(kind: &ParamKind, v: &RonValue) -> Result<ParamValue, String> {
             }
             _ => Err(expected()),
         },
+    }
+}
+
+#[cfg(test)]
+mod cycle_tests {
+    use super::*;
+
+    fn wires(edges: &[(usize, usize)], n: usize) -> Vec<BTreeMap<String, Source>> {
+        let mut inputs = vec![BTreeMap::new(); n];
+        for (k, &(from, to)) in edges.iter().enumerate() {
+            inputs[to].insert(
+                format!("in{k}"),
+                Source {
+                    node: from,
+                    port: "out".into(),
+                },
+            );
+        }
+        inputs
+    }
+
+    /// The message's cycle returns to its start: through a component whose
+    /// inner loop (b, c) a greedy walk kept circling, and for a node wired
+    /// to itself.
+    #[test]
+    fn the_cycle_named_returns_to_its_start() {
+        let names = ["a", "b", "c", "d"];
+        let inputs = wires(&[(0, 1), (1, 2), (2, 1), (2, 3), (3, 0)], 4);
+        assert_eq!(
+            cycle_path(&[0, 1, 2, 3], &inputs, &names),
+            ["a", "b", "c", "d", "a"]
+        );
+        let own = wires(&[(0, 0)], 1);
+        assert_eq!(cycle_path(&[0], &own, &names), ["a", "a"]);
     }
 }
