@@ -158,23 +158,28 @@ impl Engine {
     pub fn keys(pipeline: &Pipeline) -> Vec<Key> {
         let mut keys: Vec<Option<Key>> = vec![None; pipeline.nodes.len()];
         for &i in &pipeline.order {
-            let n = &pipeline.nodes[i];
-            let schema = n.node.schema();
-            let inputs: Vec<(&str, &str, Key)> = n
-                .inputs
-                .iter()
-                .map(|(port, src)| {
-                    // toposort guarantees the source was keyed first
-                    let k = keys[src.node].unwrap_or(Key::from_bytes([0; 32]));
-                    (port.as_str(), src.port.as_str(), k)
-                })
-                .collect();
-            let own = node_key(schema.kind, schema.version, &n.params, &inputs);
-            keys[i] = Some(with_file_contents(own, &n.node.input_files(&n.params)));
+            // toposort guarantees the sources were keyed first
+            keys[i] = Some(Self::key_of(pipeline, i, |j| {
+                keys[j].unwrap_or(Key::from_bytes([0; 32]))
+            }));
         }
         keys.into_iter()
             .map(|k| k.unwrap_or(Key::from_bytes([0; 32])))
             .collect()
+    }
+
+    /// Node `i`'s key, given its sources' keys (`source(node index)`) and
+    /// the files it reads as they are now.
+    fn key_of(pipeline: &Pipeline, i: usize, source: impl Fn(usize) -> Key) -> Key {
+        let n = &pipeline.nodes[i];
+        let schema = n.node.schema();
+        let inputs: Vec<(&str, &str, Key)> = n
+            .inputs
+            .iter()
+            .map(|(port, src)| (port.as_str(), src.port.as_str(), source(src.node)))
+            .collect();
+        let own = node_key(schema.kind, schema.version, &n.params, &inputs);
+        with_file_contents(own, &n.node.input_files(&n.params))
     }
 
     /// Runs what the pipeline's requested outputs need.
@@ -267,7 +272,13 @@ impl Engine {
                 let (out, ms, derived_here) = r?;
                 derived[i] = derived_here;
                 let out = Arc::new(out);
-                if !p.nodes[i].node.schema().sink {
+                // A file the node read that changed since the run began
+                // (a capture still being written) may have given this
+                // result from other contents than the key names: it is
+                // used, not kept (the next run keys the new contents).
+                let files_held = p.nodes[i].node.input_files(&p.nodes[i].params).is_empty()
+                    || Self::key_of(p, i, |j| keys[j]) == keys[i];
+                if !p.nodes[i].node.schema().sink && files_held {
                     self.keep(keys[i], &out);
                 }
                 timings[i] = ms;

@@ -326,3 +326,77 @@ fn a_second_backend_is_chosen_at_run_time_with_the_same_cache_key() {
     assert_eq!(b.trace.get("left").unwrap().backend, "wgpu");
     assert_eq!(a.outputs, b.outputs);
 }
+
+node_params! {
+    /// A file reader's params.
+    pub struct ReadParams {
+        /// The file read.
+        pub path: String = "", ParamKind::InputPath;
+    }
+}
+
+/// Reads a number from a file, as a 1x1 depth map. A file holding 1 is
+/// rewritten to 2 just before it is read: a writer that changes the file
+/// between the run's keying and the load (a capture still being written).
+fn read_number(_: &EvalCtx, _: &Inputs, p: &ReadParams) -> Result<Outputs, NodeError> {
+    let io = |e| NodeError::io(&p.path, e);
+    if std::fs::read_to_string(&p.path).map_err(io)?.trim() == "1" {
+        std::fs::write(&p.path, "2").map_err(io)?;
+    }
+    let v: f32 = std::fs::read_to_string(&p.path)
+        .map_err(io)?
+        .trim()
+        .parse()
+        .map_err(|_| NodeError::param("path", "not a number"))?;
+    Ok(Outputs::new().with("depth", DepthMap::filled(1, 1, v)))
+}
+
+/// A result from a file that changed during the run is used but not kept:
+/// kept, it sat under the key of the contents before the change, and the
+/// next run with those contents took it from the cache (2 where the file
+/// says 1).
+#[test]
+fn a_file_changed_during_the_run_leaves_no_cache_entry() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("n.txt");
+    let mut reg = Registry::new();
+    reg.register(
+        TypedNode::new(
+            "ReadNumber",
+            1,
+            "reads a number",
+            vec![],
+            vec![PortSpec::output("depth", ValueType::Depth, "depth")],
+            read_number,
+        )
+        .reads(|p: &ReadParams| vec![std::path::PathBuf::from(&p.path)]),
+    )
+    .unwrap();
+    let text = format!(
+        "(version: 1, nodes: {{ \"n\": (kind: \"ReadNumber\", params: (path: {:?})) }}, outputs: [\"n.depth\"])",
+        file.display().to_string()
+    );
+    let p = Pipeline::check(&Document::parse(&text, "doc.ron").unwrap(), &reg).unwrap();
+    let engine = Engine::new(EngineOptions {
+        disk: Some(DiskCache::new(dir.path().join("cache"), 1 << 30)),
+        ..EngineOptions::default()
+    })
+    .unwrap();
+    let value = |r: &RunResult| match r.outputs.get("n.depth") {
+        Some(Value::Depth(d)) => *d.get(0, 0),
+        _ => f32::NAN,
+    };
+    std::fs::write(&file, "1").unwrap();
+    let first = engine.run(&p, &RunOptions::default()).unwrap();
+    assert_eq!(value(&first), 2.0, "the run uses what it read");
+    // the file says 1 again: not a cache hit of the 2 read under its key
+    std::fs::write(&file, "1").unwrap();
+    let second = engine.run(&p, &RunOptions::default()).unwrap();
+    assert_eq!(status(&second.trace, "n"), Status::Ran);
+    // a file that holds still is kept as ever
+    std::fs::write(&file, "3").unwrap();
+    engine.run(&p, &RunOptions::default()).unwrap();
+    let fourth = engine.run(&p, &RunOptions::default()).unwrap();
+    assert_eq!(status(&fourth.trace, "n"), Status::Cached);
+    assert_eq!(value(&fourth), 3.0);
+}
