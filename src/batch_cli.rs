@@ -224,15 +224,16 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
         max_pixels: Some(args.max_pixels),
     };
     if let Some(task) = args.task {
-        let mine = task_frames(&frames, args.frames_per_task, task);
-        let records = runner.run_all(mine, jobs, &|_| {});
-        let summary = BatchSummary::of(&records, mine);
+        // the part's name first: a bad id fails before any frame runs
         let submission = args.submission.as_deref().unwrap_or_default();
         if !depthgraph::batch::valid_submission_id(submission) {
             return Ok(fail(&BatchError::Usage(format!(
                 "--submission `{submission}` is not a submission id"
             ))));
         }
+        let mine = task_frames(&frames, args.frames_per_task, task);
+        let records = runner.run_all(mine, jobs, &|_| {});
+        let summary = BatchSummary::of(&records, mine);
         let part = part_path(&args.out, submission, task);
         if let Err(e) = write_manifest(&part, &records) {
             return Ok(fail(&e));

@@ -615,6 +615,26 @@ fn batches_that_cannot_be_right_are_refused_before_running() {
     assert_eq!(code(&o), 2, "{}", stderr(&o));
     assert!(stderr(&o).contains("line break"), "{}", stderr(&o));
     assert!(!out.join("slurm/batch.sbatch").exists());
+    // an array task with a bad submission id fails before any frame runs
+    let task_out = d.join("task_out");
+    let o = batch(
+        &[
+            s(&pipe),
+            "--frames",
+            "0..2",
+            "--out",
+            s(&task_out),
+            "--no-cache",
+            "--task",
+            "0",
+            "--submission",
+            "../elsewhere",
+        ],
+        &[],
+    );
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("not a submission id"), "{}", stderr(&o));
+    assert!(!task_out.join("f").exists(), "a frame ran");
     // a pipeline without a frame index
     let o = batch(
         &[
