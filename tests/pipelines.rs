@@ -214,6 +214,51 @@ fn one_and_two_threads_are_bit_identical_on_the_demo() {
     }
 }
 
+/// A sequence's index (a list file, a TUM folder's rgb.txt and depth.txt)
+/// says which files it reads: no sink writes over it either, though the
+/// cache key leaves it out.
+#[test]
+fn sinks_never_overwrite_a_sequences_index() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let img = Image::from_fn(4, 3, |x, y| [x as f32 / 4.0, y as f32 / 3.0, 0.5]);
+    depthgraph::nodes::io::save_color(&img, &d.join("c0.png"), false, 0.0).unwrap();
+    let depth = Image::filled(4, 3, 1.5f32);
+    depthgraph::nodes::io::save_depth(
+        &depth,
+        &d.join("d0.png"),
+        &depthgraph::nodes::io::SaveDepthParams::default(),
+    )
+    .unwrap();
+    let list = d.join("list.txt");
+    std::fs::write(&list, "c0.png d0.png\n").unwrap();
+    let before = std::fs::read(&list).unwrap();
+    let pipe = d.join("p.ron");
+    let text = format!(
+        r#"(version: 1, nodes: {{
+            "seq": (kind: "LoadSequence", params: (source: "{l}", frame: 0)),
+            "save": (kind: "SaveDepth", params: (path: "{l}", format: "png16"), inputs: (depth: "seq.depth")),
+        }}, outputs: ["save"])"#,
+        l = list.display()
+    );
+    std::fs::write(&pipe, text).unwrap();
+    let r = cli(&[
+        "run",
+        pipe.to_str().unwrap(),
+        "--no-cache",
+        "--quiet",
+        "--out",
+        d.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success(), "{err}");
+    assert!(
+        err.contains("refusing to write over a file this pipeline reads"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&list).unwrap(), before);
+}
+
 #[test]
 fn sinks_never_overwrite_an_input_file() {
     let dir = tempfile::tempdir().unwrap();

@@ -73,6 +73,9 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for DeviceNode<I, O, P> 
     fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {
         self.cpu.input_files(params)
     }
+    fn guarded_files(&self, params: &ParamMap) -> Vec<PathBuf> {
+        self.cpu.guarded_files(params)
+    }
     fn backend(&self) -> &'static str {
         "wgpu"
     }

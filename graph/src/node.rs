@@ -436,6 +436,12 @@ pub trait Node: Send + Sync {
         let _ = params;
         Vec::new()
     }
+    /// Files no sink of the pipeline may write over: those the node reads
+    /// and those that say what it reads (a sequence's index), which its
+    /// cache key leaves out. The files it reads, unless it says more.
+    fn guarded_files(&self, params: &ParamMap) -> Vec<PathBuf> {
+        self.input_files(params)
+    }
     /// Name of the backend ("cpu", "wgpu"), shown by `explain`.
     fn backend(&self) -> &'static str {
         "cpu"

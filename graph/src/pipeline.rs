@@ -352,11 +352,13 @@ impl Pipeline {
         self.nodes.iter().position(|n| n.name == name)
     }
 
-    /// Every file the pipeline reads (from load nodes' parameters).
+    /// Every file the pipeline reads (from load nodes' parameters), and
+    /// the files that say what it reads (a sequence's index): no sink may
+    /// write over them ([`crate::node::Node::guarded_files`]).
     pub fn input_files(&self) -> Vec<PathBuf> {
         self.nodes
             .iter()
-            .flat_map(|n| n.node.input_files(&n.params))
+            .flat_map(|n| n.node.guarded_files(&n.params))
             .collect()
     }
 

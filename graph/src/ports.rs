@@ -311,6 +311,7 @@ pub struct PortedNode<I, O, P: NodeParams> {
     schema: NodeSchema,
     eval: PortedEval<I, O, P>,
     files: Option<fn(&P) -> Vec<PathBuf>>,
+    guards: Option<fn(&P) -> Vec<PathBuf>>,
     ports: PhantomData<fn() -> (I, O)>,
 }
 
@@ -334,6 +335,7 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> PortedNode<I, O, P> {
             },
             eval,
             files: None,
+            guards: None,
             ports: PhantomData,
         }
     }
@@ -345,6 +347,13 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> PortedNode<I, O, P> {
     /// Declares which files the node reads.
     pub fn reads(mut self, files: fn(&P) -> Vec<PathBuf>) -> Self {
         self.files = Some(files);
+        self
+    }
+    /// Declares files that say what the node reads (a sequence's index):
+    /// no sink may write over them ([`Node::guarded_files`]), and they stay
+    /// out of the cache key.
+    pub fn guards(mut self, files: fn(&P) -> Vec<PathBuf>) -> Self {
+        self.guards = Some(files);
         self
     }
 }
@@ -370,5 +379,10 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for PortedNode<I, O, P> 
     }
     fn input_files(&self, params: &ParamMap) -> Vec<PathBuf> {
         files_read(self.files, params)
+    }
+    fn guarded_files(&self, params: &ParamMap) -> Vec<PathBuf> {
+        let mut all = files_read(self.files, params);
+        all.extend(files_read(self.guards, params));
+        all
     }
 }

@@ -941,7 +941,8 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
              a list file or a glob; `frame: \"{frame}\"` in a pipeline run by `depthgraph batch`.",
             sequence::eval,
         )
-        .reads(sequence::files_read),
+        .reads(sequence::files_read)
+        .guards(sequence::index_files),
     )?;
     reg.register(
         PortedNode::new(

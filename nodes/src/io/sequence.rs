@@ -364,14 +364,20 @@ pub fn frame(p: &LoadSequenceParams) -> Result<FramePair, NodeError> {
 pub fn files_read(p: &LoadSequenceParams) -> Vec<PathBuf> {
     match frame(p) {
         Ok(f) => vec![f.color, f.depth],
-        Err(_) => {
-            let source = PathBuf::from(&p.source);
-            match kind_of(&source) {
-                SequenceKind::Tum => vec![source.join("rgb.txt"), source.join("depth.txt")],
-                SequenceKind::List => vec![source],
-                SequenceKind::Glob => Vec::new(),
-            }
-        }
+        Err(_) => index_files(p),
+    }
+}
+
+/// The files that say which files a `LoadSequence` node reads: a TUM
+/// folder's `rgb.txt` and `depth.txt`, a list file (a glob has none). Left
+/// out of its cache key ([`files_read`]), guarded from the pipeline's
+/// sinks all the same.
+pub fn index_files(p: &LoadSequenceParams) -> Vec<PathBuf> {
+    let source = PathBuf::from(&p.source);
+    match kind_of(&source) {
+        SequenceKind::Tum => vec![source.join("rgb.txt"), source.join("depth.txt")],
+        SequenceKind::List => vec![source],
+        SequenceKind::Glob => Vec::new(),
     }
 }
 
