@@ -106,7 +106,9 @@ impl BatchSummary {
             match r.status {
                 FrameStatus::Ok => s.ok += 1,
                 FrameStatus::Cached => s.cached += 1,
-                FrameStatus::Failed => *s.failed.entry(r.exit_code).or_default() += 1,
+                // (a failure recorded with exit code 0, by hand or by
+                // another version, is still a failure: 1)
+                FrameStatus::Failed => *s.failed.entry(r.exit_code.max(1)).or_default() += 1,
             }
         }
         s.missing = expected
@@ -772,6 +774,12 @@ mod tests {
         assert_eq!(s.exit_code(), 75);
         bad[2] = rec(2, FrameStatus::Failed, 74);
         assert_eq!(BatchSummary::of(&bad, &all).exit_code(), 65);
+        // a failure that says exit 0 does not pass for success
+        let mut zero = ok.clone();
+        zero[3] = rec(3, FrameStatus::Failed, 0);
+        let s = BatchSummary::of(&zero, &all);
+        assert_eq!(s.exit_code(), 1, "{}", s.line());
+        assert!(s.line().contains("1 failed"), "{}", s.line());
     }
 
     #[test]
