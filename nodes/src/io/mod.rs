@@ -195,6 +195,18 @@ pub fn decode_color(
     color_space: ColorSpace,
     lim: &Limits,
 ) -> Result<ColorImage, NodeError> {
+    decode_color_counted(bytes, path, color_space, lim, &mut 0)
+}
+
+/// [`decode_color`], adding to `non_finite` the samples of a float file
+/// that were NaN or infinite (read as 0).
+fn decode_color_counted(
+    bytes: &[u8],
+    path: &Path,
+    color_space: ColorSpace,
+    lim: &Limits,
+    non_finite: &mut usize,
+) -> Result<ColorImage, NodeError> {
     if is_pnm(path) {
         let pnm = decode_pnm(bytes, path, false, lim)?;
         return pnm_color(pnm, path, color_space == ColorSpace::Srgb);
@@ -241,10 +253,21 @@ pub fn decode_color(
                 .map(|p| [conv(p[0]), conv(p[1]), conv(p[2])])
                 .collect()
         }
+        // float files (EXR, TIFF): a NaN or infinite sample is no radiance
+        // the nodes could use; it reads as 0, counted
         _ => img
             .to_rgb32f()
             .pixels()
-            .map(|p| [p[0], p[1], p[2]])
+            .map(|p| {
+                [p[0], p[1], p[2]].map(|v| {
+                    if v.is_finite() {
+                        v
+                    } else {
+                        *non_finite += 1;
+                        0.0
+                    }
+                })
+            })
             .collect(),
     };
     Image::from_vec(w, h, data).map_err(|e| decode_err(path, e.to_string()))
@@ -274,8 +297,25 @@ fn load_color_eval(
     _: NoInputs,
     p: &LoadColorParams,
 ) -> Result<Produced<LoadColorOut>, NodeError> {
-    let color = load_color_with(given(&p.path)?, p.color_space, &Limits::of(ctx))?;
-    Ok(LoadColorOut { color }.into())
+    let path = given(&p.path)?;
+    let lim = Limits::of(ctx);
+    let mut non_finite = 0usize;
+    let color = decode_color_counted(
+        &read_file(path, &lim)?,
+        path,
+        p.color_space,
+        &lim,
+        &mut non_finite,
+    )?;
+    let out = LoadColorOut { color };
+    Ok(if non_finite > 0 {
+        Produced::reported(
+            out,
+            format!("{non_finite} samples NaN or infinite in the file, read as 0"),
+        )
+    } else {
+        out.into()
+    })
 }
 
 // ---------------------------------------------------------------- depth
@@ -1259,6 +1299,46 @@ mod tests {
         assert_eq!(at(2.0, 5.0).unwrap(), (2.0, 5.0));
         let e = at(5.0, 3.0).unwrap_err().to_string();
         assert!(e.contains("max_m"), "{e}");
+    }
+
+    /// A float colour file's NaN and infinite samples read as 0, counted
+    /// for the node's report; finite ones, negative included, as they are.
+    #[test]
+    fn non_finite_colour_samples_read_as_zero() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.exr");
+        let raw = vec![
+            f32::NAN,
+            0.5,
+            f32::INFINITY,
+            0.25,
+            -0.125,
+            f32::NEG_INFINITY,
+        ];
+        image::Rgb32FImage::from_raw(2, 1, raw)
+            .unwrap()
+            .save(&path)
+            .unwrap();
+        let bytes = fs::read(&path).unwrap();
+        let mut n = 0;
+        let c = decode_color_counted(
+            &bytes,
+            &path,
+            ColorSpace::Linear,
+            &Limits::default(),
+            &mut n,
+        )
+        .unwrap();
+        assert_eq!(n, 3);
+        assert_eq!(c.as_slice(), &[[0.0, 0.5, 0.0], [0.25, -0.125, 0.0]]);
+        assert!(
+            load_color(&path, ColorSpace::Srgb)
+                .unwrap()
+                .as_slice()
+                .iter()
+                .flatten()
+                .all(|v| v.is_finite())
+        );
     }
 
     #[test]
