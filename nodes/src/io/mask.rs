@@ -67,15 +67,15 @@ pub fn load_mask_with(p: &LoadMaskParams, lim: &Limits) -> Result<Mask, NodeErro
     decode_mask(&read_file(path, lim)?, path, p, lim)
 }
 
-/// [`load_mask`] of a file's bytes (`path` names it in errors; `p.path`
-/// is not read).
-pub fn decode_mask(
+/// The mask values of a file the `image` crate reads (PNG, JPEG, TIFF,
+/// EXR), before clamping: the mean of the colour channels, or the alpha
+/// channel (1 without one). `decode_image` checks the size against `lim`.
+fn decoded_mask_values(
     bytes: &[u8],
     path: &Path,
     p: &LoadMaskParams,
     lim: &Limits,
-) -> Result<Mask, NodeError> {
-    // decode_image checked the size against `lim`
+) -> Result<(usize, usize, Vec<f32>), NodeError> {
     let img = super::decode_image(bytes, path, lim)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let values: Vec<f32> = match p.channel {
@@ -91,6 +91,55 @@ pub fn decode_mask(
             | DynamicImage::ImageRgba32F(_) => img.to_rgba32f().pixels().map(|q| q[3]).collect(),
             _ => vec![1.0; w * h],
         },
+    };
+    Ok((w, h, values))
+}
+
+/// [`load_mask`] of a file's bytes (`path` names it in errors; `p.path`
+/// is not read).
+pub fn decode_mask(
+    bytes: &[u8],
+    path: &Path,
+    p: &LoadMaskParams,
+    lim: &Limits,
+) -> Result<Mask, NodeError> {
+    // PGM/PPM (a segmentation tool's usual output) and Radiance files, as
+    // LoadColor reads them: their samples over maxval, or the radiance;
+    // neither has an alpha channel (alpha: every pixel 1)
+    let plain = if super::is_pnm(path) {
+        let pnm = super::decode_pnm(bytes, path, false, lim)?;
+        // guard: maxval >= 1 (checked by the decoder), channels >= 1
+        let max = pnm.maxval.max(1) as f32;
+        let c = pnm.channels.max(1);
+        let v: Vec<f32> = pnm
+            .samples
+            .chunks_exact(c)
+            .map(|q| q.iter().map(|s| *s as f32 / max).sum::<f32>() / c as f32)
+            .collect();
+        Some((pnm.width, pnm.height, v))
+    } else if super::radiance::looks_like_rgbe(bytes)
+        || matches!(super::extension(path).as_str(), "hdr" | "pic")
+    {
+        let img = super::radiance::decode_rgbe(bytes, path, lim)?.image;
+        let (w, h) = img.dims();
+        let v = img
+            .as_slice()
+            .iter()
+            .map(|q| (q[0] + q[1] + q[2]) / 3.0)
+            .collect();
+        Some((w, h, v))
+    } else {
+        None
+    };
+    let (w, h, values) = match plain {
+        Some((w, h, v)) => {
+            let v = match p.channel {
+                MaskChannel::Value => v,
+                MaskChannel::Alpha => vec![1.0; w * h],
+            };
+            (w, h, v)
+        }
+        None => decoded_mask_values(bytes, path, p, lim)?,
     };
     let t = p.threshold as f32;
     let mask = values
@@ -176,6 +225,44 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every format LoadColor reads gives a mask, as the module docs say:
+    /// binary PGM (8- and 16-bit) and PPM over their maxval, Radiance as
+    /// its radiance; alpha is 1 for formats without one.
+    #[test]
+    fn pgm_ppm_and_radiance_masks_read_as_loadcolor_reads_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let soft = LoadMaskParams::default();
+        let read = |name: &str, bytes: Vec<u8>, p: &LoadMaskParams| {
+            let path = dir.path().join(name);
+            std::fs::write(&path, bytes).unwrap();
+            decode_mask(&std::fs::read(&path).unwrap(), &path, p, &Limits::default()).unwrap()
+        };
+        let mut pgm = b"P5\n3 1\n255\n".to_vec();
+        pgm.extend_from_slice(&[0, 51, 255]);
+        assert_eq!(read("m.pgm", pgm, &soft).as_slice(), &[0.0, 0.2, 1.0]);
+        let mut pgm16 = b"P5\n2 1\n65535\n".to_vec();
+        for v in [65535u16, 0] {
+            pgm16.extend_from_slice(&v.to_be_bytes());
+        }
+        assert_eq!(read("m16.pgm", pgm16, &soft).as_slice(), &[1.0, 0.0]);
+        let mut ppm = b"P6\n1 1\n255\n".to_vec();
+        ppm.extend_from_slice(&[255, 0, 0]);
+        let m = read("m.ppm", ppm.clone(), &soft);
+        assert!((m.as_slice()[0] - 1.0 / 3.0).abs() < 1e-6);
+        let alpha = LoadMaskParams {
+            channel: MaskChannel::Alpha,
+            ..Default::default()
+        };
+        assert_eq!(read("a.ppm", ppm, &alpha).as_slice(), &[1.0]);
+        let hdr = ColorImage::from_fn(2, 1, |x, _| if x == 0 { [0.5; 3] } else { [4.0; 3] });
+        let m = read("m.hdr", crate::io::radiance::encode_rgbe(&hdr), &soft);
+        assert!(
+            (m.as_slice()[0] - 0.5).abs() < 1e-2 && m.as_slice()[1] == 1.0,
+            "{:?}",
+            m.as_slice()
+        );
+    }
 
     fn run(p: &LoadMaskParams, like: Option<ColorImage>) -> Result<Outputs, NodeError> {
         let mut reg = Registry::new();
