@@ -47,7 +47,10 @@ pub enum FrameStatus {
     Failed,
 }
 
-/// One line of `manifest.jsonl`.
+/// One line of `manifest.jsonl`. A line without the fields after `status`
+/// (written by another version, or by hand) reads with their defaults: no
+/// time, no outputs, no error, exit code 0 (a failure's counts as 1,
+/// [`BatchSummary::of`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameRecord {
     /// The frame index.
@@ -55,13 +58,17 @@ pub struct FrameRecord {
     /// What became of it.
     pub status: FrameStatus,
     /// Wall time of the frame, milliseconds.
+    #[serde(default)]
     pub ms: f64,
     /// The files it wrote.
+    #[serde(default)]
     pub outputs: Vec<String>,
     /// Why it failed, printed once.
+    #[serde(default)]
     pub error: Option<String>,
     /// The failure's exit code (0 when done): 2 usage, 65 bad input data,
     /// 70 internal, 74 I/O, 75 transient.
+    #[serde(default)]
     pub exit_code: u8,
 }
 
@@ -774,6 +781,16 @@ mod tests {
         assert_eq!(s.exit_code(), 75);
         bad[2] = rec(2, FrameStatus::Failed, 74);
         assert_eq!(BatchSummary::of(&bad, &all).exit_code(), 65);
+        // a part line with only the frame and its status reads (another
+        // version's), its failure counted as one
+        let short: FrameRecord = serde_json::from_str(r#"{"frame":3,"status":"failed"}"#).unwrap();
+        assert_eq!(
+            short,
+            FrameRecord {
+                ms: 0.0,
+                ..rec(3, FrameStatus::Failed, 0)
+            }
+        );
         // a failure that says exit 0 does not pass for success
         let mut zero = ok.clone();
         zero[3] = rec(3, FrameStatus::Failed, 0);
