@@ -81,6 +81,18 @@ pub(super) fn read_file(path: &Path, lim: &Limits) -> Result<Vec<u8>, NodeError>
     Ok(bytes)
 }
 
+/// Where the samples of a binary PNM/PFM start: `pos`, just after the one
+/// whitespace byte the formats put after the header, unless that byte was
+/// a `\r` of a `\r\n` line end (a file written on Windows) and the bytes
+/// left are the `need` samples plus that `\n`: then one further.
+pub(super) fn samples_start(bytes: &[u8], pos: usize, need: usize) -> usize {
+    let crlf = pos >= 1
+        && bytes.get(pos - 1) == Some(&b'\r')
+        && bytes.get(pos) == Some(&b'\n')
+        && bytes.len().checked_sub(pos) == need.checked_add(1);
+    if crlf { pos + 1 } else { pos }
+}
+
 /// A decoding error of `path`.
 pub(super) fn decode_err(path: &Path, message: impl Into<String>) -> NodeError {
     NodeError::Decode {

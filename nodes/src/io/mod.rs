@@ -1341,6 +1341,27 @@ mod tests {
         );
     }
 
+    /// Headers ending in `\r\n` (written on Windows) read their samples
+    /// from after the `\n`, not one byte early; a plain `\n` as before.
+    #[test]
+    fn crlf_headers_of_pfm_and_pgm_read_their_samples() {
+        let mut pfm = b"Pf\r\n2 1\r\n-1.0\r\n".to_vec();
+        for v in [1.5f32, 2.5] {
+            pfm.extend_from_slice(&v.to_le_bytes());
+        }
+        let s = pfm::decode_pfm(&pfm, Path::new("a.pfm"), &Limits::default()).unwrap();
+        assert_eq!(s.values, vec![1.5, 2.5]);
+        let mut pgm = b"P5\r\n2 1\r\n255\r\n".to_vec();
+        pgm.extend_from_slice(&[10, 20]);
+        let p = decode_pnm(&pgm, Path::new("a.pgm"), false, &Limits::default()).unwrap();
+        assert_eq!(p.samples, vec![10, 20]);
+        // a LF header whose first sample is 10 (a newline byte) stays as it was
+        let mut lf = b"P5\n2 1\n255\n".to_vec();
+        lf.extend_from_slice(&[10, 20]);
+        let p = decode_pnm(&lf, Path::new("b.pgm"), false, &Limits::default()).unwrap();
+        assert_eq!(p.samples, vec![10, 20]);
+    }
+
     #[test]
     fn malformed_files_are_errors_not_panics() {
         let dir = tempfile::tempdir().unwrap();

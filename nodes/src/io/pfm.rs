@@ -4,7 +4,7 @@ use std::path::Path;
 
 use depthgraph_graph::prelude::*;
 
-use super::decode::{Limits, Samples, check_dims, decode_err, read_file};
+use super::decode::{Limits, Samples, check_dims, decode_err, read_file, samples_start};
 
 /// Reads a PFM file (grey `Pf`, or `PF` whose first channel is used);
 /// rows are stored bottom-up; a negative scale means little-endian.
@@ -67,7 +67,7 @@ pub fn decode_pfm(bytes: &[u8], path: &Path, lim: &Limits) -> Result<Samples, No
         .checked_mul(h)
         .and_then(|n| n.checked_mul(channels * 4))
         .ok_or_else(|| decode_err(path, "PFM dimensions overflow"))?;
-    let data = bytes.get(i..).unwrap_or(&[]);
+    let data = bytes.get(samples_start(bytes, i, need)..).unwrap_or(&[]);
     if data.len() < need {
         return Err(decode_err(
             path,

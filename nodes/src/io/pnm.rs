@@ -5,7 +5,9 @@ use std::path::Path;
 
 use depthgraph_graph::prelude::*;
 
-use super::decode::{Limits, check_dims, decode_err, read_file, srgb8_table, srgb16_table};
+use super::decode::{
+    Limits, check_dims, decode_err, read_file, samples_start, srgb8_table, srgb16_table,
+};
 use crate::kit::color::srgb_to_linear;
 
 /// A binary PNM file (`P5` grey or `P6` RGB, 8 or 16 bit).
@@ -92,7 +94,8 @@ pub fn decode_pnm(
     }
     let bps = if maxval > 255 { 2 } else { 1 };
     let n = w * h * channels;
-    let data = bytes.get(pos.min(bytes.len())..).unwrap_or(&[]);
+    let start = samples_start(bytes, pos.min(bytes.len()), n * bps);
+    let data = bytes.get(start..).unwrap_or(&[]);
     if data.len() < n * bps {
         return Err(decode_err(
             path,
