@@ -442,21 +442,13 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         }
     };
     let stdout = String::from_utf8_lossy(&output.stdout);
-    let id = stdout
-        .lines()
-        .next()
-        .and_then(|l| l.split(';').next())
-        .map(|s| s.trim().to_string())
-        .filter(|s| !s.is_empty());
-    // `--parsable` prints `id;cluster` on a multi-cluster setup: squeue
-    // must be asked on that cluster (elsewhere the id is unknown, which
-    // read as a job that ended)
-    let cluster = stdout
-        .lines()
-        .next()
-        .and_then(|l| l.split_once(';'))
-        .map(|(_, c)| c.trim().to_string())
-        .filter(|c| !c.is_empty());
+    // `--parsable` prints `id` or, on a multi-cluster setup, `id;cluster`:
+    // squeue must be asked on that cluster (elsewhere the id is unknown,
+    // which read as a job that ended)
+    let first = stdout.lines().next().unwrap_or("");
+    let (id, cluster) = first.split_once(';').unwrap_or((first, ""));
+    let nonempty = |s: &str| Some(s.trim().to_string()).filter(|s| !s.is_empty());
+    let (id, cluster) = (nonempty(id), nonempty(cluster));
     if id.is_none() && !output.status.success() {
         let why = String::from_utf8_lossy(&output.stderr).trim().to_string();
         eprintln!("error: sbatch refused the job: {why}");

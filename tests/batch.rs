@@ -425,20 +425,13 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     // file, and what --collect gives, as they were.
     let job_before = std::fs::read(out.join("slurm/job.json")).unwrap();
     let manifest_before = std::fs::read(out.join("manifest.jsonl")).unwrap();
-    let fake = d.join("fakebin");
-    std::fs::create_dir_all(&fake).unwrap();
-    let sbatch = fake.join("sbatch");
-    std::fs::write(
-        &sbatch,
-        "#!/bin/sh\necho 'sbatch: error: invalid partition specified: typo' >&2\nexit 1\n",
-    )
-    .unwrap();
-    use std::os::unix::fs::PermissionsExt;
-    std::fs::set_permissions(&sbatch, std::fs::Permissions::from_mode(0o755)).unwrap();
-    let path = format!(
-        "{}:{}",
-        fake.display(),
-        std::env::var("PATH").unwrap_or_default()
+    let path = fake_commands(
+        d,
+        &[(
+            "sbatch",
+            "#!/bin/sh\necho 'sbatch: error: invalid partition specified: typo' >&2\nexit 1\n"
+                .to_string(),
+        )],
     );
     let again = |extra: &[&str], env: &[(&str, &str)]| {
         let mut a = vec![
@@ -483,36 +476,44 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
 /// On a multi-cluster setup `sbatch --parsable` prints `id;cluster`, and
 /// `--wait` asks squeue on that cluster (elsewhere the id is unknown,
 /// which read as a job that had ended: it collected at once, mid-job).
-#[test]
-fn a_multi_cluster_job_is_waited_for_on_its_cluster() {
+/// `scripts` (name, shell text) as executables in `dir/fakebin`, and a
+/// PATH that finds them before the system's commands.
+fn fake_commands(dir: &Path, scripts: &[(&str, String)]) -> String {
     use std::os::unix::fs::PermissionsExt;
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let pipe = moving(d);
-    let out = d.join("out");
-    let fake = d.join("fakebin");
+    let fake = dir.join("fakebin");
     std::fs::create_dir_all(&fake).unwrap();
-    let log = d.join("squeue.log");
-    let scripts = [
-        ("sbatch", "#!/bin/sh\necho '4242;clusterB'\n".to_string()),
-        (
-            "squeue",
-            format!(
-                "#!/bin/sh\necho \"$@\" >> '{}'\ncase \"$*\" in *'-M clusterB'*) exit 0;; esac\n\
-                 echo 'slurm_load_jobs error: Invalid job id specified' >&2\nexit 1\n",
-                log.display()
-            ),
-        ),
-    ];
     for (name, text) in scripts {
         let f = fake.join(name);
         std::fs::write(&f, text).unwrap();
         std::fs::set_permissions(&f, std::fs::Permissions::from_mode(0o755)).unwrap();
     }
-    let path = format!(
+    format!(
         "{}:{}",
         fake.display(),
         std::env::var("PATH").unwrap_or_default()
+    )
+}
+
+#[test]
+fn a_multi_cluster_job_is_waited_for_on_its_cluster() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let pipe = moving(d);
+    let out = d.join("out");
+    let log = d.join("squeue.log");
+    let path = fake_commands(
+        d,
+        &[
+            ("sbatch", "#!/bin/sh\necho '4242;clusterB'\n".to_string()),
+            (
+                "squeue",
+                format!(
+                    "#!/bin/sh\necho \"$@\" >> '{}'\ncase \"$*\" in *'-M clusterB'*) exit 0;; esac\n\
+                 echo 'slurm_load_jobs error: Invalid job id specified' >&2\nexit 1\n",
+                    log.display()
+                ),
+            ),
+        ],
     );
     let o = batch(
         &[

@@ -401,6 +401,16 @@ mod tests {
     use super::*;
     use crate::value::Value;
 
+    /// Sets `path`'s modification time to `t` (an old file).
+    fn backdate(path: &Path, t: SystemTime) {
+        fs::File::options()
+            .append(true)
+            .open(path)
+            .unwrap()
+            .set_modified(t)
+            .unwrap();
+    }
+
     fn key(n: u8) -> Key {
         Key::from_bytes([n; 32])
     }
@@ -492,12 +502,7 @@ mod tests {
         fs::write(&stale, b"half an entry").unwrap();
         fs::write(&fresh, b"being written").unwrap();
         let old = SystemTime::now() - STALE_TMP - std::time::Duration::from_secs(60);
-        fs::File::options()
-            .append(true)
-            .open(&stale)
-            .unwrap()
-            .set_modified(old)
-            .unwrap();
+        backdate(&stale, old);
         c.trim().unwrap();
         assert!(!stale.exists());
         assert!(fresh.exists());
@@ -523,24 +528,14 @@ mod tests {
         for f in &mine {
             fs::create_dir_all(f.parent().unwrap()).unwrap();
             fs::write(f, b"the user's").unwrap();
-            fs::File::options()
-                .append(true)
-                .open(f)
-                .unwrap()
-                .set_modified(old)
-                .unwrap();
+            backdate(f, old);
         }
         // a stale temporary file of the store's own goes
         let sub = dir.path().join(&key(1).to_hex()[..2]);
         fs::create_dir_all(&sub).unwrap();
         let stale = sub.join(format!(".{}.1.2.tmp", key(1).to_hex()));
         fs::write(&stale, b"half an entry").unwrap();
-        fs::File::options()
-            .append(true)
-            .open(&stale)
-            .unwrap()
-            .set_modified(old)
-            .unwrap();
+        backdate(&stale, old);
         c.trim().unwrap();
         assert!(!stale.exists());
         for f in &mine {

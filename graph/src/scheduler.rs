@@ -159,9 +159,14 @@ impl Engine {
         let mut keys: Vec<Option<Key>> = vec![None; pipeline.nodes.len()];
         for &i in &pipeline.order {
             // toposort guarantees the sources were keyed first
-            keys[i] = Some(Self::key_of(pipeline, i, |j| {
-                keys[j].unwrap_or(Key::from_bytes([0; 32]))
-            }));
+            let n = &pipeline.nodes[i];
+            let files = n.node.input_files(&n.params);
+            keys[i] = Some(Self::key_of(
+                pipeline,
+                i,
+                |j| keys[j].unwrap_or(Key::from_bytes([0; 32])),
+                &files,
+            ));
         }
         keys.into_iter()
             .map(|k| k.unwrap_or(Key::from_bytes([0; 32])))
@@ -169,8 +174,13 @@ impl Engine {
     }
 
     /// Node `i`'s key, given its sources' keys (`source(node index)`) and
-    /// the files it reads as they are now.
-    fn key_of(pipeline: &Pipeline, i: usize, source: impl Fn(usize) -> Key) -> Key {
+    /// the `files` it reads (its `input_files`), as they are now.
+    fn key_of(
+        pipeline: &Pipeline,
+        i: usize,
+        source: impl Fn(usize) -> Key,
+        files: &[std::path::PathBuf],
+    ) -> Key {
         let n = &pipeline.nodes[i];
         let schema = n.node.schema();
         let inputs: Vec<(&str, &str, Key)> = n
@@ -179,7 +189,7 @@ impl Engine {
             .map(|(port, src)| (port.as_str(), src.port.as_str(), source(src.node)))
             .collect();
         let own = node_key(schema.kind, schema.version, &n.params, &inputs);
-        with_file_contents(own, &n.node.input_files(&n.params))
+        with_file_contents(own, files)
     }
 
     /// Runs what the pipeline's requested outputs need.
@@ -276,10 +286,12 @@ impl Engine {
                 // (a capture still being written) may have given this
                 // result from other contents than the key names: it is
                 // used, not kept (the next run keys the new contents).
-                let files_held = p.nodes[i].node.input_files(&p.nodes[i].params).is_empty()
-                    || Self::key_of(p, i, |j| keys[j]) == keys[i];
-                if !p.nodes[i].node.schema().sink && files_held {
-                    self.keep(keys[i], &out);
+                let n = &p.nodes[i];
+                if !n.node.schema().sink {
+                    let files = n.node.input_files(&n.params);
+                    if files.is_empty() || Self::key_of(p, i, |j| keys[j], &files) == keys[i] {
+                        self.keep(keys[i], &out);
+                    }
                 }
                 timings[i] = ms;
                 results[i] = Some(out);

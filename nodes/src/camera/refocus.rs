@@ -1268,7 +1268,7 @@ pub fn reverse_mapped_dof(
     let max_coc = coc.as_slice().iter().fold(0.0f32, |m, &c| m.max(c));
     let max_diam = (w.max(h) as f64 * 2.0).min(max_coc as f64);
     let steps = (max_diam * 2.0).ceil() as usize + 1;
-    let index = |c: f64| ((c.min(max_diam) * 2.0).round() as usize).min(steps);
+    let index = |c: f64| kernel_step(c, max_diam, steps);
     let used = reverse_kernels_used(coc.as_slice(), max_diam, steps, aperture)?;
     let kernels: Vec<Vec<(isize, isize)>> = (0..=steps)
         .into_par_iter()
@@ -1308,6 +1308,12 @@ pub fn reverse_mapped_dof(
     Ok(Image::from_vec(w, h, data)?)
 }
 
+/// The kernel of a circle of confusion `c` (px): its half-pixel step of
+/// the diameter, `c` clamped to `max_diam`, at most `steps`.
+fn kernel_step(c: f64, max_diam: f64, steps: usize) -> usize {
+    ((c.min(max_diam) * 2.0).round() as usize).min(steps)
+}
+
 /// Which kernel sizes (half-pixel steps of the diameter, `0..=steps`,
 /// diameters clamped to `max_diam`) the circles of confusion `coc` use,
 /// for [`reverse_mapped_dof`]; an error naming `f_number` when their
@@ -1319,7 +1325,7 @@ fn reverse_kernels_used(
     steps: usize,
     aperture: &Aperture,
 ) -> Result<Vec<bool>, NodeError> {
-    let index = |c: f64| ((c.min(max_diam) * 2.0).round() as usize).min(steps);
+    let index = |c: f64| kernel_step(c, max_diam, steps);
     let max_coc = coc.iter().fold(0.0f32, |m, &c| m.max(c));
     // The kernel of step `s` holds at most this many offsets.
     let cells = |s: usize| {

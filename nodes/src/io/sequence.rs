@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 use depthgraph_graph::node_params;
 use depthgraph_graph::prelude::*;
 
+use super::decode::read_file;
 use super::{ColorSpace, DepthEncoding, Limits, LoadDepthParams, load_color_with, load_depth_with};
 
 node_params! {
@@ -87,14 +88,8 @@ fn bad(path: &Path, message: impl Into<String>) -> NodeError {
 }
 
 fn read_text(path: &Path) -> Result<String, NodeError> {
-    // a regular file only (a FIFO or `/dev/zero` would never end)
-    if !fs::metadata(path)
-        .map_err(|e| NodeError::read(path, e))?
-        .is_file()
-    {
-        return Err(bad(path, "not a regular file"));
-    }
-    let bytes = fs::read(path).map_err(|e| NodeError::read(path, e))?;
+    // (a regular file only, within the default budget: `read_file`)
+    let bytes = read_file(path, &Limits::default())?;
     String::from_utf8(bytes).map_err(|_| bad(path, "not UTF-8 text"))
 }
 
@@ -138,7 +133,9 @@ pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Result<Vec<(usize
     let mut bs: Vec<usize> = (0..b.len()).collect();
     bs.sort_by(|&i, &j| b[i].total_cmp(&b[j]).then(i.cmp(&j)));
     let times: Vec<f64> = bs.iter().map(|&i| b[i]).collect();
-    // the window of each colour stamp: its depth stamps from `lo` on
+    // the window of each colour stamp: its depth stamps `lo..hi` (the
+    // differences of the test below, so a pair exactly at the rounding
+    // edge of the limit is judged once, alike)
     let window = |ta: f64| {
         let lo = times.partition_point(|&t| ta - t >= max_difference);
         let hi = lo + times[lo..].partition_point(|&t| t - ta < max_difference);
@@ -156,13 +153,8 @@ pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Result<Vec<(usize
     }
     let mut cand: Vec<(f64, usize, usize)> = Vec::with_capacity(count);
     for (i, &ta) in a.iter().enumerate() {
-        // the window uses the same differences as the test below, so a pair
-        // exactly at the rounding edge of the limit is judged once, alike
-        let lo = times.partition_point(|&t| ta - t >= max_difference);
-        for k in lo..times.len() {
-            if times[k] - ta >= max_difference {
-                break;
-            }
+        let (lo, hi) = window(ta);
+        for k in lo..hi {
             let d = (ta - times[k]).abs();
             if d < max_difference {
                 cand.push((d, i, bs[k]));
