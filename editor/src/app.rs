@@ -116,6 +116,9 @@ pub struct EditorApp {
     running: BTreeMap<String, NodeProgress>,
     /// The node whose picture the preview texture shows.
     texture_node: Option<String>,
+    /// The size in pixels of the picture the texture shows (the texture
+    /// itself may be smaller: [`preview::fit_texture`]).
+    texture_pixels: [usize; 2],
     /// The document revision of the newest request and of the result shown.
     request_revision: u64,
     shown_revision: Option<u64>,
@@ -130,6 +133,16 @@ pub struct EditorApp {
     place: Option<PlaceDrag>,
     /// A Ctrl + wheel scale gesture is open: when the wheel last moved.
     wheel_gesture: Option<Instant>,
+    /// `path` is a name picked for a new document, not saved yet: the
+    /// first Save must not replace a file made there since.
+    new_file: bool,
+    /// The window was asked to close with unsaved changes: the dialog
+    /// asking what to do is open.
+    confirm_close: bool,
+    /// The user chose to close (saved or discarded): let the window go.
+    close_allowed: bool,
+    /// The window title last sent (`*` marks unsaved changes).
+    title: String,
 }
 
 /// A drag on the preview that places the pasted object.
@@ -157,6 +170,10 @@ impl EditorApp {
 
     /// [`EditorApp::new`] with the folder that sinks write under.
     pub fn with_out_dir(model: EditorModel, path: PathBuf, out_dir: PathBuf) -> Self {
+        let panel = PanelState {
+            out_dir: out_dir.clone(),
+            ..PanelState::default()
+        };
         let (evaluator, message) =
             match Evaluator::new(depthgraph_graph::prelude::EngineOptions::default(), out_dir) {
                 Ok(e) => (Some(e), None),
@@ -168,7 +185,7 @@ impl EditorApp {
             snarl: Snarl::new(),
             synced_revision: None,
             selected: None,
-            panel: PanelState::default(),
+            panel,
             evaluator,
             requested: None,
             request_started: None,
@@ -201,6 +218,7 @@ impl EditorApp {
             cancelled: std::collections::BTreeSet::new(),
             running: BTreeMap::new(),
             texture_node: None,
+            texture_pixels: [0, 0],
             request_revision: 0,
             shown_revision: None,
             paste: None,
@@ -208,7 +226,123 @@ impl EditorApp {
             focus_depth: None,
             place: None,
             wheel_gesture: None,
+            new_file: false,
+            confirm_close: false,
+            close_allowed: false,
+            title: String::new(),
         }
+    }
+
+    /// Marks `path` as a name picked for a new document: its first Save
+    /// writes only a file that does not exist yet.
+    pub fn with_new_file(mut self) -> Self {
+        self.new_file = true;
+        self
+    }
+
+    /// The file Save writes.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Saves the document to its file. A new document's first save takes
+    /// the next free `untitled-N.ron` beside it when its name was taken
+    /// meanwhile (another editor saved there), and says so.
+    pub fn save(&mut self) -> Result<String, String> {
+        if !self.new_file {
+            self.model.save(&self.path)?;
+            return Ok(format!("saved {}", self.path.display()));
+        }
+        let dir = self
+            .path
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_default();
+        let first = self.path.clone();
+        let names = std::iter::once(first.clone())
+            .chain((1..10_000).map(|n| dir.join(format!("untitled-{n}.ron"))));
+        for candidate in names {
+            if self.model.save_new(&candidate)? {
+                self.new_file = false;
+                self.path = candidate;
+                return Ok(if self.path == first {
+                    format!("saved {}", self.path.display())
+                } else {
+                    format!(
+                        "saved as {} ({} was made by another program meanwhile)",
+                        self.path.display(),
+                        first.display()
+                    )
+                });
+            }
+        }
+        Err("every name untitled[-N].ron up to N = 9999 is taken".into())
+    }
+
+    /// The window was asked to close: true when it may (nothing unsaved,
+    /// or the user chose to save or discard); otherwise the dialog asking
+    /// what to do with the unsaved changes opens and the window stays.
+    pub fn request_close(&mut self) -> bool {
+        if self.close_allowed || self.shot.is_some() || !self.model.is_modified() {
+            return true;
+        }
+        self.confirm_close = true;
+        false
+    }
+
+    /// The dialog of [`EditorApp::request_close`]: save and close, close
+    /// without saving, or stay.
+    fn close_dialog(&mut self, ctx: &egui::Context) {
+        if !self.confirm_close {
+            return;
+        }
+        let mut close = false;
+        egui::Window::new("Unsaved changes")
+            .collapsible(false)
+            .resizable(false)
+            .anchor(egui::Align2::CENTER_CENTER, egui::vec2(0.0, 0.0))
+            .show(ctx, |ui| {
+                ui.label(format!(
+                    "{} has changes that are not saved.",
+                    self.path.display()
+                ));
+                ui.horizontal(|ui| {
+                    if ui.button("Save and close").clicked() {
+                        match self.save() {
+                            Ok(m) => {
+                                self.message = Some(m);
+                                close = true;
+                            }
+                            Err(e) => {
+                                self.message = Some(e);
+                                self.confirm_close = false;
+                            }
+                        }
+                    }
+                    if ui.button("Close without saving").clicked() {
+                        close = true;
+                    }
+                    if ui.button("Cancel").clicked() {
+                        self.confirm_close = false;
+                    }
+                });
+            });
+        if close {
+            self.confirm_close = false;
+            self.close_allowed = true;
+            ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+        }
+    }
+
+    /// Whether the user chose to close the window (from the dialog).
+    pub fn close_allowed(&self) -> bool {
+        self.close_allowed
+    }
+
+    /// The window title: the file, `*` while changes are unsaved.
+    pub fn window_title(&self) -> String {
+        let mark = if self.model.is_modified() { "*" } else { "" };
+        format!("depthgraph editor - {}{mark}", self.path.display())
     }
 
     /// Runs in screenshot mode (see [`AutoShot`]).
@@ -590,7 +724,10 @@ impl EditorApp {
                 std::hash::Hash::hash(&c.to_array(), &mut h);
             }
             self.preview_hash = Some(std::hash::Hasher::finish(&h));
-            self.texture = Some(ctx.load_texture("preview", p.image, TextureOptions::NEAREST));
+            self.texture_pixels = p.image.size;
+            let max_side = ctx.input(|i| i.max_texture_side);
+            let image = preview::fit_texture(p.image, max_side);
+            self.texture = Some(ctx.load_texture("preview", image, TextureOptions::NEAREST));
             self.texture_node = Some(sel.clone());
         }
     }
@@ -696,6 +833,10 @@ impl EditorApp {
             });
         }
         let Some(tex) = self.texture.clone() else {
+            // the buttons above work without a picture too
+            if clicks_changed && let Some(c) = clicks {
+                self.set_clicks(sel, c);
+            }
             ui.label(match &self.eval_error {
                 Some(_) => "(the run failed: see the message below)",
                 None if self.busy() => "(running…)",
@@ -703,8 +844,9 @@ impl EditorApp {
             });
             return;
         };
-        let size = tex.size_vec2();
-        let pixels = [tex.size()[0], tex.size()[1]];
+        // the picture's own size (its texture may be smaller)
+        let pixels = self.texture_pixels;
+        let size = egui::vec2(pixels[0] as f32, pixels[1] as f32);
         let value_key = format!(
             "{sel}.{}",
             self.preview_port
@@ -822,9 +964,16 @@ impl EditorApp {
                 }
             });
         }
-        if clicks_changed
-            && let Some(c) = clicks
-            && let Err(e) = self.model.set_param(sel, "clicks", ParamValue::Points(c))
+        if clicks_changed && let Some(c) = clicks {
+            self.set_clicks(sel, c);
+        }
+    }
+
+    /// Sets the lasso `sel`'s clicks (a refusal goes to the message line).
+    fn set_clicks(&mut self, sel: &str, clicks: Vec<[f64; 2]>) {
+        if let Err(e) = self
+            .model
+            .set_param(sel, "clicks", ParamValue::Points(clicks))
         {
             self.message = Some(e);
         }
@@ -1040,9 +1189,8 @@ impl EditorApp {
     fn toolbar(&mut self, ui: &mut egui::Ui) {
         ui.horizontal(|ui| {
             if ui.button("Save").clicked() {
-                self.message = Some(match self.model.save(&self.path) {
-                    Ok(()) => format!("saved {}", self.path.display()),
-                    Err(e) => e,
+                self.message = Some(match self.save() {
+                    Ok(m) | Err(m) => m,
                 });
             }
             if ui
@@ -1058,6 +1206,9 @@ impl EditorApp {
                 self.model.redo();
             }
             ui.label(self.path.display().to_string());
+            if self.model.is_modified() {
+                ui.label("(unsaved changes)");
+            }
             if let Some(m) = &self.message {
                 ui.label(m.as_str());
             }
@@ -1190,6 +1341,15 @@ impl EditorApp {
     /// Draws the whole editor into `ui` (the window's contents).
     pub fn show(&mut self, ui: &mut egui::Ui) {
         let ctx = ui.ctx().clone();
+        if ctx.input(|i| i.viewport().close_requested()) && !self.request_close() {
+            ctx.send_viewport_cmd(egui::ViewportCommand::CancelClose);
+        }
+        let title = self.window_title();
+        if title != self.title {
+            ctx.send_viewport_cmd(egui::ViewportCommand::Title(title.clone()));
+            self.title = title;
+        }
+        self.close_dialog(&ctx);
         if self.synced_revision != Some(self.model.revision()) {
             self.sync_snarl();
         }

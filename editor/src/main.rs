@@ -124,8 +124,8 @@ fn run(args: Args) -> Result<(), String> {
     let (registry, chosen) = registry(args.backend.as_deref())?;
     eprintln!("{chosen}");
     let registry = Arc::new(registry);
-    let (model, path) = match &args.file {
-        Some(path) => (EditorModel::load(path, registry)?, path.clone()),
+    let (model, path, new_file) = match &args.file {
+        Some(path) => (EditorModel::load(path, registry)?, path.clone(), false),
         None => {
             // A name no file has yet, so Save never overwrites one.
             let path = (0..10_000)
@@ -139,6 +139,7 @@ fn run(args: Args) -> Result<(), String> {
             (
                 EditorModel::from_text("(version: 1, nodes: {})", &name, registry)?,
                 path,
+                true,
             )
         }
     };
@@ -151,6 +152,9 @@ fn run(args: Args) -> Result<(), String> {
         ));
     }
     let mut app = EditorApp::with_out_dir(model, path.clone(), args.out.clone());
+    if new_file {
+        app = app.with_new_file();
+    }
     let outcome = Arc::new(Mutex::new(None));
     if let Some(shot) = &args.screenshot {
         app = app.with_screenshot(AutoShot {

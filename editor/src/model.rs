@@ -32,6 +32,9 @@ pub struct EditorModel {
     /// Inside a gesture ([`EditorModel::begin_gesture`]): whether its first
     /// change has recorded the undo step yet.
     gesture: Option<bool>,
+    /// The document and positions as last read or saved: what
+    /// [`EditorModel::is_modified`] compares with.
+    saved: Snapshot,
 }
 
 fn spanned<T>(value: T) -> Spanned<T> {
@@ -46,13 +49,18 @@ impl EditorModel {
     /// present, else from an automatic layered layout.
     pub fn new(doc: Document, registry: Arc<Registry>) -> Self {
         let mut m = Self {
-            doc,
+            doc: doc.clone(),
             registry,
             positions: BTreeMap::new(),
             undo: Vec::new(),
             redo: Vec::new(),
             revision: 0,
             gesture: None,
+            // replaced below, once the positions are known
+            saved: Snapshot {
+                doc,
+                positions: BTreeMap::new(),
+            },
         };
         m.positions = m.auto_layout();
         for (name, p) in &m.doc.layout {
@@ -60,7 +68,14 @@ impl EditorModel {
                 m.positions.insert(name.clone(), *p);
             }
         }
+        m.saved = m.snapshot();
         m
+    }
+
+    /// Whether the document or a node's position changed since it was
+    /// read or last saved (an undo back to that state counts as unchanged).
+    pub fn is_modified(&self) -> bool {
+        self.doc != self.saved.doc || self.positions != self.saved.positions
     }
 
     /// Parses RON text (a pipeline file) into a model.
@@ -81,10 +96,31 @@ impl EditorModel {
         Self::from_text(&text, &path.display().to_string(), registry)
     }
 
-    /// Writes the document (with positions in its layout section) to `path`.
-    pub fn save(&self, path: &Path) -> Result<(), String> {
-        std::fs::write(path, self.to_ron())
-            .map_err(|e| format!("cannot write {}: {e}", path.display()))
+    /// Writes the document (with positions in its layout section) to
+    /// `path`, replacing it whole or not at all: the text goes to a
+    /// temporary file beside it, is flushed to disk, and is renamed over
+    /// it (a full disk or a crash mid-write leaves the old file as it was).
+    pub fn save(&mut self, path: &Path) -> Result<(), String> {
+        let text = self.to_ron();
+        write_replacing(path, text.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        self.saved = self.snapshot();
+        Ok(())
+    }
+
+    /// [`EditorModel::save`] to a file that must not exist yet (a new
+    /// document's first save): `Ok(false)`, and nothing written, when
+    /// `path` exists (another program made it since the name was picked).
+    pub fn save_new(&mut self, path: &Path) -> Result<bool, String> {
+        let text = self.to_ron();
+        match write_new(path, text.as_bytes()) {
+            Ok(()) => {
+                self.saved = self.snapshot();
+                Ok(true)
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
+            Err(e) => Err(format!("cannot write {}: {e}", path.display())),
+        }
     }
 
     /// The document as RON text, positions in the `layout` section.
@@ -125,10 +161,18 @@ impl EditorModel {
     }
 
     /// Moves a node (not an undoable step: dragging would flood the stack).
+    /// The canvas holds positions in f32: a position equal to the stored
+    /// one at that precision keeps the stored value, so a file's `10.3`
+    /// is not written back as `10.300000190734863` by a node never moved.
     pub fn set_position(&mut self, node: &str, pos: [f64; 2]) {
-        if self.doc.node(node).is_some() {
-            self.positions.insert(node.to_string(), pos);
+        if self.doc.node(node).is_none() {
+            return;
         }
+        let same = |a: [f64; 2]| a.map(|v| v as f32) == pos.map(|v| v as f32);
+        if self.positions.get(node).is_some_and(|p| same(*p)) {
+            return;
+        }
+        self.positions.insert(node.to_string(), pos);
     }
 
     /// The implementation (and so the schema) of a node's kind.
@@ -581,4 +625,45 @@ impl EditorModel {
         };
         names.into_iter().zip(pos).collect()
     }
+}
+
+/// Writes `bytes` to `path` through a temporary file in the same folder
+/// (flushed, then renamed over `path`): `path` holds the old bytes or the
+/// new ones, never a part. The temporary file is removed on failure.
+fn write_replacing(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let name = path
+        .file_name()
+        .ok_or_else(|| std::io::Error::other("the path names no file"))?;
+    let tmp = path.with_file_name(format!(
+        ".{}.{}.tmp",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
+    let written = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
+}
+
+/// Writes `bytes` to a new file `path` (`AlreadyExists` when there is
+/// one, which is left untouched); a failed write removes the part written.
+fn write_new(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)?;
+    let written = f.write_all(bytes).and_then(|()| f.sync_all());
+    if written.is_err() {
+        drop(f);
+        let _ = std::fs::remove_file(path);
+    }
+    written
 }

@@ -12,9 +12,13 @@ use eframe::egui::{self, Color32};
 use crate::model::EditorModel;
 
 /// Edit buffers of the parameter panel (text that is not yet a valid value).
-#[derive(Default)]
 pub struct PanelState {
-    pub edits: BTreeMap<String, String>,
+    /// Text fields being edited, by widget: the text typed so far and the
+    /// value's text when the editing began ([`buffered_text`]).
+    pub edits: BTreeMap<String, (String, String)>,
+    /// The folder that relative output paths are written under (the
+    /// file browser picks output files relative to it).
+    pub out_dir: PathBuf,
     pub error: Option<String>,
     /// The file browser open for a path parameter: "node.param" and the folder shown.
     pub browse: Option<(String, PathBuf)>,
@@ -22,6 +26,85 @@ pub struct PanelState {
     pub on_release: std::collections::BTreeSet<String>,
     /// A slider being dragged on such a node: "node.param" and the value shown.
     pub dragging: BTreeMap<String, f64>,
+}
+
+impl Default for PanelState {
+    fn default() -> Self {
+        Self {
+            edits: BTreeMap::new(),
+            out_dir: PathBuf::from("out"),
+            error: None,
+            browse: None,
+            on_release: Default::default(),
+            dragging: BTreeMap::new(),
+        }
+    }
+}
+
+/// The text a path parameter gets for a file picked in the browser: an
+/// output file under `out_dir` relative to it (the engine joins relative
+/// output paths onto that folder), any other output file absolute; an
+/// input file as browsed from the working directory, without `./` steps.
+pub fn picked_path_text(picked: &Path, output: bool, out_dir: &Path) -> String {
+    let plain: PathBuf = picked
+        .components()
+        .filter(|c| !matches!(c, std::path::Component::CurDir))
+        .collect();
+    if !output {
+        return plain.display().to_string();
+    }
+    // the folder resolved (it exists: the file was listed in it)
+    let absolute = match (plain.parent(), plain.file_name()) {
+        (Some(dir), Some(name)) => std::fs::canonicalize(if dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            dir
+        })
+        .map(|d| d.join(name))
+        .unwrap_or_else(|_| plain.clone()),
+        _ => plain.clone(),
+    };
+    match std::fs::canonicalize(out_dir) {
+        Ok(out) => match absolute.strip_prefix(&out) {
+            Ok(rel) => rel.display().to_string(),
+            Err(_) => absolute.display().to_string(),
+        },
+        Err(_) => absolute.display().to_string(),
+    }
+}
+
+/// A one-line text field for a parameter whose text is applied as a
+/// whole: what is typed is kept in `state.edits` under `key` and handed
+/// back once the field loses focus (Enter, Tab or a click elsewhere), and
+/// only if it differs from the value's text when the editing began. While
+/// the field has no focus it shows `current`, so a value changed
+/// elsewhere (a drag, a lasso click, undo) is never written back from a
+/// stale copy, and a path is not applied (re-running a sink that writes
+/// it) at every keystroke.
+fn buffered_text(
+    ui: &mut egui::Ui,
+    state: &mut PanelState,
+    key: &str,
+    current: String,
+    label_id: egui::Id,
+) -> Option<String> {
+    let id = ui.make_persistent_id(("param-text", key));
+    let focused = ui.memory(|m| m.has_focus(id));
+    let entry = state
+        .edits
+        .entry(key.to_string())
+        .or_insert_with(|| (current.clone(), current.clone()));
+    if !focused && entry.1 != current {
+        *entry = (current.clone(), current);
+    }
+    let r = ui
+        .add(egui::TextEdit::singleline(&mut entry.0).id(id))
+        .labelled_by(label_id);
+    if r.lost_focus() {
+        let (text, base) = state.edits.remove(key).unwrap_or_default();
+        return (text != base).then_some(text);
+    }
+    None
 }
 
 /// The entries of `dir` for the file browser: folders first, then files,
@@ -219,12 +302,8 @@ pub fn param_row(
                 ParamKind::Text | ParamKind::InputPath | ParamKind::OutputPath,
                 ParamValue::Text(s),
             ) => {
-                let mut v = s.clone();
-                if ui
-                    .text_edit_singleline(&mut v)
-                    .labelled_by(label_id)
-                    .changed()
-                {
+                let field = format!("{salt}:{key}");
+                if let Some(v) = buffered_text(ui, state, &field, s.clone(), label_id) {
                     new_value = Some(ParamValue::Text(v));
                 }
                 if matches!(spec.kind, ParamKind::InputPath | ParamKind::OutputPath)
@@ -241,22 +320,20 @@ pub fn param_row(
             }
             _ => {
                 // Points, Floats, Vec3: edited as RON text, applied on Enter.
-                let buf = state
-                    .edits
-                    .entry(key.clone())
-                    .or_insert_with(|| current.to_ron());
-                let r = ui.text_edit_singleline(buf).labelled_by(label_id);
-                if r.lost_focus() {
-                    new_text = Some(buf.clone());
-                    state.edits.remove(&key);
-                }
+                let field = format!("{salt}:{key}");
+                new_text = buffered_text(ui, state, &field, current.to_ron(), label_id);
             }
         }
     });
     if state.browse.as_ref().is_some_and(|(k, _)| *k == key)
         && let Some(path) = file_browser(ui, state)
     {
-        new_value = Some(ParamValue::Text(path));
+        let output = matches!(spec.kind, ParamKind::OutputPath);
+        new_value = Some(ParamValue::Text(picked_path_text(
+            Path::new(&path),
+            output,
+            &state.out_dir,
+        )));
     }
     let result = match (new_value, new_text) {
         (Some(v), _) => Some(model.set_param(node, name, v)),

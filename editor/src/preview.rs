@@ -122,6 +122,32 @@ pub fn preview_image(v: &Value) -> Option<ColorImage> {
 /// Tints `base` by `mask` (values in [0, 1], clamped): each pixel moves
 /// towards `tint` by `opacity × mask`. Returns false (and leaves `base`
 /// alone) when the sizes differ.
+/// `image` fitted to textures of at most `max_side` pixels a side (the
+/// display's limit; a larger texture aborts the renderer): scaled down by
+/// nearest sampling, aspect kept, at least one pixel a side. Images that
+/// fit are returned as they are. The preview maps the pointer with the
+/// image's own size, not the texture's.
+pub fn fit_texture(image: ColorImage, max_side: usize) -> ColorImage {
+    let [w, h] = image.size;
+    let max_side = max_side.max(1);
+    if w <= max_side && h <= max_side {
+        return image;
+    }
+    // guard: w or h > max_side >= 1 here, so the larger side is > 0
+    let s = max_side as f64 / w.max(h) as f64;
+    let fit = |n: usize| ((n as f64 * s).round() as usize).clamp(1, max_side);
+    let (tw, th) = (fit(w), fit(h));
+    let pixels = (0..tw * th)
+        .map(|i| {
+            // the source pixel under the texel's centre; guard: tw, th >= 1
+            let sx = (((i % tw) as f64 + 0.5) * w as f64 / tw as f64) as usize;
+            let sy = (((i / tw) as f64 + 0.5) * h as f64 / th as f64) as usize;
+            image.pixels[sy.min(h - 1) * w + sx.min(w - 1)]
+        })
+        .collect();
+    ColorImage::new([tw, th], pixels)
+}
+
 pub fn overlay_mask(
     base: &mut ColorImage,
     mask: &[f32],
@@ -220,6 +246,24 @@ pub fn describe_pixel(v: &Value, x: usize, y: usize) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A picture larger than the display's texture limit is shown scaled
+    /// down (aspect kept); one that fits is untouched.
+    #[test]
+    fn pictures_over_the_texture_limit_are_scaled_to_fit() {
+        let px = |i: usize| Color32::from_rgb((i % 251) as u8, (i / 251) as u8, 7);
+        let big = ColorImage::new([100, 30], (0..3000).map(px).collect());
+        let fit = fit_texture(big.clone(), 40);
+        assert_eq!(fit.size, [40, 12]);
+        // each texel is the source pixel under its centre
+        assert_eq!(fit.pixels[0], big.pixels[100 + 1]);
+        assert_eq!(fit.pixels[12 * 40 - 1], big.pixels[28 * 100 + 98]);
+        let thin = ColorImage::new([1, 9000], vec![Color32::WHITE; 9000]);
+        assert_eq!(fit_texture(thin, 8192).size, [1, 8192]);
+        let small = fit_texture(big.clone(), 100);
+        assert_eq!(small.size, big.size);
+        assert_eq!(small.pixels, big.pixels);
+    }
 
     #[test]
     fn overlay_tints_only_inside_the_mask_and_refuses_other_sizes() {

@@ -138,3 +138,29 @@ fn lasso_is_drawn_by_clicking_on_the_preview() {
         "mask area {area} px against the sphere's {disc:.0}"
     );
 }
+
+/// Closing the window with unsaved changes asks first (the edits were
+/// lost without a word); "Close without saving" then lets it close, and a
+/// document without changes closes at once.
+#[test]
+fn closing_with_unsaved_changes_asks_first() {
+    let mut app = small_demo();
+    assert!(app.model.is_modified());
+    assert!(app.window_title().ends_with('*'));
+    assert!(!app.request_close(), "closed with unsaved changes");
+    let mut h = Harness::builder()
+        .with_size(eframe::egui::vec2(1200.0, 800.0))
+        .build_ui_state(|ui, app: &mut EditorApp| app.show(ui), app);
+    h.run_steps(3);
+    assert!(!h.state().close_allowed());
+    h.get_by_label("Close without saving").click();
+    h.run_steps(2);
+    assert!(h.state().close_allowed());
+    assert!(h.state_mut().request_close());
+
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/demo.ron");
+    let reg = Arc::new(depthgraph_nodes::registry().expect("registry"));
+    let mut clean = EditorApp::new(EditorModel::load(&path, reg).expect("load"), path);
+    assert!(!clean.window_title().ends_with('*'));
+    assert!(clean.request_close());
+}

@@ -339,3 +339,97 @@ fn queued_requests_let_the_run_in_flight_finish_and_the_newest_win() {
     let (_, seen) = run(false, &mut m);
     assert_eq!(seen, vec![(3, true, false)]);
 }
+
+/// The model knows whether it holds unsaved changes: an edit makes it
+/// modified, undoing back to the file's state or saving clears it, and a
+/// node position equal to the stored one at the canvas's f32 precision
+/// neither counts nor rewrites the file's number.
+#[test]
+fn unsaved_changes_are_tracked() {
+    let mut m = demo();
+    assert!(!m.is_modified());
+    m.set_param("kinect", "seed", ParamValue::Int(9))
+        .expect("set");
+    assert!(m.is_modified());
+    assert!(m.undo());
+    assert!(!m.is_modified());
+    let [x, y] = m.positions()["scene"];
+    // what the canvas hands back for it each frame
+    m.set_position("scene", [f64::from(x as f32), f64::from(y as f32)]);
+    assert_eq!(m.positions()["scene"], [x, y]);
+    assert!(!m.is_modified());
+    m.set_position("scene", [x + 10.0, y]);
+    assert!(m.is_modified());
+    let dir = std::env::temp_dir().join(format!("depthgraph-editor-dirty-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("p.ron");
+    m.save(&path).expect("save");
+    assert!(!m.is_modified());
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Save replaces the file whole through a temporary file beside it (none
+/// left behind); a first save of a new document never replaces a file
+/// that appeared at its name; the file's comments survive a save.
+#[test]
+fn saving_replaces_whole_files_keeps_comments_and_never_clobbers_new_names() {
+    let dir = std::env::temp_dir().join(format!("depthgraph-editor-save-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("dir");
+    let source = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/refocus.ron");
+    let reg = Arc::new(depthgraph_nodes::registry().expect("registry"));
+    let mut m = EditorModel::load(&source, Arc::clone(&reg)).expect("load");
+    let path = dir.join("refocus.ron");
+    std::fs::write(
+        &path,
+        "an older, longer text that must be replaced whole ".repeat(400),
+    )
+    .expect("old file");
+    m.set_param("refocus", "f_number", ParamValue::Float(4.0))
+        .expect("set");
+    m.save(&path).expect("save");
+    let text = std::fs::read_to_string(&path).expect("read");
+    assert_eq!(text, m.to_ron());
+    let names: Vec<String> = std::fs::read_dir(&dir)
+        .expect("list")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(
+        names,
+        vec!["refocus.ron".to_string()],
+        "temporary files left"
+    );
+    // every comment line of the original is in the saved file
+    let original = std::fs::read_to_string(&source).expect("read source");
+    for line in original
+        .lines()
+        .filter(|l| l.trim_start().starts_with("//"))
+    {
+        assert!(text.contains(line.trim()), "comment lost: {line}\n{text}");
+    }
+    let reloaded = EditorModel::load(&path, Arc::clone(&reg)).expect("reload");
+    assert_eq!(
+        reloaded.param_value("refocus", "f_number"),
+        Ok(ParamValue::Float(4.0))
+    );
+    // a new document's name taken meanwhile: not written
+    let taken = dir.join("untitled.ron");
+    std::fs::write(&taken, "someone else's").expect("taken");
+    let mut fresh =
+        EditorModel::from_text("(version: 1, nodes: {})", "untitled.ron", reg).expect("fresh");
+    fresh.add_node("SyntheticScene").expect("add");
+    assert_eq!(fresh.save_new(&taken), Ok(false));
+    assert_eq!(
+        std::fs::read_to_string(&taken).expect("read"),
+        "someone else's"
+    );
+    assert!(fresh.is_modified());
+    let free = dir.join("untitled-1.ron");
+    assert_eq!(fresh.save_new(&free), Ok(true));
+    assert!(!fresh.is_modified());
+    assert_eq!(
+        std::fs::read_to_string(&free).expect("read"),
+        fresh.to_ron()
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}

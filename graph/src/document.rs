@@ -45,6 +45,98 @@ pub struct Document {
     pub frames: Option<String>,
     /// Notices from reading (e.g. a migrated older format).
     pub notices: Vec<String>,
+    /// The file's comments, each kept with the element it stood before
+    /// ([`CommentAnchor`]), so that [`Document::to_ron`] (the editor's
+    /// Save) writes them back there.
+    pub comments: BTreeMap<CommentAnchor, Vec<String>>,
+}
+
+/// The element a comment of the file is kept with. A comment on a line of
+/// its own belongs to the element written after it; one after code on its
+/// line, to the element on a later line (it is written back on the line
+/// above that element); one after the last element, to [`End`](Self::End).
+/// Comments inside a value (between a list's items) move before the next
+/// element; comments of a node or parameter that is removed go with it.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub enum CommentAnchor {
+    /// Before the document's opening parenthesis (the file's header).
+    Header,
+    /// Before a top-level field: `version`, `nodes`, `outputs`, `frames`,
+    /// `layout`.
+    Field(String),
+    /// Before a node's entry.
+    Node(String),
+    /// Before a node's `kind`.
+    Kind(String),
+    /// Before a parameter of a node: (node, parameter).
+    Param(String, String),
+    /// Before an input of a node: (node, input).
+    Input(String, String),
+    /// After the last element, before the closing parenthesis.
+    End,
+}
+
+/// Each comment with the element it is kept with ([`CommentAnchor`]):
+/// `root` is where the document's parenthesis opens, `fields` its
+/// top-level fields.
+fn attach_comments(
+    comments: Vec<ron_text::Comment>,
+    root: Pos,
+    fields: &[(Spanned<String>, Spanned<RonValue>)],
+    nodes: &[NodeDecl],
+) -> BTreeMap<CommentAnchor, Vec<String>> {
+    let at = |p: Pos| (p.line, p.col);
+    let mut anchors: Vec<((usize, usize), CommentAnchor)> = fields
+        .iter()
+        .map(|(k, _)| (at(k.pos), CommentAnchor::Field(k.value.clone())))
+        .collect();
+    for n in nodes {
+        let name = &n.name.value;
+        anchors.push((at(n.name.pos), CommentAnchor::Node(name.clone())));
+        anchors.push((at(n.kind.pos), CommentAnchor::Kind(name.clone())));
+        for (k, _) in &n.params {
+            anchors.push((
+                at(k.pos),
+                CommentAnchor::Param(name.clone(), k.value.clone()),
+            ));
+        }
+        for (k, _) in &n.inputs {
+            anchors.push((
+                at(k.pos),
+                CommentAnchor::Input(name.clone(), k.value.clone()),
+            ));
+        }
+    }
+    anchors.sort_by_key(|a| a.0);
+    let mut out: BTreeMap<CommentAnchor, Vec<String>> = BTreeMap::new();
+    for c in comments {
+        let here = at(c.pos);
+        let anchor = if here < at(root) {
+            CommentAnchor::Header
+        } else {
+            anchors
+                .iter()
+                .find(|(p, _)| if c.own_line { *p > here } else { p.0 > here.0 })
+                .map_or(CommentAnchor::End, |(_, a)| a.clone())
+        };
+        out.entry(anchor).or_default().push(c.text);
+    }
+    out
+}
+
+/// Writes the comments kept with `anchor`, each on its own line at
+/// `indent` spaces (a block comment's later lines as written).
+fn put_comments(
+    s: &mut String,
+    comments: &BTreeMap<CommentAnchor, Vec<String>>,
+    anchor: &CommentAnchor,
+    indent: usize,
+) {
+    for c in comments.get(anchor).into_iter().flatten() {
+        s.push_str(&" ".repeat(indent));
+        s.push_str(c);
+        s.push('\n');
+    }
 }
 
 /// One node of a document.
@@ -95,7 +187,7 @@ impl Document {
     /// Reads a document from RON text; `file` names it in messages.
     pub fn parse(text: &str, file: &str) -> Result<Document, Vec<CheckError>> {
         let loc = |pos: Pos| Location::new(file, pos);
-        let root = ron_text::parse(text).map_err(|e| {
+        let (root, comments) = ron_text::parse_with_comments(text).map_err(|e| {
             vec![if e.valid_ron {
                 CheckError::Format {
                     loc: loc(e.pos),
@@ -117,6 +209,7 @@ impl Document {
             layout: BTreeMap::new(),
             frames: None,
             notices: Vec::new(),
+            comments: BTreeMap::new(),
         };
         let shape = |pos: Pos, what: &str, found: &RonValue| CheckError::Format {
             loc: loc(pos),
@@ -256,6 +349,7 @@ impl Document {
                 "{file}: no `version` field; read as format version {FORMAT_VERSION}"
             ));
         }
+        doc.comments = attach_comments(comments, root.pos, fields, &doc.nodes);
         if errors.is_empty() {
             Ok(doc)
         } else {
@@ -345,17 +439,29 @@ impl Document {
     }
 
     /// Writes the document as RON a person can read and edit.
+    /// The file's comments are written back with the elements they stood
+    /// before ([`CommentAnchor`]).
     pub fn to_ron(&self) -> String {
+        use CommentAnchor as A;
+        let c = &self.comments;
+        let field = |f: &str| A::Field(f.to_string());
         let mut s = String::new();
+        put_comments(&mut s, c, &A::Header, 0);
         s.push_str("(\n");
+        put_comments(&mut s, c, &field("version"), 4);
         s.push_str(&format!("    version: {},\n", self.version));
+        put_comments(&mut s, c, &field("nodes"), 4);
         s.push_str("    nodes: {\n");
         for n in &self.nodes {
-            s.push_str(&format!("        {}: (\n", quote(&n.name.value)));
+            let name = &n.name.value;
+            put_comments(&mut s, c, &A::Node(name.clone()), 8);
+            s.push_str(&format!("        {}: (\n", quote(name)));
+            put_comments(&mut s, c, &A::Kind(name.clone()), 12);
             s.push_str(&format!("            kind: {},\n", quote(&n.kind.value)));
             if !n.params.is_empty() {
                 s.push_str("            params: (\n");
                 for (k, v) in &n.params {
+                    put_comments(&mut s, c, &A::Param(name.clone(), k.value.clone()), 16);
                     s.push_str(&format!(
                         "                {}: {},\n",
                         k.value,
@@ -367,6 +473,7 @@ impl Document {
             if !n.inputs.is_empty() {
                 s.push_str("            inputs: (\n");
                 for (k, v) in &n.inputs {
+                    put_comments(&mut s, c, &A::Input(name.clone(), k.value.clone()), 16);
                     s.push_str(&format!(
                         "                {}: {},\n",
                         k.value,
@@ -379,17 +486,32 @@ impl Document {
         }
         s.push_str("    },\n");
         let outs: Vec<String> = self.outputs.iter().map(|o| quote(&o.value)).collect();
+        put_comments(&mut s, c, &field("outputs"), 4);
         s.push_str(&format!("    outputs: [{}],\n", outs.join(", ")));
         if let Some(f) = &self.frames {
+            put_comments(&mut s, c, &field("frames"), 4);
             s.push_str(&format!("    frames: {},\n", quote(f)));
         }
         if !self.layout.is_empty() {
+            put_comments(&mut s, c, &field("layout"), 4);
             s.push_str("    layout: {\n");
             for (k, [x, y]) in &self.layout {
                 s.push_str(&format!("        {}: ({x:?}, {y:?}),\n", quote(k)));
             }
             s.push_str("    },\n");
         }
+        // the comments of a field not written (no frames, an empty
+        // layout) and those after the last element
+        for f in ["frames", "layout"] {
+            let written = match f {
+                "frames" => self.frames.is_some(),
+                _ => !self.layout.is_empty(),
+            };
+            if !written {
+                put_comments(&mut s, c, &field(f), 4);
+            }
+        }
+        put_comments(&mut s, c, &A::End, 4);
         s.push_str(")\n");
         s
     }
@@ -686,6 +808,43 @@ mod tests {
         let again = Document::parse(&d.to_ron(), "t.ron").unwrap();
         assert_eq!(again.to_ron(), d.to_ron());
         assert_eq!(again.nodes[0].params.len(), 2);
+    }
+
+    /// Written back, a file keeps its comments with the elements they
+    /// stood before (the editor's Save rewrote the file without them).
+    #[test]
+    fn comments_are_written_back_before_their_elements() {
+        let text = "// header one\n// header two\n#![enable(implicit_some)]\n(\n    // about the version\n    version: 1,\n    nodes: {\n        // the source\n        \"a\": (\n            kind: \"Source\", // trailing\n            params: (\n                // x is one and a half\n                x: 1.5,\n                list: [1.0, /* inside */ 2.0],\n            ),\n        ),\n        \"b\": (kind: \"Sink\", inputs: (\n            /* the wire */ v: \"a.out\")),\n    },\n    // what runs\n    outputs: [\"b\"],\n    // the end\n)\n";
+        let d = Document::parse(text, "t.ron").unwrap();
+        let out = d.to_ron();
+        let line_of = |needle: &str| {
+            out.lines()
+                .position(|l| l.contains(needle))
+                .unwrap_or_else(|| panic!("`{needle}` lost:\n{out}"))
+        };
+        // each comment on the line before its element (or in the header)
+        assert!(line_of("// header one") < line_of("// header two"));
+        let open = out.lines().position(|l| l == "(");
+        assert_eq!(Some(line_of("#![enable(implicit_some)]") + 1), open);
+        assert_eq!(line_of("// about the version") + 1, line_of("version: 1"));
+        assert_eq!(line_of("// the source") + 1, line_of("\"a\": ("));
+        // after code on its line: before the next line's element
+        assert_eq!(line_of("// trailing") + 2, line_of("x: 1.5"));
+        assert_eq!(line_of("// x is one") + 1, line_of("x: 1.5"));
+        // inside a value: before the next element
+        assert_eq!(line_of("/* inside */") + 1, line_of("\"b\": ("));
+        assert_eq!(line_of("/* the wire */") + 1, line_of("v: \"a.out\""));
+        assert_eq!(line_of("// what runs") + 1, line_of("outputs:"));
+        assert_eq!(line_of("// the end") + 2, out.lines().count());
+        // and a second round trip changes nothing
+        let again = Document::parse(&out, "t.ron").unwrap();
+        assert_eq!(again.to_ron(), out);
+        assert_eq!(again.comments, d.comments);
+        // a node's comments go with it
+        let mut gone = d.clone();
+        gone.nodes.retain(|n| n.name.value != "a");
+        assert!(!gone.to_ron().contains("the source"));
+        assert!(!gone.to_ron().contains("x is one"));
     }
 
     /// A field written twice (a parameter, an input, a node's `kind`, a

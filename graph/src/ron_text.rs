@@ -96,8 +96,26 @@ pub struct SyntaxError {
     pub valid_ron: bool,
 }
 
+/// A comment of the text (`// ...` without its line break, `/* ... */`
+/// whole, or a `#![...]` attribute line), where it starts, and whether it
+/// stands on a line of its own (only blanks before it).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Comment {
+    /// Where the comment starts.
+    pub pos: Pos,
+    /// Its text as written.
+    pub text: String,
+    /// Nothing but blanks before it on its line.
+    pub own_line: bool,
+}
+
 /// Parses a whole RON text into a spanned tree.
 pub fn parse(text: &str) -> Result<Spanned<RonValue>, SyntaxError> {
+    parse_with_comments(text).map(|(v, _)| v)
+}
+
+/// [`parse`], also returning the text's comments in written order.
+pub fn parse_with_comments(text: &str) -> Result<(Spanned<RonValue>, Vec<Comment>), SyntaxError> {
     // First the reference parser, for its messages and positions.
     if let Err(e) = ron::from_str::<ron::Value>(text) {
         return Err(SyntaxError {
@@ -119,7 +137,7 @@ pub fn parse(text: &str) -> Result<Spanned<RonValue>, SyntaxError> {
         }
         Ok(v)
     })();
-    read.map_err(|e| SyntaxError {
+    read.map(|v| (v, p.comments)).map_err(|e| SyntaxError {
         message: format!(
             "{} (valid RON, but not a form a pipeline takes: write plain numbers, strings, lists, maps and structs)",
             e.message
@@ -135,6 +153,7 @@ struct Parser<'a> {
     line: usize,
     col: usize,
     _text: &'a str,
+    comments: Vec<Comment>,
 }
 
 impl<'a> Parser<'a> {
@@ -146,6 +165,7 @@ impl<'a> Parser<'a> {
             line: 1,
             col: 1,
             _text: text,
+            comments: Vec::new(),
         }
     }
     fn pos(&self) -> Pos {
@@ -178,21 +198,39 @@ impl<'a> Parser<'a> {
         }
         Some(c)
     }
+    /// Keeps the comment from char `from` (at `start`) to here; a
+    /// trailing `\r` (a CRLF line) is not part of it.
+    fn note_comment(&mut self, start: Pos, from: usize) {
+        let text: String = self.chars[from..self.i].iter().collect();
+        let own_line = self.chars[..from]
+            .iter()
+            .rev()
+            .take_while(|c| **c != '\n')
+            .all(|c| c.is_whitespace());
+        self.comments.push(Comment {
+            pos: start,
+            text: text.trim_end_matches('\r').to_string(),
+            own_line,
+        });
+    }
     fn skip_ws(&mut self) -> Result<(), SyntaxError> {
         loop {
             match (self.peek(), self.peek_at(1)) {
                 (Some(c), _) if c.is_whitespace() => {
                     self.bump();
                 }
-                (Some('/'), Some('/')) => {
-                    while let Some(c) = self.bump() {
+                (Some('/'), Some('/')) | (Some('#'), Some('!')) => {
+                    let (start, from) = (self.pos(), self.i);
+                    while let Some(c) = self.peek() {
                         if c == '\n' {
                             break;
                         }
+                        self.bump();
                     }
+                    self.note_comment(start, from);
                 }
                 (Some('/'), Some('*')) => {
-                    let start = self.pos();
+                    let (start, from) = (self.pos(), self.i);
                     self.bump();
                     self.bump();
                     let mut depth = 1;
@@ -216,14 +254,7 @@ impl<'a> Parser<'a> {
                             _ => {}
                         }
                     }
-                }
-                (Some('#'), Some('!')) => {
-                    // extension attribute line
-                    while let Some(c) = self.bump() {
-                        if c == '\n' {
-                            break;
-                        }
-                    }
+                    self.note_comment(start, from);
                 }
                 _ => return Ok(()),
             }
@@ -349,6 +380,8 @@ impl<'a> Parser<'a> {
         self.skip_ws()?;
         // Look ahead: identifier followed by ':' (but not '::') means struct fields.
         let save = (self.i, self.line, self.col);
+        // the look-ahead's comments are read again below
+        let seen = self.comments.len();
         let is_struct = if self.peek().is_some_and(|c| c.is_alphabetic() || c == '_') {
             let _ = self.ident();
             self.skip_ws()?;
@@ -357,6 +390,7 @@ impl<'a> Parser<'a> {
             false
         };
         (self.i, self.line, self.col) = save;
+        self.comments.truncate(seen);
         if is_struct {
             let mut fields = Vec::new();
             loop {
