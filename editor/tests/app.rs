@@ -164,3 +164,27 @@ fn closing_with_unsaved_changes_asks_first() {
     assert!(!clean.window_title().ends_with('*'));
     assert!(clean.request_close());
 }
+
+/// The lasso's "Clear clicks" works while no picture is shown yet (the
+/// first run still computing): the click was dropped before the preview
+/// returned early.
+#[test]
+fn lasso_buttons_work_before_the_picture_arrives() {
+    let path = common::graph_path("copy_paste.ron");
+    let mut app = EditorApp::new(common::load("copy_paste.ron"), path);
+    app.select("lasso");
+    let mut h = Harness::builder()
+        .with_size(eframe::egui::vec2(1200.0, 800.0))
+        .build_ui_state(|ui, app: &mut EditorApp| app.show(ui), app);
+    h.step();
+    assert!(
+        h.state().preview_fingerprint().is_none(),
+        "a picture already"
+    );
+    h.get_by_label("Clear clicks").click();
+    h.step();
+    assert_eq!(
+        h.state().model.param_value("lasso", "clicks"),
+        Ok(ParamValue::Points(Vec::new()))
+    );
+}
