@@ -541,11 +541,14 @@ impl Aperture {
     }
 
     /// Largest distance of an aperture point from the centre, in aperture
-    /// diameters (1/2 for the disc and polygons, up to `sqrt(2)/2` for a
-    /// mask).
+    /// diameters: 1/2 for the disc and polygons; for a mask, the farthest
+    /// corner of an open pixel from the mask's centre of transmittance
+    /// (its points are centred there, [`Aperture::samples`]): up to
+    /// `sqrt(2)/2` for a centred shape, up to `sqrt(2)` for a lopsided one
+    /// (a blob in one corner, one open pixel in the opposite one).
     pub fn extent(&self) -> f64 {
         match self {
-            Aperture::Mask(_) => std::f64::consts::FRAC_1_SQRT_2,
+            Aperture::Mask(m) => mask_extent(m),
             _ => 0.5,
         }
     }
@@ -618,8 +621,11 @@ impl Aperture {
     /// square. Masks are sampled in proportion to their transmittance: the
     /// open pixels, in scan order, form a cumulative distribution that is cut
     /// into `n` equal strata with one jittered point each (so even a mask
-    /// with one open pixel works). The mean of the points is subtracted for
-    /// masks, so that a lopsided mask does not shift the in-focus image.
+    /// with one open pixel works). Mask points are centred on the mask's
+    /// centre of transmittance (the mean of its open pixels' centres,
+    /// weighted by transmittance: where a lopsided aperture's mean ray
+    /// passes), so that it does not shift the in-focus image, and
+    /// [`Aperture::extent`] bounds them exactly.
     ///
     /// ```
     /// use depthgraph_nodes::camera::lens::Aperture;
@@ -630,6 +636,16 @@ impl Aperture {
     pub fn samples(&self, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeError> {
         if n == 0 {
             return Ok(Vec::new());
+        }
+        if n == 1 {
+            // One ray: the lens's mean ray, through the centre (a point
+            // drawn anywhere else shifted every blurred pixel by up to half
+            // its circle of confusion, and blurred nothing). A mask with no
+            // open pixel is still refused.
+            if let Aperture::Mask(m) = self {
+                mask_samples(m, 1, seed)?;
+            }
+            return Ok(vec![[0.0, 0.0]]);
         }
         match self {
             Aperture::Mask(m) => mask_samples(m, n, seed),
@@ -677,10 +693,10 @@ fn radical_inverse(mut i: u64, base: u64) -> f64 {
     r
 }
 
-fn mask_samples(m: &Mask, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeError> {
-    let (w, h) = m.dims();
-    let open: Vec<(usize, f64)> = m
-        .as_slice()
+/// A mask's open pixels (index, transmittance in (0, 1]; NaN and values
+/// <= 0 are closed) in scan order.
+fn mask_open(m: &Mask) -> Vec<(usize, f64)> {
+    m.as_slice()
         .iter()
         .enumerate()
         .filter_map(|(i, v)| {
@@ -691,16 +707,71 @@ fn mask_samples(m: &Mask, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeErro
             };
             (t > 0.0).then_some((i, t))
         })
-        .collect();
+        .collect()
+}
+
+/// The square a `w x h` mask is centred in: its side in pixels (>= 1 for
+/// a mask with a pixel) and the mask's offset in it.
+fn mask_square(w: usize, h: usize) -> (f64, f64, f64) {
+    let side = w.max(h) as f64;
+    (side, (side - w as f64) / 2.0, (side - h as f64) / 2.0)
+}
+
+/// A mask's centre of transmittance in aperture diameters (centre of its
+/// square 0): the transmittance-weighted mean of its open pixels' centres.
+/// `None` when no pixel is open.
+fn mask_centre(m: &Mask, open: &[(usize, f64)]) -> Option<[f64; 2]> {
+    let (w, h) = m.dims();
+    let (side, ox, oy) = mask_square(w, h);
     let total: f64 = open.iter().map(|(_, t)| t).sum();
-    if open.is_empty() || total <= 0.0 {
+    if open.is_empty() || total <= 0.0 || side < 1.0 {
+        return None;
+    }
+    let (mut sx, mut sy) = (0.0, 0.0);
+    for &(i, t) in open {
+        sx += t * ((i % w) as f64 + ox + 0.5);
+        sy += t * ((i / w) as f64 + oy + 0.5);
+    }
+    // guard: total > 0 and side >= 1 (checked above)
+    Some([sx / total / side - 0.5, sy / total / side - 0.5])
+}
+
+/// [`Aperture::extent`] of a mask: its open pixels' farthest corner from
+/// its centre of transmittance (`sqrt(2)/2`, the whole square's, when
+/// no pixel is open: sampling such a mask is an error anyway).
+fn mask_extent(m: &Mask) -> f64 {
+    let open = mask_open(m);
+    let Some(c) = mask_centre(m, &open) else {
+        return std::f64::consts::FRAC_1_SQRT_2;
+    };
+    let (w, h) = m.dims();
+    let (side, ox, oy) = mask_square(w, h);
+    open.iter()
+        .map(|&(i, _)| {
+            let (x0, y0) = (
+                ((i % w) as f64 + ox) / side - 0.5,
+                ((i / w) as f64 + oy) / side - 0.5,
+            );
+            // guard: side >= 1 (a centre exists)
+            let (x1, y1) = (x0 + 1.0 / side, y0 + 1.0 / side);
+            let dx = (x0 - c[0]).abs().max((x1 - c[0]).abs());
+            let dy = (y0 - c[1]).abs().max((y1 - c[1]).abs());
+            dx.hypot(dy)
+        })
+        .fold(0.0, f64::max)
+}
+
+fn mask_samples(m: &Mask, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeError> {
+    let (w, h) = m.dims();
+    let open = mask_open(m);
+    let total: f64 = open.iter().map(|(_, t)| t).sum();
+    let Some(centre) = mask_centre(m, &open) else {
         return Err(NodeError::input(
             "aperture",
             "the aperture mask has no open pixel (every value is 0): no light passes",
         ));
-    }
-    let side = w.max(h) as f64;
-    let (ox, oy) = ((side - w as f64) / 2.0, (side - h as f64) / 2.0);
+    };
+    let (side, ox, oy) = mask_square(w, h);
     let mut out = Vec::with_capacity(n);
     let mut rng = splitmix64(seed ^ 0x6d61_736b);
     let mut k = 0usize;
@@ -720,14 +791,10 @@ fn mask_samples(m: &Mask, n: usize, seed: u64) -> Result<Vec<[f64; 2]>, NodeErro
         rng = splitmix64(rng);
         let jy = unit(rng);
         // Guard: side >= 1 (a mask has at least one pixel here).
-        out.push([(px + ox + jx) / side - 0.5, (py + oy + jy) / side - 0.5]);
-    }
-    // Centre the samples (guard: n > 0).
-    let mean = out.iter().fold([0.0; 2], |a, p| [a[0] + p[0], a[1] + p[1]]);
-    let mean = [mean[0] / n as f64, mean[1] / n as f64];
-    for p in &mut out {
-        p[0] -= mean[0];
-        p[1] -= mean[1];
+        out.push([
+            (px + ox + jx) / side - 0.5 - centre[0],
+            (py + oy + jy) / side - 0.5 - centre[1],
+        ]);
     }
     Ok(out)
 }
@@ -854,6 +921,64 @@ mod tests {
         };
         assert!(tri.contains(0.0, -0.49));
         assert!(tri.contains(0.0, 0.24) && !tri.contains(0.0, 0.26));
+    }
+
+    /// One sample is the lens's centre, for every shape: a single point
+    /// drawn off the centre shifted the whole out-of-focus image.
+    #[test]
+    fn one_sample_is_the_centre() {
+        let mut m = Mask::filled(9, 9, 0.0);
+        *m.get_mut(0, 0) = 1.0;
+        *m.get_mut(8, 3) = 0.5;
+        for ap in [
+            Aperture::Disc,
+            Aperture::Polygon {
+                blades: 3,
+                rotation_deg: 10.0,
+            },
+            Aperture::Mask(m),
+        ] {
+            for seed in [0, 1, 77] {
+                assert_eq!(ap.samples(1, seed).unwrap(), vec![[0.0, 0.0]], "{ap:?}");
+            }
+        }
+        assert!(
+            Aperture::Mask(Mask::filled(3, 3, 0.0))
+                .samples(1, 0)
+                .is_err()
+        );
+    }
+
+    /// A lopsided mask's points reach beyond `sqrt(2)/2` from its centre
+    /// of transmittance; `extent` bounds every one of them (it was a
+    /// constant, and kernels and active tiles cut such bokeh short).
+    #[test]
+    fn a_lopsided_masks_extent_bounds_its_points() {
+        let mut m = Mask::filled(64, 64, 0.0);
+        for y in 0..8 {
+            for x in 0..8 {
+                *m.get_mut(x, y) = 1.0;
+            }
+        }
+        *m.get_mut(63, 63) = 1.0;
+        let ap = Aperture::Mask(m);
+        let s = ap.samples(4096, 3).unwrap();
+        let far = s.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
+        assert!(far > std::f64::consts::FRAC_1_SQRT_2, "{far}");
+        assert!(
+            far <= ap.extent() && ap.extent() < far + 0.03,
+            "{far} {}",
+            ap.extent()
+        );
+        // centred: the points' mean is the centre of transmittance
+        let mean = s.iter().fold([0.0; 2], |a, p| [a[0] + p[0], a[1] + p[1]]);
+        assert!(
+            mean[0].abs() / 4096.0 < 1e-3 && mean[1].abs() / 4096.0 < 1e-3,
+            "{mean:?}"
+        );
+        // a full mask: its square's half diagonal
+        let full = Aperture::Mask(Mask::filled(8, 8, 1.0));
+        assert!((full.extent() - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-12);
     }
 
     #[test]

@@ -215,7 +215,9 @@ pub fn background_layer(
         // No edge can reveal half a pixel (or the scale is unusable).
         return BackgroundLayer::default();
     }
-    let r = (span.ceil() as usize + 1).min(MAX_REACH_PX);
+    // (the cast saturates at usize::MAX for a huge or infinite span: the
+    // + 1 must not overflow)
+    let r = (span.ceil() as usize).saturating_add(1).min(MAX_REACH_PX);
     // Candidates: some pixel within the window is a background and the
     // step reveals at least half a pixel.
     let near_min = window_min(inv_z, w, h, r);
@@ -579,6 +581,17 @@ mod tests {
             w,
             background_layer(w, h, &color, &inv_z, &vec![true; w * h], &p),
         )
+    }
+
+    /// A reach past usize (a depth of 1e-19 m under the default lens) is
+    /// capped like any large one: `span as usize + 1` overflowed (a panic
+    /// in a debug build, an empty layer in release).
+    #[test]
+    fn an_enormous_reach_is_capped_not_overflowed() {
+        let (_, capped) = bar_layer(1e40);
+        let (_, large) = bar_layer(1e6);
+        assert!(!large.is_empty());
+        assert_eq!(capped.pixels, large.pixels);
     }
 
     #[test]

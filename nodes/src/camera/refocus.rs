@@ -485,6 +485,9 @@ pub fn plan(
             // (a frame with no blur reads beyond it only through a channel's
             // minification)
             let blur = if max_coc >= MIN_COC_PX { max_coc } else { 0.0 };
+            // (reach_px takes a disc's reach, half the circle: a mask
+            // reaches its extent's share of it)
+            let blur = blur * 2.0 * aperture.extent();
             Frame::new(w, h, reach_px(blur, &fx, &lens, w, h))
         }
     };
@@ -1270,11 +1273,16 @@ pub fn reverse_mapped_dof(
     let steps = (max_diam * 2.0).ceil() as usize + 1;
     let index = |c: f64| kernel_step(c, max_diam, steps);
     let used = reverse_kernels_used(coc.as_slice(), max_diam, steps, aperture)?;
+    // a mask's footprint: its points (an error when no light passes)
+    let mask_points = match aperture {
+        Aperture::Mask(_) => Some(aperture.samples(MASK_KERNEL_SAMPLES, 0)?),
+        _ => None,
+    };
     let kernels: Vec<Vec<(isize, isize)>> = (0..=steps)
         .into_par_iter()
         .map(|s| {
             if used[s] {
-                kernel(aperture, s as f64 * 0.5)
+                kernel(aperture, mask_points.as_deref(), s as f64 * 0.5)
             } else {
                 Vec::new()
             }
@@ -1383,17 +1391,18 @@ const MAX_REVERSE_OPS: f64 = 1e11;
 const MAX_REVERSE_KERNEL_CELLS: f64 = (1u64 << 26) as f64;
 
 /// Pixel offsets inside `aperture` scaled to `diameter` pixels; always
-/// includes `(0, 0)`.
-fn kernel(aperture: &Aperture, diameter: f64) -> Vec<(isize, isize)> {
+/// includes `(0, 0)`. A mask's footprint is that of its points
+/// `mask_points` (given for a mask; an analytic shape tests itself).
+fn kernel(
+    aperture: &Aperture,
+    mask_points: Option<&[[f64; 2]]>,
+    diameter: f64,
+) -> Vec<(isize, isize)> {
     let r = (diameter * aperture.extent()).ceil() as isize;
     let mut out = vec![(0, 0)];
     if diameter <= 0.0 {
         return out;
     }
-    let mask_points = match aperture {
-        Aperture::Mask(_) => aperture.samples(MASK_KERNEL_SAMPLES, 0).ok(),
-        _ => None,
-    };
     for oy in -r..=r {
         for ox in -r..=r {
             if ox == 0 && oy == 0 {
@@ -1401,7 +1410,7 @@ fn kernel(aperture: &Aperture, diameter: f64) -> Vec<(isize, isize)> {
             }
             // Guard: diameter > 0 here.
             let (ux, uy) = (ox as f64 / diameter, oy as f64 / diameter);
-            let inside = match &mask_points {
+            let inside = match mask_points {
                 // A mask's (centred) footprint: some sample within half a
                 // pixel of the offset.
                 Some(pts) => {
@@ -1479,9 +1488,14 @@ pub fn produced(
     let passthrough = (report.samples == 0 && !applied).then(|| sharp_reason(p, report));
     let mut lines = Vec::new();
     if report.samples == 0 && applied {
+        let exposure = if p.exposure_stops != 0.0 {
+            format!(" and the exposure ({:+} stops)", p.exposure_stops)
+        } else {
+            String::new()
+        };
         lines.push(format!(
             "no blur (circle of confusion below {MIN_COC_PX} px everywhere, largest {:.3} px): \
-             only the lens's vignetting and magnification applied",
+             only the lens's vignetting and magnification{exposure} applied",
             report.max_coc_px
         ));
     }
@@ -1541,7 +1555,7 @@ fn eval_reverse(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Refocus",
-        3,
+        4,
         "Thin-lens depth of field by sampling the aperture (realistic-depth-blur Sec. 2.3): one sheared \
          pinhole view per aperture sample, forward-warped with a z-buffer, disocclusions inpainted with the \
          far-depth prior, averaged in linear radiance, then the exposure. Any aperture shape gives its bokeh.\n\
@@ -1550,7 +1564,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "ReverseMappedDof",
-        1,
+        2,
         "The common per-pixel gather blur (reverse-mapped z-buffer DoF) that realistic-depth-blur Fig. 5 \
          compares against: each pixel averages the aperture shape scaled to its own circle of confusion, \
          without a depth test (blurred background leaks over sharp edges). For comparisons; use Refocus.",
@@ -2054,6 +2068,47 @@ mod tests {
                 assert!(e <= 1.0, "({x}, {y}): {e}");
             }
         }
+    }
+
+    /// With nothing to blur but a lens effect on, `explain` names every
+    /// change made to the image: the exposure too (it was left out).
+    #[test]
+    fn a_sharp_image_reports_its_exposure_with_the_lens_effects() {
+        let (w, h) = (24, 16);
+        let c = ColorImage::from_fn(w, h, |x, _| [x as f32 / 24.0; 3]);
+        let p = RefocusParams {
+            natural_vignetting: 4.0,
+            exposure_stops: 1.0,
+            ..params(2.0, 5.0, 32)
+        };
+        // everything at the focus distance: no blur
+        let d = DepthMap::filled(w, h, 2.0);
+        let (out, report) = refocus(&c, &d, &Aperture::Disc, &p, |_| Ok(())).unwrap();
+        assert_eq!(report.samples, 0);
+        let note = produced(RefocusOut { color: out }, &p, &report).report;
+        let note = note.unwrap_or_default();
+        assert!(
+            note.contains("vignetting and magnification and the exposure (+1 stops) applied"),
+            "{note}"
+        );
+    }
+
+    /// An aperture mask that lets no light through is an error for the
+    /// reverse-mapped blur too (it returned the image unblurred: its
+    /// kernels fell back to a test no offset passed).
+    #[test]
+    fn reverse_mapped_refuses_a_closed_mask() {
+        let (w, h) = (24, 16);
+        let c = ColorImage::from_fn(w, h, |x, _| [x as f32; 3]);
+        let d = DepthMap::filled(w, h, 1.0);
+        let p = params(5.0, 2.0, 32);
+        let e = reverse_mapped_dof(&c, &d, &Aperture::Mask(Mask::filled(5, 5, 0.0)), &p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no open pixel"), "{e}");
+        // an open mask blurs the ramp's ends
+        let out = reverse_mapped_dof(&c, &d, &Aperture::Mask(Mask::filled(5, 5, 1.0)), &p).unwrap();
+        assert!(out.get(0, 8)[0] > 0.5, "{:?}", out.get(0, 8));
     }
 
     #[test]

@@ -144,12 +144,12 @@ pub fn sample_sky(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
     let sky = p.sky_color.map(|c| c as f32);
     let ground = p.ground_color.map(|c| c as f32);
     let mut map = Image::from_fn(w, h, |_, y| {
-        // horizon at v = h / 2: rows whose centre is above it are sky
-        if (y as f64 + 0.5) < 0.5 * h as f64 {
-            sky
-        } else {
-            ground
-        }
+        // horizon at v = h / 2: each row takes sky and ground by the share
+        // of its height above and below it (whole rows for an even h; the
+        // middle row of an odd h is half of each, so a 1-row map is not
+        // all ground)
+        let above = (0.5 * h as f64 - y as f64).clamp(0.0, 1.0) as f32;
+        std::array::from_fn(|ch| above * sky[ch] + (1.0 - above) * ground[ch])
     });
     let sun = sun_direction(p.sun_elevation_deg, p.sun_azimuth_deg);
     let omega = sun_solid_angle(p.sun_size_deg);
@@ -410,7 +410,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(
         PortedNode::new(
             "EnvironmentMap",
-            1,
+            2,
             "An equirectangular environment map in linear radiance: loaded (EXR/HDR) or the generated sample sky \
              with a sun (3d-editing §IV.A, the light source of the VPLs).\nRow 0 is the zenith; the centre column \
              looks behind the camera (-z), azimuth grows towards +x (the SyntheticScene sun convention).",
@@ -481,6 +481,28 @@ mod tests {
             let s = sun_direction(p.sun_elevation_deg, p.sun_azimuth_deg);
             assert!(d.dot(s) > (3f64 + size).to_radians().cos(), "size {size}");
         }
+    }
+
+    /// The horizon row of an odd-height map is half sky, half ground (a
+    /// 1-row map was all ground, its sky colour unused); even heights keep
+    /// whole rows.
+    #[test]
+    fn the_horizon_row_of_an_odd_map_is_half_sky() {
+        let at = |h: usize| {
+            let p = EnvMapParams {
+                width: 8,
+                height: h,
+                sky_color: [1.0, 0.5, 0.25],
+                ground_color: [0.0, 0.25, 0.75],
+                sun_radiance: 0.0,
+                ..Default::default()
+            };
+            let m = sample_sky(&p).unwrap();
+            (0..h).map(|y| m.get(3, y)[1]).collect::<Vec<f32>>()
+        };
+        assert_eq!(at(1), vec![0.375]);
+        assert_eq!(at(3), vec![0.5, 0.375, 0.25]);
+        assert_eq!(at(4), vec![0.5, 0.5, 0.25, 0.25]);
     }
 
     #[test]

@@ -116,6 +116,36 @@ fn two_three_and_five_exposures_recover_the_exact_radiance() -> TestResult {
     Ok(())
 }
 
+/// A large smoothness weight leaves the curve's slope to the data: the
+/// factorisation's guard was sized by the whole diagonal, which grows
+/// with λ, and at λ = 1e9 (the parameter's top) pulled the curve towards
+/// flat, halving its slope and the merged radiance's log range.
+#[test]
+fn a_stiff_curve_keeps_the_slope_the_data_give() -> TestResult {
+    let (truth, _) = patch_scene();
+    let stack = simulate_bracket(&truth, &bracket(&[-3.0, 0.0, 3.0]))?;
+    let slope = |lambda: f64| -> Result<f64, NodeError> {
+        let g = recover_response(
+            &stack,
+            &ResponseParams {
+                lambda,
+                ..Default::default()
+            },
+        )?;
+        Ok(g.g[1][192] - g.g[1][64])
+    };
+    // the camera's own curve: g = 2.2 ln(z / 255) + const
+    let truth = 2.2 * 3f64.ln();
+    for lambda in [1e5, 1e7, 1e9] {
+        let s = slope(lambda)?;
+        assert!(
+            (s / truth - 1.0).abs() < 0.1,
+            "λ {lambda}: {s} against {truth}"
+        );
+    }
+    Ok(())
+}
+
 /// Largest relative spread of the channels, `max/min - 1`, of the mean
 /// radiance of the neutral patches (9 x 5 pixels around each centre, so
 /// that sensor noise averages out) that some exposure sees well.

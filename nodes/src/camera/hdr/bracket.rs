@@ -13,9 +13,11 @@ use rayon::prelude::*;
 node_params! {
     /// Parameters of `LoadBracket`.
     pub struct LoadBracketParams {
-        /// Text file listing the exposures, one per line: `filename exposure_time_s [more columns
-        /// ignored]`; `#` starts a comment; file names are relative to the list's directory
-        /// (Debevec's memorial `image_list.txt` reads as is). Leave empty to use `files`.
+        /// Text file listing the exposures, one per line: `filename exposure_time_s [more columns]`;
+        /// `#` starts a comment; file names are relative to the list's directory (Debevec's
+        /// memorial `image_list.txt` reads as is). Of HDRShop's further columns (`1/shutter
+        /// f/stop gain(dB) ND`), f-stop, gain and ND must be the same on every line: the time
+        /// alone is taken as the exposure. Leave empty to use `files`.
         pub list: String = "", ParamKind::InputPath;
         /// Comma-separated image files (8/16-bit PNG or TIFF, JPEG; relative to the working
         /// directory like LoadColor's path), used when `list` is empty.
@@ -40,6 +42,8 @@ pub fn parse_bracket_list(text: &str, list: &Path) -> Result<Vec<(PathBuf, f64)>
         message: format!("line {line}: {message}"),
     };
     let mut out = Vec::new();
+    // the first exposure's columns after its time
+    let mut first_rest: Vec<String> = Vec::new();
     for (n, raw) in text.lines().enumerate() {
         let line = raw.split('#').next().unwrap_or("").trim();
         if line.is_empty() {
@@ -63,6 +67,32 @@ pub fn parse_bracket_list(text: &str, list: &Path) -> Result<Vec<(PathBuf, f64)>
                 n + 1,
                 format!("exposure time {t} s of {name} must be positive"),
             ));
+        }
+        // HDRShop's columns after the time (`1/shutter_speed f/stop
+        // gain(db) ND_filters`): the merge takes the time alone as the
+        // exposure, so the aperture, gain and filter must be the same on
+        // every line (numbers that differ would be merged as equal
+        // exposures, silently wrong)
+        let rest: Vec<&str> = tokens.collect();
+        for (col, what) in [(1, "f-stop"), (2, "gain"), (3, "ND filter")] {
+            let (Some(here), Some(first)) = (rest.get(col), first_rest.get(col)) else {
+                continue;
+            };
+            if let (Ok(a), Ok(b)) = (here.parse::<f64>(), first.parse::<f64>())
+                && a != b
+            {
+                return Err(err(
+                    n + 1,
+                    format!(
+                        "{name}'s {what} is {here}, the first exposure's {first}: exposures that \
+                         differ in anything but time are not merged (give each line a time that \
+                         includes the difference, and equal {what}s)"
+                    ),
+                ));
+            }
+        }
+        if out.is_empty() {
+            first_rest = rest.iter().map(|t| t.to_string()).collect();
         }
         out.push((dir.join(name), t));
     }

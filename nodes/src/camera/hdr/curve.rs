@@ -12,6 +12,9 @@ pub const LEVELS: usize = 256;
 pub(super) const Z_MAX: f64 = 255.0;
 /// Level fixed by the constraint `g(Z_MID) = 0`.
 pub const Z_MID: usize = 128;
+/// Top levels of a curve read from an image that may not all be equal
+/// ([`ResponseCurve::from_image`]).
+pub const FLAT_TOP: usize = 8;
 
 /// The hat weighting of eq. 4 on a real level `z` in `[0, 255]`:
 /// `min(z, 255 - z)`, 0 at (and beyond) both ends and for NaN.
@@ -100,7 +103,8 @@ impl ResponseCurve {
     }
 
     /// Reads a curve written by [`ResponseCurve::to_image`]; `port` names the
-    /// input in errors. Every value must be finite and positive.
+    /// input in errors. Every value must be finite and positive, and the top
+    /// [`FLAT_TOP`] levels must not all be equal (a curve clipped at 1).
     pub fn from_image(img: &ColorImage, port: &str) -> Result<Self, NodeError> {
         if img.dims() != (LEVELS, 1) {
             return Err(NodeError::input(
@@ -122,6 +126,26 @@ impl ResponseCurve {
                     ));
                 }
                 g[c][z] = (*v as f64).ln();
+            }
+        }
+        // A curve's top levels always rise (recovery extends its ends with
+        // a positive slope; a gamma rises everywhere). Flat at the top is
+        // what a format that clips at 1 leaves (exp g > 1 above level 128):
+        // merged with it every highlight would read as one exposure.
+        for (c, gc) in g.iter().enumerate() {
+            let top = &gc[LEVELS - FLAT_TOP..];
+            if top.iter().all(|v| *v == top[0]) {
+                return Err(NodeError::input(
+                    port,
+                    format!(
+                        "channel {c}: levels {} to {} all hold {}: the curve was saved in a format that \
+                         clips values above 1 (PNG, JPEG, TIFF) and lost its top; save HdrMerge's curve \
+                         as EXR or HDR",
+                        LEVELS - FLAT_TOP,
+                        LEVELS - 1,
+                        top[0].exp()
+                    ),
+                ));
             }
         }
         Ok(Self { g })

@@ -53,6 +53,11 @@ pub struct Merged {
     pub confidence: Confidence,
 }
 
+/// A real level this close to an 8-bit level reads as that level (what an
+/// 8-bit value stored as f32 gives back): its table entries, and clipped
+/// at 0 and 255.
+const LEVEL_SNAP: f64 = 1e-4;
+
 /// Running sums of eq. 6 for one channel of one pixel.
 #[derive(Clone, Copy)]
 struct Eq6 {
@@ -80,8 +85,11 @@ impl Eq6 {
     /// bit for bit as they were (`gz` and `lt` are finite).
     #[inline]
     fn add(&mut self, z: f64, w: f64, gz: f64, lt: f64) {
-        let black = z <= 0.0;
-        let sat = z >= Z_MAX;
+        // clipped within the tables' snap (`Lut::at`): a float file's
+        // 0.99999994 is level 255, weight 0, and must count as saturated
+        // (it fell through to "seen nowhere", E = 0)
+        let black = z < LEVEL_SNAP;
+        let sat = z > Z_MAX - LEVEL_SNAP;
         self.black_lt = if black {
             self.black_lt.max(lt)
         } else {
@@ -177,7 +185,7 @@ impl<'a> Lut<'a> {
         // z >= 0: the nearest level by truncation (round() is a libm call
         // on baseline x86-64; this is one instruction and the same value)
         let k = ((z + 0.5) as usize).min(LEVELS - 1);
-        if (z - k as f64).abs() < 1e-4 {
+        if (z - k as f64).abs() < LEVEL_SNAP {
             return (w[k], self.curve.g[c][k]);
         }
         let i = (z as usize).min(LEVELS - 2);

@@ -396,7 +396,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     ))?;
     reg.register(PortedNode::new(
         "HdrMerge",
-        3,
+        4,
         "Merges an exposure bracket into linear radiance (Debevec & Malik 1997, eq. 5-6).\n\
          Recovers the response curve g by least squares with smoothness (or a polynomial, or uses a \
          gamma/linear or connected curve), then averages g(Z) - ln dt with hat weights times the curve's \
@@ -668,6 +668,10 @@ mod tests {
         for (v, want) in [
             (1.0f32, 1.0 / 0.25),           // g(255) = 0, shortest time
             (0.0, (g.g[0][0].exp()) / 4.0), // g(0), longest time
+            // a float file's clipped values, a hair inside the range: the
+            // same (they were neither used nor counted as clipped: E = 0)
+            (1.0 - f32::EPSILON / 2.0, 1.0 / 0.25),
+            (1e-7, (g.g[0][0].exp()) / 4.0),
         ] {
             let stack = ExposureStack {
                 images: vec![Image::filled(5, 4, [v; 3]); 3],
@@ -773,6 +777,23 @@ mod tests {
         let mut bad = ResponseCurve::linear().to_image();
         bad.get_mut(3, 0)[1] = -1.0;
         assert!(ResponseCurve::from_image(&bad, "curve").is_err());
+        // a curve saved as a 16-bit PNG: every value above 1 clipped (a
+        // recovered curve, g(128) = 0, is above 1 over its top half)
+        let g = recover_response(
+            &simulate_bracket(&hdr_scene(), &bracket(2.2)).unwrap(),
+            &ResponseParams::default(),
+        )
+        .unwrap();
+        assert!(ResponseCurve::from_image(&g.to_image(), "curve").is_ok());
+        let mut clipped = g.to_image();
+        for px in clipped.as_mut_slice() {
+            *px = px.map(|v| (v.min(1.0) * 65535.0).round() / 65535.0);
+        }
+        let e = ResponseCurve::from_image(&clipped, "curve").unwrap_err();
+        assert!(
+            e.to_string().contains("clips values above 1") && e.to_string().contains("EXR"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -891,6 +912,19 @@ mod tests {
             e.to_string().contains("line 2") && e.to_string().contains("list.txt"),
             "{e}"
         );
+        // HDRShop's columns: equal apertures, gains and filters read (the
+        // memorial list's form); a differing one is refused, naming it
+        let dir_of = |list: &str| parse_bracket_list(list, Path::new("l/list.txt"));
+        let same = "# name exposure 1/shutter f/stop gain ND\na.png 2 0.5 8 0 0\nb.png 1 1 8 0 0\n";
+        assert_eq!(dir_of(same).unwrap().len(), 2);
+        for (list, what) in [
+            ("a.png 2 0.5 8 0 0\nb.png 1 1 4 0 0\n", "f-stop is 4"),
+            ("a.png 2 0.5 8 0 0\nb.png 1 1 8 6 0\n", "gain is 6"),
+            ("a.png 2 0.5 8 0 0\nb.png 1 1 8 0 1\n", "ND filter is 1"),
+        ] {
+            let e = dir_of(list).unwrap_err().to_string();
+            assert!(e.contains(what) && e.contains("line 2"), "{e}");
+        }
         std::fs::write(&list, "e0.png -1\n").unwrap();
         assert!(
             load_bracket(&p)

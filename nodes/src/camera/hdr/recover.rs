@@ -352,6 +352,11 @@ fn recover_channel(
     // per level, and s(P) = exposure_scale(P)
     let kappa =
         lambda * exposure_scale(stack.images.len()) * data_total / ((N - 2) as f64 * W_MID * W_MID);
+    // the data term's mean diagonal, before the smoothness rows: the
+    // Tikhonov guard below is sized by it, not by λ (sized by the whole
+    // diagonal it grew with λ and, at λ = 1e9, halved the curve's slope)
+    // guard: N > 0
+    let data_diag = ((0..N).map(|z| s[z * N + z]).sum::<f64>() / N as f64).max(1.0);
     for z in 1..N - 1 {
         let wz = hat_weight(z as f64);
         let k = kappa * wz * wz;
@@ -368,7 +373,7 @@ fn recover_channel(
     // guard: N > 0
     let mean_diag = (trace / N as f64).max(1.0);
     s[Z_MID * N + Z_MID] += mean_diag;
-    let eps = 1e-10 * mean_diag;
+    let eps = 1e-10 * data_diag;
     for z in 0..N {
         s[z * N + z] += eps;
     }
@@ -535,8 +540,9 @@ fn tie_channels(g: &mut [[f64; LEVELS]; 3], support: &[[u32; LEVELS]; 3]) {
 /// `w(z) > 0` for `z = 1..254`) leave only affine curves `a (z - 128)` free,
 /// and `a` is fixed as soon as one sample shows two different weighted levels
 /// (checked: otherwise an error). `S` is then positive definite. A Tikhonov
-/// term `ε I` with `ε = 1e-10` times the mean diagonal guards the
-/// factorisation against rounding; its pull on `g` is of relative size 1e-10.
+/// term `ε I` with `ε = 1e-10` times the data term's mean diagonal guards
+/// the factorisation against rounding; its pull on `g` is of relative size
+/// 1e-10 against the data at any `λ`.
 ///
 /// Errors: fewer than two exposures, all exposure times equal (the data then
 /// say nothing about the curve), mismatched sizes or times, or a channel in

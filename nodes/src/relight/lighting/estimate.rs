@@ -972,6 +972,21 @@ pub fn estimate_lighting(
     inp: &EstimateInputs,
     p: &EstimateParams,
 ) -> Result<LightingEstimate, NodeError> {
+    estimate_lighting_with(inp, p, &|| Ok(()))
+}
+
+/// Directions of the light's coarse search scored between two calls of
+/// the cancellation check.
+const SEARCH_CHUNK: usize = 64;
+
+/// [`estimate_lighting`] calling `check` (the node's cancellation) between
+/// chunks of the light's search, whose cost grows with `directions` times
+/// `samples`: an error from it ends the estimate.
+pub fn estimate_lighting_with(
+    inp: &EstimateInputs,
+    p: &EstimateParams,
+    check: &dyn Fn() -> Result<(), NodeError>,
+) -> Result<LightingEstimate, NodeError> {
     let (w, h) = inp.color.dims();
     crate::kit::checks::fits_intrinsics("intrinsics", inp.k, "color", (w, h))?;
     crate::kit::checks::fits_intrinsics("intrinsics", inp.k, "depth", inp.depth.dims())?;
@@ -1188,10 +1203,15 @@ pub fn estimate_lighting(
             .into_iter()
             .filter(|d| -d.y >= min_up)
             .collect();
-        let scored: Vec<(DVec3, f64)> = dirs
-            .par_iter()
-            .filter_map(|d| score(*d, &base).map(|(_, _, c)| (*d, c)))
-            .collect();
+        let mut scored: Vec<(DVec3, f64)> = Vec::with_capacity(dirs.len());
+        for chunk in dirs.chunks(SEARCH_CHUNK) {
+            check()?;
+            scored.par_extend(
+                chunk
+                    .par_iter()
+                    .filter_map(|d| score(*d, &base).map(|(_, _, c)| (*d, c))),
+            );
+        }
         no_direction = dirs.is_empty();
         let coarse = scored.iter().min_by(|a, b| a.1.total_cmp(&b.1)).copied();
         let mut centre = coarse.map(|(d, _)| d);
@@ -1216,6 +1236,7 @@ pub fn estimate_lighting(
                 .map(|(i, j)| (c + t1 * (i as f64 * step) + t2 * (j as f64 * step)).normalize())
                 .filter(|d| -d.y >= min_up)
                 .collect();
+            check()?;
             // (the grid's centre stays when the robust weights keep none)
             centre = grid
                 .par_iter()
@@ -1652,6 +1673,47 @@ mod tests {
             assert!(err < 10.0, "{w}x{h}: {err:.1}° off: {}", est.report);
             assert!(est.report.contains("light at elevation"), "{}", est.report);
         }
+    }
+
+    /// The light's search asks the cancellation check between chunks of
+    /// directions, and a cancelled run ends with its error (the node could
+    /// not be cancelled: `directions` x `samples` at their maxima is hours).
+    #[test]
+    fn the_light_search_can_be_cancelled() {
+        let mut scene = Scene::of(ScenePreset::Tabletop, 160, 120);
+        scene.light.sun_direction = sun_direction(35.0, 40.0);
+        let out = render(&scene, &RenderOptions::default());
+        let inp = EstimateInputs {
+            color: &out.color,
+            depth: &out.depth,
+            k: &scene.camera,
+            normals: Some(&out.normals),
+            mask: None,
+        };
+        let p = EstimateParams::default();
+        let calls = std::cell::Cell::new(0usize);
+        let counted = estimate_lighting_with(&inp, &p, &|| {
+            calls.set(calls.get() + 1);
+            Ok(())
+        })
+        .unwrap();
+        // the coarse search's chunks (the 300 directions' upper part: more
+        // than one) and the two finer grids
+        assert!(calls.get() >= 4, "{}", calls.get());
+        assert_eq!(counted.report, estimate_lighting(&inp, &p).unwrap().report);
+        let after = std::cell::Cell::new(0usize);
+        let e = estimate_lighting_with(&inp, &p, &|| {
+            after.set(after.get() + 1);
+            if after.get() > 2 {
+                Err(NodeError::Cancelled)
+            } else {
+                Ok(())
+            }
+        })
+        .map(|_| ())
+        .unwrap_err();
+        assert!(matches!(e, NodeError::Cancelled), "{e}");
+        assert_eq!(after.get(), 3);
     }
 
     /// Path-traced rooms lit only by a sky with a sun (depth only, normals

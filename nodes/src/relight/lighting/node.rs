@@ -6,7 +6,7 @@ use std::sync::Arc;
 use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
-use crate::relight::lighting::estimate::{EstimateInputs, EstimateParams, estimate_lighting};
+use crate::relight::lighting::estimate::{EstimateInputs, EstimateParams, estimate_lighting_with};
 
 depthgraph_graph::ports! {
     /// Inputs of `EstimateLighting`.
@@ -35,11 +35,11 @@ depthgraph_graph::ports! {
 }
 
 fn eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     i: EstimateIn,
     p: &EstimateParams,
 ) -> Result<Produced<EstimateOut>, NodeError> {
-    let est = estimate_lighting(
+    let est = estimate_lighting_with(
         &EstimateInputs {
             color: &i.color,
             depth: &i.depth,
@@ -48,6 +48,7 @@ fn eval(
             mask: i.mask.as_deref(),
         },
         p,
+        &|| ctx.check_cancelled(),
     )?;
     Ok(Produced::reported(
         EstimateOut {
