@@ -1,6 +1,7 @@
-//! Choosing the backend: `auto` (the GPU when an adapter exists), `cpu` or
-//! `gpu` (fail before running when there is none), from the command line or
-//! `DEPTHGRAPH_BACKEND`.
+//! Choosing the backend: `auto` (the GPU when a hardware adapter exists;
+//! a software one such as lavapipe is slower than the CPU nodes), `cpu` or
+//! `gpu` (any adapter, or fail before running when there is none), from the
+//! command line or `DEPTHGRAPH_BACKEND`.
 
 use std::sync::Arc;
 
@@ -11,7 +12,7 @@ use crate::context::{AdapterRequest, GpuContext, GpuError};
 /// The backend a user asked for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum BackendRequest {
-    /// The GPU when an adapter exists, else the CPU.
+    /// The GPU when a hardware adapter exists, else the CPU.
     #[default]
     Auto,
     /// The CPU only.
@@ -77,6 +78,20 @@ pub fn choose(req: BackendRequest, reg: &mut Registry) -> Result<BackendChoice, 
         return Ok(BackendChoice::cpu(req, "--backend cpu"));
     }
     match GpuContext::new(&AdapterRequest::default()) {
+        // A software rasterizer (Mesa's lavapipe/llvmpipe, WARP) is an
+        // adapter but not a GPU: the CPU nodes, vectorised and threaded,
+        // are faster than the same kernels emulated on the CPU, so `auto`
+        // takes the CPU; `gpu` still uses it (the parity tests do).
+        Ok(ctx) if req == BackendRequest::Auto && ctx.adapter().is_software() => {
+            Ok(BackendChoice::cpu(
+                req,
+                format!(
+                    "auto: the only adapter, {}, is a software one (slower than the CPU nodes); \
+                     running on the CPU (--backend gpu uses it)",
+                    ctx.adapter().label()
+                ),
+            ))
+        }
         Ok(ctx) => {
             crate::install(reg, &ctx).map_err(|e| ctx.error(e.to_string()))?;
             let reason = format!("{} adapter {}", req.name(), ctx.adapter().label());

@@ -143,6 +143,9 @@ pub struct GpuContext {
     resident: Mutex<Vec<Resident>>,
     /// Errors nobody captured (reported by the next operation that checks).
     uncaptured: Arc<Mutex<Option<String>>>,
+    /// Why the device was lost (a driver reset, a hang, a removed GPU), once
+    /// it was: every device node then runs on the CPU ([`crate::node`]).
+    lost: Arc<Mutex<Option<String>>>,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -268,6 +271,16 @@ impl GpuContext {
                 }
             }));
         }
+        let lost = Arc::new(Mutex::new(None));
+        {
+            let slot = lost.clone();
+            device.set_device_lost_callback(move |reason, message| {
+                let mut s = slot.lock().unwrap_or_else(|p| p.into_inner());
+                if s.is_none() {
+                    *s = Some(format!("{reason:?}: {message}"));
+                }
+            });
+        }
         Ok(Arc::new(Self {
             _instance: instance,
             adapter,
@@ -285,7 +298,22 @@ impl GpuContext {
             pool: Arc::new(Mutex::new(Pool::default())),
             resident: Mutex::new(Vec::new()),
             uncaptured,
+            lost,
         }))
+    }
+
+    /// Why the device was lost, if it was (its callback said so, or a wait
+    /// on it failed): nothing more can run on it.
+    pub fn lost(&self) -> Option<String> {
+        lock(&self.lost).clone()
+    }
+
+    /// Records that the device is lost (the first reason is kept).
+    pub fn mark_lost(&self, why: impl Into<String>) {
+        let mut s = lock(&self.lost);
+        if s.is_none() {
+            *s = Some(why.into());
+        }
     }
 
     /// The adapter in use.
@@ -347,7 +375,14 @@ impl GpuContext {
             return Ok(p.clone());
         }
         let t = Instant::now();
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        // every kind of error (a driver's internal one, memory, validation):
+        // an invalid pipeline is never cached
+        let scopes = [
+            wgpu::ErrorFilter::OutOfMemory,
+            wgpu::ErrorFilter::Internal,
+            wgpu::ErrorFilter::Validation,
+        ]
+        .map(|f| self.device.push_error_scope(f));
         let module = self
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -364,7 +399,14 @@ impl GpuContext {
                 compilation_options: Default::default(),
                 cache: None,
             });
-        if let Some(e) = pollster::block_on(scope.pop()) {
+        // (popped innermost first, each one)
+        let mut first = None;
+        for scope in scopes.into_iter().rev() {
+            if let Some(e) = pollster::block_on(scope.pop()) {
+                first.get_or_insert(e);
+            }
+        }
+        if let Some(e) = first {
             return Err(self.error(format!("compiling `{name}`: {e}")));
         }
         *lock(&self.compile_ms) += t.elapsed().as_secs_f64() * 1e3;

@@ -41,21 +41,32 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for DeviceNode<I, O, P> 
     ) -> Result<Outputs, NodeError> {
         let p: P = typed_params(params)?;
         ctx.check_cancelled()?;
+        // The same kind on the CPU (same schema, result within the stated
+        // tolerance); the trace then names the CPU as its producer.
+        let on_cpu = |why: String| -> Result<Outputs, NodeError> {
+            let mut out = self.cpu.eval(ctx, inputs, params)?;
+            out.origin = Some(Origin {
+                backend: "cpu".to_string(),
+                adapter: None,
+                note: Some(format!("ran on the CPU: {why}")),
+            });
+            Ok(out)
+        };
+        // a lost device runs nothing more (wgpu panics on its next wait)
+        if let Some(why) = self.ctx.lost() {
+            return on_cpu(format!("the device was lost earlier ({why})"));
+        }
         let i = I::take(inputs)?;
         let mut session = Session::new(&self.ctx);
         let r = match (self.eval)(&mut session, ctx, i, &p) {
             Ok(r) => r,
-            // A problem larger than the device binds runs on the CPU (the
-            // same kind, schema and result within the stated tolerance);
-            // the trace then names the CPU as its producer.
-            Err(NodeError::Device { message, .. }) if session.too_large => {
-                let mut out = self.cpu.eval(ctx, inputs, params)?;
-                out.origin = Some(Origin {
-                    backend: "cpu".to_string(),
-                    adapter: None,
-                    note: Some(format!("ran on the CPU: {message}")),
-                });
-                return Ok(out);
+            // a problem the device cannot run (larger than it binds, out of
+            // its memory, a driver failure, the device lost)
+            Err(NodeError::Device { message, .. })
+                if session.too_large || self.ctx.lost().is_some() =>
+            {
+                drop(session);
+                return on_cpu(message);
             }
             Err(e) => return Err(e),
         };

@@ -31,13 +31,14 @@ pub struct Session<'a> {
     pub stats: Transfers,
     /// Output buffers to remember as resident once the output values exist.
     kept: Vec<(String, Arc<PooledBuffer>, u64)>,
-    /// Set when a buffer was larger than the device binds: the node then
-    /// runs on the CPU instead.
+    /// Set when the device cannot run the node (a buffer larger than it
+    /// binds, out of device memory, a driver failure, the device lost):
+    /// the node then runs on the CPU instead.
     pub(crate) too_large: bool,
-    /// The error scopes (out of memory, then validation) that capture
-    /// everything this session does on its thread between two
+    /// The error scopes (out of memory, internal, then validation) that
+    /// capture everything this session does on its thread between two
     /// submissions, so a device error is this node's and no other's.
-    scopes: Vec<wgpu::ErrorScopeGuard>,
+    scopes: Vec<(wgpu::ErrorFilter, wgpu::ErrorScopeGuard)>,
 }
 
 /// The shared pointer behind an image value, for residency.
@@ -68,24 +69,30 @@ impl<'a> Session<'a> {
     fn open_scopes(&mut self) {
         let d = self.ctx.device();
         // (called with no scope open: at creation and after close_scopes)
-        self.scopes
-            .push(d.push_error_scope(wgpu::ErrorFilter::OutOfMemory));
-        self.scopes
-            .push(d.push_error_scope(wgpu::ErrorFilter::Validation));
+        for f in [
+            wgpu::ErrorFilter::OutOfMemory,
+            wgpu::ErrorFilter::Internal,
+            wgpu::ErrorFilter::Validation,
+        ] {
+            self.scopes.push((f, d.push_error_scope(f)));
+        }
     }
 
     /// Pops the scopes (innermost first) and reopens them: the first error
-    /// they caught since they were opened, if any.
+    /// they caught since they were opened, if any. Running out of device
+    /// memory and a driver's internal error send the node to the CPU
+    /// ([`Session::too_large`]: the CPU computes what the device could
+    /// not); a validation error is this program's and is reported.
     fn close_scopes(&mut self) -> Option<NodeError> {
         let mut first = None;
-        while let Some(scope) = self.scopes.pop() {
-            let oom = self.scopes.is_empty();
+        while let Some((filter, scope)) = self.scopes.pop() {
             if let Some(e) = pollster::block_on(scope.pop()) {
-                let msg = if oom {
-                    format!("out of device memory: {e}")
-                } else {
-                    e.to_string()
+                let msg = match filter {
+                    wgpu::ErrorFilter::OutOfMemory => format!("out of device memory: {e}"),
+                    wgpu::ErrorFilter::Internal => format!("the driver failed: {e}"),
+                    wgpu::ErrorFilter::Validation => e.to_string(),
                 };
+                self.too_large |= filter != wgpu::ErrorFilter::Validation;
                 first.get_or_insert_with(|| self.fail(self.ctx.error(msg)));
             }
         }
@@ -366,15 +373,39 @@ impl<'a> Session<'a> {
         self.finish(encoder, &[]).map(|_| ())
     }
 
-    fn wait(&self, index: Option<wgpu::SubmissionIndex>) -> Result<(), NodeError> {
-        self.ctx
-            .device()
-            .poll(wgpu::PollType::Wait {
+    /// Waits for the device. A lost device (a driver reset, a hang, a
+    /// destroyed device) makes wgpu panic inside `poll`, or refuse to wait
+    /// for a submission that never reached it: either way the context is
+    /// marked lost and the node sent to the CPU.
+    fn wait(&mut self, index: Option<wgpu::SubmissionIndex>) -> Result<(), NodeError> {
+        let device = self.ctx.device();
+        let polled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            device.poll(wgpu::PollType::Wait {
                 submission_index: index,
                 timeout: None,
             })
-            .map(|_| ())
-            .map_err(|e| self.fail(self.ctx.error(format!("waiting for the device: {e}"))))
+        }));
+        match polled {
+            Ok(Ok(_)) => Ok(()),
+            // the submission did not reach the device though no scope
+            // caught an error (checked before the wait): the device is gone
+            Ok(Err(e)) => {
+                let why = format!("the device was lost (waiting for it: {e})");
+                self.ctx.mark_lost(why.clone());
+                self.too_large = true;
+                Err(self.fail(self.ctx.error(why)))
+            }
+            Err(panic) => {
+                let why = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "wgpu panicked while waiting".into());
+                self.ctx.mark_lost(why.clone());
+                self.too_large = true;
+                Err(self.fail(self.ctx.error(format!("the device was lost: {why}"))))
+            }
+        }
     }
 
     /// Marks `buffer` (holding `bytes` bytes) as the device copy of output
@@ -398,7 +429,7 @@ impl Drop for Session<'_> {
     fn drop(&mut self) {
         // wgpu requires scopes to be popped innermost first (a Vec drops
         // its elements first to last).
-        while let Some(scope) = self.scopes.pop() {
+        while let Some((_, scope)) = self.scopes.pop() {
             drop(scope);
         }
     }
