@@ -484,6 +484,10 @@ fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
                     "node": r.node, "kind": r.kind, "status": r.status.as_str(),
                     "reason": r.reason, "report": r.report, "ms": r.ms, "bytes": r.bytes, "backend": r.backend,
                     "adapter": r.adapter, "backend_note": r.backend_note, "transfers": r.transfers,
+                    "key": r.key,
+                    "derived": r.derived.iter().map(|d| serde_json::json!({
+                        "name": d.name, "status": d.status.as_str(), "ms": d.ms, "bytes": d.bytes,
+                    })).collect::<Vec<_>>(),
                 })
             })
             .collect();
@@ -538,13 +542,41 @@ fn cmd_sweep(
     let Some((target, values)) = param.split_once('=') else {
         return Err(Usage("--param must be node.param=v1,v2,...".into()).into());
     };
-    let values: Vec<String> = values
-        .split(',')
-        .map(|v| v.trim().to_string())
+    let values: Vec<String> = depthgraph::sweep::split_values(values)
+        .into_iter()
         .filter(|v| !v.is_empty())
         .collect();
     if values.is_empty() {
         return Err(Usage(format!("--param {target}= lists no values")).into());
+    }
+    let stem = format!("sweep-{}", target.replace('.', "-"));
+    let csv = csv.unwrap_or_else(|| args.out.join(format!("{stem}.csv")));
+    let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
+    // the sweep writes its CSV and plot itself, not through a sink: the
+    // same rule (never over the pipeline or a file it reads, never one
+    // over the other), checked before anything runs
+    {
+        use depthgraph::graph::node::canonical_for_compare as canon;
+        let mut guarded = vec![args.file.clone()];
+        if let Ok(p) = depthgraph::graph::pipeline::Pipeline::check(&doc, &reg) {
+            guarded.extend(p.input_files());
+        }
+        for (flag, path) in [("--csv", &csv), ("--plot", &plot)] {
+            if guarded.iter().any(|g| canon(g) == canon(path)) {
+                return Err(Usage(format!(
+                    "{flag} {}: refusing to write over a file this pipeline reads",
+                    path.display()
+                ))
+                .into());
+            }
+        }
+        if canon(&csv) == canon(&plot) {
+            return Err(Usage(format!(
+                "--csv and --plot are both {}: give each its own file",
+                csv.display()
+            ))
+            .into());
+        }
     }
     let spec = SweepSpec {
         param: target.to_string(),
@@ -566,7 +598,7 @@ fn cmd_sweep(
         "{:>14}  {:>12}  {:>12}  {:>8}",
         "value",
         "ms (median)",
-        format!("{metric:?}").to_lowercase(),
+        metric.name(),
         "missing"
     );
     let rows = match run_sweep(&engine, &doc, &reg, &spec, &opts, |r| {
@@ -591,9 +623,6 @@ fn cmd_sweep(
         }
         Err(e) => return Err(e.into()),
     };
-    let stem = format!("sweep-{}", target.replace('.', "-"));
-    let csv = csv.unwrap_or_else(|| args.out.join(format!("{stem}.csv")));
-    let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
     let text = to_csv(target, metric, &rows);
     depthgraph::nodes::io::write_atomic(&csv, |tmp| std::fs::write(tmp, &text))?;
     let plotted =

@@ -31,6 +31,19 @@ pub struct Measurement {
     pub missing: usize,
 }
 
+impl Metric {
+    /// The name `--metric` takes (`display-psnr`), for tables, CSV and plots.
+    pub fn name(self) -> &'static str {
+        match self {
+            Metric::Rmse => "rmse",
+            Metric::Mae => "mae",
+            Metric::Psnr => "psnr",
+            Metric::DisplayPsnr => "display-psnr",
+            Metric::Ssim => "ssim",
+        }
+    }
+}
+
 /// Why two values cannot be compared.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum MetricError {

@@ -61,6 +61,36 @@ pub enum SweepError {
     NoReference,
 }
 
+/// The values of `--param node.p=v1,v2,...`: split at the commas outside
+/// brackets and quotes, so tuple and list values (`(0.1, 0.2, 0.3)`,
+/// `[1.0, 2.0]`, `"a,b"`) are one value each; each trimmed.
+pub fn split_values(text: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let (mut depth, mut quoted, mut escaped) = (0i32, false, false);
+    let mut cur = String::new();
+    for c in text.chars() {
+        if quoted {
+            quoted = escaped || c != '"';
+            escaped = !escaped && c == '\\';
+        } else {
+            match c {
+                '"' => quoted = true,
+                '(' | '[' | '{' => depth += 1,
+                ')' | ']' | '}' => depth -= 1,
+                ',' if depth <= 0 => {
+                    out.push(cur.trim().to_string());
+                    cur.clear();
+                    continue;
+                }
+                _ => {}
+            }
+        }
+        cur.push(c);
+    }
+    out.push(cur.trim().to_string());
+    out
+}
+
 fn with_set(
     doc: &Document,
     sets: &[String],
@@ -81,6 +111,17 @@ fn with_set(
             let node = p
                 .index_of(n)
                 .ok_or_else(|| SweepError::BadRef(w.to_string()))?;
+            // the port too, before anything runs (a typo ran the whole
+            // pipeline, then failed as an internal error)
+            if !p.nodes[node]
+                .node
+                .schema()
+                .outputs
+                .iter()
+                .any(|o| o.name == port)
+            {
+                return Err(SweepError::BadRef(w.to_string()));
+            }
             Ok(OutputRef {
                 node,
                 port: Some(port.to_string()),
@@ -121,6 +162,13 @@ pub fn run_sweep(
     if let Some(t) = &spec.truth {
         want.push(t);
     }
+    // every value checked before the first runs (a bad last value threw
+    // away the rows computed before it)
+    let pipelines: Vec<Pipeline> = spec
+        .values
+        .iter()
+        .map(|v| with_set(doc, &[format!("{}={}", spec.param, v)], reg, &want))
+        .collect::<Result<_, _>>()?;
     let reference_value = match &spec.reference {
         Some(r) if spec.truth.is_none() => {
             let p = with_set(doc, std::slice::from_ref(r), reg, &[&spec.output])?;
@@ -135,21 +183,19 @@ pub fn run_sweep(
         _ => None,
     };
     let mut rows = Vec::new();
-    for v in &spec.values {
-        let set = format!("{}={}", spec.param, v);
-        let p = with_set(doc, &[set], reg, &want)?;
+    for (v, p) in spec.values.iter().zip(&pipelines) {
         let swept = p
             .index_of(node_name)
             .ok_or_else(|| SweepError::BadRef(spec.param.clone()))?;
         // Warm-up: computes (or fetches) everything once, so upstream work is cached.
-        let first = engine.run(&p, base)?;
+        let first = engine.run(p, base)?;
         let mut opts = base.clone();
         opts.force = p.downstream_of(swept);
         let mut times = Vec::new();
         let mut last = first;
         for _ in 0..spec.repeats.max(1) {
             let t = Instant::now();
-            last = engine.run(&p, &opts)?;
+            last = engine.run(p, &opts)?;
             times.push(t.elapsed().as_secs_f64() * 1e3);
         }
         let result = last
@@ -193,7 +239,7 @@ pub fn run_sweep(
 /// The rows as CSV: `param,value,ms_median,ms_min,ms_max,metric,error,count,missing`.
 pub fn to_csv(param: &str, metric: Metric, rows: &[SweepRow]) -> String {
     let mut s = String::from("param,value,ms_median,ms_min,ms_max,metric,error,count,missing\n");
-    let m = format!("{metric:?}").to_lowercase();
+    let m = metric.name();
     for r in rows {
         let (e, c, miss) = match r.error {
             Some(e) => (
@@ -243,7 +289,7 @@ pub fn plot_svg(path: &Path, param: &str, metric: Metric, rows: &[SweepRow]) -> 
     let root = SVGBackend::new(path, (800, 500)).into_drawing_area();
     let err = |e: DrawingAreaErrorKind<std::io::Error>| e.to_string();
     root.fill(&WHITE).map_err(err)?;
-    let metric_name = format!("{metric:?}").to_uppercase();
+    let metric_name = metric.name().to_uppercase();
     let mut chart = ChartBuilder::on(&root)
         .caption(
             format!("{metric_name} vs time: {param}"),
@@ -280,6 +326,25 @@ pub fn plot_svg(path: &Path, param: &str, metric: Metric, rows: &[SweepRow]) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Tuple, list and quoted values are one value each (a plain split at
+    /// every comma made `(0.1, 0.2, 0.3)` three broken ones).
+    #[test]
+    fn values_split_at_top_level_commas_only() {
+        assert_eq!(split_values("0, 0.5 ,1"), ["0", "0.5", "1"]);
+        assert_eq!(
+            split_values("(0.1,0.1,0.1),(0.2, 0.2, 0.2)"),
+            ["(0.1,0.1,0.1)", "(0.2, 0.2, 0.2)"]
+        );
+        assert_eq!(
+            split_values("[(1.0, 2.0), (3.0, 4.0)],[]"),
+            ["[(1.0, 2.0), (3.0, 4.0)]", "[]"]
+        );
+        assert_eq!(
+            split_values(r#""a,b","c\",d",e"#),
+            [r#""a,b""#, r#""c\",d""#, "e"]
+        );
+    }
 
     #[test]
     fn median_of_even_and_odd() {

@@ -89,6 +89,20 @@ fn demo_writes_every_output_and_they_read_back() {
 }
 
 /// `depthgraph CMD graphs/demo.ron --quiet --out OUT`, at the small size, then `extra`.
+/// `depthgraph run PIPE --no-cache --quiet --out OUT EXTRA...`.
+fn run_uncached(pipe: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "run",
+        pipe.to_str().unwrap(),
+        "--no-cache",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    cli(&args)
+}
+
 fn demo_cli(cmd: &str, out: &Path, extra: &[&str]) -> std::process::Output {
     let demo = graph("demo.ron");
     let mut args = vec![cmd, demo.to_str().unwrap(), "--quiet"];
@@ -242,14 +256,7 @@ fn sinks_never_overwrite_a_sequences_index() {
         l = list.display()
     );
     std::fs::write(&pipe, text).unwrap();
-    let r = cli(&[
-        "run",
-        pipe.to_str().unwrap(),
-        "--no-cache",
-        "--quiet",
-        "--out",
-        d.to_str().unwrap(),
-    ]);
+    let r = run_uncached(&pipe, d, &[]);
     let err = String::from_utf8_lossy(&r.stderr);
     assert!(!r.status.success(), "{err}");
     assert!(
@@ -257,6 +264,43 @@ fn sinks_never_overwrite_a_sequences_index() {
         "{err}"
     );
     assert_eq!(std::fs::read(&list).unwrap(), before);
+}
+
+/// Two sinks that would write one file (the same path, or the same file
+/// by another spelling) are refused before anything runs, naming both:
+/// they ran at once and the file held whichever finished last.
+#[test]
+fn two_sinks_never_write_the_same_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = d.join("out");
+    for (a, b) in [("d.exr", "d.exr"), ("d.exr", "./sub/../d.exr")] {
+        let abs_b = if b.starts_with('.') {
+            b.to_string()
+        } else {
+            out.join(b).display().to_string()
+        };
+        let pipe = d.join("p.ron");
+        let text = format!(
+            r#"(version: 1, nodes: {{
+                "scene": (kind: "SyntheticScene", params: (width: 16, height: 12)),
+                "a": (kind: "SaveDepth", params: (path: "{a}"), inputs: (depth: "scene.depth")),
+                "b": (kind: "SaveColor", params: (path: "{abs_b}"), inputs: (color: "scene.color")),
+            }}, outputs: ["a", "b"])"#
+        );
+        std::fs::write(&pipe, text).unwrap();
+        std::fs::create_dir_all(out.join("sub")).unwrap();
+        let r = run_uncached(&pipe, &out, &[]);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{a} / {b}: {err}");
+        assert!(
+            err.contains("also written by node")
+                && err.contains("node `a`")
+                && err.contains("node `b`"),
+            "{err}"
+        );
+        assert!(!out.join("d.exr").exists(), "nothing is written");
+    }
 }
 
 #[test]
@@ -276,14 +320,7 @@ fn sinks_never_overwrite_an_input_file() {
         p = input.display()
     );
     std::fs::write(&pipe, text).unwrap();
-    let r = cli(&[
-        "run",
-        pipe.to_str().unwrap(),
-        "--no-cache",
-        "--quiet",
-        "--out",
-        dir.path().to_str().unwrap(),
-    ]);
+    let r = run_uncached(&pipe, dir.path(), &[]);
     assert!(!r.status.success());
     let err = String::from_utf8_lossy(&r.stderr);
     assert!(
@@ -292,16 +329,7 @@ fn sinks_never_overwrite_an_input_file() {
     );
     assert_eq!(std::fs::read(&input).unwrap(), before);
     // nor over the pipeline file itself (relative path resolved against --out)
-    let r = cli(&[
-        "run",
-        pipe.to_str().unwrap(),
-        "--no-cache",
-        "--quiet",
-        "--out",
-        dir.path().to_str().unwrap(),
-        "--set",
-        "save.path=p.ron",
-    ]);
+    let r = run_uncached(&pipe, dir.path(), &["--set", "save.path=p.ron"]);
     assert!(!r.status.success());
     assert!(
         std::fs::read_to_string(&pipe)
@@ -309,16 +337,7 @@ fn sinks_never_overwrite_an_input_file() {
             .starts_with("(version: 1")
     );
     // a different target works, and the result is twice as bright
-    let r = cli(&[
-        "run",
-        pipe.to_str().unwrap(),
-        "--no-cache",
-        "--quiet",
-        "--out",
-        dir.path().to_str().unwrap(),
-        "--set",
-        "save.path=bright.png",
-    ]);
+    let r = run_uncached(&pipe, dir.path(), &["--set", "save.path=bright.png"]);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let a =
         depthgraph::nodes::io::load_color(&input, depthgraph::nodes::io::ColorSpace::Srgb).unwrap();
@@ -409,6 +428,91 @@ fn sweep_writes_csv_and_plot() {
         svg.starts_with("<svg") && svg.contains("<circle"),
         "not a plot"
     );
+}
+
+/// What a sweep cannot do is refused (exit 2) before anything runs: its
+/// CSV or plot over the pipeline file, both on one file, an output port
+/// that does not exist, a value out of range late in the list (the rows
+/// before it were computed, then thrown away).
+#[test]
+fn sweep_refuses_before_running() {
+    let dir = tempfile::tempdir().unwrap();
+    let pipe = dir.path().join("demo.ron");
+    std::fs::copy(graph("demo.ron"), &pipe).unwrap();
+    let before = std::fs::read(&pipe).unwrap();
+    let p = pipe.to_str().unwrap();
+    let o = dir.path().join("out");
+    let o = o.to_str().unwrap();
+    let same = dir.path().join("r.txt");
+    let same = same.to_str().unwrap();
+    let base = [
+        "sweep",
+        p,
+        "--no-cache",
+        "--out",
+        o,
+        "--truth",
+        "scene.depth",
+        "--repeats",
+        "1",
+    ];
+    let cases: [(&[&str], &str); 4] = [
+        (
+            &[
+                "--param",
+                "kinect.noise_k=0,0.001",
+                "--output",
+                "kinect.depth",
+                "--csv",
+                p,
+            ],
+            "refusing to write over a file this pipeline reads",
+        ),
+        (
+            &[
+                "--param",
+                "kinect.noise_k=0,0.001",
+                "--output",
+                "kinect.depth",
+                "--csv",
+                same,
+                "--plot",
+                same,
+            ],
+            "give each its own file",
+        ),
+        (
+            &[
+                "--param",
+                "kinect.noise_k=0,0.001",
+                "--output",
+                "kinect.dpth",
+            ],
+            "kinect.dpth",
+        ),
+        (
+            &[
+                "--param",
+                "kinect.noise_k=0,0.001,2",
+                "--output",
+                "kinect.depth",
+            ],
+            "outside",
+        ),
+    ];
+    for (extra, says) in cases {
+        let mut args: Vec<&str> = base.to_vec();
+        args.extend(extra);
+        let r = cli(&args);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+        // no row ran: the table's header at most
+        let stdout = String::from_utf8_lossy(&r.stdout);
+        assert!(stdout.lines().count() <= 1, "{extra:?} ran: {stdout}");
+    }
+    assert_eq!(std::fs::read(&pipe).unwrap(), before);
+    assert!(!std::path::Path::new(same).exists());
 }
 
 /// `depthgraph explain FILE --json --quiet --out OUT --cache-dir CACHE`
@@ -677,6 +781,16 @@ fn the_estimated_light_pipeline_finds_the_targets_sun_and_reports_it() {
         text.contains("\"report\"") && text.contains("light at elevation"),
         "{text}"
     );
+    // ... and, as the table does, each node's key and derived values (the
+    // relight scene the engine keeps)
+    let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+    let relight = rows.iter().find(|r| r["node"] == "relight").unwrap();
+    assert!(
+        relight["key"].as_str().is_some_and(|k| k.len() >= 32),
+        "{relight}"
+    );
+    assert_eq!(relight["derived"][0]["name"], "relight scene", "{relight}");
+    assert_eq!(relight["derived"][0]["status"], "ran", "{relight}");
 }
 
 /// `graphs/refocus_lens.ron` at a small size: Refocus with the lens

@@ -23,7 +23,9 @@ use crate::error::RunError;
 use crate::key::{Key, node_key, with_file_contents};
 use crate::node::{
     CancelToken, Derivations, EvalCtx, Inputs, NodeError, Outputs, ProgressFn, ValueStore,
+    canonical_for_compare,
 };
+use crate::params::{ParamKind, ParamValue};
 use crate::pipeline::Pipeline;
 use crate::trace::{DerivedRecord, NodeRecord, Status, Trace};
 use crate::value::Value;
@@ -197,6 +199,62 @@ impl Engine {
         self.pool.install(|| self.run_inner(pipeline, options))
     }
 
+    /// Two sinks of this run that would write the same file (the same
+    /// output path once resolved against `out_dir`): an error naming both,
+    /// before anything runs. Both ran at once and the file held whichever
+    /// finished last, different from run to run.
+    fn check_distinct_outputs(
+        p: &Pipeline,
+        state: &[State],
+        out_dir: &std::path::Path,
+    ) -> Result<(), RunError> {
+        let mut seen: BTreeMap<PathBuf, (usize, &str)> = BTreeMap::new();
+        for &i in &p.order {
+            let n = &p.nodes[i];
+            if !matches!(state[i], State::Run) || !n.node.schema().sink {
+                continue;
+            }
+            for spec in &n.node.schema().params {
+                if !matches!(spec.kind, ParamKind::OutputPath) {
+                    continue;
+                }
+                let Some(ParamValue::Text(path)) = n.params.get(spec.name) else {
+                    continue;
+                };
+                if path.is_empty() {
+                    continue;
+                }
+                let file = PathBuf::from(path);
+                let file = if file.is_absolute() {
+                    file
+                } else {
+                    out_dir.join(file)
+                };
+                let canon = canonical_for_compare(&file);
+                if let Some((j, other)) = seen.get(&canon) {
+                    let first = &p.nodes[*j];
+                    return Err(RunError::Node {
+                        node: n.name.clone(),
+                        kind: n.kind.clone(),
+                        error: NodeError::param(
+                            spec.name,
+                            format!(
+                                "{} is also written by node `{}` ({}.{}): one would replace the \
+                                 other; give each sink its own path",
+                                file.display(),
+                                first.name,
+                                first.name,
+                                other
+                            ),
+                        ),
+                    });
+                }
+                seen.insert(canon, (i, spec.name));
+            }
+        }
+        Ok(())
+    }
+
     fn run_inner(&self, p: &Pipeline, opts: &RunOptions) -> Result<RunResult, RunError> {
         let n = p.nodes.len();
         let keys = Self::keys(p);
@@ -251,6 +309,7 @@ impl Engine {
         let mut derived: Vec<Vec<DerivedRecord>> = vec![Vec::new(); n];
         let mut input_files = p.input_files();
         input_files.extend(opts.protected_files.iter().cloned());
+        Self::check_distinct_outputs(p, &state, &opts.out_dir)?;
 
         for l in 0..=max_level {
             let batch: Vec<usize> = p
