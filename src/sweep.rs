@@ -346,6 +346,27 @@ mod tests {
         );
     }
 
+    /// The CSV names the metric as `--metric` spells it (`display-psnr`,
+    /// not the enum's `displaypsnr`).
+    #[test]
+    fn the_csv_names_the_metric_as_the_flag_does() {
+        let row = SweepRow {
+            value: "1".into(),
+            ms_median: 1.0,
+            ms_min: 1.0,
+            ms_max: 1.0,
+            error: None,
+            note: None,
+        };
+        let csv = to_csv("a.b", Metric::DisplayPsnr, &[row]);
+        assert!(
+            csv.lines()
+                .nth(1)
+                .is_some_and(|l| l.contains(",display-psnr,")),
+            "{csv}"
+        );
+    }
+
     #[test]
     fn median_of_even_and_odd() {
         assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
