@@ -77,8 +77,10 @@
 //!    either direction, and a path that retraces itself (a spur to a wrong
 //!    edge and back) adds only its own pixels.
 //!
-//! **Fewer than 3 clicks** enclose no area: the result is an empty mask and
-//! an empty path, and the node reports it as a pass-through with the reason
+//! **Fewer than 3 clicks** (on different pixels: a double click counts
+//! once) enclose no area: the result is an empty mask and an empty path;
+//! a path that encloses no pixel beyond its own (clicks on one line) gives
+//! an empty mask too. The node reports either as a pass-through with the reason
 //! (not an error, so an editor can show the graph while the user is still
 //! clicking). A selection touching the image border works: the border is
 //! never an edge, so the path between two clicks on the border runs along it.
@@ -710,14 +712,24 @@ fn walk_legs(legs: &[&Leg], end: [usize; 2]) -> (Vec<Vec<[usize; 2]>>, Vec<[usiz
     (paths, anchors)
 }
 
+/// How many different pixels the clicks fall on (clamped to the image):
+/// clicks repeated on one pixel (a double click) enclose nothing more.
+pub fn distinct_clicks(strength: &Confidence, p: &LassoParams) -> usize {
+    let (w, h) = strength.dims();
+    let mut px: Vec<[usize; 2]> = p.clicks.iter().map(|c| clamp_to_pixel(*c, w, h)).collect();
+    px.sort_unstable();
+    px.dedup();
+    px.len()
+}
+
 /// The closed live-wire path through the clicks (§III.C, steps 1 and 2 of the
 /// module docs): the anchors are chosen jointly with the path, by multi-source
 /// Dijkstra searches around the clicks (lap 1, then lap 2 where needed).
-/// Fewer than 3 clicks give an empty path (nothing is enclosed) and their
-/// plain [`snap_click`] positions as anchors.
+/// Clicks on fewer than 3 different pixels give an empty path (nothing is
+/// enclosed) and their plain [`snap_click`] positions as anchors.
 pub fn lasso_path(strength: &Confidence, p: &LassoParams) -> Result<LassoPath, NodeError> {
     check(strength, p)?;
-    if p.clicks.len() < 3 {
+    if distinct_clicks(strength, p) < 3 {
         let snapped = p
             .clicks
             .iter()
@@ -862,8 +874,17 @@ pub fn fill_polygon(w: usize, h: usize, vertices: &[[usize; 2]]) -> Mask {
     out
 }
 
+/// Whether `mask` holds nothing but the path's own pixels.
+fn encloses_nothing(mask: &Mask, path_mask: &Mask) -> bool {
+    mask.as_slice()
+        .iter()
+        .zip(path_mask.as_slice())
+        .all(|(m, p)| *m < 0.5 || *p >= 0.5)
+}
+
 /// The whole selection of §III.C: [`lasso_path`] then [`fill_polygon`].
-/// Fewer than 3 clicks give empty masks (see the module docs).
+/// Clicks on fewer than 3 different pixels, and a path that encloses no
+/// pixel beyond its own, give empty masks (see the module docs).
 pub fn lasso(strength: &Confidence, p: &LassoParams) -> Result<Selection, NodeError> {
     let path = lasso_path(strength, p)?;
     let (w, h) = strength.dims();
@@ -871,11 +892,16 @@ pub fn lasso(strength: &Confidence, p: &LassoParams) -> Result<Selection, NodeEr
     for q in &path.pixels {
         *path_mask.get_mut(q[0], q[1]) = 1.0;
     }
-    let mask = if path.pixels.is_empty() {
+    let mut mask = if path.pixels.is_empty() {
         Image::filled(w, h, 0.0f32)
     } else {
         fill_polygon(w, h, &path.pixels)
     };
+    // a path that encloses no pixel of its own (clicks on one line: the
+    // wire goes out and back) selects nothing, not a line
+    if encloses_nothing(&mask, &path_mask) {
+        mask = Image::filled(w, h, 0.0f32);
+    }
     Ok(Selection {
         mask,
         path_mask,
@@ -907,12 +933,29 @@ fn eval(_: &EvalCtx, i: LassoIn, p: &LassoParams) -> Result<Produced<LassoOut>, 
         mask: sel.mask,
         path: sel.path_mask,
     };
-    if p.clicks.len() < 3 {
-        let why = format!(
-            "{} click(s): a lasso needs at least 3 to enclose an area; the mask is empty",
-            p.clicks.len()
-        );
+    let distinct = distinct_clicks(&i.strength, p);
+    if distinct < 3 {
+        let why = if distinct == p.clicks.len() {
+            format!(
+                "{} click(s): a lasso needs at least 3 to enclose an area; the mask is empty",
+                p.clicks.len()
+            )
+        } else {
+            format!(
+                "{} click(s) on {distinct} different pixel(s) (repeated clicks count once): a lasso \
+                 needs at least 3 to enclose an area; the mask is empty",
+                p.clicks.len()
+            )
+        };
         return Ok(Produced::passthrough(out, why));
+    }
+    if out.mask.as_slice().iter().all(|m| *m < 0.5) {
+        return Ok(Produced::passthrough(
+            out,
+            "the lasso encloses no area (its clicks lie on one line, or the wire between them \
+             runs out and back); the mask is empty"
+                .to_string(),
+        ));
     }
     Ok(out.into())
 }
@@ -935,10 +978,11 @@ pub fn iou(a: &Mask, b: &Mask) -> f64 {
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Lasso",
-        2,
+        3,
         "Edge-snapping lasso (3d-editing §III.C): the cheapest closed live-wire path over 1 / (eps + strength) \
          through one anchor near each click (anchors chosen jointly with the path, Mortensen & Barrett 1995 \
-         intelligent scissors), filled into the source object mask alpha.\nFewer than 3 clicks give an empty mask (reported as a pass-through).",
+         intelligent scissors), filled into the source object mask alpha.\nClicks on fewer than 3 different pixels, or a path that encloses no area, give an empty mask \
+         (reported as a pass-through).",
         eval,
     ))
 }
@@ -1229,6 +1273,52 @@ mod tests {
         assert!(
             matches!(out.values.get("mask"), Some(Value::Mask(m)) if m.as_slice().iter().all(|v| *v == 0.0))
         );
+    }
+
+    /// Three or more clicks on fewer than 3 pixels (a double click on the
+    /// last point), or on one line, enclose nothing: an empty mask and the
+    /// reason, not a one-pixel line that Paste would paste.
+    #[test]
+    fn repeated_or_collinear_clicks_select_nothing_and_say_why() {
+        let s = Image::from_fn(40, 30, |x, _| if x == 20 { 1.0f32 } else { 0.0 });
+        let mut reg = Registry::new();
+        register(&mut reg).unwrap();
+        let node = reg.get("Lasso").unwrap();
+        let mut inputs = Inputs::new();
+        inputs.insert(
+            "strength",
+            Value::Confidence(std::sync::Arc::new(s.clone())),
+        );
+        let test_ctx = crate::test_support::TestCtx::new("lasso");
+        let ctx = test_ctx.ctx();
+        for (clicks, says) in [
+            (
+                vec![[5.5, 5.5], [30.5, 20.5], [30.5, 20.5]],
+                "on 2 different pixel(s)",
+            ),
+            (vec![[5.5, 5.5]; 3], "on 1 different pixel(s)"),
+            (
+                vec![[5.5, 5.5], [15.5, 10.5], [25.5, 15.5]],
+                "encloses no area",
+            ),
+        ] {
+            let p = LassoParams {
+                clicks,
+                ..Default::default()
+            };
+            let sel = lasso(&s, &p).unwrap();
+            assert!(sel.mask.as_slice().iter().all(|v| *v == 0.0), "{says}");
+            let out = node.eval(&ctx, &inputs, &p.to_values()).unwrap();
+            let why = out.passthrough.unwrap_or_default();
+            assert!(why.contains(says), "{says}: {why}");
+        }
+        // three distinct clicks around an area still select it
+        let p = LassoParams {
+            clicks: vec![[5.5, 5.5], [30.5, 5.5], [30.5, 20.5], [30.5, 20.5]],
+            ..Default::default()
+        };
+        let sel = lasso(&s, &p).unwrap();
+        assert!(sel.mask.as_slice().iter().filter(|v| **v > 0.5).count() > 100);
     }
 
     #[test]

@@ -1106,6 +1106,10 @@ fn eval(ctx: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>
     };
     let r = paste_placed(&source, &images, &i.target_depth, &i.target_intrinsics, p)?;
     let empty = r.object_points == 0;
+    // every point placed, none in the picture: behind the camera (a depth
+    // offset past the surface), beside it, or scaled below one pixel
+    let unseen = !empty && r.alpha.as_slice().iter().all(|a| *a <= 0.0);
+    let anchor = r.anchor;
     let out = PasteOut {
         color: r.color,
         depth: r.depth,
@@ -1117,6 +1121,17 @@ fn eval(ctx: &EvalCtx, i: PasteIn, p: &PasteParams) -> Result<Produced<PasteOut>
         return Ok(Produced::passthrough(
             out,
             "nothing pasted: the source mask selects no pixel with a valid depth",
+        ));
+    }
+    if unseen {
+        return Ok(Produced::passthrough(
+            out,
+            format!(
+                "nothing pasted: the object lands nowhere in the picture (its centre at ({:.3}, {:.3}, \
+                 {:.3}) m in the target camera: behind it, beside the view, or under a pixel); \
+                 check target_pixel, depth_offset_m, translation_m and scale",
+                anchor.x, anchor.y, anchor.z
+            ),
         ));
     }
     Ok(out.into())
@@ -1467,6 +1482,24 @@ mod tests {
             .eval(&ctx, &inputs, &PasteParams::default().to_values())
             .unwrap();
         assert!(out.passthrough.unwrap().contains("nothing pasted"));
+        // an object moved behind the camera (a depth offset past the
+        // target's surface, no auto scale): nothing lands in the picture,
+        // and the node says so instead of reporting a paste
+        let full = Image::filled(24, 20, 1.0f32);
+        inputs.insert("source_mask", Value::Mask(std::sync::Arc::new(full)));
+        let behind = PasteParams {
+            target_pixel: vec![[12.5, 10.5]],
+            depth_offset_m: -10.0,
+            auto_scale: false,
+            ..PasteParams::default()
+        };
+        let out = reg
+            .get("Paste")
+            .unwrap()
+            .eval(&ctx, &inputs, &behind.to_values())
+            .unwrap();
+        let why = out.passthrough.unwrap_or_default();
+        assert!(why.contains("lands nowhere in the picture"), "{why}");
     }
 
     #[test]
