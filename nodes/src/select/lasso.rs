@@ -204,7 +204,54 @@ fn check(strength: &Confidence, p: &LassoParams) -> Result<(), NodeError> {
             format!("{} must be finite and > 0", p.cost_epsilon),
         ));
     }
+    let bytes = search_bytes(w, h, p);
+    if bytes > MAX_SEARCH_BYTES {
+        return Err(NodeError::param(
+            "band_px",
+            format!(
+                "the search bands of {} clicks ({} px around each pair, band_px or snap_radius_px) \
+                 would hold about {:.1} GiB (at most {:.0} GiB); use a smaller band or fewer clicks",
+                p.clicks.len(),
+                p.band_px.max(p.snap_radius_px.ceil() as usize),
+                bytes / f64::from(1u32 << 30),
+                MAX_SEARCH_BYTES / f64::from(1u32 << 30)
+            ),
+        ));
+    }
     Ok(())
+}
+
+/// The memory the live wire's searches may hold at once, bytes: above it
+/// the lasso is refused naming `band_px` (a large band over many clicks
+/// kept every leg's band, and the process aborted on the allocation).
+const MAX_SEARCH_BYTES: f64 = 4.0 * (1u64 << 30) as f64;
+
+/// What the searches of [`lasso_path`] hold at most, bytes: each leg's
+/// band (the two clicks' box grown by the larger of `band_px` and the snap
+/// radius, clipped to the image, with its frame) keeps 4 bytes a pixel for
+/// both laps, and the leg being searched 21 more (cost, distance, pending).
+fn search_bytes(w: usize, h: usize, p: &LassoParams) -> f64 {
+    let k = p.clicks.len();
+    if k < 3 {
+        return 0.0;
+    }
+    let margin = p
+        .band_px
+        .max(p.snap_radius_px.min(MAX_SIDE as f64).ceil() as usize)
+        .min(MAX_SIDE);
+    let c: Vec<[usize; 2]> = p.clicks.iter().map(|q| clamp_to_pixel(*q, w, h)).collect();
+    let (mut kept, mut largest) = (0.0f64, 0.0f64);
+    for i in 0..k {
+        let (a, b) = (c[i], c[(i + 1) % k]);
+        let x0 = a[0].min(b[0]).saturating_sub(margin);
+        let y0 = a[1].min(b[1]).saturating_sub(margin);
+        let x1 = (a[0].max(b[0]) + margin).min(w - 1);
+        let y1 = (a[1].max(b[1]) + margin).min(h - 1);
+        let area = ((x1 - x0 + 3) * (y1 - y0 + 3)) as f64;
+        kept += 2.0 * 4.0 * area;
+        largest = largest.max(area);
+    }
+    kept + 21.0 * largest
 }
 
 /// The pixel containing `(x, y)`, clamped into the `w` x `h` image
@@ -1273,6 +1320,33 @@ mod tests {
         assert!(
             matches!(out.values.get("mask"), Some(Value::Mask(m)) if m.as_slice().iter().all(|v| *v == 0.0))
         );
+    }
+
+    /// Bands that would hold more memory than the budget are refused
+    /// before the search, naming `band_px`; the default band does not
+    /// come near it.
+    #[test]
+    fn search_bands_beyond_the_memory_budget_are_refused() {
+        let s = Image::filled(4000, 3000, 0.0f32);
+        let ring: Vec<[f64; 2]> = (0..200)
+            .map(|i| {
+                let a = std::f64::consts::TAU * i as f64 / 200.0;
+                [2000.0 + 1400.0 * a.cos(), 1500.0 + 1400.0 * a.sin()]
+            })
+            .collect();
+        let huge = LassoParams {
+            clicks: ring.clone(),
+            band_px: 65536,
+            ..Default::default()
+        };
+        let e = check(&s, &huge).unwrap_err().to_string();
+        assert!(e.contains("band_px") && e.contains("GiB"), "{e}");
+        let fine = LassoParams {
+            clicks: ring,
+            ..Default::default()
+        };
+        assert!(check(&s, &fine).is_ok());
+        assert!(search_bytes(4000, 3000, &fine) < 1e8);
     }
 
     /// Three or more clicks on fewer than 3 pixels (a double click on the
