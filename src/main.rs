@@ -14,7 +14,7 @@ use depthgraph::backend::{Backend, Chosen};
 use depthgraph::graph::prelude::*;
 use depthgraph::metrics::Metric;
 use depthgraph::sweep::{SweepSpec, plot_svg, run_sweep, to_csv};
-use depthgraph::{LoadError, default_cache_dir, load_pipeline, load_pipeline_frame, read_document};
+use depthgraph::{LoadError, default_cache_dir, load_pipeline, load_pipeline_frame};
 
 /// Exit code when the requested backend cannot be used (no GPU adapter):
 /// sysexits EX_UNAVAILABLE. A bad DEPTHGRAPH_BACKEND is a usage error (2).
@@ -201,17 +201,25 @@ fn registry() -> Result<Registry> {
 /// the exit code when the backend cannot be had (the reason printed once).
 /// The pipeline is read and checked first, against the CPU kinds (the
 /// same kinds, ports and parameters): a missing file, a typo or a bad
-/// `--set` fails (exit code 2) before any device is probed.
-fn registry_for(args: &RunArgs) -> Result<std::result::Result<(Registry, Chosen), ExitCode>> {
+/// `--set` fails (exit code 2) before any device is probed. The file is
+/// read once: the document returned is the one checked ([`load`] binds it
+/// to the chosen kinds), so a pipeline piped on standard input runs, and a
+/// file edited meanwhile is not checked in one version and run in another.
+fn registry_for(
+    args: &RunArgs,
+) -> Result<std::result::Result<(Registry, Chosen, Document), ExitCode>> {
     let mut reg = registry()?;
-    if let Err(e) = load_pipeline_frame(&args.file, &args.sets, args.frame, &reg) {
-        report_load_error(&e);
-        return Ok(Err(ExitCode::from(2)));
-    }
+    let doc = match load_pipeline_frame(&args.file, &args.sets, args.frame, &reg) {
+        Ok((doc, _)) => doc,
+        Err(e) => {
+            report_load_error(&e);
+            return Ok(Err(ExitCode::from(2)));
+        }
+    };
     let chosen =
         Backend::resolve(args.backend).and_then(|b| depthgraph::backend::apply(b, &mut reg));
     match chosen {
-        Ok(c) => Ok(Ok((reg, c))),
+        Ok(c) => Ok(Ok((reg, c, doc))),
         Err(e) => {
             eprintln!("error: {e}");
             let code = match e {
@@ -223,17 +231,19 @@ fn registry_for(args: &RunArgs) -> Result<std::result::Result<(Registry, Chosen)
     }
 }
 
-/// Prints check errors (one per line) and turns them into a failure.
-fn load(args: &RunArgs, reg: &Registry) -> Result<(Document, Pipeline), ExitCode> {
-    match load_pipeline_frame(&args.file, &args.sets, args.frame, reg) {
-        Ok((doc, p)) => {
+/// The document [`registry_for`] read, checked against `reg` (the chosen
+/// backend's kinds); prints its notices, and check errors (one per line)
+/// as a failure.
+fn load(doc: &Document, reg: &Registry) -> Result<Pipeline, ExitCode> {
+    match Pipeline::check(doc, reg) {
+        Ok(p) => {
             for n in &doc.notices {
                 eprintln!("note: {n}");
             }
-            Ok((doc, p))
+            Ok(p)
         }
         Err(e) => {
-            report_load_error(&e);
+            report_load_error(&LoadError::Check(CheckErrors(e)));
             Err(ExitCode::from(2))
         }
     }
@@ -291,11 +301,11 @@ fn run_options(args: &RunArgs) -> RunOptions {
 }
 
 fn cmd_run(args: &RunArgs) -> Result<ExitCode> {
-    let (reg, chosen) = match registry_for(args)? {
+    let (reg, chosen, doc) = match registry_for(args)? {
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
-    let (_, p) = match load(args, &reg) {
+    let p = match load(&doc, &reg) {
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
@@ -464,11 +474,11 @@ fn schema_json(s: &NodeSchema) -> serde_json::Value {
 }
 
 fn cmd_explain(args: &RunArgs, json: bool) -> Result<ExitCode> {
-    let (reg, chosen) = match registry_for(args)? {
+    let (reg, chosen, doc) = match registry_for(args)? {
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
-    let (_, p) = match load(args, &reg) {
+    let p = match load(&doc, &reg) {
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
@@ -524,21 +534,11 @@ fn cmd_sweep(
     csv: Option<PathBuf>,
     plot: Option<PathBuf>,
 ) -> Result<ExitCode> {
-    let (reg, chosen) = match registry_for(args)? {
+    let (reg, chosen, doc) = match registry_for(args)? {
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
     eprintln!("backend: {} ({})", chosen.used, chosen.reason);
-    let doc = match read_document(&args.file, &args.sets).and_then(|d| {
-        d.for_frame(args.frame.unwrap_or(0))
-            .map_err(|e| LoadError::Check(CheckErrors(e)))
-    }) {
-        Ok(d) => d,
-        Err(e) => {
-            report_load_error(&e);
-            return Ok(ExitCode::from(2));
-        }
-    };
     let Some((target, values)) = param.split_once('=') else {
         return Err(Usage("--param must be node.param=v1,v2,...".into()).into());
     };

@@ -266,6 +266,44 @@ fn sinks_never_overwrite_a_sequences_index() {
     assert_eq!(std::fs::read(&list).unwrap(), before);
 }
 
+/// A pipeline piped on standard input runs: the file is read once (it
+/// was read a second time, found empty, and reported as a syntax error).
+#[cfg(target_os = "linux")]
+#[test]
+fn a_pipeline_on_standard_input_runs() {
+    use std::io::Write as _;
+    let out = tempfile::tempdir().unwrap();
+    let text = r#"(version: 1, nodes: {
+        "scene": (kind: "SyntheticScene", params: (width: 16, height: 12)),
+        "save": (kind: "SaveDepth", params: (path: "d.exr"), inputs: (depth: "scene.depth")),
+    }, outputs: ["save"])"#;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_depthgraph"))
+        .args([
+            "run",
+            "/dev/stdin",
+            "--no-cache",
+            "--quiet",
+            "--backend",
+            "cpu",
+            "--out",
+        ])
+        .arg(out.path())
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(text.as_bytes())
+        .unwrap();
+    let r = child.wait_with_output().unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(out.path().join("d.exr").is_file());
+}
+
 /// Two sinks that would write one file (the same path, or the same file
 /// by another spelling) are refused before anything runs, naming both:
 /// they ran at once and the file held whichever finished last.
