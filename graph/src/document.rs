@@ -387,6 +387,20 @@ impl Document {
         let value_text = value_text.trim();
         let parsed = match ron_text::parse(value_text) {
             Ok(v) => v.value,
+            // A number the reader cannot hold (an integer past 64 bits)
+            // is that, not text (it was then "expected integer, found a
+            // string").
+            Err(e)
+                if value_text
+                    .trim_start_matches(['-', '+'])
+                    .starts_with(|c: char| c.is_ascii_digit())
+                    && value_text.parse::<f64>().is_ok() =>
+            {
+                return Err(CheckError::Format {
+                    loc: at(value_col),
+                    message: format!("`{value_text}` is out of range: {}", e.message),
+                });
+            }
             // A bare word or a path is text.
             Err(_) if !value_text.is_empty() => RonValue::Str(value_text.to_string()),
             Err(e) => {
@@ -808,6 +822,26 @@ mod tests {
         let again = Document::parse(&d.to_ron(), "t.ron").unwrap();
         assert_eq!(again.to_ron(), d.to_ron());
         assert_eq!(again.nodes[0].params.len(), 2);
+    }
+
+    /// A `--set` number too large for the reader is reported as such, not
+    /// read as text (which then failed as "found a string").
+    #[test]
+    fn a_set_number_out_of_range_says_so() {
+        let mut d = Document::parse(TEXT, "t.ron").unwrap();
+        let e = d
+            .apply_set("a.x=99999999999999999999")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("out of range") && e.contains("99999999999999999999"),
+            "{e}"
+        );
+        // words, paths and numbers that fit are as before
+        d.apply_set("a.name=hello").unwrap();
+        d.apply_set("a.name=./12.png").unwrap();
+        d.apply_set("a.x=12").unwrap();
+        d.apply_set("a.x=-1e400").unwrap_or_else(|e| panic!("{e}"));
     }
 
     /// Written back, a file keeps its comments with the elements they
