@@ -558,8 +558,14 @@ fn cmd_sweep(
     {
         use depthgraph::graph::node::canonical_for_compare as canon;
         let mut guarded = vec![args.file.clone()];
-        if let Ok(p) = depthgraph::graph::pipeline::Pipeline::check(&doc, &reg) {
-            guarded.extend(p.input_files());
+        // the files the pipeline reads at every value (a swept path too)
+        for v in &values {
+            let mut d = doc.clone();
+            if d.apply_set(&format!("{target}={v}")).is_ok()
+                && let Ok(p) = depthgraph::graph::pipeline::Pipeline::check(&d, &reg)
+            {
+                guarded.extend(p.input_files());
+            }
         }
         for (flag, path) in [("--csv", &csv), ("--plot", &plot)] {
             if guarded.iter().any(|g| canon(g) == canon(path)) {

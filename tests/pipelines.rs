@@ -88,7 +88,6 @@ fn demo_writes_every_output_and_they_read_back() {
     assert!(d.join("depth_kinect_preview.png").exists());
 }
 
-/// `depthgraph CMD graphs/demo.ron --quiet --out OUT`, at the small size, then `extra`.
 /// `depthgraph run PIPE --no-cache --quiet --out OUT EXTRA...`.
 fn run_uncached(pipe: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
     let mut args = vec![
@@ -103,6 +102,7 @@ fn run_uncached(pipe: &Path, out: &Path, extra: &[&str]) -> std::process::Output
     cli(&args)
 }
 
+/// `depthgraph CMD graphs/demo.ron --quiet --out OUT`, at the small size, then `extra`.
 fn demo_cli(cmd: &str, out: &Path, extra: &[&str]) -> std::process::Output {
     let demo = graph("demo.ron");
     let mut args = vec![cmd, demo.to_str().unwrap(), "--quiet"];
@@ -264,6 +264,47 @@ fn sinks_never_overwrite_a_sequences_index() {
         "{err}"
     );
     assert_eq!(std::fs::read(&list).unwrap(), before);
+}
+
+/// A sweep's CSV never goes over a file one of its values reads (a swept
+/// path), checked before the first value runs.
+#[test]
+fn sweep_csv_never_goes_over_a_swept_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let img = Image::from_fn(4, 3, |x, y| [x as f32 / 4.0, y as f32 / 3.0, 0.5]);
+    for f in ["a.png", "b.png"] {
+        depthgraph::nodes::io::save_color(&img, &d.join(f), false, 0.0).unwrap();
+    }
+    let (a, b) = (d.join("a.png"), d.join("b.png"));
+    let before = std::fs::read(&b).unwrap();
+    let pipe = d.join("p.ron");
+    let text = format!(
+        r#"(version: 1, nodes: {{ "load": (kind: "LoadColor", params: (path: "{}")) }}, outputs: ["load"])"#,
+        a.display()
+    );
+    std::fs::write(&pipe, text).unwrap();
+    let param = format!("load.path={},{}", a.display(), b.display());
+    let reference = format!("load.path={}", a.display());
+    let r = cli(&[
+        "sweep",
+        pipe.to_str().unwrap(),
+        "--no-cache",
+        "--out",
+        d.to_str().unwrap(),
+        "--param",
+        &param,
+        "--reference",
+        &reference,
+        "--output",
+        "load.color",
+        "--csv",
+        b.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(2), "{err}");
+    assert!(err.contains("refusing to write over"), "{err}");
+    assert_eq!(std::fs::read(&b).unwrap(), before);
 }
 
 /// A pipeline piped on standard input runs: the file is read once (it

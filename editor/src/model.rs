@@ -32,9 +32,11 @@ pub struct EditorModel {
     /// Inside a gesture ([`EditorModel::begin_gesture`]): whether its first
     /// change has recorded the undo step yet.
     gesture: Option<bool>,
-    /// The document and positions as last read or saved: what
-    /// [`EditorModel::is_modified`] compares with.
-    saved: Snapshot,
+    /// The text of the document and positions as last read or saved:
+    /// what [`EditorModel::is_modified`] compares with (the text, not the
+    /// values with their file positions: a value set back to what the
+    /// file says is unchanged).
+    saved: String,
 }
 
 fn spanned<T>(value: T) -> Spanned<T> {
@@ -49,7 +51,7 @@ impl EditorModel {
     /// present, else from an automatic layered layout.
     pub fn new(doc: Document, registry: Arc<Registry>) -> Self {
         let mut m = Self {
-            doc: doc.clone(),
+            doc,
             registry,
             positions: BTreeMap::new(),
             undo: Vec::new(),
@@ -57,10 +59,7 @@ impl EditorModel {
             revision: 0,
             gesture: None,
             // replaced below, once the positions are known
-            saved: Snapshot {
-                doc,
-                positions: BTreeMap::new(),
-            },
+            saved: String::new(),
         };
         m.positions = m.auto_layout();
         for (name, p) in &m.doc.layout {
@@ -68,14 +67,14 @@ impl EditorModel {
                 m.positions.insert(name.clone(), *p);
             }
         }
-        m.saved = m.snapshot();
+        m.saved = m.to_ron();
         m
     }
 
     /// Whether the document or a node's position changed since it was
     /// read or last saved (an undo back to that state counts as unchanged).
     pub fn is_modified(&self) -> bool {
-        self.doc != self.saved.doc || self.positions != self.saved.positions
+        self.to_ron() != self.saved
     }
 
     /// Parses RON text (a pipeline file) into a model.
@@ -102,9 +101,9 @@ impl EditorModel {
     /// it (a full disk or a crash mid-write leaves the old file as it was).
     pub fn save(&mut self, path: &Path) -> Result<(), String> {
         let text = self.to_ron();
-        write_replacing(path, text.as_bytes())
+        depthgraph_nodes::io::write_atomic(path, |tmp| std::fs::write(tmp, &text))
             .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-        self.saved = self.snapshot();
+        self.saved = text;
         Ok(())
     }
 
@@ -115,7 +114,7 @@ impl EditorModel {
         let text = self.to_ron();
         match write_new(path, text.as_bytes()) {
             Ok(()) => {
-                self.saved = self.snapshot();
+                self.saved = text;
                 Ok(true)
             }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
@@ -422,6 +421,7 @@ impl EditorModel {
         if let Some(decl) = self.doc.node_mut(to_node) {
             decl.inputs.retain(|(k, _)| k.value != to_port);
         }
+        self.doc.drop_stale_comments();
         Ok(())
     }
 
@@ -507,6 +507,9 @@ impl EditorModel {
             .retain(|o| o.value != node && split_ref(&o.value).is_none_or(|(n, _)| n != node));
         self.doc.layout.remove(node);
         self.positions.remove(node);
+        // its comments (and those of the wires to it) go with it: a node
+        // added later under its name does not inherit them
+        self.doc.drop_stale_comments();
         Ok(())
     }
 
@@ -625,31 +628,6 @@ impl EditorModel {
         };
         names.into_iter().zip(pos).collect()
     }
-}
-
-/// Writes `bytes` to `path` through a temporary file in the same folder
-/// (flushed, then renamed over `path`): `path` holds the old bytes or the
-/// new ones, never a part. The temporary file is removed on failure.
-fn write_replacing(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    use std::io::Write;
-    let name = path
-        .file_name()
-        .ok_or_else(|| std::io::Error::other("the path names no file"))?;
-    let tmp = path.with_file_name(format!(
-        ".{}.{}.tmp",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let written = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written
 }
 
 /// Writes `bytes` to a new file `path` (`AlreadyExists` when there is

@@ -119,9 +119,6 @@ pub fn preview_image(v: &Value) -> Option<ColorImage> {
     picture(v).map(|p| p.image)
 }
 
-/// Tints `base` by `mask` (values in [0, 1], clamped): each pixel moves
-/// towards `tint` by `opacity × mask`. Returns false (and leaves `base`
-/// alone) when the sizes differ.
 /// `image` fitted to textures of at most `max_side` pixels a side (the
 /// display's limit; a larger texture aborts the renderer): scaled down by
 /// nearest sampling, aspect kept, at least one pixel a side. Images that
@@ -148,6 +145,9 @@ pub fn fit_texture(image: ColorImage, max_side: usize) -> ColorImage {
     ColorImage::new([tw, th], pixels)
 }
 
+/// Tints `base` by `mask` (values in [0, 1], clamped): each pixel moves
+/// towards `tint` by `opacity × mask`. Returns false (and leaves `base`
+/// alone) when the sizes differ.
 pub fn overlay_mask(
     base: &mut ColorImage,
     mask: &[f32],

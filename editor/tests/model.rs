@@ -353,11 +353,13 @@ fn unsaved_changes_are_tracked() {
     assert!(m.is_modified());
     assert!(m.undo());
     assert!(!m.is_modified());
-    let [x, y] = m.positions()["scene"];
-    // what the canvas hands back for it each frame
-    m.set_position("scene", [f64::from(x as f32), f64::from(y as f32)]);
-    assert_eq!(m.positions()["scene"], [x, y]);
+    // a value set back to what the file says is no change
+    m.set_param("kinect", "seed", ParamValue::Int(9))
+        .expect("set");
+    let original = demo().param_value("kinect", "seed").expect("seed");
+    m.set_param("kinect", "seed", original).expect("set back");
     assert!(!m.is_modified());
+    let [x, y] = m.positions()["scene"];
     m.set_position("scene", [x + 10.0, y]);
     assert!(m.is_modified());
     let dir = std::env::temp_dir().join(format!("depthgraph-editor-dirty-{}", std::process::id()));
@@ -365,6 +367,20 @@ fn unsaved_changes_are_tracked() {
     let path = dir.join("p.ron");
     m.save(&path).expect("save");
     assert!(!m.is_modified());
+    // a layout number f32 cannot hold: what the canvas hands back for it
+    // each frame (its f32) changes neither the model nor the file
+    let text = std::fs::read_to_string(&path).expect("read");
+    let text = text.replace(
+        &format!("\"scene\": ({:?}, {y:?})", x + 10.0),
+        &format!("\"scene\": (10.3, {y:?})"),
+    );
+    assert!(text.contains("(10.3, "), "{text}");
+    std::fs::write(&path, &text).expect("write");
+    let mut m = EditorModel::load(&path, Arc::clone(m.registry())).expect("load");
+    m.set_position("scene", [f64::from(10.3f32), f64::from(y as f32)]);
+    assert_eq!(m.positions()["scene"], [10.3, y]);
+    assert!(!m.is_modified());
+    assert!(m.to_ron().contains("(10.3, "));
     let _ = std::fs::remove_dir_all(dir);
 }
 

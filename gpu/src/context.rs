@@ -52,6 +52,16 @@ pub enum GpuError {
         /// The largest the device binds, MiB.
         allowed_mib: f64,
     },
+    /// The device could not do what was asked though nothing was wrong
+    /// with the request (out of its memory, a driver's internal failure):
+    /// device nodes then run on the CPU.
+    #[error("{adapter}: {message}")]
+    Unavailable {
+        /// The adapter.
+        adapter: String,
+        /// What failed.
+        message: String,
+    },
     /// A device operation failed (validation, out of memory, device lost).
     #[error("{adapter}: {message}")]
     Device {
@@ -399,15 +409,23 @@ impl GpuContext {
                 compilation_options: Default::default(),
                 cache: None,
             });
-        // (popped innermost first, each one)
-        let mut first = None;
-        for scope in scopes.into_iter().rev() {
+        // (popped innermost first, each one; validation is the last pushed)
+        let mut first: Option<(bool, wgpu::Error)> = None;
+        for (k, scope) in scopes.into_iter().enumerate().rev() {
             if let Some(e) = pollster::block_on(scope.pop()) {
-                first.get_or_insert(e);
+                first.get_or_insert((k < 2, e));
             }
         }
-        if let Some(e) = first {
-            return Err(self.error(format!("compiling `{name}`: {e}")));
+        if let Some((unavailable, e)) = first {
+            let message = format!("compiling `{name}`: {e}");
+            return Err(if unavailable {
+                GpuError::Unavailable {
+                    adapter: self.summary.label(),
+                    message,
+                }
+            } else {
+                self.error(message)
+            });
         }
         *lock(&self.compile_ms) += t.elapsed().as_secs_f64() * 1e3;
         let p = Arc::new(pipeline);

@@ -304,7 +304,7 @@ pub fn render(
     let out = Arc::new(s.scratch(12 * n as u64)?);
 
     // every kernel of refocus.wgsl, one layout
-    let kernel = |k| s.kernel_in("refocus.wgsl", BINDS, k).map(|(p, _)| p);
+    let mut kernel = |k| s.kernel_in("refocus.wgsl", BINDS, k).map(|(p, _)| p);
     let clear = kernel(&shaders::REFOCUS_CLEAR)?;
     let warp_depth = kernel(&shaders::REFOCUS_WARP_DEPTH)?;
     let warp_index = kernel(&shaders::REFOCUS_WARP_INDEX)?;

@@ -108,18 +108,20 @@ impl<'a> Session<'a> {
     /// The compiled pipeline of `k` (compiled on first use, then cached by
     /// the context).
     pub fn kernel(
-        &self,
+        &mut self,
         k: &crate::shaders::Kernel,
     ) -> Result<Arc<wgpu::ComputePipeline>, NodeError> {
         self.ctx
             .pipeline(k.name, &k.source(), k.entry)
-            .map_err(|e| self.fail(e))
+            .map_err(|e| self.compile_failed(e))
     }
 
     /// A device error as a node error.
     pub fn fail(&self, e: GpuError) -> NodeError {
         let (adapter, message) = match e {
-            GpuError::Device { adapter, message } => (adapter, message),
+            GpuError::Device { adapter, message } | GpuError::Unavailable { adapter, message } => {
+                (adapter, message)
+            }
             GpuError::TooLarge {
                 adapter,
                 needed_mib,
@@ -211,7 +213,7 @@ impl<'a> Session<'a> {
     /// The pipeline of `k` in the explicit layout `binds` (cached per
     /// kernel file under `layout_name`).
     pub fn kernel_in(
-        &self,
+        &mut self,
         layout_name: &'static str,
         binds: &[Bind],
         k: &crate::shaders::Kernel,
@@ -220,8 +222,15 @@ impl<'a> Session<'a> {
         let p = self
             .ctx
             .pipeline_in(k.name, &k.source(), k.entry, Some(&layout.1))
-            .map_err(|e| self.fail(e))?;
+            .map_err(|e| self.compile_failed(e))?;
         Ok((p, layout))
+    }
+
+    /// A pipeline that did not compile as a node error; out of memory or a
+    /// driver failure sends the node to the CPU.
+    fn compile_failed(&mut self, e: GpuError) -> NodeError {
+        self.too_large |= matches!(e, GpuError::Unavailable { .. });
+        self.fail(e)
     }
 
     /// An uninitialised storage buffer of `size` bytes.

@@ -45,18 +45,29 @@ pub struct Document {
     pub frames: Option<String>,
     /// Notices from reading (e.g. a migrated older format).
     pub notices: Vec<String>,
-    /// The file's comments, each kept with the element it stood before
-    /// ([`CommentAnchor`]), so that [`Document::to_ron`] (the editor's
-    /// Save) writes them back there.
-    pub comments: BTreeMap<CommentAnchor, Vec<String>>,
+    /// The file's comments, each kept with its element ([`CommentAnchor`]),
+    /// so that [`Document::to_ron`] (the editor's Save) writes them back there.
+    pub comments: BTreeMap<CommentAnchor, KeptComments>,
+}
+
+/// The comments kept with one element: those on lines of their own before
+/// it, and those after code on its own line (written back at the end of
+/// its line).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct KeptComments {
+    /// On lines of their own before the element.
+    pub before: Vec<String>,
+    /// After the element, on its line.
+    pub after: Vec<String>,
 }
 
 /// The element a comment of the file is kept with. A comment on a line of
-/// its own belongs to the element written after it; one after code on its
-/// line, to the element on a later line (it is written back on the line
-/// above that element); one after the last element, to [`End`](Self::End).
-/// Comments inside a value (between a list's items) move before the next
-/// element; comments of a node or parameter that is removed go with it.
+/// its own belongs to the element written after it (one after the last
+/// element, to [`End`](Self::End)); one after code on its line, to the
+/// last element that starts on that line (else to the next element, on
+/// the line above it). Comments inside a value (between a list's items)
+/// move before the next element; comments of a node, parameter or wire
+/// that is removed go with it ([`Document::drop_stale_comments`]).
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
 pub enum CommentAnchor {
     /// Before the document's opening parenthesis (the file's header).
@@ -84,7 +95,7 @@ fn attach_comments(
     root: Pos,
     fields: &[(Spanned<String>, Spanned<RonValue>)],
     nodes: &[NodeDecl],
-) -> BTreeMap<CommentAnchor, Vec<String>> {
+) -> BTreeMap<CommentAnchor, KeptComments> {
     let at = |p: Pos| (p.line, p.col);
     let mut anchors: Vec<((usize, usize), CommentAnchor)> = fields
         .iter()
@@ -108,35 +119,77 @@ fn attach_comments(
         }
     }
     anchors.sort_by_key(|a| a.0);
-    let mut out: BTreeMap<CommentAnchor, Vec<String>> = BTreeMap::new();
+    let mut out: BTreeMap<CommentAnchor, KeptComments> = BTreeMap::new();
     for c in comments {
         let here = at(c.pos);
-        let anchor = if here < at(root) {
-            CommentAnchor::Header
-        } else {
-            anchors
-                .iter()
-                .find(|(p, _)| if c.own_line { *p > here } else { p.0 > here.0 })
-                .map_or(CommentAnchor::End, |(_, a)| a.clone())
-        };
-        out.entry(anchor).or_default().push(c.text);
+        if here < at(root) {
+            out.entry(CommentAnchor::Header)
+                .or_default()
+                .before
+                .push(c.text);
+            continue;
+        }
+        // after code: the last element starting on its line, before it
+        let on_line = (!c.own_line)
+            .then(|| {
+                anchors
+                    .iter()
+                    .rev()
+                    .find(|(p, _)| p.0 == here.0 && p.1 < here.1)
+            })
+            .flatten();
+        if let Some((_, a)) = on_line {
+            out.entry(a.clone()).or_default().after.push(c.text);
+            continue;
+        }
+        let anchor = anchors
+            .iter()
+            .find(|(p, _)| if c.own_line { *p > here } else { p.0 > here.0 })
+            .map_or(CommentAnchor::End, |(_, a)| a.clone());
+        out.entry(anchor).or_default().before.push(c.text);
     }
     out
 }
 
-/// Writes the comments kept with `anchor`, each on its own line at
-/// `indent` spaces (a block comment's later lines as written).
+/// Writes the comments kept before `anchor`, each on its own line at
+/// `indent` spaces (a block comment's later lines as written); with
+/// `all`, those after it too (an element not written).
 fn put_comments(
     s: &mut String,
-    comments: &BTreeMap<CommentAnchor, Vec<String>>,
+    comments: &BTreeMap<CommentAnchor, KeptComments>,
     anchor: &CommentAnchor,
     indent: usize,
+    all: bool,
 ) {
-    for c in comments.get(anchor).into_iter().flatten() {
+    let Some(k) = comments.get(anchor) else {
+        return;
+    };
+    let after = if all { &k.after[..] } else { &[] };
+    for c in k.before.iter().chain(after) {
         s.push_str(&" ".repeat(indent));
         s.push_str(c);
         s.push('\n');
     }
+}
+
+/// Writes the line of element `anchor` (`text` at `indent` spaces) with
+/// its comments: those before it on lines of their own, those after it at
+/// the end of its line.
+fn put_line(
+    s: &mut String,
+    comments: &BTreeMap<CommentAnchor, KeptComments>,
+    anchor: &CommentAnchor,
+    indent: usize,
+    text: &str,
+) {
+    put_comments(s, comments, anchor, indent, false);
+    s.push_str(&" ".repeat(indent));
+    s.push_str(text);
+    for c in comments.get(anchor).map_or(&[][..], |k| &k.after[..]) {
+        s.push(' ');
+        s.push_str(c);
+    }
+    s.push('\n');
 }
 
 /// One node of a document.
@@ -357,6 +410,24 @@ impl Document {
         }
     }
 
+    /// Forgets the comments kept with elements that no longer exist (a
+    /// removed node, its parameters, a removed wire), so that an element
+    /// added later under the same name does not inherit them.
+    pub fn drop_stale_comments(&mut self) {
+        let nodes = &self.nodes;
+        let find = |n: &str| nodes.iter().find(|d| d.name.value == n);
+        self.comments.retain(|anchor, _| match anchor {
+            CommentAnchor::Node(n) | CommentAnchor::Kind(n) => find(n).is_some(),
+            CommentAnchor::Param(n, k) => {
+                find(n).is_some_and(|d| d.params.iter().any(|(p, _)| p.value == *k))
+            }
+            CommentAnchor::Input(n, k) => {
+                find(n).is_some_and(|d| d.inputs.iter().any(|(p, _)| p.value == *k))
+            }
+            CommentAnchor::Header | CommentAnchor::Field(_) | CommentAnchor::End => true,
+        });
+    }
+
     /// Finds a node by name.
     pub fn node(&self, name: &str) -> Option<&NodeDecl> {
         self.nodes.iter().find(|n| n.name.value == name)
@@ -453,46 +524,62 @@ impl Document {
     }
 
     /// Writes the document as RON a person can read and edit.
-    /// The file's comments are written back with the elements they stood
-    /// before ([`CommentAnchor`]).
+    /// The file's comments are written back with their elements
+    /// ([`CommentAnchor`]).
     pub fn to_ron(&self) -> String {
         use CommentAnchor as A;
         let c = &self.comments;
         let field = |f: &str| A::Field(f.to_string());
         let mut s = String::new();
-        put_comments(&mut s, c, &A::Header, 0);
+        put_comments(&mut s, c, &A::Header, 0, true);
         s.push_str("(\n");
-        put_comments(&mut s, c, &field("version"), 4);
-        s.push_str(&format!("    version: {},\n", self.version));
-        put_comments(&mut s, c, &field("nodes"), 4);
-        s.push_str("    nodes: {\n");
+        put_line(
+            &mut s,
+            c,
+            &field("version"),
+            4,
+            &format!("version: {},", self.version),
+        );
+        put_line(&mut s, c, &field("nodes"), 4, "nodes: {");
         for n in &self.nodes {
             let name = &n.name.value;
-            put_comments(&mut s, c, &A::Node(name.clone()), 8);
-            s.push_str(&format!("        {}: (\n", quote(name)));
-            put_comments(&mut s, c, &A::Kind(name.clone()), 12);
-            s.push_str(&format!("            kind: {},\n", quote(&n.kind.value)));
+            put_line(
+                &mut s,
+                c,
+                &A::Node(name.clone()),
+                8,
+                &format!("{}: (", quote(name)),
+            );
+            put_line(
+                &mut s,
+                c,
+                &A::Kind(name.clone()),
+                12,
+                &format!("kind: {},", quote(&n.kind.value)),
+            );
             if !n.params.is_empty() {
                 s.push_str("            params: (\n");
                 for (k, v) in &n.params {
-                    put_comments(&mut s, c, &A::Param(name.clone(), k.value.clone()), 16);
-                    s.push_str(&format!(
-                        "                {}: {},\n",
-                        k.value,
-                        ron_to_text(&v.value)
-                    ));
+                    put_line(
+                        &mut s,
+                        c,
+                        &A::Param(name.clone(), k.value.clone()),
+                        16,
+                        &format!("{}: {},", k.value, ron_to_text(&v.value)),
+                    );
                 }
                 s.push_str("            ),\n");
             }
             if !n.inputs.is_empty() {
                 s.push_str("            inputs: (\n");
                 for (k, v) in &n.inputs {
-                    put_comments(&mut s, c, &A::Input(name.clone(), k.value.clone()), 16);
-                    s.push_str(&format!(
-                        "                {}: {},\n",
-                        k.value,
-                        quote(&v.value)
-                    ));
+                    put_line(
+                        &mut s,
+                        c,
+                        &A::Input(name.clone(), k.value.clone()),
+                        16,
+                        &format!("{}: {},", k.value, quote(&v.value)),
+                    );
                 }
                 s.push_str("            ),\n");
             }
@@ -500,15 +587,24 @@ impl Document {
         }
         s.push_str("    },\n");
         let outs: Vec<String> = self.outputs.iter().map(|o| quote(&o.value)).collect();
-        put_comments(&mut s, c, &field("outputs"), 4);
-        s.push_str(&format!("    outputs: [{}],\n", outs.join(", ")));
+        put_line(
+            &mut s,
+            c,
+            &field("outputs"),
+            4,
+            &format!("outputs: [{}],", outs.join(", ")),
+        );
         if let Some(f) = &self.frames {
-            put_comments(&mut s, c, &field("frames"), 4);
-            s.push_str(&format!("    frames: {},\n", quote(f)));
+            put_line(
+                &mut s,
+                c,
+                &field("frames"),
+                4,
+                &format!("frames: {},", quote(f)),
+            );
         }
         if !self.layout.is_empty() {
-            put_comments(&mut s, c, &field("layout"), 4);
-            s.push_str("    layout: {\n");
+            put_line(&mut s, c, &field("layout"), 4, "layout: {");
             for (k, [x, y]) in &self.layout {
                 s.push_str(&format!("        {}: ({x:?}, {y:?}),\n", quote(k)));
             }
@@ -522,10 +618,10 @@ impl Document {
                 _ => !self.layout.is_empty(),
             };
             if !written {
-                put_comments(&mut s, c, &field(f), 4);
+                put_comments(&mut s, c, &field(f), 4, true);
             }
         }
-        put_comments(&mut s, c, &A::End, 4);
+        put_comments(&mut s, c, &A::End, 4, true);
         s.push_str(")\n");
         s
     }
@@ -862,11 +958,11 @@ mod tests {
         assert_eq!(Some(line_of("#![enable(implicit_some)]") + 1), open);
         assert_eq!(line_of("// about the version") + 1, line_of("version: 1"));
         assert_eq!(line_of("// the source") + 1, line_of("\"a\": ("));
-        // after code on its line: before the next line's element
-        assert_eq!(line_of("// trailing") + 2, line_of("x: 1.5"));
+        // after code on its line: at the end of that element's line
+        assert_eq!(line_of("// trailing"), line_of("kind: \"Source\","));
         assert_eq!(line_of("// x is one") + 1, line_of("x: 1.5"));
-        // inside a value: before the next element
-        assert_eq!(line_of("/* inside */") + 1, line_of("\"b\": ("));
+        // inside a value on one line: at the end of that value's line
+        assert_eq!(line_of("/* inside */"), line_of("list: [1.0, 2.0],"));
         assert_eq!(line_of("/* the wire */") + 1, line_of("v: \"a.out\""));
         assert_eq!(line_of("// what runs") + 1, line_of("outputs:"));
         assert_eq!(line_of("// the end") + 2, out.lines().count());
@@ -874,11 +970,16 @@ mod tests {
         let again = Document::parse(&out, "t.ron").unwrap();
         assert_eq!(again.to_ron(), out);
         assert_eq!(again.comments, d.comments);
-        // a node's comments go with it
+        // a node's comments go with it, and stay gone when a node of
+        // that name is added again
         let mut gone = d.clone();
-        gone.nodes.retain(|n| n.name.value != "a");
+        let a = gone.nodes.remove(0);
         assert!(!gone.to_ron().contains("the source"));
         assert!(!gone.to_ron().contains("x is one"));
+        gone.drop_stale_comments();
+        gone.nodes.push(a);
+        assert!(!gone.to_ron().contains("the source"));
+        assert!(!gone.to_ron().contains("trailing"));
     }
 
     /// A field written twice (a parameter, an input, a node's `kind`, a

@@ -236,12 +236,7 @@ impl EvalCtx<'_> {
     /// Resolves an output path against the output directory and refuses
     /// paths the pipeline reads.
     pub fn output_path(&self, path: &str) -> Result<PathBuf, NodeError> {
-        let p = PathBuf::from(path);
-        let p = if p.is_absolute() {
-            p
-        } else {
-            self.out_dir.join(p)
-        };
+        let p = resolve_output(self.out_dir, path);
         let canon_target = canonical_for_compare(&p);
         if self
             .input_files
@@ -252,6 +247,13 @@ impl EvalCtx<'_> {
         }
         Ok(p)
     }
+}
+
+/// Where a sink's output `path` goes: itself when absolute, else under
+/// `out_dir`.
+pub fn resolve_output(out_dir: &std::path::Path, path: &str) -> PathBuf {
+    let p = PathBuf::from(path);
+    if p.is_absolute() { p } else { out_dir.join(p) }
 }
 
 /// Canonical path for comparisons, also for files that do not exist yet

@@ -23,7 +23,7 @@ use crate::error::RunError;
 use crate::key::{Key, node_key, with_file_contents};
 use crate::node::{
     CancelToken, Derivations, EvalCtx, Inputs, NodeError, Outputs, ProgressFn, ValueStore,
-    canonical_for_compare,
+    canonical_for_compare, resolve_output,
 };
 use crate::params::{ParamKind, ParamValue};
 use crate::pipeline::Pipeline;
@@ -224,12 +224,7 @@ impl Engine {
                 if path.is_empty() {
                     continue;
                 }
-                let file = PathBuf::from(path);
-                let file = if file.is_absolute() {
-                    file
-                } else {
-                    out_dir.join(file)
-                };
+                let file = resolve_output(out_dir, path);
                 let canon = canonical_for_compare(&file);
                 if let Some((j, other)) = seen.get(&canon) {
                     let first = &p.nodes[*j];

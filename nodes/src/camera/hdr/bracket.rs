@@ -68,13 +68,26 @@ pub fn parse_bracket_list(text: &str, list: &Path) -> Result<Vec<(PathBuf, f64)>
                 format!("exposure time {t} s of {name} must be positive"),
             ));
         }
-        // HDRShop's columns after the time (`1/shutter_speed f/stop
-        // gain(db) ND_filters`): the merge takes the time alone as the
+        // the columns after the time (`1/shutter_speed f/stop gain(db)
+        // ND_filters`, or without the first): the merge takes the time alone as the
         // exposure, so the aperture, gain and filter must be the same on
         // every line (numbers that differ would be merged as equal
         // exposures, silently wrong)
         let rest: Vec<&str> = tokens.collect();
-        for (col, what) in [(1, "f-stop"), (2, "gain"), (3, "ND filter")] {
+        // after the time: `1/shutter f/stop gain ND` (Debevec's lists), or
+        // `f/stop gain ND`; told apart by the first line's column count
+        // (fewer columns say nothing of the aperture: not checked), and
+        // checked on lines with as many
+        let first_col = match first_rest.len() {
+            n if n >= 4 => Some(1),
+            3 => Some(0),
+            _ => None,
+        }
+        .filter(|_| rest.len() == first_rest.len());
+        for (off, what) in [(0, "f-stop"), (1, "gain"), (2, "ND filter")] {
+            let Some(col) = first_col.map(|c| c + off) else {
+                break;
+            };
             let (Some(here), Some(first)) = (rest.get(col), first_rest.get(col)) else {
                 continue;
             };

@@ -912,8 +912,9 @@ mod tests {
             e.to_string().contains("line 2") && e.to_string().contains("list.txt"),
             "{e}"
         );
-        // HDRShop's columns: equal apertures, gains and filters read (the
-        // memorial list's form); a differing one is refused, naming it
+        // the columns after the time: equal apertures, gains and filters
+        // read (the memorial list's form: 1/shutter f/stop gain ND, or
+        // without 1/shutter); a differing one is refused, naming it
         let dir_of = |list: &str| parse_bracket_list(list, Path::new("l/list.txt"));
         let same = "# name exposure 1/shutter f/stop gain ND\na.png 2 0.5 8 0 0\nb.png 1 1 8 0 0\n";
         assert_eq!(dir_of(same).unwrap().len(), 2);
@@ -921,6 +922,8 @@ mod tests {
             ("a.png 2 0.5 8 0 0\nb.png 1 1 4 0 0\n", "f-stop is 4"),
             ("a.png 2 0.5 8 0 0\nb.png 1 1 8 6 0\n", "gain is 6"),
             ("a.png 2 0.5 8 0 0\nb.png 1 1 8 0 1\n", "ND filter is 1"),
+            ("a.png 2 8 0 0\nb.png 1 4 0 0\n", "f-stop is 4"),
+            ("a.png 2 8 0 0\nb.png 1 8 6 0\n", "gain is 6"),
         ] {
             let e = dir_of(list).unwrap_err().to_string();
             assert!(e.contains(what) && e.contains("line 2"), "{e}");
