@@ -17,7 +17,9 @@ node_params! {
         /// `#` starts a comment; file names are relative to the list's directory (Debevec's
         /// memorial `image_list.txt` reads as is). Of HDRShop's further columns (`1/shutter
         /// f/stop gain(dB) ND`), f-stop, gain and ND must be the same on every line: the time
-        /// alone is taken as the exposure. Leave empty to use `files`.
+        /// alone is taken as the exposure. Times in seconds: a list whose longer times are the
+        /// darker images (1/shutter values, as OpenCV's example lists give) is refused. Leave
+        /// empty to use `files`.
         pub list: String = "", ParamKind::InputPath;
         /// Comma-separated image files (8/16-bit PNG or TIFF, JPEG; relative to the working
         /// directory like LoadColor's path), used when `list` is empty.
@@ -216,7 +218,64 @@ pub fn load_bracket_with(
         stack.images.push(img);
         stack.times_s.push(*t);
     }
+    let param = if p.list.is_empty() { "times_s" } else { "list" };
+    check_times_follow_brightness(&stack, param)?;
     Ok(stack)
+}
+
+/// A step in mean level (of [0, 1]) between two exposures that counts as
+/// brighter or darker.
+const BRIGHTNESS_STEP: f64 = 0.01;
+
+/// Longer exposures are brighter: a stack whose every measurable step from
+/// one exposure time to the next longer one is darker has its times
+/// inverted (a list giving 1/shutter, as OpenCV's tutorial lists do, read
+/// as seconds), and the merge would be silently wrong: an error naming
+/// `param`. Steps within [`BRIGHTNESS_STEP`] (saturated or black frames)
+/// say nothing and are not counted.
+pub fn check_times_follow_brightness(stack: &ExposureStack, param: &str) -> Result<(), NodeError> {
+    let mean = |img: &ColorImage| {
+        let (sum, n) = img
+            .as_slice()
+            .iter()
+            .flatten()
+            .filter(|v| v.is_finite())
+            .fold((0.0f64, 0usize), |(s, n), v| (s + f64::from(*v), n + 1));
+        // guard: an image with no finite value has no level
+        (n > 0).then(|| sum / n as f64)
+    };
+    let mut by_time: Vec<(f64, Option<f64>)> = stack
+        .times_s
+        .iter()
+        .zip(&stack.images)
+        .map(|(t, img)| (*t, mean(img)))
+        .collect();
+    by_time.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut up, mut down) = (0usize, 0usize);
+    for pair in by_time.windows(2) {
+        let ((ta, Some(a)), (tb, Some(b))) = (pair[0], pair[1]) else {
+            continue;
+        };
+        if tb > ta {
+            up += usize::from(b - a > BRIGHTNESS_STEP);
+            down += usize::from(a - b > BRIGHTNESS_STEP);
+        }
+    }
+    if down > 0 && up == 0 {
+        let (longest, shortest) = (
+            by_time.last().map_or(0.0, |e| e.0),
+            by_time.first().map_or(0.0, |e| e.0),
+        );
+        return Err(NodeError::param(
+            param,
+            format!(
+                "the exposure times run opposite to the images' brightness (the longest, {longest} s, \
+                 is the darkest; the shortest, {shortest} s, the brightest): times given as 1/shutter \
+                 (as OpenCV's example lists give them) read as seconds are inverted; give seconds"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 depthgraph_graph::ports! {

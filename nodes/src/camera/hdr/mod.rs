@@ -928,6 +928,13 @@ mod tests {
             let e = dir_of(list).unwrap_err().to_string();
             assert!(e.contains(what) && e.contains("line 2"), "{e}");
         }
+        // times inverted (1/shutter read as seconds): the longest exposure
+        // is the darkest, refused naming the list
+        std::fs::write(&list, "e0.png 4\ne1.png 1\ne2.png 0.25\n").unwrap();
+        let e = load_bracket(&p).unwrap_err().to_string();
+        assert!(e.contains("list") && e.contains("opposite"), "{e}");
+        std::fs::write(&list, "e0.png 0.25\ne1.png 1\ne2.png 4\n").unwrap();
+        assert!(load_bracket(&p).is_ok());
         std::fs::write(&list, "e0.png -1\n").unwrap();
         assert!(
             load_bracket(&p)
