@@ -154,6 +154,11 @@ struct Parser<'a> {
     col: usize,
     _text: &'a str,
     comments: Vec<Comment>,
+    /// The line of the last character read that is not a blank or part of
+    /// a comment (0: none yet): a comment on another line stands on its own.
+    code_line: usize,
+    /// Reading a comment (its characters are not code).
+    in_comment: bool,
 }
 
 impl<'a> Parser<'a> {
@@ -166,6 +171,8 @@ impl<'a> Parser<'a> {
             col: 1,
             _text: text,
             comments: Vec::new(),
+            code_line: 0,
+            in_comment: false,
         }
     }
     fn pos(&self) -> Pos {
@@ -189,6 +196,9 @@ impl<'a> Parser<'a> {
     }
     fn bump(&mut self) -> Option<char> {
         let c = self.peek()?;
+        if !self.in_comment && !c.is_whitespace() {
+            self.code_line = self.line;
+        }
         self.i += 1;
         if c == '\n' {
             self.line += 1;
@@ -202,11 +212,8 @@ impl<'a> Parser<'a> {
     /// trailing `\r` (a CRLF line) is not part of it.
     fn note_comment(&mut self, start: Pos, from: usize) {
         let text: String = self.chars[from..self.i].iter().collect();
-        let own_line = self.chars[..from]
-            .iter()
-            .rev()
-            .take_while(|c| **c != '\n')
-            .all(|c| c.is_whitespace());
+        let own_line = self.code_line != start.line;
+        self.in_comment = false;
         self.comments.push(Comment {
             pos: start,
             text: text.trim_end_matches('\r').to_string(),
@@ -221,6 +228,7 @@ impl<'a> Parser<'a> {
                 }
                 (Some('/'), Some('/')) | (Some('#'), Some('!')) => {
                     let (start, from) = (self.pos(), self.i);
+                    self.in_comment = true;
                     while let Some(c) = self.peek() {
                         if c == '\n' {
                             break;
@@ -231,6 +239,7 @@ impl<'a> Parser<'a> {
                 }
                 (Some('/'), Some('*')) => {
                     let (start, from) = (self.pos(), self.i);
+                    self.in_comment = true;
                     self.bump();
                     self.bump();
                     let mut depth = 1;
