@@ -75,8 +75,9 @@ pub fn picked_path_text(picked: &Path, output: bool, out_dir: &Path) -> String {
 
 /// A one-line text field for a parameter whose text is applied as a
 /// whole: what is typed is kept in `state.edits` under `key` and handed
-/// back once the field loses focus (Enter, Tab or a click elsewhere), and
-/// only if it differs from the value's text when the editing began. While
+/// back once the field loses focus (Enter, Tab or a click elsewhere; not
+/// Escape, which drops it), and only if it differs from the value's text
+/// when the editing began. While
 /// the field has no focus it shows `current`, so a value changed
 /// elsewhere (a drag, a lasso click, undo) is never written back from a
 /// stale copy, and a path is not applied (re-running a sink that writes
@@ -102,7 +103,9 @@ fn buffered_text(
         .labelled_by(label_id);
     if r.lost_focus() {
         let (text, base) = state.edits.remove(key).unwrap_or_default();
-        return (text != base).then_some(text);
+        // Escape leaves the field as it was
+        let cancelled = ui.input(|i| i.key_pressed(egui::Key::Escape));
+        return (text != base && !cancelled).then_some(text);
     }
     None
 }

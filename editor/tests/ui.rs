@@ -131,4 +131,19 @@ fn a_path_is_applied_once_when_its_field_is_left() {
     // one edit, one undo step
     assert!(harness.state_mut().0.undo());
     assert_eq!(harness.state().0.param_value("save_color", "path"), before);
+    // Escape drops what was typed
+    harness.get_by_label("path").focus();
+    harness.run();
+    harness.get_by_label("path").type_text("abc");
+    harness.run();
+    harness.key_press(eframe::egui::Key::Escape);
+    harness.run();
+    assert_eq!(harness.state().0.param_value("save_color", "path"), before);
+    assert_eq!(
+        harness.get_by_label("path").value(),
+        before.clone().ok().map(|v| match v {
+            ParamValue::Text(t) => t,
+            other => other.to_ron(),
+        })
+    );
 }
