@@ -554,21 +554,12 @@ fn cmd_sweep(
     let plot = plot.unwrap_or_else(|| args.out.join(format!("{stem}.svg")));
     // the sweep writes its CSV and plot itself, not through a sink: the
     // same rule (never over the pipeline or a file it reads, never one
-    // over the other), checked before anything runs
+    // over the other), checked before anything runs (the files the
+    // pipeline reads at each value, by run_sweep)
     {
         use depthgraph::graph::node::canonical_for_compare as canon;
-        let mut guarded = vec![args.file.clone()];
-        // the files the pipeline reads at every value (a swept path too)
-        for v in &values {
-            let mut d = doc.clone();
-            if d.apply_set(&format!("{target}={v}")).is_ok()
-                && let Ok(p) = depthgraph::graph::pipeline::Pipeline::check(&d, &reg)
-            {
-                guarded.extend(p.input_files());
-            }
-        }
         for (flag, path) in [("--csv", &csv), ("--plot", &plot)] {
-            if guarded.iter().any(|g| canon(g) == canon(path)) {
+            if canon(&args.file) == canon(path) {
                 return Err(Usage(format!(
                     "{flag} {}: refusing to write over a file this pipeline reads",
                     path.display()
@@ -592,6 +583,7 @@ fn cmd_sweep(
         output,
         metric,
         repeats,
+        writes: vec![csv.clone(), plot.clone()],
     };
     let engine = engine(args)?;
     let mut opts = run_options(args);

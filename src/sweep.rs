@@ -29,6 +29,9 @@ pub struct SweepSpec {
     pub metric: Metric,
     /// Timed repeats per value (the median is reported).
     pub repeats: usize,
+    /// Files the sweep writes itself (its CSV and plot): refused, before
+    /// any value runs, where the pipeline at some value reads one.
+    pub writes: Vec<std::path::PathBuf>,
 }
 
 /// One row of the result.
@@ -59,6 +62,8 @@ pub enum SweepError {
     Metric { output: String, error: MetricError },
     #[error("give --reference or --truth to measure an error against")]
     NoReference,
+    #[error("{0}: refusing to write over a file this pipeline reads")]
+    WouldOverwrite(std::path::PathBuf),
 }
 
 /// The values of `--param node.p=v1,v2,...`: split at the commas outside
@@ -169,6 +174,19 @@ pub fn run_sweep(
         .iter()
         .map(|v| with_set(doc, &[format!("{}={}", spec.param, v)], reg, &want))
         .collect::<Result<_, _>>()?;
+    // the files the sweep writes, against those each value reads (a swept
+    // path too)
+    let canon = depthgraph_graph::node::canonical_for_compare;
+    for w in &spec.writes {
+        let target = canon(w);
+        if pipelines
+            .iter()
+            .flat_map(|p| p.input_files())
+            .any(|f| canon(&f) == target)
+        {
+            return Err(SweepError::WouldOverwrite(w.clone()));
+        }
+    }
     let reference_value = match &spec.reference {
         Some(r) if spec.truth.is_none() => {
             let p = with_set(doc, std::slice::from_ref(r), reg, &[&spec.output])?;

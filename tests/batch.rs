@@ -363,8 +363,9 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     assert_eq!(code(&o), 0, "{}", stderr(&o));
 
     let (out, cache) = (d.join("slurm_out"), d.join("shared_cache"));
-    let o = batch(
-        &[
+    // `batch` of the 20 frames into `out` with the shared cache, on Slurm
+    let slurm = |extra: &[&str], env: &[(&str, &str)]| {
+        let mut a = vec![
             s(&pipe),
             "--frames",
             "0..20",
@@ -373,6 +374,12 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
             "--cache-dir",
             s(&cache),
             "--slurm",
+        ];
+        a.extend_from_slice(extra);
+        batch(&a, env)
+    };
+    let o = slurm(
+        &[
             "--dry-run",
             "--frames-per-task",
             "6",
@@ -433,21 +440,7 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
                 .to_string(),
         )],
     );
-    let again = |extra: &[&str], env: &[(&str, &str)]| {
-        let mut a = vec![
-            s(&pipe),
-            "--frames",
-            "0..20",
-            "--out",
-            s(&out),
-            "--cache-dir",
-            s(&cache),
-            "--slurm",
-        ];
-        a.extend_from_slice(extra);
-        batch(&a, env)
-    };
-    let o = again(&["--partition", "typo"], &[("PATH", &path)]);
+    let o = slurm(&["--partition", "typo"], &[("PATH", &path)]);
     assert_eq!(code(&o), 2, "{}", stderr(&o));
     assert!(stderr(&o).contains("invalid partition"), "{}", stderr(&o));
     assert_eq!(
@@ -462,7 +455,7 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     );
     // A dry run names a new submission, none of whose tasks has run:
     // --collect says so and leaves the manifest as it was.
-    let o = again(&["--dry-run"], &[]);
+    let o = slurm(&["--dry-run"], &[]);
     assert_eq!(code(&o), 0, "{}", stderr(&o));
     let o = batch(&["--collect", s(&out)], &[]);
     assert_eq!(code(&o), 75, "{}", stderr(&o));

@@ -143,6 +143,9 @@ pub struct EditorApp {
     close_allowed: bool,
     /// The window title last sent (`*` marks unsaved changes).
     title: String,
+    /// Whether the document had unsaved changes this frame (found once a
+    /// frame: it compares the document's whole text).
+    modified: bool,
 }
 
 /// A drag on the preview that places the pasted object.
@@ -230,6 +233,7 @@ impl EditorApp {
             confirm_close: false,
             close_allowed: false,
             title: String::new(),
+            modified: false,
         }
     }
 
@@ -341,7 +345,11 @@ impl EditorApp {
 
     /// The window title: the file, `*` while changes are unsaved.
     pub fn window_title(&self) -> String {
-        let mark = if self.model.is_modified() { "*" } else { "" };
+        self.title_for(self.model.is_modified())
+    }
+
+    fn title_for(&self, modified: bool) -> String {
+        let mark = if modified { "*" } else { "" };
         format!("depthgraph editor - {}{mark}", self.path.display())
     }
 
@@ -1206,7 +1214,7 @@ impl EditorApp {
                 self.model.redo();
             }
             ui.label(self.path.display().to_string());
-            if self.model.is_modified() {
+            if self.modified {
                 ui.label("(unsaved changes)");
             }
             if let Some(m) = &self.message {
@@ -1344,7 +1352,8 @@ impl EditorApp {
         if ctx.input(|i| i.viewport().close_requested()) && !self.request_close() {
             ctx.send_viewport_cmd(egui::ViewportCommand::CancelClose);
         }
-        let title = self.window_title();
+        self.modified = self.model.is_modified();
+        let title = self.title_for(self.modified);
         if title != self.title {
             ctx.send_viewport_cmd(egui::ViewportCommand::Title(title.clone()));
             self.title = title;

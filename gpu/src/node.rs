@@ -63,7 +63,7 @@ impl<I: InputPorts, O: OutputPorts, P: NodeParams> Node for DeviceNode<I, O, P> 
             // a problem the device cannot run (larger than it binds, out of
             // its memory, a driver failure, the device lost)
             Err(NodeError::Device { message, .. })
-                if session.too_large || self.ctx.lost().is_some() =>
+                if session.cpu_fallback || self.ctx.lost().is_some() =>
             {
                 drop(session);
                 return on_cpu(message);

@@ -34,7 +34,7 @@ pub struct Session<'a> {
     /// Set when the device cannot run the node (a buffer larger than it
     /// binds, out of device memory, a driver failure, the device lost):
     /// the node then runs on the CPU instead.
-    pub(crate) too_large: bool,
+    pub(crate) cpu_fallback: bool,
     /// The error scopes (out of memory, internal, then validation) that
     /// capture everything this session does on its thread between two
     /// submissions, so a device error is this node's and no other's.
@@ -59,7 +59,7 @@ impl<'a> Session<'a> {
             ctx,
             stats: Transfers::default(),
             kept: Vec::new(),
-            too_large: false,
+            cpu_fallback: false,
             scopes: Vec::new(),
         };
         s.open_scopes();
@@ -81,7 +81,7 @@ impl<'a> Session<'a> {
     /// Pops the scopes (innermost first) and reopens them: the first error
     /// they caught since they were opened, if any. Running out of device
     /// memory and a driver's internal error send the node to the CPU
-    /// ([`Session::too_large`]: the CPU computes what the device could
+    /// ([`Session::cpu_fallback`]: the CPU computes what the device could
     /// not); a validation error is this program's and is reported.
     fn close_scopes(&mut self) -> Option<NodeError> {
         let mut first = None;
@@ -92,7 +92,7 @@ impl<'a> Session<'a> {
                     wgpu::ErrorFilter::Internal => format!("the driver failed: {e}"),
                     wgpu::ErrorFilter::Validation => e.to_string(),
                 };
-                self.too_large |= filter != wgpu::ErrorFilter::Validation;
+                self.cpu_fallback |= filter != wgpu::ErrorFilter::Validation;
                 first.get_or_insert_with(|| self.fail(self.ctx.error(msg)));
             }
         }
@@ -163,7 +163,7 @@ impl<'a> Session<'a> {
     pub fn check_grid(&mut self, w: usize, h: usize, tile: usize) -> Result<(), NodeError> {
         let max = self.ctx.limits().max_compute_workgroups_per_dimension as usize;
         if w.div_ceil(tile) > max || h.div_ceil(tile) > max {
-            self.too_large = true;
+            self.cpu_fallback = true;
             return Err(self.fail(self.ctx.error(format!(
                 "a {w}x{h} image needs more than {max} workgroups along one side"
             ))));
@@ -174,7 +174,7 @@ impl<'a> Session<'a> {
     /// Marks the problem as one the device should not run (the node then
     /// runs on the CPU), with the reason.
     pub fn too_large(&mut self, why: &str) -> NodeError {
-        self.too_large = true;
+        self.cpu_fallback = true;
         self.fail(self.ctx.error(why))
     }
 
@@ -183,7 +183,7 @@ impl<'a> Session<'a> {
         match self.ctx.buffer(size, usage) {
             Ok(b) => Ok(b),
             Err(e) => {
-                self.too_large |= matches!(e, GpuError::TooLarge { .. });
+                self.cpu_fallback |= matches!(e, GpuError::TooLarge { .. });
                 Err(self.fail(e))
             }
         }
@@ -229,7 +229,7 @@ impl<'a> Session<'a> {
     /// A pipeline that did not compile as a node error; out of memory or a
     /// driver failure sends the node to the CPU.
     fn compile_failed(&mut self, e: GpuError) -> NodeError {
-        self.too_large |= matches!(e, GpuError::Unavailable { .. });
+        self.cpu_fallback |= matches!(e, GpuError::Unavailable { .. });
         self.fail(e)
     }
 
@@ -401,7 +401,7 @@ impl<'a> Session<'a> {
             Ok(Err(e)) => {
                 let why = format!("the device was lost (waiting for it: {e})");
                 self.ctx.mark_lost(why.clone());
-                self.too_large = true;
+                self.cpu_fallback = true;
                 Err(self.fail(self.ctx.error(why)))
             }
             Err(panic) => {
@@ -411,7 +411,7 @@ impl<'a> Session<'a> {
                     .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                     .unwrap_or_else(|| "wgpu panicked while waiting".into());
                 self.ctx.mark_lost(why.clone());
-                self.too_large = true;
+                self.cpu_fallback = true;
                 Err(self.fail(self.ctx.error(format!("the device was lost: {why}"))))
             }
         }

@@ -173,6 +173,30 @@ fn the_refocus_check_fails_on_a_perturbed_result() {
     assert!(color_within(&a, &veil, &fixed, MIN_PSNR_DB).is_err());
 }
 
+/// Refocus of `c` on both backends, focused at 2 m on a wall with a far
+/// card (6 m) in its top-left `card` x `card` pixels, f/2 on a 6 mm
+/// sensor: the CPU's and the device's colour, and the inactive pixels.
+fn card_on_both(
+    c: &ColorImage,
+    card: usize,
+    samples: usize,
+    exposure_stops: f64,
+) -> (Arc<ColorImage>, Arc<ColorImage>, Vec<bool>) {
+    let (w, h) = c.dims();
+    let d = DepthMap::from_fn(w, h, |x, y| if x < card && y < card { 6.0 } else { 2.0 });
+    let p = RefocusParams {
+        focus_m: 2.0,
+        f_number: 2.0,
+        sensor_width_mm: 6.0,
+        samples,
+        exposure_stops,
+        ..Default::default()
+    };
+    let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
+    let fixed = fixed_pixels(c, &d, &p);
+    (color_of(&cpu, "color"), color_of(&dev, "color"), fixed)
+}
+
 /// A scene whose blur reaches only part of the image: a small far card
 /// behind an in-focus wall, exposed by a fractional stop (the inactive
 /// pixels are the input times 2^0.7, which must be the CPU's bits).
@@ -182,18 +206,7 @@ fn inactive_pixels_are_bit_identical_at_a_fractional_exposure() {
     let c = ColorImage::from_fn(w, h, |x, y| {
         [0.013 * (x % 17) as f32, 0.7, 0.001 * y as f32 + 0.3]
     });
-    let d = DepthMap::from_fn(w, h, |x, y| if x < 24 && y < 24 { 6.0 } else { 2.0 });
-    let p = RefocusParams {
-        focus_m: 2.0,
-        f_number: 2.0,
-        sensor_width_mm: 6.0,
-        samples: 32,
-        exposure_stops: 0.7,
-        ..Default::default()
-    };
-    let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
-    let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
-    let fixed = fixed_pixels(&c, &d, &p);
+    let (a, b, fixed) = card_on_both(&c, 24, 32, 0.7);
     let n_fixed = fixed.iter().filter(|f| **f).count();
     assert!(
         n_fixed > 1000 && n_fixed < c.len(),
@@ -222,18 +235,7 @@ fn a_bright_colour_at_the_largest_exposure_stays_finite_on_the_device() {
             [0.5; 3]
         }
     });
-    let d = DepthMap::from_fn(w, h, |x, y| if x < 16 && y < 16 { 6.0 } else { 2.0 });
-    let p = RefocusParams {
-        focus_m: 2.0,
-        f_number: 2.0,
-        sensor_width_mm: 6.0,
-        samples: 16,
-        exposure_stops: 30.0,
-        ..Default::default()
-    };
-    let (cpu, dev) = both("Refocus", &inputs(c.clone(), d.clone()), &p.to_values());
-    let (a, b) = (color_of(&cpu, "color"), color_of(&dev, "color"));
-    let fixed = fixed_pixels(&c, &d, &p);
+    let (a, b, fixed) = card_on_both(&c, 16, 16, 30.0);
     assert!(fixed.iter().any(|f| *f) && fixed.iter().any(|f| !*f));
     for img in [&a, &b] {
         assert!(img.as_slice().iter().flatten().all(|v| v.is_finite()));
