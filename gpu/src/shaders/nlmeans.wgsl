@@ -93,7 +93,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let j = u32(yj) * P.k.w + u32(xj);
             let cj = zc[j].y;
             if (cj <= 0.0) {
-                add(&acc, -dist, 0.0, 1.0, 0.0);
+                add(&acc, -dist, 0.0, 0.0, 0.0);
                 continue;
             }
             let zj = zc[j].x;
@@ -103,16 +103,17 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 let t = min(abs(zi.x - zj) * sqrt(P.k.inv_hd2), 1e18);
                 xi = t * t;
             }
-            var prior = 1.0;
+            // the log of the CPU's prior factor
+            var lp = 0.0;
             if (P.far != 0u) {
-                let q = zj * P.inv_ref;
-                prior = q * q;
+                // (z_j / z_ref)^2; z_j > 0 (a source), so the log is finite
+                lp = 2.0 * log(zj * P.inv_ref);
             }
             if (P.beta > 0.0 && z_max > 0.0) {
-                // in (0, 1]; 1 for the farthest source of the window
-                prior = prior * exp(-P.beta * max((z_max - zj) / z_max - P.tau, 0.0));
+                // in [-beta, 0]; 0 for the farthest source of the window
+                lp = lp - P.beta * max((z_max - zj) / z_max - P.tau, 0.0);
             }
-            add(&acc, -(dist + xi), cj, prior, zj);
+            add(&acc, -(dist + xi), cj, lp, zj);
         }
     }
     result[i] = finish(acc);

@@ -49,7 +49,16 @@ struct Acc {
     hi: f32,
 }
 
-fn add(a: ptr<function, Acc>, e: f32, conf: f32, prior: f32, v: f32) {
+// Adds a candidate with similarity exp(e), confidence `conf` (0 for a
+// hole: it counts only in the confidence), log prior `lp` (<= 0 as the
+// callers compute it; the CPU's factor `prior = exp(lp)`) and value `v`.
+// The weights of eq. 1 are kept in the log domain: exp(e + ln conf + lp)
+// relative to the largest such exponent, so the best source weighs 1 and
+// none underflows because its factors did (the CPU's product of the three
+// in f64 reaches 1e-308 before f32's 1e-38). The estimate is the same
+// ratio; the rounding moves from the product to the sum of exponents, a
+// few ulps of |e + ln conf + lp|.
+fn add(a: ptr<function, Acc>, e: f32, conf: f32, lp: f32, v: f32) {
     // NaN and -inf weigh nothing (the CPU skips them)
     if (is_non_finite(e)) {
         return;
@@ -69,20 +78,19 @@ fn add(a: ptr<function, Acc>, e: f32, conf: f32, prior: f32, v: f32) {
         return;
     }
     (*a).sim_conf = (*a).sim_conf + s * conf;
+    // finite: e is, conf is a positive normal f32 (the device path takes
+    // no subnormal confidence), lp is bounded by the callers
+    let lw = e + log(conf) + lp;
     if (!(*a).has_w) {
         (*a).has_w = true;
-        (*a).mw = e;
-    } else if (e > (*a).mw) {
-        let k = exp((*a).mw - e);
+        (*a).mw = lw;
+    } else if (lw > (*a).mw) {
+        let k = exp((*a).mw - lw);
         (*a).w = (*a).w * k;
         (*a).wv = (*a).wv * k;
-        (*a).mw = e;
+        (*a).mw = lw;
     }
-    var rel = s;
-    if ((*a).mw != (*a).ms) {
-        rel = exp(e - (*a).mw);
-    }
-    let wgt = rel * conf * prior;
+    let wgt = exp(lw - (*a).mw);
     if (wgt > 0.0) {
         (*a).w = (*a).w + wgt;
         (*a).wv = (*a).wv + wgt * v;

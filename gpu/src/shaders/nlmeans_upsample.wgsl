@@ -182,7 +182,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 ln_w = ln_w - f32(dx * dx + dy * dy - d2_min) * P.spatial;
             }
             let zs = low[s];
-            add(&acc, ln_w, zs.y, 1.0, zs.x);
+            add(&acc, ln_w, zs.y, 0.0, zs.x);
         }
     }
     result[i] = finish(acc);
