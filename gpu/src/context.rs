@@ -126,6 +126,12 @@ pub struct AdapterRequest {
     /// views would exceed the largest buffer). 1 is one view per dispatch,
     /// the path before batching, kept to compare against.
     pub views_per_dispatch: Option<usize>,
+    /// The most workgroups a flat (1-D) kernel's dispatch uses along one
+    /// dimension before it wraps into rows; `None` (or more than the
+    /// device allows) is the device's limit. Smaller values only split a
+    /// dispatch into more rows, the same results: a test can reach the
+    /// wrapped path without millions of pixels.
+    pub max_groups_per_row: Option<u32>,
 }
 
 /// Views `Refocus` renders per dispatch unless the request says otherwise:
@@ -146,6 +152,9 @@ pub struct GpuContext {
     max_storage: u64,
     /// Refocus's views per dispatch (at least 1).
     views_per_dispatch: usize,
+    /// A flat dispatch's workgroups per row (at least 1, at most the
+    /// device's limit per dimension).
+    groups_per_row: u32,
     pipelines: Mutex<HashMap<&'static str, Arc<wgpu::ComputePipeline>>>,
     layouts: Mutex<HashMap<&'static str, Arc<Layout>>>,
     compile_ms: Mutex<f64>,
@@ -301,6 +310,11 @@ impl GpuContext {
             views_per_dispatch: req
                 .views_per_dispatch
                 .unwrap_or(DEFAULT_VIEWS_PER_DISPATCH)
+                .max(1),
+            groups_per_row: req
+                .max_groups_per_row
+                .unwrap_or(u32::MAX)
+                .min(limits.max_compute_workgroups_per_dimension)
                 .max(1),
             pipelines: Mutex::new(HashMap::new()),
             layouts: Mutex::new(HashMap::new()),
@@ -476,6 +490,18 @@ impl GpuContext {
     /// (see [`AdapterRequest::views_per_dispatch`]).
     pub fn views_per_dispatch(&self) -> usize {
         self.views_per_dispatch
+    }
+
+    /// How a flat kernel of `n` invocations in workgroups of `size` is
+    /// dispatched: `(x, y)` workgroups, rows of at most
+    /// [`AdapterRequest::max_groups_per_row`]; invocation `k` is
+    /// `(k % (x size), k / (x size))`. `None` when even the rows exceed the
+    /// device's limit.
+    pub fn flat_grid(&self, n: usize, size: u32) -> Option<(u32, u32)> {
+        let total = u32::try_from(n.div_ceil(size.max(1) as usize).max(1)).ok()?;
+        let x = total.min(self.groups_per_row);
+        let y = total.div_ceil(x);
+        (y <= self.limits().max_compute_workgroups_per_dimension).then_some((x, y))
     }
 
     /// A buffer of at least `size` bytes with `usage`, from the pool when

@@ -26,7 +26,7 @@ use depthgraph_nodes::relight::node::{RelightIn, RelightOut, eval_with};
 use depthgraph_nodes::relight::shading::{RelightParams, Visibility};
 use glam::DVec3;
 
-use crate::session::{Session, bytes_of, groups, u32s};
+use crate::session::{Session, bytes_of, u32s};
 use crate::shaders;
 
 /// The bound of the device's direct term against the CPU's (module docs).
@@ -43,7 +43,10 @@ const WORKGROUP: u32 = 64;
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct Params {
     count: u32,
-    _pad: [u32; 3],
+    /// Invocations per row of the 2-D dispatch (a row's workgroups times
+    /// [`WORKGROUP`]): pixel `k` is invocation `(k % row, k / row)`.
+    row: u32,
+    _pad: [u32; 2],
 }
 
 #[repr(C)]
@@ -182,13 +185,14 @@ pub fn direct(
     if pixels.is_empty() {
         return Ok(sums);
     }
-    let max_groups = s.ctx().limits().max_compute_workgroups_per_dimension;
-    if groups(pixels.len(), WORKGROUP) > max_groups {
+    // A 2-D grid of workgroups (rows of at most the device's limit per
+    // dimension, 65 535 on most), so a plan may exceed 4.19 M pixels.
+    let Some((gx, gy)) = s.ctx().flat_grid(pixels.len(), WORKGROUP) else {
         return Err(s.too_large(&format!(
-            "{} pixels of the direct term need more than {max_groups} workgroups",
+            "{} pixels of the direct term need more workgroups than the device dispatches",
             pixels.len()
         )));
-    }
+    };
     // the object maps (one per group), then the scene maps the lists read
     let mut packed = Packed {
         maps: Vec::new(),
@@ -228,7 +232,8 @@ pub fn direct(
     let kernel = s.kernel(&shaders::RELIGHT_DIRECT)?;
     let params = Params {
         count: n as u32,
-        _pad: [0; 3],
+        row: gx * WORKGROUP,
+        _pad: [0; 2],
     };
     let uniform = s.uniform(bytemuck::bytes_of(&params))?;
     let b_pixels = s.upload(bytes_of(&pixels))?;
@@ -248,7 +253,7 @@ pub fn direct(
         let mut pass = encoder.begin_compute_pass(&Default::default());
         pass.set_pipeline(&kernel);
         pass.set_bind_group(0, &bg, &[]);
-        pass.dispatch_workgroups(groups(n, WORKGROUP), 1, 1);
+        pass.dispatch_workgroups(gx, gy, 1);
     }
     let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
     let words = u32s(&back[0]);

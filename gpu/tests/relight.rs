@@ -10,6 +10,7 @@ use common::*;
 use depthgraph_gpu::parity::{direct_within, display_psnr};
 use depthgraph_gpu::relight::{DE_TOL, DirectStats, direct};
 use depthgraph_gpu::session::Session;
+use depthgraph_gpu::{AdapterRequest, GpuContext};
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::relight::direct::{DirectSum, evaluate};
 use depthgraph_nodes::relight::scene_cached::{RelightScene, relight_moved_with};
@@ -40,11 +41,19 @@ fn total_power(vpls: &[Vpl]) -> [f64; 3] {
 /// The CPU's and the device's direct terms of one move (the same plan),
 /// and what the device did.
 fn both_direct(c: &RelightCase, vpls: &[Vpl]) -> (Vec<DirectSum>, Vec<DirectSum>, DirectStats) {
+    both_direct_on(&gpu(), c, vpls)
+}
+
+/// [`both_direct`] on a given device context.
+fn both_direct_on(
+    ctx: &Arc<GpuContext>,
+    c: &RelightCase,
+    vpls: &[Vpl],
+) -> (Vec<DirectSum>, Vec<DirectSum>, DirectStats) {
     let p = RelightParams::default();
     let inp = c.inputs();
     let scene = RelightScene::new(&inp.scene(), vpls, &p).unwrap();
-    let ctx = gpu();
-    let mut s = Session::new(&ctx);
+    let mut s = Session::new(ctx);
     let mut stats = DirectStats::default();
     let mut seen = None;
     relight_moved_with(&scene, &inp, &p, &mut |plan| {
@@ -87,6 +96,28 @@ fn the_direct_term_agrees_with_the_cpu_within_its_bound() {
             stats.pixels
         );
     }
+}
+
+/// A dispatch wrapped into rows (three workgroups a row here; a real
+/// device wraps past 65 535, 4.19 M pixels) reaches every pixel once: the
+/// same sums as the CPU's.
+#[test]
+fn a_direct_term_dispatched_in_rows_agrees_with_the_cpu() {
+    let narrow = GpuContext::new(&AdapterRequest {
+        max_groups_per_row: Some(3),
+        ..Default::default()
+    })
+    .unwrap();
+    let c = case(Room::Open, None);
+    let vpls = c.vpls(64);
+    let (cpu, dev, stats) = both_direct_on(&narrow, &c, &vpls);
+    // many rows: the plan is far more than 3 x 64 pixels
+    assert!(stats.pixels > 20 * 3 * 64, "{} pixels", stats.pixels);
+    let (x, y) = narrow.flat_grid(stats.pixels, 64).unwrap();
+    assert_eq!(x, 3);
+    assert!(y > 20);
+    let a = direct_within(&cpu, &dev, total_power(&vpls), DE_TOL).unwrap();
+    assert!(a.hits >= 50, "{} shaded pixels", a.hits);
 }
 
 #[test]

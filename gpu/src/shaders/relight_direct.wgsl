@@ -14,7 +14,8 @@
 
 struct Params {
     count: u32,
-    _p0: u32,
+    // invocations per row of the 2-D dispatch
+    row: u32,
     _p1: u32,
     _p2: u32,
 }
@@ -118,8 +119,8 @@ fn near_zero(d: f32, scale: f32) -> bool {
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let k = gid.x;
-    if (k >= P.count) {
+    let k = gid.y * P.row + gid.x;
+    if (gid.x >= P.row || k >= P.count) {
         return;
     }
     let px = pixels[k];
