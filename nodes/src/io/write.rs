@@ -49,13 +49,43 @@ impl From<exr::error::Error> for WriteFailure {
     }
 }
 
+/// Where a write to `path` lands: `path` itself, or, where it is a
+/// symbolic link (a chain of them, at most 40 as the kernel allows), the
+/// file it points to, so that replacing the file keeps the link. A link
+/// to nowhere is followed too: the write creates its target.
+fn write_target(path: &Path) -> Result<PathBuf, NodeError> {
+    let mut at = path.to_path_buf();
+    for _ in 0..40 {
+        match fs::symlink_metadata(&at) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let to = fs::read_link(&at).map_err(|error| NodeError::Io {
+                    path: at.clone(),
+                    error,
+                })?;
+                at = match at.parent() {
+                    Some(dir) if to.is_relative() => dir.join(to),
+                    _ => to,
+                };
+            }
+            _ => return Ok(at),
+        }
+    }
+    Err(NodeError::Io {
+        path: path.to_path_buf(),
+        error: std::io::Error::other("more than 40 symbolic links in a chain"),
+    })
+}
+
 /// Writes the file `write` produces to `path` atomically: a temporary file
 /// in the same directory, synced to the disk, then renamed over the target.
 /// On any failure the temporary file is removed and `path` is untouched.
+/// A `path` that is a symbolic link stays one: the file it points to is
+/// replaced (and returned).
 pub fn write_atomic<E: Into<WriteFailure>>(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), E>,
 ) -> Result<PathBuf, NodeError> {
+    let path = &write_target(path)?;
     let parent = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -92,4 +122,71 @@ pub fn write_atomic<E: Into<WriteFailure>>(
         .map_err(|e| fail(WriteFailure::Io(e)))?;
     fs::rename(&tmp, path).map_err(|e| fail(WriteFailure::Io(e)))?;
     Ok(path.to_path_buf())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn put(path: &Path, text: &str) -> Result<PathBuf, NodeError> {
+        write_atomic(path, |tmp| fs::write(tmp, text))
+    }
+
+    #[test]
+    fn a_write_replaces_the_file_and_keeps_no_temporary() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.txt");
+        put(&p, "one").unwrap();
+        assert_eq!(put(&p, "two").unwrap(), p);
+        assert_eq!(fs::read_to_string(&p).unwrap(), "two");
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+        // a failed write leaves the file as it was
+        let e = write_atomic(&p, |_| Err(std::io::Error::other("disk full"))).unwrap_err();
+        assert!(e.to_string().contains("a.txt"), "{e}");
+        assert_eq!(fs::read_to_string(&p).unwrap(), "two");
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_symbolic_link_stays_a_link_and_its_target_is_written() {
+        use std::os::unix::fs::symlink;
+        let dir = tempfile::tempdir().unwrap();
+        let real = dir.path().join("sub/real.ron");
+        fs::create_dir_all(real.parent().unwrap()).unwrap();
+        fs::write(&real, "old").unwrap();
+        // a relative link, through a second link
+        let link = dir.path().join("link.ron");
+        let link2 = dir.path().join("link2.ron");
+        symlink("sub/real.ron", &link).unwrap();
+        symlink("link.ron", &link2).unwrap();
+        assert_eq!(put(&link2, "new").unwrap(), dir.path().join("sub/real.ron"));
+        assert!(
+            fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert!(
+            fs::symlink_metadata(&link2)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert_eq!(fs::read_to_string(&real).unwrap(), "new");
+        // a link to nowhere creates its target
+        let dangling = dir.path().join("dangling.ron");
+        symlink("made.ron", &dangling).unwrap();
+        put(&dangling, "made").unwrap();
+        assert_eq!(
+            fs::read_to_string(dir.path().join("made.ron")).unwrap(),
+            "made"
+        );
+        // a loop is an error naming the path, not a hang
+        let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+        symlink("b", &a).unwrap();
+        symlink("a", &b).unwrap();
+        let e = put(&a, "x").unwrap_err();
+        assert!(e.to_string().contains("symbolic links"), "{e}");
+    }
 }
