@@ -378,10 +378,19 @@ pub fn orient(map: &ColorImage, r: DMat3) -> ColorImage {
 /// generated sky, then yaw and exposure, then turned into the frame of a
 /// pitched or rolled camera ([`orient`]).
 pub fn environment_map(p: &EnvMapParams) -> Result<ColorImage, NodeError> {
+    environment_map_with(p, &crate::io::Limits::default())
+}
+
+/// [`environment_map`] with the file's decoding limits (the node passes
+/// its run's `--max-pixels`).
+pub fn environment_map_with(
+    p: &EnvMapParams,
+    lim: &crate::io::Limits,
+) -> Result<ColorImage, NodeError> {
     let base = if p.path.is_empty() {
         sample_sky(p)?
     } else {
-        crate::io::load_color(Path::new(&p.path), crate::io::ColorSpace::Linear)?
+        crate::io::load_color_with(Path::new(&p.path), crate::io::ColorSpace::Linear, lim)?
     };
     let map = rotate_and_expose(&base, p.yaw_deg, p.exposure_ev);
     if p.pitch_deg == 0.0 && p.roll_deg == 0.0 {
@@ -398,9 +407,9 @@ depthgraph_graph::ports! {
     }
 }
 
-fn eval(_: &EvalCtx, _: NoInputs, p: &EnvMapParams) -> Result<Produced<EnvMapOut>, NodeError> {
+fn eval(ctx: &EvalCtx, _: NoInputs, p: &EnvMapParams) -> Result<Produced<EnvMapOut>, NodeError> {
     Ok(EnvMapOut {
-        map: environment_map(p)?,
+        map: environment_map_with(p, &crate::io::Limits::of(ctx))?,
     }
     .into())
 }
@@ -595,5 +604,26 @@ mod tests {
         };
         let e = environment_map(&p).unwrap_err();
         assert!(e.to_string().contains("sky.exr"), "{e}");
+    }
+
+    #[test]
+    fn a_map_file_beyond_the_runs_pixel_limit_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sky.png");
+        image::RgbImage::from_pixel(64, 32, image::Rgb([200, 180, 160]))
+            .save(&path)
+            .unwrap();
+        let p = EnvMapParams {
+            path: path.to_string_lossy().into_owned(),
+            ..Default::default()
+        };
+        let small = crate::io::Limits { max_pixels: 1000 };
+        let e = environment_map_with(&p, &small).unwrap_err();
+        assert!(
+            e.to_string().contains("64x32") && e.to_string().contains("1000 pixels"),
+            "{e}"
+        );
+        let ok = environment_map_with(&p, &crate::io::Limits { max_pixels: 2048 }).unwrap();
+        assert_eq!(ok.dims(), (64, 32));
     }
 }
