@@ -256,26 +256,39 @@ pub fn resolve_output(out_dir: &std::path::Path, path: &str) -> PathBuf {
     if p.is_absolute() { p } else { out_dir.join(p) }
 }
 
-/// Canonical path for comparisons, also for files that do not exist yet
-/// (their parent directory is canonicalised).
+/// Canonical path for comparisons, also for files that do not exist yet:
+/// the longest leading part that exists is canonicalised (links
+/// resolved), and the rest is appended with `.` and `..` resolved by
+/// name (a part that does not exist is no link, so `new/..` is where
+/// `new` is). `out/../photo.png` before `out` exists is therefore
+/// `photo.png`, as the write that would create `out` finds it.
 pub fn canonical_for_compare(p: &std::path::Path) -> PathBuf {
+    use std::path::Component;
     if let Ok(c) = p.canonicalize() {
         return c;
     }
-    match (p.parent(), p.file_name()) {
-        (Some(parent), Some(name)) => {
-            let parent = if parent.as_os_str().is_empty() {
-                std::path::Path::new(".")
-            } else {
-                parent
-            };
-            parent
-                .canonicalize()
-                .map(|c| c.join(name))
-                .unwrap_or_else(|_| p.to_path_buf())
+    let parts: Vec<Component> = p.components().collect();
+    for k in (0..parts.len()).rev() {
+        let head: PathBuf = parts[..k].iter().collect();
+        let base = if head.as_os_str().is_empty() {
+            std::path::Path::new(".")
+        } else {
+            &head
+        };
+        if let Ok(mut c) = base.canonicalize() {
+            for part in &parts[k..] {
+                match part {
+                    Component::ParentDir => {
+                        c.pop();
+                    }
+                    Component::CurDir => {}
+                    other => c.push(other),
+                }
+            }
+            return c;
         }
-        _ => p.to_path_buf(),
     }
+    p.to_path_buf()
 }
 
 /// Inputs of one evaluation, by port name.
@@ -545,5 +558,41 @@ impl<P: NodeParams> Node for TypedNode<P> {
     }
     fn backend(&self) -> &'static str {
         self.backend
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_through_folders_not_made_yet_compare_where_the_write_lands() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().canonicalize().unwrap();
+        let photo = root.join("photo.png");
+        std::fs::write(&photo, b"x").unwrap();
+        let out = root.join("out"); // not created
+        for written in ["../photo.png", "new/../../photo.png", "./.././photo.png"] {
+            let p = resolve_output(&out, written);
+            assert_eq!(canonical_for_compare(&p), photo, "{written}");
+        }
+        // a file that does not exist, under folders that do not either
+        let p = resolve_output(&out, "a/b/../c.exr");
+        assert_eq!(canonical_for_compare(&p), root.join("out/a/c.exr"));
+        // the node refuses to write over the input
+        let cancel = CancelToken::new();
+        let inputs = [photo.clone()];
+        let ctx = EvalCtx {
+            node: "save",
+            cancel: &cancel,
+            progress: None,
+            out_dir: &out,
+            input_files: &inputs,
+            derivations: None,
+            max_pixels: DEFAULT_MAX_PIXELS,
+        };
+        let e = ctx.output_path("../photo.png").unwrap_err();
+        assert!(matches!(e, NodeError::WouldOverwriteInput { .. }), "{e}");
+        assert!(ctx.output_path("../other.png").is_ok());
     }
 }
