@@ -12,7 +12,7 @@
 //! Results do not depend on the thread count as long as nodes are
 //! deterministic (the contract of [`Node`](crate::node::Node)).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -302,10 +302,16 @@ impl Engine {
             .collect();
         let mut timings: Vec<f64> = vec![0.0; n];
         let mut derived: Vec<Vec<DerivedRecord>> = vec![Vec::new(); n];
+        // Results that may not match their keys: a file the node read
+        // changed during the run, or an input came from such a node. They
+        // are used, never kept (nor the values derived from them).
+        let mut tainted = vec![false; n];
         let mut input_files = p.input_files();
         input_files.extend(opts.protected_files.iter().cloned());
         Self::check_distinct_outputs(p, &state, &opts.out_dir)?;
 
+        let position: HashMap<usize, usize> =
+            p.order.iter().enumerate().map(|(k, &i)| (i, k)).collect();
         for l in 0..=max_level {
             let batch: Vec<usize> = p
                 .order
@@ -316,39 +322,64 @@ impl Engine {
             if batch.is_empty() {
                 continue;
             }
+            for &i in &batch {
+                tainted[i] = p.nodes[i].inputs.values().any(|src| tainted[src.node]);
+            }
             let done: Mutex<Vec<Finished>> = Mutex::new(Vec::new());
             let results_ref = &results;
+            let tainted_ref = &tainted;
             rayon::scope(|s| {
                 for &i in &batch {
                     let done = &done;
                     let input_files = &input_files;
                     let keys = &keys;
                     s.spawn(move |_| {
-                        let r = self.eval_node(p, i, results_ref, opts, input_files, keys);
+                        let r = self.eval_node(
+                            p,
+                            i,
+                            results_ref,
+                            opts,
+                            input_files,
+                            keys,
+                            !tainted_ref[i],
+                        );
                         done.lock().unwrap_or_else(|e| e.into_inner()).push((i, r));
                     });
                 }
             });
             let mut done = done.into_inner().unwrap_or_else(|e| e.into_inner());
-            // Deterministic error reporting: the first failing node in order.
-            done.sort_by_key(|(i, _)| p.order.iter().position(|o| o == i));
+            // Deterministic error reporting: the first failing node in
+            // order; the level's other results are kept all the same.
+            done.sort_by_key(|(i, _)| position.get(i).copied());
+            let mut first_error = None;
             for (i, r) in done {
-                let (out, ms, derived_here) = r?;
+                let (out, ms, derived_here) = match r {
+                    Ok(v) => v,
+                    Err(e) => {
+                        first_error.get_or_insert(e);
+                        continue;
+                    }
+                };
                 derived[i] = derived_here;
                 let out = Arc::new(out);
                 // A file the node read that changed since the run began
                 // (a capture still being written) may have given this
                 // result from other contents than the key names: it is
-                // used, not kept (the next run keys the new contents).
+                // used, not kept (the next run keys the new contents),
+                // and neither is anything computed from it.
                 let n = &p.nodes[i];
-                if !n.node.schema().sink {
-                    let files = n.node.input_files(&n.params);
-                    if files.is_empty() || Self::key_of(p, i, |j| keys[j], &files) == keys[i] {
-                        self.keep(keys[i], &out);
-                    }
+                let files = n.node.input_files(&n.params);
+                if !files.is_empty() && Self::key_of(p, i, |j| keys[j], &files) != keys[i] {
+                    tainted[i] = true;
+                }
+                if !n.node.schema().sink && !tainted[i] {
+                    self.keep(keys[i], &out);
                 }
                 timings[i] = ms;
                 results[i] = Some(out);
+            }
+            if let Some(e) = first_error {
+                return Err(e);
             }
         }
 
@@ -458,6 +489,7 @@ impl Engine {
         opts: &RunOptions,
         input_files: &[PathBuf],
         keys: &[Key],
+        keep_derived: bool,
     ) -> Result<(Outputs, f64, Vec<DerivedRecord>), RunError> {
         let node = &p.nodes[i];
         let schema = node.node.schema();
@@ -500,6 +532,7 @@ impl Engine {
             engine: self,
             decoders: &p.decoders,
             lookup: !opts.no_cache_lookup,
+            keep: keep_derived,
         };
         let derivations = Derivations {
             store: &store,
@@ -521,13 +554,23 @@ impl Engine {
         // those that never report progress themselves.
         ctx.progress(0.0);
         let t = Instant::now();
-        let out = node
-            .node
-            .eval(&ctx, &inputs, &node.params)
-            .map_err(|e| match e {
-                NodeError::Cancelled => RunError::Cancelled,
-                e => fail(e),
-            })?;
+        // A panic inside a node (a bug) is that node's internal error, with
+        // its name and kind, and the other nodes of the level keep theirs.
+        let evaluated = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            node.node.eval(&ctx, &inputs, &node.params)
+        }))
+        .unwrap_or_else(|payload| {
+            let what = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "no message".to_string());
+            Err(NodeError::Internal(format!("the node panicked: {what}")))
+        });
+        let out = evaluated.map_err(|e| match e {
+            NodeError::Cancelled => RunError::Cancelled,
+            e => fail(e),
+        })?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
         let mut out = out;
         if out.origin.is_none() {
@@ -573,6 +616,9 @@ struct EngineStore<'a> {
     engine: &'a Engine,
     decoders: &'a Decoders,
     lookup: bool,
+    /// False when the node's inputs may not match their keys (see
+    /// `tainted` in `run`): its derived values are then not kept.
+    keep: bool,
 }
 
 impl ValueStore for EngineStore<'_> {
@@ -584,6 +630,9 @@ impl ValueStore for EngineStore<'_> {
         out.values.get("value").cloned()
     }
     fn store(&self, key: Key, value: Value) {
+        if !self.keep {
+            return;
+        }
         let out = Arc::new(Outputs::new().with("value", value));
         self.engine.keep(key, &out);
     }

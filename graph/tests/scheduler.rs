@@ -372,8 +372,19 @@ fn a_file_changed_during_the_run_leaves_no_cache_entry() {
         .reads(|p: &ReadParams| vec![std::path::PathBuf::from(&p.path)]),
     )
     .unwrap();
+    reg.register(TypedNode::new(
+        "Scale",
+        1,
+        "scale",
+        vec![PortSpec::required("depth", ValueType::Depth, "depth")],
+        vec![PortSpec::output("depth", ValueType::Depth, "depth")],
+        scale,
+    ))
+    .unwrap();
     let text = format!(
-        "(version: 1, nodes: {{ \"n\": (kind: \"ReadNumber\", params: (path: {:?})) }}, outputs: [\"n.depth\"])",
+        "(version: 1, nodes: {{ \"n\": (kind: \"ReadNumber\", params: (path: {:?})), \
+         \"s\": (kind: \"Scale\", params: (factor: 10.0), inputs: (depth: \"n.depth\")) }}, \
+         outputs: [\"n.depth\", \"s.depth\"])",
         file.display().to_string()
     );
     let p = Pipeline::check(&Document::parse(&text, "doc.ron").unwrap(), &reg).unwrap();
@@ -393,10 +404,59 @@ fn a_file_changed_during_the_run_leaves_no_cache_entry() {
     std::fs::write(&file, "1").unwrap();
     let second = engine.run(&p, &RunOptions::default()).unwrap();
     assert_eq!(status(&second.trace, "n"), Status::Ran);
+    // nor is what was computed from it (its key names the contents 1)
+    assert_eq!(status(&second.trace, "s"), Status::Ran);
     // a file that holds still is kept as ever
     std::fs::write(&file, "3").unwrap();
     engine.run(&p, &RunOptions::default()).unwrap();
     let fourth = engine.run(&p, &RunOptions::default()).unwrap();
     assert_eq!(status(&fourth.trace, "n"), Status::Cached);
+    assert_eq!(status(&fourth.trace, "s"), Status::Cached);
     assert_eq!(value(&fourth), 3.0);
+}
+
+fn panics(_: &EvalCtx, _: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
+    let v: Vec<f32> = Vec::new();
+    Ok(Outputs::new().with("depth", DepthMap::filled(1, 1, v[3])))
+}
+
+/// A node that panics (a bug) fails the run with an error naming it, and
+/// the nodes that ran beside it keep their results in the cache.
+#[test]
+fn a_panicking_node_is_named_and_its_siblings_are_kept() {
+    let mut reg = registry();
+    reg.register(TypedNode::new(
+        "Panics",
+        1,
+        "panics",
+        vec![],
+        vec![PortSpec::output("depth", ValueType::Depth, "depth")],
+        panics,
+    ))
+    .unwrap();
+    let text = r#"(version: 1, nodes: {
+        "a": (kind: "Source"),
+        "bad": (kind: "Panics"),
+        "z": (kind: "Source", params: (offset: 1.0)),
+        "sum": (kind: "Add", inputs: (a: "a.depth", b: "bad.depth")),
+        "zz": (kind: "Scale", params: (factor: 2.0), inputs: (depth: "z.depth")),
+    }, outputs: ["sum.depth", "zz.depth"])"#;
+    let p = Pipeline::check(&Document::parse(text, "doc.ron").unwrap(), &reg).unwrap();
+    let engine = Engine::new(EngineOptions::default()).unwrap();
+    let e = engine.run(&p, &RunOptions::default()).unwrap_err();
+    let msg = e.to_string();
+    assert!(msg.contains("bad") && msg.contains("Panics"), "{msg}");
+    assert!(
+        msg.contains("panicked") && msg.contains("index out of bounds"),
+        "{msg}"
+    );
+    // the siblings of the level ran and were kept
+    let only_z = r#"(version: 1, nodes: {
+        "a": (kind: "Source"),
+        "z": (kind: "Source", params: (offset: 1.0)),
+    }, outputs: ["a.depth", "z.depth"])"#;
+    let q = Pipeline::check(&Document::parse(only_z, "doc.ron").unwrap(), &reg).unwrap();
+    let r = engine.run(&q, &RunOptions::default()).unwrap();
+    assert_eq!(status(&r.trace, "a"), Status::Cached);
+    assert_eq!(status(&r.trace, "z"), Status::Cached);
 }
