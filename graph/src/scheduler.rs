@@ -334,15 +334,12 @@ impl Engine {
                     let input_files = &input_files;
                     let keys = &keys;
                     s.spawn(move |_| {
-                        let r = self.eval_node(
-                            p,
-                            i,
-                            results_ref,
-                            opts,
+                        let with = NodeRun {
                             input_files,
                             keys,
-                            !tainted_ref[i],
-                        );
+                            keep_derived: !tainted_ref[i],
+                        };
+                        let r = self.eval_node(p, i, results_ref, opts, &with);
                         done.lock().unwrap_or_else(|e| e.into_inner()).push((i, r));
                     });
                 }
@@ -487,10 +484,13 @@ impl Engine {
         i: usize,
         results: &[Option<Arc<Outputs>>],
         opts: &RunOptions,
-        input_files: &[PathBuf],
-        keys: &[Key],
-        keep_derived: bool,
+        with: &NodeRun,
     ) -> Result<(Outputs, f64, Vec<DerivedRecord>), RunError> {
+        let NodeRun {
+            input_files,
+            keys,
+            keep_derived,
+        } = *with;
         let node = &p.nodes[i];
         let schema = node.node.schema();
         let fail = |error: NodeError| RunError::Node {
@@ -608,6 +608,16 @@ impl Engine {
             .unwrap_or_else(|e| e.into_inner());
         Ok((out, ms, records))
     }
+}
+
+/// What one node's evaluation shares with the run: the files the pipeline
+/// reads (no output may replace one), every node's key, and whether the
+/// values it derives may be kept (see `tainted` in `run`).
+#[derive(Clone, Copy)]
+struct NodeRun<'a> {
+    input_files: &'a [PathBuf],
+    keys: &'a [Key],
+    keep_derived: bool,
 }
 
 /// The engine's caches as the store of derived values: one value under
