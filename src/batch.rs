@@ -208,12 +208,17 @@ pub enum BatchError {
 }
 
 impl BatchError {
-    /// The exit code: 2 for usage and check errors, 74 for I/O, 65 for a
-    /// malformed manifest.
+    /// The exit code: 2 for usage and check errors, 74 for I/O (75 where
+    /// the failure is one a retry may get past: a timeout, an interrupted
+    /// call, a busy file system), 65 for a malformed manifest.
     pub fn exit_code(&self) -> u8 {
+        use std::io::ErrorKind as K;
         match self {
             BatchError::Usage(_) | BatchError::Check(_) => 2,
-            BatchError::Io { .. } => 74,
+            BatchError::Io { error, .. } => match error.kind() {
+                K::TimedOut | K::Interrupted | K::WouldBlock | K::ResourceBusy => 75,
+                _ => 74,
+            },
             BatchError::Format { .. } => 65,
         }
     }
@@ -426,7 +431,9 @@ impl FrameRunner<'_> {
     }
 }
 
-/// Appends records to a manifest as they finish, one JSON object per line.
+/// Appends records to a manifest as they finish, one JSON object per line
+/// (a run's live record: a local batch's `manifest.jsonl.partial`, a Slurm
+/// task's part), so that a run killed midway still says what it finished.
 pub struct ManifestWriter {
     file: Mutex<std::fs::File>,
     path: PathBuf,
@@ -476,12 +483,36 @@ pub fn write_manifest(path: &Path, records: &[FrameRecord]) -> Result<(), BatchE
     write_text(path, &text)
 }
 
+/// Writes `records` into the manifest at `path`, keeping the records it
+/// already holds for other frames (an earlier run's frames into the same
+/// folder), in frame order, atomically. A manifest that cannot be read is
+/// an error naming it (nothing is replaced).
+pub fn merge_manifest(path: &Path, records: &[FrameRecord]) -> Result<(), BatchError> {
+    let mut by_frame: BTreeMap<u64, FrameRecord> = if path.exists() {
+        read_manifest(path)?
+            .into_iter()
+            .map(|r| (r.frame, r))
+            .collect()
+    } else {
+        BTreeMap::new()
+    };
+    for r in records {
+        by_frame.insert(r.frame, r.clone());
+    }
+    let all: Vec<FrameRecord> = by_frame.into_values().collect();
+    write_manifest(path, &all)
+}
+
 fn write_text(path: &Path, text: &str) -> Result<(), BatchError> {
     depthgraph_nodes::io::write_atomic(path, |tmp| std::fs::write(tmp, text))
         .map(|_| ())
         .map_err(|e| BatchError::Io {
             path: path.to_path_buf(),
-            error: std::io::Error::other(e.to_string()),
+            // the file system's own error, so its kind sets the exit code
+            error: match e {
+                depthgraph_graph::error::NodeError::Io { error, .. } => error,
+                other => std::io::Error::other(other.to_string()),
+            },
         })
 }
 
@@ -725,7 +756,7 @@ pub fn collect(out: &Path) -> Result<Collected, BatchError> {
         .collect();
     let manifest = if parts > 0 {
         let path = out.join("manifest.jsonl");
-        write_manifest(&path, &records)?;
+        merge_manifest(&path, &records)?;
         Some(path)
     } else {
         None
@@ -751,6 +782,25 @@ mod tests {
             outputs: vec![],
             error: None,
             exit_code: code,
+        }
+    }
+
+    #[test]
+    fn an_io_failure_a_retry_may_pass_exits_75() {
+        let io = |kind| BatchError::Io {
+            path: "m".into(),
+            error: std::io::Error::from(kind),
+        };
+        assert_eq!(io(std::io::ErrorKind::TimedOut).exit_code(), 75);
+        assert_eq!(io(std::io::ErrorKind::PermissionDenied).exit_code(), 74);
+        // the atomic write keeps the file system's error kind
+        let dir = tempfile::tempdir().unwrap();
+        let blocked = dir.path().join("file");
+        std::fs::write(&blocked, "x").unwrap();
+        let e = write_manifest(&blocked.join("sub/manifest.jsonl"), &[]).unwrap_err();
+        match &e {
+            BatchError::Io { error, .. } => assert_ne!(error.kind(), std::io::ErrorKind::Other),
+            other => panic!("{other:?}"),
         }
     }
 

@@ -10,8 +10,8 @@ use clap::Args;
 use depthgraph::backend::Backend;
 use depthgraph::batch::{
     BatchError, BatchSummary, Collected, FrameRecord, FrameRunner, JobFile, ManifestWriter,
-    SlurmPlan, check_outputs_per_frame, collect, part_path, peak_rss_mib, sequence_length,
-    slurm_script, task_count, task_frames, write_job, write_manifest,
+    SlurmPlan, check_outputs_per_frame, collect, merge_manifest, part_path, peak_rss_mib,
+    sequence_length, slurm_script, task_count, task_frames, write_job, write_manifest,
 };
 use depthgraph::graph::frames::FrameSelection;
 use depthgraph::graph::prelude::*;
@@ -232,9 +232,15 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
             ))));
         }
         let mine = task_frames(&frames, args.frames_per_task, task);
-        let records = runner.run_all(mine, jobs, &|_| {});
-        let summary = BatchSummary::of(&records, mine);
+        // the part holds each frame's record as it finishes (a task killed
+        // by its time limit still says what it did), then all in order
         let part = part_path(&args.out, submission, task);
+        let live = match ManifestWriter::create(&part) {
+            Ok(m) => m,
+            Err(e) => return Ok(fail(&e)),
+        };
+        let records = runner.run_all(mine, jobs, &|r| live.append(r));
+        let summary = BatchSummary::of(&records, mine);
         if let Err(e) = write_manifest(&part, &records) {
             return Ok(fail(&e));
         }
@@ -242,7 +248,12 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
         return Ok(ExitCode::from(summary.exit_code()));
     }
 
-    let manifest = match ManifestWriter::create(&args.out.join("manifest.jsonl")) {
+    // Records go to manifest.jsonl.partial as frames finish; manifest.jsonl
+    // takes them at the end, beside the records it holds of other frames
+    // (an interrupted run leaves it as it was, and the partial file says
+    // what was done).
+    let manifest_path = args.out.join("manifest.jsonl");
+    let manifest = match ManifestWriter::create(&args.out.join("manifest.jsonl.partial")) {
         Ok(m) => m,
         Err(e) => return Ok(fail(&e)),
     };
@@ -276,9 +287,10 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     }
     let wall = t.elapsed().as_secs_f64();
     // the final manifest in frame order
-    if let Err(e) = write_manifest(manifest.path(), &records) {
+    if let Err(e) = merge_manifest(&manifest_path, &records) {
         return Ok(fail(&e));
     }
+    let _ = std::fs::remove_file(manifest.path());
     let summary = BatchSummary::of(&records, &frames);
     report(&summary, &records);
     if engine.remote_failed() {
@@ -292,7 +304,7 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     eprintln!(
         "{wall:.2} s ({:.0} ms per frame{rss}); manifest {}",
         wall * 1e3 / frames.len() as f64,
-        manifest.path().display()
+        manifest_path.display()
     );
     Ok(ExitCode::from(summary.exit_code()))
 }

@@ -179,6 +179,32 @@ fn a_batch_writes_every_frame_and_a_rerun_is_served_by_the_cache() {
         m.iter().map(|l| l.frame).collect::<Vec<_>>(),
         vec![0, 3, 6, 9, 12, 15, 18]
     );
+
+    // more frames into the same folder: the manifest keeps the first
+    // run's records beside the new ones (it was emptied), and the live
+    // record of the run is gone once the manifest holds it
+    let more = [
+        s(&pipe),
+        "--frames",
+        "18..22",
+        "--out",
+        s(&out),
+        "--cache-dir",
+        s(&cache),
+    ];
+    let o = batch(&more, &[]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    let m = manifest(&out.join("manifest.jsonl"));
+    assert_eq!(
+        m.iter().map(|l| l.frame).collect::<Vec<_>>(),
+        (0..22).collect::<Vec<_>>()
+    );
+    assert_eq!(m[17].status, "cached");
+    assert_eq!(
+        (m[18].status.as_str(), m[20].status.as_str()),
+        ("cached", "ok")
+    );
+    assert!(!out.join("manifest.jsonl.partial").exists());
 }
 
 #[test]
