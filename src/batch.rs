@@ -569,7 +569,8 @@ pub struct JobFile {
     /// so the parts of an earlier job in the same directory (still running,
     /// or finished) are never merged with this one's.
     pub submission: String,
-    /// The pipeline file.
+    /// The pipeline the tasks run: a copy of the submitted file as it was
+    /// checked, with its `--set` values (`slurm/pipeline-<submission>.ron`).
     pub pipeline: String,
     /// Every frame of the batch, in order.
     pub frames: Vec<u64>,

@@ -149,9 +149,15 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     if let Err(e) = doc.for_frame(first).and_then(|d| Pipeline::check(&d, &reg)) {
         return Ok(fail(&BatchError::Check(CheckErrors(e))));
     }
-    let chosen = match Backend::resolve(args.backend)
-        .and_then(|b| depthgraph::backend::apply(b, &mut reg))
-    {
+    // A Slurm submission only checks the choice: the tasks take their
+    // device where they run (a login node without a GPU submits a GPU job).
+    let chosen = match Backend::resolve(args.backend).and_then(|b| {
+        if args.slurm {
+            Ok(None)
+        } else {
+            depthgraph::backend::apply(b, &mut reg).map(Some)
+        }
+    }) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
@@ -200,7 +206,13 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     };
     let cache_dir = args.cache.dir();
     if args.slurm {
-        return slurm(args, file, &frames, &cache_dir);
+        if let (Some(url), false) = (&args.cache.cache_url, args.cache.no_cache) {
+            if let Err(e) = depthgraph::check_cache_url(url) {
+                eprintln!("error: {e}");
+                return Ok(ExitCode::from(e.kind.exit_code()));
+            }
+        }
+        return slurm(args, file, &doc, &frames, &cache_dir);
     }
     let remote = match args.cache.remote() {
         Ok(r) => r,
@@ -270,7 +282,7 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
         "batch: {} frames, {jobs} at a time, {} threads (backend: {})",
         frames.len(),
         engine.threads(),
-        chosen.used
+        chosen.as_ref().map_or("cpu", |c| c.used)
     );
     let t = std::time::Instant::now();
     let records = runner.run_all(&frames, jobs, &|r| {
@@ -316,9 +328,25 @@ fn absolute(p: &Path) -> Result<PathBuf> {
 
 /// Writes the array job's script and job file; submits it unless
 /// `--dry-run`; with `--wait`, collects its manifest when it ends.
-fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Result<ExitCode> {
+fn slurm(
+    args: &BatchArgs,
+    file: &Path,
+    doc: &Document,
+    frames: &[u64],
+    cache_dir: &Path,
+) -> Result<ExitCode> {
     let out = absolute(&args.out)?;
     let file = absolute(file)?;
+    let submission = depthgraph::batch::new_submission_id();
+    // The tasks run a copy of the pipeline as checked now (with --set), so
+    // an edit of the file while tasks wait in the queue changes no frame.
+    let snapshot = out.join("slurm").join(format!("pipeline-{submission}.ron"));
+    let text = doc.to_ron();
+    if let Err(e) = depthgraph::nodes::io::write_atomic(&snapshot, |tmp| std::fs::write(tmp, &text))
+    {
+        eprintln!("error: {e}");
+        return Ok(ExitCode::from(e.kind().exit_code()));
+    }
     let workdir = std::env::current_dir().context("the working directory")?;
     let exe = std::env::current_exe().context("the path of this program")?;
     let k = args.frames_per_task.max(1);
@@ -333,11 +361,10 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         (Some(&a), Some(&b)) if frames.len() as u64 == b - a + 1 => format!("{a}..{}", b + 1),
         _ => frames_text(frames),
     };
-    let submission = depthgraph::batch::new_submission_id();
     let mut cmd: Vec<String> = vec![
         exe.display().to_string(),
         "batch".into(),
-        file.display().to_string(),
+        snapshot.display().to_string(),
         "--frames".into(),
         spec,
         "--out".into(),
@@ -372,10 +399,7 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
         cmd.push("--backend".into());
         cmd.push(b.name().to_string());
     }
-    for s in &args.sets {
-        cmd.push("--set".into());
-        cmd.push(s.clone());
-    }
+    // (the --set values are in the snapshot)
     let plan = SlurmPlan {
         frames_per_task: k,
         array_max: args.array_max,
@@ -408,7 +432,7 @@ fn slurm(args: &BatchArgs, file: &Path, frames: &[u64], cache_dir: &Path) -> Res
     let script = slurm_script(&name, &cmd, &workdir, &out, tasks, &plan);
     let mut job = JobFile {
         submission,
-        pipeline: file.display().to_string(),
+        pipeline: snapshot.display().to_string(),
         frames: frames.to_vec(),
         frames_per_task: k,
         tasks,

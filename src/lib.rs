@@ -111,7 +111,9 @@ pub fn open_cache_url(
     {
         remote::open(url).map_err(|e| CacheUrlError {
             kind: match e {
-                remote::RemoteError::Url { .. } => FailureKind::Usage,
+                remote::RemoteError::Url { .. } | remote::RemoteError::Refused { .. } => {
+                    FailureKind::Usage
+                }
                 remote::RemoteError::Unreachable { .. } => FailureKind::Transient,
             },
             message: e.to_string(),
@@ -125,6 +127,22 @@ pub fn open_cache_url(
             ),
             kind: FailureKind::Usage,
         })
+    }
+}
+
+/// Checks a `--cache-url` without contacting the store (a Slurm
+/// submission: the tasks open it where they run).
+pub fn check_cache_url(url: &str) -> Result<(), CacheUrlError> {
+    #[cfg(feature = "s3")]
+    {
+        remote::check_url(url).map_err(|e| CacheUrlError {
+            kind: FailureKind::Usage,
+            message: e.to_string(),
+        })
+    }
+    #[cfg(not(feature = "s3"))]
+    {
+        open_cache_url(url).map(|_| ())
     }
 }
 

@@ -29,8 +29,18 @@ pub enum RemoteError {
         /// Why it cannot be used.
         message: String,
     },
-    /// The store answered the start-up check with an error (unreachable,
-    /// refused credentials, no such bucket).
+    /// The store answered the start-up check with a refusal a retry will
+    /// not change: credentials refused, no permission to write, no such
+    /// bucket.
+    #[error("--cache-url {url}: the store refuses this client: {message}")]
+    Refused {
+        /// The store.
+        url: String,
+        /// Its answer.
+        message: String,
+    },
+    /// The store could not answer the start-up check (unreachable, timed
+    /// out, a server error).
     #[error("--cache-url {url}: the store cannot be used: {message}")]
     Unreachable {
         /// The store.
@@ -146,8 +156,67 @@ fn build(url: &url::Url) -> object_store::Result<(Box<dyn ObjectStore>, StorePat
     Ok((store, path))
 }
 
-/// Opens the store of `url` and checks once that it answers (a miss on a
-/// probe name is an answer); credentials from the environment.
+/// Whether the store's error is a refusal (credentials, permissions, a
+/// bucket that does not exist: the write of a probe found no container)
+/// or a failure to answer.
+fn classify(url: &str, e: object_store::Error) -> RemoteError {
+    use object_store::Error as E;
+    let message = e.to_string();
+    let url = url.to_string();
+    match e {
+        E::PermissionDenied { .. } | E::Unauthenticated { .. } | E::NotFound { .. } => {
+            RemoteError::Refused { url, message }
+        }
+        _ => RemoteError::Unreachable { url, message },
+    }
+}
+
+/// The start-up check: the store takes a small probe object (under the
+/// prefix, `depthgraph-probe`) and gives it back. A read alone passed on a
+/// bucket that does not exist (S3 answers "not found", a miss) and failed
+/// where a client may read and write objects but not list the bucket.
+fn probe(blobs: &ObjectStoreBlobs) -> Result<(), RemoteError> {
+    const PROBE: &[u8] = b"depthgraph cache probe\n";
+    let at = blobs.location("depthgraph-probe");
+    blobs.runtime.block_on(async {
+        blobs
+            .store
+            .put(&at, PutPayload::from_static(PROBE))
+            .await
+            .map_err(|e| classify(&blobs.url, e))?;
+        let back = blobs
+            .store
+            .get(&at)
+            .await
+            .map_err(|e| classify(&blobs.url, e))?
+            .bytes()
+            .await
+            .map_err(|e| classify(&blobs.url, e))?;
+        if back.as_ref() == PROBE {
+            Ok(())
+        } else {
+            Err(RemoteError::Unreachable {
+                url: blobs.url.clone(),
+                message: "the probe object read back differs from what was written".into(),
+            })
+        }
+    })
+}
+
+/// Checks `url` without contacting the store: a URL, of a scheme the
+/// store knows (a Slurm submission's check: its tasks open the store).
+pub fn check_url(url: &str) -> Result<(), RemoteError> {
+    let bad = |message: String| RemoteError::Url {
+        url: url.to_string(),
+        message,
+    };
+    let parsed = url::Url::parse(url).map_err(|e| bad(e.to_string()))?;
+    object_store::ObjectStoreScheme::parse(&parsed).map_err(|e| bad(e.to_string()))?;
+    Ok(())
+}
+
+/// Opens the store of `url` and checks once that it takes and gives back a
+/// probe object ([`probe`]); credentials from the environment.
 pub fn open(url: &str) -> Result<Arc<dyn BlobStore>, RemoteError> {
     let bad = |message: String| RemoteError::Url {
         url: url.to_string(),
@@ -167,12 +236,7 @@ pub fn open(url: &str) -> Result<Arc<dyn BlobStore>, RemoteError> {
         url: url.to_string(),
         runtime,
     };
-    blobs
-        .get("depthgraph-probe")
-        .map_err(|message| RemoteError::Unreachable {
-            url: url.to_string(),
-            message,
-        })?;
+    probe(&blobs)?;
     Ok(Arc::new(blobs))
 }
 
@@ -195,6 +259,11 @@ mod tests {
 
     #[test]
     fn bad_urls_and_dead_stores_are_errors_naming_the_url() {
+        assert!(check_url("s3://bucket/prefix").is_ok());
+        for bad in ["not a url", "nope://x"] {
+            let e = check_url(bad).unwrap_err().to_string();
+            assert!(e.contains(bad), "{e}");
+        }
         let e = open("not a url").err().unwrap().to_string();
         assert!(e.contains("--cache-url not a url"), "{e}");
         let e = open("ftp://host/x").err().unwrap().to_string();

@@ -428,6 +428,10 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     let o = batch(&["--collect", s(&out)], &[]);
     assert_eq!(code(&o), 75, "{}", stderr(&o));
     assert!(stderr(&o).contains("20 never reported"), "{}", stderr(&o));
+    // the tasks run the pipeline as submitted: the file edited (here
+    // broken) while they wait in the queue changes nothing
+    let submitted = std::fs::read(&pipe).unwrap();
+    std::fs::write(&pipe, "not a pipeline").unwrap();
 
     // each array task as Slurm would start it; task 1 (frames 6..12) meets a
     // transient failure at frame 8 and retries within its allocation
@@ -453,6 +457,7 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
     );
     assert!(m.iter().all(|l| l.exit_code == 0));
     assert_eq!(frame_files(&out), frame_files(&local));
+    std::fs::write(&pipe, &submitted).unwrap();
 
     // A refused submission into the same folder leaves the finished job's
     // file, and what --collect gives, as they were.
@@ -490,6 +495,22 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
         std::fs::read(out.join("manifest.jsonl")).unwrap(),
         manifest_before
     );
+    // A GPU job is submitted from a login node without one: the tasks
+    // choose their device where they run.
+    let o = slurm(
+        &["--dry-run", "--backend", "gpu"],
+        &[("DEPTHGRAPH_ADAPTER", "no adapter is called this")],
+    );
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("--backend gpu"),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    // a cache URL the tasks could not open is refused before submitting
+    let o = slurm(&["--dry-run", "--cache-url", "nope://x"], &[]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("nope://x"), "{}", stderr(&o));
 }
 
 /// On a multi-cluster setup `sbatch --parsable` prints `id;cluster`, and

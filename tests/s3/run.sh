@@ -41,4 +41,14 @@ AWS_ENDPOINT="http://127.0.0.1:9" "$bin" batch graphs/sequence_demo.ron --frames
 rc=$?
 set -e
 test "$rc" -eq 75 || { echo "expected exit 75, got $rc"; cat "$work/c.err"; exit 1; }
+# a bucket that does not exist is a usage error (the probe's write finds
+# no bucket; a read alone took the answer for a cache miss and ran on)
+set +e
+"$bin" batch graphs/sequence_demo.ron --frames 0..2 --out "$work/d" \
+  --cache-url "s3://no-such-bucket/x" --quiet "${small[@]}" 2>"$work/d.err"
+rc=$?
+set -e
+test "$rc" -eq 2 || { echo "expected exit 2 for a missing bucket, got $rc"; cat "$work/d.err"; exit 1; }
+grep -q 'refuses' "$work/d.err" || { cat "$work/d.err"; exit 1; }
+test ! -e "$work/d/manifest.jsonl"
 echo "s3 test: passed (12 frames shared through $url on moto_server)"
