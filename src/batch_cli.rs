@@ -206,11 +206,11 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     };
     let cache_dir = args.cache.dir();
     if args.slurm {
-        if let (Some(url), false) = (&args.cache.cache_url, args.cache.no_cache) {
-            if let Err(e) = depthgraph::check_cache_url(url) {
-                eprintln!("error: {e}");
-                return Ok(ExitCode::from(e.kind.exit_code()));
-            }
+        if let (Some(url), false) = (&args.cache.cache_url, args.cache.no_cache)
+            && let Err(e) = depthgraph::check_cache_url(url)
+        {
+            eprintln!("error: {e}");
+            return Ok(ExitCode::from(e.kind.exit_code()));
         }
         return slurm(args, file, &doc, &frames, &cache_dir);
     }
