@@ -42,7 +42,13 @@ pub fn unproject(
                 continue;
             }
             let p = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z as f64);
-            pc.positions.push([p.x as f32, p.y as f32, p.z as f32]);
+            let q = [p.x as f32, p.y as f32, p.z as f32];
+            // a huge depth at an image corner can leave f32's range
+            // (x = (u - cx) z / fx): no point, as the mesh does
+            if !q.iter().all(|c| c.is_finite()) {
+                continue;
+            }
+            pc.positions.push(q);
             if let Some(c) = color {
                 pc.colors.push(*c.get(x, y));
             }
@@ -134,10 +140,11 @@ depthgraph_graph::ports! {
 }
 
 fn project_eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     i: ProjectIn,
     _: &UnprojectParams,
 ) -> Result<Produced<ProjectOut>, NodeError> {
+    crate::kit::checks::output_fits(ctx, "intrinsics", i.intrinsics.width, i.intrinsics.height)?;
     let (depth, color) = project(&i.points, &i.intrinsics)?;
     Ok(ProjectOut { depth, color }.into())
 }
@@ -192,6 +199,19 @@ pub fn reproject_depth(
     let (w, h) = depth.dims();
     fits_intrinsics("intrinsics", k_depth, "depth map", (w, h))?;
     sane_intrinsics("target", k_target)?;
+    if (p.width == 0) != (p.height == 0) {
+        let (set, unset) = if p.width == 0 {
+            ("height", "width")
+        } else {
+            ("width", "height")
+        };
+        return Err(NodeError::param(
+            unset,
+            format!(
+                "is 0 while {set} is set: give both (the result's size) or neither (the target's)"
+            ),
+        ));
+    }
     let [rx, ry, rz] = p.rotation_deg.map(f64::to_radians);
     let rot = glam::DMat3::from_rotation_z(rz)
         * glam::DMat3::from_rotation_y(ry)
@@ -262,10 +282,13 @@ depthgraph_graph::ports! {
 }
 
 fn reproject_eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     i: ReprojectIn,
     p: &ReprojectParams,
 ) -> Result<Produced<ReprojectOut>, NodeError> {
+    let k = output_camera(&i.target, p);
+    let from = if p.width > 0 { "width" } else { "target" };
+    crate::kit::checks::output_fits(ctx, from, k.width, k.height)?;
     let (depth, confidence) = reproject_depth(&i.depth, &i.intrinsics, &i.target, p)?;
     Ok(ReprojectOut {
         depth,
@@ -504,5 +527,75 @@ mod tests {
         let (small, _) = reproject_depth(&seen.depth, &k, &k, &quarter).unwrap();
         assert_eq!(small.dims(), (20, 15));
         assert!(small.hole_count() < 20 * 15 / 4);
+    }
+
+    /// Sizes the run cannot hold are refused before anything is allocated;
+    /// half a size is named; points beyond f32's range are left out.
+    #[test]
+    fn impossible_sizes_and_points_are_refused_or_skipped() {
+        let tc = crate::test_support::TestCtx::new("n");
+        let mut ctx = tc.ctx();
+        ctx.max_pixels = 1000;
+        let big = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 32.0,
+            cy: 32.0,
+            width: 64,
+            height: 64,
+        };
+        let e = project_eval(
+            &ctx,
+            ProjectIn {
+                points: Arc::new(PointCloud::default()),
+                intrinsics: big,
+            },
+            &UnprojectParams::default(),
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("64x64") && e.to_string().contains("1000"),
+            "{e}"
+        );
+        let small = big.scaled_to(8, 8);
+        let reproject = |p: &ReprojectParams| {
+            reproject_eval(
+                &ctx,
+                ReprojectIn {
+                    depth: Arc::new(DepthMap::filled(8, 8, 1.0)),
+                    intrinsics: small,
+                    target: small,
+                },
+                p,
+            )
+        };
+        let wide = ReprojectParams {
+            width: 100,
+            height: 100,
+            ..Default::default()
+        };
+        let e = reproject(&wide).unwrap_err();
+        assert!(e.to_string().contains("100x100"), "{e}");
+        let half = ReprojectParams {
+            width: 16,
+            ..Default::default()
+        };
+        let e = reproject(&half).unwrap_err();
+        assert!(e.to_string().contains("height"), "{e}");
+        assert!(reproject(&ReprojectParams::default()).is_ok());
+        // 3e38 m at a corner: x = (0.5 - 4) * 3e38 / 1 overflows f32
+        let k = Intrinsics {
+            fx: 1.0,
+            fy: 1.0,
+            cx: 4.0,
+            cy: 4.0,
+            width: 8,
+            height: 8,
+        };
+        let mut d = DepthMap::filled(8, 8, 2.0);
+        *d.get_mut(0, 0) = 3e38;
+        let pc = unproject(&d, &k, None).unwrap();
+        assert_eq!(pc.positions.len(), 63);
+        assert!(pc.positions.iter().flatten().all(|c| c.is_finite()));
     }
 }

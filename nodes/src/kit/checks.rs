@@ -26,6 +26,23 @@ pub fn fits_intrinsics(
     Ok(())
 }
 
+/// An image a node is about to make, `w` x `h` from `what` (a port or a
+/// parameter), must fit the run's pixel budget (`--max-pixels`, as input
+/// files do): a camera of 65536 x 65536 would otherwise allocate tens of
+/// GiB and abort the process.
+pub fn output_fits(ctx: &EvalCtx, what: &str, w: usize, h: usize) -> Result<(), NodeError> {
+    match w.checked_mul(h) {
+        Some(n) if n <= ctx.max_pixels => Ok(()),
+        _ => Err(NodeError::input(
+            what,
+            format!(
+                "asks for a {w}x{h} image, more than the run's {} pixels (--max-pixels)",
+                ctx.max_pixels
+            ),
+        )),
+    }
+}
+
 /// The intrinsics `k` on input `k_port` must be usable: finite, positive
 /// focal lengths and a finite principal point.
 pub fn sane_intrinsics(k_port: &str, k: &Intrinsics) -> Result<(), NodeError> {
