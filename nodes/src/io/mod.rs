@@ -732,7 +732,8 @@ fn save_color_eval(
 depthgraph_graph::param_choice! {
     /// How a depth map is written (the `format` parameter of SaveDepth).
     pub enum DepthFormat {
-        /// By the file's extension: `.exr` is EXR, anything else PNG16.
+        /// By the file's extension: `.exr` is EXR, `.png` PNG16 (another
+        /// extension is an error).
         Auto = "auto",
         /// 16-bit PNG in millimetres.
         Png16 = "png16",
@@ -749,7 +750,8 @@ node_params! {
         /// Output file. Relative paths go under `--out`.
         pub path: String = "depth.png", ParamKind::OutputPath;
         /// "png16" (integer, `scale` units per metre), "exr" (float metres), "preview"
-        /// (colormapped 8-bit PNG, holes black), or "auto" (from the extension: .exr, else png16).
+        /// (colormapped 8-bit PNG, holes black), or "auto" (from the extension: .exr or
+        /// .png). The file's extension must match: .png for png16 and preview, .exr for exr.
         pub format: DepthFormat = DepthFormat::Auto, ParamKind::Choice(DepthFormat::NAMES);
         /// png16 only: stored units per metre (1000 = millimetres, TUM uses 5000).
         pub scale: f64 = 1000.0, ParamKind::Float { min: 1e-6, max: 1e9 };
@@ -782,6 +784,16 @@ fn preview_range(depth: &DepthMap, p: &SaveDepthParams) -> Result<(f32, f32), No
     } else {
         auto_lo
     };
+    // min_m alone, beyond the data's far end: every pixel one colour
+    if p.min_m > 0.0 && p.max_m <= 0.0 && (hi.is_nan() || hi <= lo) {
+        return Err(NodeError::param(
+            "min_m",
+            format!(
+                "{} m is beyond the depths to show (98th percentile {auto_hi} m): lower it or set max_m",
+                p.min_m
+            ),
+        ));
+    }
     Ok((lo, hi))
 }
 
@@ -794,11 +806,29 @@ pub fn save_depth(
     p: &SaveDepthParams,
 ) -> Result<(PathBuf, usize), NodeError> {
     let (w, h) = (depth.width() as u32, depth.height() as u32);
+    let ext = extension(path);
     let format = match p.format {
-        DepthFormat::Auto if extension(path) == "exr" => DepthFormat::Exr,
+        DepthFormat::Auto if ext == "exr" => DepthFormat::Exr,
         DepthFormat::Auto => DepthFormat::Png16,
         f => f,
     };
+    // the file's name says what it holds (a depth.pfm of PNG bytes is read
+    // back by nothing that goes by its extension)
+    let wanted = if format == DepthFormat::Exr {
+        "exr"
+    } else {
+        "png"
+    };
+    if ext != wanted {
+        return Err(NodeError::param(
+            "path",
+            format!(
+                "{} would hold {} data: name it .{wanted}, or choose the format its extension asks for (png16 or preview: .png; exr: .exr)",
+                path.display(),
+                if wanted == "exr" { "OpenEXR" } else { "PNG" },
+            ),
+        ));
+    }
     match format {
         DepthFormat::Exr => {
             let data: Vec<f32> = depth
@@ -1299,6 +1329,47 @@ mod tests {
         assert_eq!(at(2.0, 5.0).unwrap(), (2.0, 5.0));
         let e = at(5.0, 3.0).unwrap_err().to_string();
         assert!(e.contains("max_m"), "{e}");
+        // min_m alone beyond the data's far end: an error, not one colour
+        let e = at(20.0, 0.0).unwrap_err().to_string();
+        assert!(e.contains("min_m"), "{e}");
+    }
+
+    /// SaveDepth writes what its file's name says (a .pfm or .tif got PNG
+    /// bytes, a .png EXR bytes with format exr) or names the mismatch.
+    #[test]
+    fn a_depth_file_holds_what_its_extension_says() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = DepthMap::filled(4, 3, 1.5);
+        let save = |name: &str, format| {
+            save_depth(
+                &d,
+                &dir.path().join(name),
+                &SaveDepthParams {
+                    format,
+                    ..Default::default()
+                },
+            )
+        };
+        for (name, format) in [
+            ("d.pfm", DepthFormat::Auto),
+            ("d.tif", DepthFormat::Png16),
+            ("d.png", DepthFormat::Exr),
+            ("d.exr", DepthFormat::Preview),
+        ] {
+            let e = save(name, format).unwrap_err().to_string();
+            assert!(e.contains(name) && e.contains("path"), "{name}: {e}");
+            assert!(!dir.path().join(name).exists());
+        }
+        for (name, format) in [
+            ("a.exr", DepthFormat::Auto),
+            ("a.png", DepthFormat::Auto),
+            ("b.PNG", DepthFormat::Preview),
+            ("c.exr", DepthFormat::Exr),
+        ] {
+            save(name, format).unwrap();
+        }
+        let back = load_depth(&dir.path().join("a.exr"), &LoadDepthParams::default()).unwrap();
+        assert_eq!(*back.get(1, 1), 1.5);
     }
 
     /// A float colour file's NaN and infinite samples read as 0, counted

@@ -39,7 +39,7 @@ node_params! {
         pub frame: u32 = 0u32, ParamKind::Int { min: 0, max: 100_000_000 };
         /// TUM folders: the largest time difference of an associated pair, seconds
         /// (associate.py's default 0.02).
-        pub max_difference_s: f64 = 0.02, ParamKind::Float { min: 0.0, max: 10.0 };
+        pub max_difference_s: f64 = 0.02, ParamKind::Float { min: 1e-6, max: 10.0 };
         /// Stored depth units per metre; 0 = auto: 5000 in a TUM folder (its
         /// convention), else as LoadDepth (1000 for integer files, 1 for float).
         pub depth_scale: f64 = 0.0, ParamKind::Float { min: 0.0, max: 1e9 };

@@ -86,6 +86,13 @@ fn filter_on(
     mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
     runner: &mut dyn PassRunner,
 ) -> Result<(DepthMap, Confidence), NodeError> {
+    if p.search_radius == 0 {
+        // a window of the pixel alone: the input back, unfiltered
+        return Err(NodeError::param(
+            "search_radius",
+            "must be at least 1 (0 compares each pixel only with itself)",
+        ));
+    }
     let core = Core::new(p.search_radius, p.patch_radius, p.h_color, p.h_depth)?;
     same_size(
         "color",

@@ -1240,6 +1240,24 @@ mod tests {
             param(nlmeans_denoise(&depth, None, &color, &bad)),
             "noise_sigma_m"
         );
+        // a window of one pixel (the input back) and a threshold that
+        // prunes every pixel are refused, not run
+        let bad = NLMeansDepthParams {
+            search_radius: 0,
+            ..Default::default()
+        };
+        assert_eq!(
+            param(nlmeans_denoise(&depth, None, &color, &bad)),
+            "search_radius"
+        );
+        let bad = NLMeansDepthParams {
+            outlier_threshold: 0.0,
+            ..Default::default()
+        };
+        assert_eq!(
+            param(nlmeans_denoise(&depth, None, &color, &bad)),
+            "outlier_threshold"
+        );
         let bad = NLMeansInpaintParams {
             search_radius: 0,
             ..Default::default()

@@ -15,7 +15,7 @@ node_params! {
     pub struct NLMeansDepthParams {
         /// Radius of the search window W_i in pixels (eq. 1): candidates come
         /// from a (2r+1) x (2r+1) window, 5 gives 11x11.
-        pub search_radius: usize = 5usize, ParamKind::Int { min: 0, max: 30 };
+        pub search_radius: usize = 5usize, ParamKind::Int { min: 1, max: 30 };
         /// Radius of the compared patches N in pixels (eq. 2): 2 gives 5x5.
         pub patch_radius: usize = 2usize, ParamKind::Int { min: 0, max: 10 };
         /// Color filtering parameter h (eq. 2), in units of the guide feature
@@ -36,8 +36,10 @@ node_params! {
         /// Prior probability that a measurement is an outlier (weight of the
         /// uniform component of the mixture).
         pub outlier_prior: f64 = 0.05, ParamKind::Float { min: 1e-6, max: 0.999 };
-        /// A pixel whose posterior outlier probability exceeds this becomes a hole.
-        pub outlier_threshold: f64 = 0.5, ParamKind::Float { min: 0.0, max: 1.0 };
+        /// A pixel whose posterior outlier probability exceeds this becomes
+        /// a hole. Above 0: the probability of any pixel with a neighbour
+        /// is, so 0 would prune them all.
+        pub outlier_threshold: f64 = 0.5, ParamKind::Float { min: 1e-6, max: 1.0 };
         /// Constant part of the depth noise standard deviation, metres (the
         /// normal component of the mixture).
         pub noise_sigma_m: f64 = 0.01, ParamKind::Float { min: 1e-6, max: 100.0 };
@@ -198,8 +200,11 @@ impl PruneParams {
         if !(self.prior > 0.0 && self.prior < 1.0) {
             return Err(NodeError::param("outlier_prior", "must be in (0, 1)"));
         }
-        if self.threshold.is_nan() {
-            return Err(NodeError::param("outlier_threshold", "must be a number"));
+        if self.threshold.is_nan() || self.threshold <= 0.0 {
+            return Err(NodeError::param(
+                "outlier_threshold",
+                "must be above 0 (every pixel with a neighbour has an outlier probability above 0: 0 prunes them all)",
+            ));
         }
         if !(self.sigma_m.is_finite() && self.sigma_m > 0.0) {
             return Err(NodeError::param(
