@@ -55,6 +55,56 @@ depthgraph_graph::ports! {
     }
 }
 
+/// The most shadow-map texels one run may hold at once: 2^30 f32 depths,
+/// 4 GiB. Every VPL's maps are alive together, so the product of the VPL
+/// count and a map's texels (each within its own range) could reach a
+/// terabyte and abort the process.
+pub const MAX_SHADOW_TEXELS: u128 = 1 << 30;
+
+/// Refuses a VPL count and map resolutions whose shadow maps together
+/// exceed [`MAX_SHADOW_TEXELS`], naming the parameters to lower.
+pub fn shadow_maps_fit(vpls: usize, p: &RelightParams) -> Result<(), NodeError> {
+    let sq = |r: usize| (r as u128) * (r as u128);
+    let n = vpls as u128;
+    let (maps, what) = match p.visibility {
+        // a scene map and an object map per VPL
+        Visibility::Paired => (2 * n * sq(p.ism_resolution), "ism_resolution"),
+        Visibility::SceneCached => (
+            n * (sq(p.ism_resolution) + sq(p.object_ism_resolution)),
+            "ism_resolution and object_ism_resolution",
+        ),
+        Visibility::Raycast => (0, ""),
+    };
+    let bounce = if p.bounce_shadows {
+        (p.bounce_vpls as u128 + p.scene_vpls as u128) * sq(p.bounce_ism_resolution)
+    } else {
+        0
+    };
+    if maps + bounce <= MAX_SHADOW_TEXELS {
+        return Ok(());
+    }
+    let (param, advice) = if bounce > maps {
+        (
+            "bounce_ism_resolution",
+            "lower bounce_ism_resolution, bounce_vpls or scene_vpls, or turn bounce_shadows off"
+                .to_string(),
+        )
+    } else {
+        (
+            "ism_resolution",
+            format!("lower {what} or the VPL count (VplSample.count)"),
+        )
+    };
+    Err(NodeError::param(
+        param,
+        format!(
+            "the shadow maps of {vpls} VPLs would hold {} M texels at once, more than {} M (4 GiB): {advice}",
+            (maps + bounce) >> 20,
+            MAX_SHADOW_TEXELS >> 20
+        ),
+    ))
+}
+
 fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<RelightOut>, NodeError> {
     eval_with(ctx, i, p, &mut |plan| Ok(evaluate_direct(plan)))
 }
@@ -72,6 +122,7 @@ pub fn eval_with(
         Some(c) => Some(checked_vpls(c, "capture_vpls")?),
         None => None,
     };
+    shadow_maps_fit(vpls.len(), p)?;
     let inp = RelightInputs {
         photo: &i.photo,
         depth: &i.depth,
@@ -140,4 +191,49 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
          docs/relight-truth.md.",
         eval,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// VPL counts and map sizes whose maps would not fit are refused with
+    /// the parameter to lower; the defaults and the paper's 256 VPLs fit.
+    #[test]
+    fn shadow_maps_beyond_the_budget_are_refused() {
+        let p = RelightParams::default();
+        assert!(shadow_maps_fit(256, &p).is_ok());
+        assert!(shadow_maps_fit(65536, &p).is_ok());
+        let big = RelightParams {
+            ism_resolution: 1024,
+            ..Default::default()
+        };
+        let e = shadow_maps_fit(4096, &big).unwrap_err().to_string();
+        assert!(
+            e.contains("ism_resolution") && e.contains("4096 VPLs"),
+            "{e}"
+        );
+        let paired = RelightParams {
+            visibility: Visibility::Paired,
+            ism_resolution: 2048,
+            ..Default::default()
+        };
+        assert!(shadow_maps_fit(200, &paired).is_err());
+        let bounce = RelightParams {
+            bounce_shadows: true,
+            bounce_vpls: 65536,
+            scene_vpls: 65536,
+            bounce_ism_resolution: 1024,
+            ..Default::default()
+        };
+        let e = shadow_maps_fit(64, &bounce).unwrap_err().to_string();
+        assert!(e.contains("bounce_ism_resolution"), "{e}");
+        // the reference casts rays: no maps
+        let raycast = RelightParams {
+            visibility: Visibility::Raycast,
+            ism_resolution: 2048,
+            ..Default::default()
+        };
+        assert!(shadow_maps_fit(65536, &raycast).is_ok());
+    }
 }
