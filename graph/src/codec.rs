@@ -269,12 +269,19 @@ impl<'a> Reader<'a> {
         }
         Some(f.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
     }
-    fn image3<K>(&mut self) -> Option<Image<[f32; 3], K>> {
+    /// An image's size: its pixel count without overflow, and no side 0
+    /// unless both are (a 0 x 2^63 image holds no pixel, and its rows
+    /// would still be walked).
+    fn dims(&mut self) -> Option<(usize, usize)> {
         let (w, h) = (self.usize()?, self.usize()?);
+        (w.checked_mul(h).is_some() && (w == 0) == (h == 0)).then_some((w, h))
+    }
+    fn image3<K>(&mut self) -> Option<Image<[f32; 3], K>> {
+        let (w, h) = self.dims()?;
         Image::from_vec(w, h, self.triples()?).ok()
     }
     fn image1<K>(&mut self) -> Option<Image<f32, K>> {
-        let (w, h) = (self.usize()?, self.usize()?);
+        let (w, h) = self.dims()?;
         Image::from_vec(w, h, self.f32s()?).ok()
     }
     fn value(&mut self) -> Option<Value> {
@@ -285,7 +292,7 @@ impl<'a> Reader<'a> {
             3 => Value::Confidence(Arc::new(self.image1()?)),
             4 => Value::Normals(Arc::new(self.image3()?)),
             5 => {
-                let (w, h) = (self.usize()?, self.usize()?);
+                let (w, h) = self.dims()?;
                 Value::Labels(Arc::new(Image::from_vec(w, h, self.u32s()?).ok()?))
             }
             6 => {
@@ -300,17 +307,34 @@ impl<'a> Reader<'a> {
                     height,
                 })
             }
-            7 => Value::PointCloud(Arc::new(PointCloud {
-                positions: self.triples()?,
-                colors: self.triples()?,
-                normals: self.triples()?,
-            })),
+            7 => {
+                let positions = self.triples()?;
+                let colors = self.triples()?;
+                let normals = self.triples()?;
+                // colours and normals: none, or one per point
+                let per_point = |n: usize| n == 0 || n == positions.len();
+                if !(per_point(colors.len()) && per_point(normals.len())) {
+                    return None;
+                }
+                Value::PointCloud(Arc::new(PointCloud {
+                    positions,
+                    colors,
+                    normals,
+                }))
+            }
             8 => {
                 let positions = self.triples()?;
                 let colors = self.triples()?;
                 let normals = self.triples()?;
                 let t = self.u32s()?;
-                if t.len() % 3 != 0 {
+                // whole triangles of vertices that exist; colours and
+                // normals none or one per vertex (a damaged or forged entry
+                // of a shared store would index out of bounds downstream)
+                let per_vertex = |n: usize| n == 0 || n == positions.len();
+                if t.len() % 3 != 0
+                    || !(per_vertex(colors.len()) && per_vertex(normals.len()))
+                    || t.iter().any(|&i| i as usize >= positions.len())
+                {
                     return None;
                 }
                 Value::Mesh(Arc::new(Mesh {
@@ -417,6 +441,43 @@ mod tests {
         let back = decode(&bytes, &Decoders::new()).unwrap();
         assert_eq!(back.values, out.values);
         assert_eq!(back.passthrough.as_deref(), Some("no holes to fill"));
+    }
+
+    /// Entries whose framing is sound but whose contents could not come
+    /// from a node (a damaged or forged entry of a shared store) decode to
+    /// nothing: a triangle of a vertex that does not exist, colours for
+    /// some points only, an image of no pixels and 2^40 rows.
+    #[test]
+    fn inconsistent_contents_are_none() {
+        let mesh = |triangles: Vec<[u32; 3]>, colors: usize| {
+            Outputs::new().with(
+                "m",
+                Value::Mesh(Arc::new(Mesh {
+                    positions: vec![[0.0, 1.0, 2.0]; 3],
+                    colors: vec![[0.5; 3]; colors],
+                    normals: vec![],
+                    triangles,
+                })),
+            )
+        };
+        assert!(decode(&encode(&mesh(vec![[0, 1, 2]], 3)), &Decoders::new()).is_some());
+        assert!(decode(&encode(&mesh(vec![[0, 1, 3]], 0)), &Decoders::new()).is_none());
+        assert!(decode(&encode(&mesh(vec![[0, 1, 2]], 2)), &Decoders::new()).is_none());
+        let cloud = Outputs::new().with(
+            "p",
+            Value::PointCloud(Arc::new(PointCloud {
+                positions: vec![[0.0; 3]; 3],
+                colors: vec![],
+                normals: vec![[0.0, 0.0, 1.0]; 1],
+            })),
+        );
+        assert!(decode(&encode(&cloud), &Decoders::new()).is_none());
+        let tall: crate::value::DepthMap = Image::from_vec(0, 1 << 40, vec![]).unwrap();
+        let out = Outputs::new().with("d", Value::Depth(Arc::new(tall)));
+        assert!(decode(&encode(&out), &Decoders::new()).is_none());
+        let empty: crate::value::DepthMap = Image::from_vec(0, 0, vec![]).unwrap();
+        let out = Outputs::new().with("d", Value::Depth(Arc::new(empty)));
+        assert!(decode(&encode(&out), &Decoders::new()).is_some());
     }
 
     #[test]
