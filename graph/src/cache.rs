@@ -5,7 +5,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::SystemTime;
 
 use crate::codec;
@@ -99,7 +99,25 @@ impl MemoryCache {
 pub struct DiskCache {
     dir: PathBuf,
     budget_bytes: u64,
+    /// What this process knows of the store's size since it last scanned
+    /// it (see [`Tally`]), shared by the clones of one store.
+    tally: Arc<Mutex<Tally>>,
 }
+
+/// The store's size as of the last scan plus the bytes this process wrote
+/// since, and the writes since: a put scans the folders (a `stat` per
+/// entry) only when the estimate passes the budget or every
+/// [`RESCAN_EVERY`] writes (other processes sharing the store are seen
+/// then), not at every write (quadratic over a batch on a network folder).
+#[derive(Debug, Default)]
+struct Tally {
+    /// `None` until the first scan.
+    bytes: Option<u64>,
+    puts_since_scan: u32,
+}
+
+/// Writes between two scans of a store whose estimate is within budget.
+pub const RESCAN_EVERY: u32 = 64;
 
 impl DiskCache {
     /// A store in `dir` of at most `budget_bytes` in all; its directories are
@@ -108,6 +126,7 @@ impl DiskCache {
         Self {
             dir: dir.into(),
             budget_bytes,
+            tally: Arc::new(Mutex::new(Tally::default())),
         }
     }
     /// The store's directory.
@@ -157,7 +176,18 @@ impl DiskCache {
             let _ = fs::remove_file(&tmp);
             return Err(e);
         }
-        self.trim()
+        let scan = {
+            let mut t = self.tally.lock().unwrap_or_else(|e| e.into_inner());
+            t.puts_since_scan += 1;
+            match &mut t.bytes {
+                Some(b) => {
+                    *b = b.saturating_add(bytes.len() as u64);
+                    *b > self.budget_bytes || t.puts_since_scan >= RESCAN_EVERY
+                }
+                None => true,
+            }
+        };
+        if scan { self.trim() } else { Ok(()) }
     }
     /// Total bytes of the entries on disk.
     pub fn used_bytes(&self) -> u64 {
@@ -223,18 +253,26 @@ impl DiskCache {
             }
         }
         let mut total: u64 = entries.iter().map(|(_, s, _)| s).sum();
-        if total <= self.budget_bytes {
-            return Ok(());
-        }
-        entries.sort_by_key(|(_, _, t)| *t);
-        for (p, s, _) in entries {
+        let result = (|| {
             if total <= self.budget_bytes {
-                break;
+                return Ok(());
             }
-            remove_if_present(&p)?;
-            total -= s;
-        }
-        Ok(())
+            entries.sort_by_key(|(_, _, t)| *t);
+            for (p, s, _) in entries {
+                if total <= self.budget_bytes {
+                    break;
+                }
+                remove_if_present(&p)?;
+                total -= s;
+            }
+            Ok(())
+        })();
+        let mut t = self.tally.lock().unwrap_or_else(|e| e.into_inner());
+        *t = Tally {
+            bytes: Some(total),
+            puts_since_scan: 0,
+        };
+        result
     }
 }
 
@@ -453,6 +491,38 @@ mod tests {
         assert!(c.get(&key(2), &Default::default()).is_none());
         assert!(c.get(&key(1), &Default::default()).is_some());
         assert!(c.get(&key(3), &Default::default()).is_some());
+    }
+
+    /// A put scans the store only when this process's estimate passes the
+    /// budget or every RESCAN_EVERY writes: a file another process wrote
+    /// is not seen at once, but within that many writes, and the store
+    /// never grows past the budget through this process's own writes.
+    #[test]
+    fn puts_scan_the_store_only_when_the_estimate_asks() {
+        let dir = tempfile::tempdir().unwrap();
+        let wide = |k: u64| Key::from_bytes(*blake3::hash(&k.to_le_bytes()).as_bytes());
+        let one = codec::encode(&out(100)).len() as u64;
+        let budget = one * 200;
+        let c = DiskCache::new(dir.path(), budget);
+        c.put(&wide(1), &out(100)).unwrap();
+        // another process's entries, beyond the budget together
+        let other = DiskCache::new(dir.path(), u64::MAX);
+        for k in 1000..1250u64 {
+            other.put(&wide(k), &out(100)).unwrap();
+        }
+        assert!(other.used_bytes() > budget);
+        c.put(&wide(2), &out(100)).unwrap();
+        // not scanned yet: the other entries are all still there
+        assert!(c.used_bytes() > budget);
+        for k in 3..(3 + u64::from(RESCAN_EVERY)) {
+            c.put(&wide(k), &out(100)).unwrap();
+        }
+        assert!(c.used_bytes() <= budget);
+        // this process's own writes keep it within budget at each put
+        for k in 5000..5300u64 {
+            c.put(&wide(k), &out(100)).unwrap();
+            assert!(c.used_bytes() <= budget, "after {k}");
+        }
     }
 
     #[test]
