@@ -53,6 +53,15 @@ pub enum MetricError {
     Dims(usize, usize, usize, usize),
     #[error("{0} values cannot be compared numerically")]
     Unsupported(ValueType),
+    #[error(
+        "--metric {metric} compares colour images only, not {found} values (rmse, mae and psnr take depth and masks)"
+    )]
+    ColourOnly {
+        /// The metric's name.
+        metric: &'static str,
+        /// What it was given.
+        found: ValueType,
+    },
     #[error("no sample to compare (the reference has no valid pixel)")]
     Empty,
 }
@@ -79,7 +88,11 @@ pub fn compare(
                     missing: 0,
                 })
             }
-            (a, _) => Err(MetricError::Unsupported(a.value_type())),
+            (Value::Color(_), b) => Err(MetricError::Types(ValueType::Color, b.value_type())),
+            (a, _) => Err(MetricError::ColourOnly {
+                metric: metric.name(),
+                found: a.value_type(),
+            }),
         };
     }
     let mut acc = Acc::default();
@@ -198,6 +211,26 @@ mod tests {
         let p = compare(&a, &b, Metric::Psnr).unwrap().value;
         assert!((p - 10.0 * (9.0f64 / 0.5).log10()).abs() < 1e-9);
         assert_eq!(compare(&b, &b, Metric::Psnr).unwrap().value, f64::INFINITY);
+    }
+
+    /// The colour-only metrics say so on depth (they said depth cannot be
+    /// compared numerically, though rmse compares it), and a colour result
+    /// against another type names both.
+    #[test]
+    fn colour_only_metrics_say_what_they_take() {
+        let d = depth(vec![1.0, 2.0]);
+        for m in [Metric::Ssim, Metric::DisplayPsnr] {
+            let e = compare(&d, &d, m).unwrap_err().to_string();
+            assert!(
+                e.contains(m.name()) && e.contains("colour images only"),
+                "{e}"
+            );
+        }
+        let c = Value::Color(Arc::new(Image::from_vec(2, 1, vec![[0.5; 3]; 2]).unwrap()));
+        assert_eq!(
+            compare(&c, &d, Metric::Ssim).unwrap_err(),
+            MetricError::Types(ValueType::Color, ValueType::Depth)
+        );
     }
 
     #[test]
