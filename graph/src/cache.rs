@@ -104,16 +104,21 @@ pub struct DiskCache {
     tally: Arc<Mutex<Tally>>,
 }
 
-/// The store's size as of the last scan plus the bytes this process wrote
-/// since, and the writes since: a put scans the folders (a `stat` per
-/// entry) only when the estimate passes the budget or every
-/// [`RESCAN_EVERY`] writes (other processes sharing the store are seen
-/// then), not at every write (quadratic over a batch on a network folder).
+/// The store's entries as this process knows them: those of the last
+/// scan of its folders, plus what it wrote and read since. A put evicts
+/// from this index when it passes the budget, and scans the folders (a
+/// `stat` per entry) only every [`RESCAN_EVERY`] writes, to see what
+/// other processes sharing the store did; before, every write scanned
+/// (quadratic over a batch, slow on a network folder).
 #[derive(Debug, Default)]
 struct Tally {
-    /// `None` until the first scan.
-    bytes: Option<u64>,
+    /// Entry path: size, last use. `None` until the first scan.
+    index: Option<HashMap<PathBuf, (u64, SystemTime)>>,
+    /// Their total size.
+    bytes: u64,
     puts_since_scan: u32,
+    /// Scans so far (how often the folders were read).
+    scans: u64,
 }
 
 /// Writes between two scans of a store whose estimate is within budget.
@@ -145,7 +150,12 @@ impl DiskCache {
         if out.is_none() {
             let _ = fs::remove_file(&path);
         } else if let Ok(f) = fs::File::options().append(true).open(&path) {
-            let _ = f.set_modified(SystemTime::now());
+            let now = SystemTime::now();
+            let _ = f.set_modified(now);
+            let mut t = self.tally.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some((_, used)) = t.index.as_mut().and_then(|i| i.get_mut(&path)) {
+                *used = now;
+            }
         }
         out
     }
@@ -176,18 +186,45 @@ impl DiskCache {
             let _ = fs::remove_file(&tmp);
             return Err(e);
         }
-        let scan = {
-            let mut t = self.tally.lock().unwrap_or_else(|e| e.into_inner());
-            t.puts_since_scan += 1;
-            match &mut t.bytes {
-                Some(b) => {
-                    *b = b.saturating_add(bytes.len() as u64);
-                    *b > self.budget_bytes || t.puts_since_scan >= RESCAN_EVERY
-                }
-                None => true,
-            }
+        let mut guard = self.tally.lock().unwrap_or_else(|e| e.into_inner());
+        let t = &mut *guard;
+        t.puts_since_scan += 1;
+        let Some(index) = t
+            .index
+            .as_mut()
+            .filter(|_| t.puts_since_scan < RESCAN_EVERY)
+        else {
+            drop(guard);
+            return self.trim();
         };
-        if scan { self.trim() } else { Ok(()) }
+        let size = bytes.len() as u64;
+        if let Some((old, _)) = index.insert(path, (size, SystemTime::now())) {
+            t.bytes = t.bytes.saturating_sub(old);
+        }
+        t.bytes = t.bytes.saturating_add(size);
+        if t.bytes <= self.budget_bytes {
+            return Ok(());
+        }
+        // over the budget: the least recently used known entries go
+        let mut by_age: Vec<(PathBuf, u64, SystemTime)> = index
+            .iter()
+            .map(|(p, (s, u))| (p.clone(), *s, *u))
+            .collect();
+        by_age.sort_by_key(|(_, _, u)| *u);
+        for (p, s, _) in by_age {
+            if t.bytes <= self.budget_bytes {
+                break;
+            }
+            remove_if_present(&p)?;
+            index.remove(&p);
+            t.bytes = t.bytes.saturating_sub(s);
+        }
+        Ok(())
+    }
+    /// How many times this store (and its clones) read its folders to
+    /// trim them.
+    pub fn scans(&self) -> u64 {
+        self.tally.lock().unwrap_or_else(|e| e.into_inner()).scans
     }
     /// Total bytes of the entries on disk.
     pub fn used_bytes(&self) -> u64 {
@@ -253,25 +290,31 @@ impl DiskCache {
             }
         }
         let mut total: u64 = entries.iter().map(|(_, s, _)| s).sum();
-        let result = (|| {
+        entries.sort_by_key(|(_, _, t)| *t);
+        let mut kept = entries.len();
+        let mut result = Ok(());
+        for (k, (p, s, _)) in entries.iter().enumerate() {
             if total <= self.budget_bytes {
-                return Ok(());
+                kept = k;
+                break;
             }
-            entries.sort_by_key(|(_, _, t)| *t);
-            for (p, s, _) in entries {
-                if total <= self.budget_bytes {
-                    break;
-                }
-                remove_if_present(&p)?;
-                total -= s;
+            if let Err(e) = remove_if_present(p) {
+                result = Err(e);
+                kept = k;
+                break;
             }
-            Ok(())
-        })();
+            total -= s;
+            kept = k + 1;
+        }
+        let index = entries
+            .drain(kept.min(entries.len())..)
+            .map(|(p, s, u)| (p, (s, u)))
+            .collect();
         let mut t = self.tally.lock().unwrap_or_else(|e| e.into_inner());
-        *t = Tally {
-            bytes: Some(total),
-            puts_since_scan: 0,
-        };
+        t.index = Some(index);
+        t.bytes = total;
+        t.puts_since_scan = 0;
+        t.scans += 1;
         result
     }
 }
@@ -518,11 +561,19 @@ mod tests {
             c.put(&wide(k), &out(100)).unwrap();
         }
         assert!(c.used_bytes() <= budget);
-        // this process's own writes keep it within budget at each put
+        // this process's own writes keep it within budget at each put, and
+        // a full store is not scanned at each: one scan per 20 writes (the
+        // 10 % of the budget a trim frees) or per RESCAN_EVERY
+        let before = c.scans();
         for k in 5000..5300u64 {
             c.put(&wide(k), &out(100)).unwrap();
             assert!(c.used_bytes() <= budget, "after {k}");
         }
+        let scans = c.scans() - before;
+        assert!(
+            scans <= 300 / u64::from(RESCAN_EVERY),
+            "{scans} scans for 300 writes"
+        );
     }
 
     #[test]
