@@ -440,7 +440,9 @@ pub struct ManifestWriter {
 }
 
 impl ManifestWriter {
-    /// Creates (or truncates) `path`.
+    /// Opens `path` for appending (created if missing): a task retried or
+    /// requeued keeps its earlier attempt's records (the last record of a
+    /// frame counts), and two runs appending never overwrite each other.
     pub fn create(path: &Path) -> Result<Self, BatchError> {
         let io = |error| BatchError::Io {
             path: path.to_path_buf(),
@@ -449,7 +451,11 @@ impl ManifestWriter {
         if let Some(d) = path.parent() {
             std::fs::create_dir_all(d).map_err(io)?;
         }
-        let file = std::fs::File::create(path).map_err(io)?;
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .map_err(io)?;
         Ok(Self {
             file: Mutex::new(file),
             path: path.to_path_buf(),
@@ -457,9 +463,13 @@ impl ManifestWriter {
     }
     /// Appends one record (a failed write is reported at [`write_manifest`]).
     pub fn append(&self, r: &FrameRecord) {
-        if let Ok(line) = serde_json::to_string(r) {
+        if let Ok(mut line) = serde_json::to_string(r) {
+            line.push('\n');
             let mut f = self.file.lock().unwrap_or_else(|e| e.into_inner());
-            let _ = writeln!(f, "{line}");
+            // one write of the whole line (with O_APPEND: never interleaved
+            // with another writer's); a torn one lacks its newline and is
+            // skipped when read
+            let _ = f.write_all(line.as_bytes());
             let _ = f.flush();
         }
     }
@@ -485,22 +495,45 @@ pub fn write_manifest(path: &Path, records: &[FrameRecord]) -> Result<(), BatchE
 
 /// Writes `records` into the manifest at `path`, keeping the records it
 /// already holds for other frames (an earlier run's frames into the same
-/// folder), in frame order, atomically. A manifest that cannot be read is
-/// an error naming it (nothing is replaced).
-pub fn merge_manifest(path: &Path, records: &[FrameRecord]) -> Result<(), BatchError> {
-    let mut by_frame: BTreeMap<u64, FrameRecord> = if path.exists() {
-        read_manifest(path)?
-            .into_iter()
-            .map(|r| (r.frame, r))
-            .collect()
-    } else {
-        BTreeMap::new()
-    };
+/// folder), in frame order, atomically. A manifest there that cannot be
+/// read is kept under another name (returned, for the caller to say) and
+/// replaced by these records: a finished run's records are never lost to
+/// an earlier file's damage.
+pub fn merge_manifest(path: &Path, records: &[FrameRecord]) -> Result<Option<PathBuf>, BatchError> {
+    let mut moved = None;
+    let mut by_frame: BTreeMap<u64, FrameRecord> = BTreeMap::new();
+    if path.exists() {
+        match read_manifest(path) {
+            Ok(old) => by_frame.extend(old.into_iter().map(|r| (r.frame, r))),
+            Err(BatchError::Format { .. }) => {
+                let aside = free_name(path, "unreadable");
+                std::fs::rename(path, &aside).map_err(|error| BatchError::Io {
+                    path: path.to_path_buf(),
+                    error,
+                })?;
+                moved = Some(aside);
+            }
+            Err(e) => return Err(e),
+        }
+    }
     for r in records {
         by_frame.insert(r.frame, r.clone());
     }
     let all: Vec<FrameRecord> = by_frame.into_values().collect();
-    write_manifest(path, &all)
+    write_manifest(path, &all)?;
+    Ok(moved)
+}
+
+/// `path.<tag>`, or `path.<tag>.N` with the first N that names no file.
+fn free_name(path: &Path, tag: &str) -> PathBuf {
+    let base = format!("{}.{tag}", path.display());
+    let mut at = PathBuf::from(&base);
+    let mut n = 1;
+    while at.exists() {
+        at = PathBuf::from(format!("{base}.{n}"));
+        n += 1;
+    }
+    at
 }
 
 fn write_text(path: &Path, text: &str) -> Result<(), BatchError> {
@@ -523,11 +556,19 @@ pub fn read_manifest(path: &Path) -> Result<Vec<FrameRecord>, BatchError> {
         error,
     })?;
     let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
+    let lines: Vec<&str> = text.lines().collect();
+    for (i, line) in lines.iter().enumerate() {
         if line.trim().is_empty() {
             continue;
         }
-        let r: FrameRecord = serde_json::from_str(line).map_err(|e| BatchError::Format {
+        // a last line without its newline that does not parse is a record
+        // whose write was cut off (a task killed mid-append): not there
+        let torn = i + 1 == lines.len() && !text.ends_with('\n');
+        let parsed = serde_json::from_str::<FrameRecord>(line);
+        if torn && parsed.is_err() {
+            break;
+        }
+        let r: FrameRecord = parsed.map_err(|e| BatchError::Format {
             path: path.to_path_buf(),
             line: i + 1,
             message: e.to_string(),
@@ -757,7 +798,13 @@ pub fn collect(out: &Path) -> Result<Collected, BatchError> {
         .collect();
     let manifest = if parts > 0 {
         let path = out.join("manifest.jsonl");
-        merge_manifest(&path, &records)?;
+        if let Some(aside) = merge_manifest(&path, &records)? {
+            eprintln!(
+                "warning: {} could not be read; it is kept as {}",
+                path.display(),
+                aside.display()
+            );
+        }
         Some(path)
     } else {
         None
@@ -896,5 +943,28 @@ mod tests {
         let e = read_manifest(&p).unwrap_err();
         assert!(matches!(e, BatchError::Format { line: 1, .. }), "{e}");
         assert_eq!(e.exit_code(), 65);
+        // a record cut off mid-write (no newline) is left out; the same
+        // damage with its newline is an error
+        write_manifest(&p, &rs).unwrap();
+        let mut text = std::fs::read_to_string(&p).unwrap();
+        text.push_str("{\"frame\": 9, \"sta");
+        std::fs::write(&p, &text).unwrap();
+        assert_eq!(read_manifest(&p).unwrap(), rs);
+        text.push('\n');
+        std::fs::write(&p, &text).unwrap();
+        assert!(read_manifest(&p).is_err());
+        // merging into an unreadable manifest keeps it aside, loses nothing
+        let moved = merge_manifest(&p, &rs[..1]).unwrap().unwrap();
+        assert_eq!(std::fs::read_to_string(&moved).unwrap(), text);
+        assert_eq!(read_manifest(&p).unwrap(), rs[..1].to_vec());
+        std::fs::write(&p, "garbage\n").unwrap();
+        let again = merge_manifest(&p, &rs).unwrap().unwrap();
+        assert_ne!(again, moved);
+        assert_eq!(read_manifest(&p).unwrap(), rs);
+        // the live writer appends: a second writer adds to the first's
+        let live = dir.path().join("live.jsonl");
+        ManifestWriter::create(&live).unwrap().append(&rs[0]);
+        ManifestWriter::create(&live).unwrap().append(&rs[1]);
+        assert_eq!(read_manifest(&live).unwrap(), rs);
     }
 }

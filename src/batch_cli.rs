@@ -299,8 +299,14 @@ pub fn cmd_batch(args: &BatchArgs) -> Result<ExitCode> {
     }
     let wall = t.elapsed().as_secs_f64();
     // the final manifest in frame order
-    if let Err(e) = merge_manifest(&manifest_path, &records) {
-        return Ok(fail(&e));
+    match merge_manifest(&manifest_path, &records) {
+        Ok(Some(aside)) => eprintln!(
+            "warning: {} could not be read; it is kept as {}",
+            manifest_path.display(),
+            aside.display()
+        ),
+        Ok(None) => {}
+        Err(e) => return Ok(fail(&e)),
     }
     let _ = std::fs::remove_file(manifest.path());
     let summary = BatchSummary::of(&records, &frames);
