@@ -163,10 +163,26 @@ fn classify(url: &str, e: object_store::Error) -> RemoteError {
     use object_store::Error as E;
     let message = e.to_string();
     let url = url.to_string();
+    // a folder store reports the file system's error inside `Generic`
+    let mut io_kind = None;
+    let mut cause: Option<&(dyn std::error::Error + 'static)> = Some(&e);
+    while let Some(c) = cause {
+        if let Some(io) = c.downcast_ref::<std::io::Error>() {
+            io_kind = Some(io.kind());
+            break;
+        }
+        cause = c.source();
+    }
+    use std::io::ErrorKind as K;
+    let refused_io = matches!(
+        io_kind,
+        Some(K::PermissionDenied | K::ReadOnlyFilesystem | K::NotADirectory | K::IsADirectory)
+    );
     match e {
         E::PermissionDenied { .. } | E::Unauthenticated { .. } | E::NotFound { .. } => {
             RemoteError::Refused { url, message }
         }
+        _ if refused_io => RemoteError::Refused { url, message },
         _ => RemoteError::Unreachable { url, message },
     }
 }
@@ -206,24 +222,29 @@ fn probe(blobs: &ObjectStoreBlobs) -> Result<(), RemoteError> {
 /// Checks `url` without contacting the store: a URL, of a scheme the
 /// store knows (a Slurm submission's check: its tasks open the store).
 pub fn check_url(url: &str) -> Result<(), RemoteError> {
+    // the client `open` makes (no request is sent): a scheme this build
+    // cannot serve, or a URL its builder refuses, fails here
+    client(url).map(|_| ())
+}
+
+/// The client of `url` and its prefix, or why there is none.
+fn client(url: &str) -> Result<(Box<dyn ObjectStore>, StorePath), RemoteError> {
     let bad = |message: String| RemoteError::Url {
         url: url.to_string(),
         message,
     };
     let parsed = url::Url::parse(url).map_err(|e| bad(e.to_string()))?;
-    object_store::ObjectStoreScheme::parse(&parsed).map_err(|e| bad(e.to_string()))?;
-    Ok(())
+    build(&parsed).map_err(|e| bad(e.to_string()))
 }
 
 /// Opens the store of `url` and checks once that it takes and gives back a
 /// probe object ([`probe`]); credentials from the environment.
 pub fn open(url: &str) -> Result<Arc<dyn BlobStore>, RemoteError> {
+    let (store, prefix) = client(url)?;
     let bad = |message: String| RemoteError::Url {
         url: url.to_string(),
         message,
     };
-    let parsed = url::Url::parse(url).map_err(|e| bad(e.to_string()))?;
-    let (store, prefix) = build(&parsed).map_err(|e| bad(e.to_string()))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("depthgraph-store")
@@ -263,6 +284,17 @@ mod tests {
         for bad in ["not a url", "nope://x"] {
             let e = check_url(bad).unwrap_err().to_string();
             assert!(e.contains(bad), "{e}");
+        }
+        assert!(check_url("https://host/x").is_err());
+        // a folder store under a file: refused (a usage error), not
+        // unreachable (which a Slurm task retries and requeues forever)
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("file"), b"x").unwrap();
+        let url = format!("file://{}/file/prefix", dir.path().display());
+        match open(&url) {
+            Err(RemoteError::Refused { .. }) => {}
+            Err(other) => panic!("{other}"),
+            Ok(_) => panic!("a store under a file opened"),
         }
         let e = open("not a url").err().unwrap().to_string();
         assert!(e.contains("--cache-url not a url"), "{e}");
