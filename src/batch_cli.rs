@@ -346,13 +346,8 @@ fn slurm(
     let submission = depthgraph::batch::new_submission_id();
     // The tasks run a copy of the pipeline as checked now (with --set), so
     // an edit of the file while tasks wait in the queue changes no frame.
+    // (written once the script is sure to be; removed if sbatch refuses)
     let snapshot = out.join("slurm").join(format!("pipeline-{submission}.ron"));
-    let text = doc.to_ron();
-    if let Err(e) = depthgraph::nodes::io::write_atomic(&snapshot, |tmp| std::fs::write(tmp, &text))
-    {
-        eprintln!("error: {e}");
-        return Ok(ExitCode::from(e.kind().exit_code()));
-    }
     let workdir = std::env::current_dir().context("the working directory")?;
     let exe = std::env::current_exe().context("the path of this program")?;
     let k = args.frames_per_task.max(1);
@@ -445,8 +440,11 @@ fn slurm(
         job_id: None,
     };
     let script_path = out.join("slurm").join("batch.sbatch");
-    let written =
-        depthgraph::nodes::io::write_atomic(&script_path, |tmp| std::fs::write(tmp, &script));
+    let text = doc.to_ron();
+    let written = depthgraph::nodes::io::write_atomic(&snapshot, |tmp| std::fs::write(tmp, &text))
+        .and_then(|_| {
+            depthgraph::nodes::io::write_atomic(&script_path, |tmp| std::fs::write(tmp, &script))
+        });
     if let Err(e) = written {
         eprintln!("error: {e}");
         return Ok(ExitCode::from(e.kind().exit_code()));
@@ -476,6 +474,7 @@ fn slurm(
     let output = match sbatch.output() {
         Ok(o) => o,
         Err(e) => {
+            let _ = std::fs::remove_file(&snapshot);
             eprintln!(
                 "error: cannot run sbatch ({e}); is this a Slurm login node? (the script is at {})",
                 script_path.display()
@@ -492,6 +491,8 @@ fn slurm(
     let nonempty = |s: &str| Some(s.trim().to_string()).filter(|s| !s.is_empty());
     let (id, cluster) = (nonempty(id), nonempty(cluster));
     if id.is_none() && !output.status.success() {
+        // no task will read it
+        let _ = std::fs::remove_file(&snapshot);
         let why = String::from_utf8_lossy(&output.stderr).trim().to_string();
         eprintln!("error: sbatch refused the job: {why}");
         // an unreachable controller is worth a retry; a refused script

@@ -471,9 +471,21 @@ fn the_slurm_array_script_run_task_by_task_matches_a_local_batch() {
                 .to_string(),
         )],
     );
+    let snapshots = || {
+        std::fs::read_dir(out.join("slurm"))
+            .unwrap()
+            .filter(|e| {
+                let name = e.as_ref().unwrap().file_name();
+                name.to_string_lossy().starts_with("pipeline-")
+            })
+            .count()
+    };
+    let snapshots_before = snapshots();
     let o = slurm(&["--partition", "typo"], &[("PATH", &path)]);
     assert_eq!(code(&o), 2, "{}", stderr(&o));
     assert!(stderr(&o).contains("invalid partition"), "{}", stderr(&o));
+    // the refused job's copy of the pipeline is not left behind
+    assert_eq!(snapshots(), snapshots_before);
     assert_eq!(
         std::fs::read(out.join("slurm/job.json")).unwrap(),
         job_before

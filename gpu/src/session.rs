@@ -462,11 +462,6 @@ pub fn u32s(bytes: &[u8]) -> Vec<u32> {
     bytemuck::pod_collect_to_vec(&bytes[..bytes.len() / 4 * 4])
 }
 
-/// Workgroups of `size` invocations covering `n` items.
-pub fn groups(n: usize, size: u32) -> u32 {
-    (n as u32).div_ceil(size).max(1)
-}
-
 /// How a kernel binds one buffer (for an explicit layout).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Bind {

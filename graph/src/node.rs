@@ -267,6 +267,27 @@ pub fn canonical_for_compare(p: &std::path::Path) -> PathBuf {
     if let Ok(c) = p.canonicalize() {
         return c;
     }
+    // a link to a file not made yet: where the write lands (the atomic
+    // writer follows links), at most 40 in a chain as the kernel allows
+    let mut p = p.to_path_buf();
+    for _ in 0..40 {
+        match std::fs::symlink_metadata(&p) {
+            Ok(m) if m.file_type().is_symlink() => match std::fs::read_link(&p) {
+                Ok(to) => {
+                    p = match p.parent() {
+                        Some(dir) if to.is_relative() => dir.join(to),
+                        _ => to,
+                    };
+                }
+                Err(_) => break,
+            },
+            _ => break,
+        }
+    }
+    let p = p.as_path();
+    if let Ok(c) = p.canonicalize() {
+        return c;
+    }
     let parts: Vec<Component> = p.components().collect();
     for k in (0..parts.len()).rev() {
         let head: PathBuf = parts[..k].iter().collect();
@@ -276,16 +297,24 @@ pub fn canonical_for_compare(p: &std::path::Path) -> PathBuf {
             &head
         };
         if let Ok(mut c) = base.canonicalize() {
+            let mut went_up = false;
             for part in &parts[k..] {
                 match part {
                     Component::ParentDir => {
                         c.pop();
+                        went_up = true;
                     }
                     Component::CurDir => {}
                     other => c.push(other),
                 }
             }
-            return c;
+            // `new/../link/x`: past the `..` the path may run through
+            // folders and links that exist; once more, now without `..`
+            return if went_up {
+                canonical_for_compare(&c)
+            } else {
+                c
+            };
         }
     }
     p.to_path_buf()
@@ -594,5 +623,25 @@ mod tests {
         let e = ctx.output_path("../photo.png").unwrap_err();
         assert!(matches!(e, NodeError::WouldOverwriteInput { .. }), "{e}");
         assert!(ctx.output_path("../other.png").is_ok());
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::symlink;
+            // a link to a file not made yet compares as its target
+            symlink("made.png", root.join("dangling.png")).unwrap();
+            assert_eq!(
+                canonical_for_compare(&root.join("dangling.png")),
+                root.join("made.png")
+            );
+            // a link whose target runs through a folder not made yet
+            symlink("new/../photo.png", root.join("via_new.png")).unwrap();
+            assert_eq!(canonical_for_compare(&root.join("via_new.png")), photo);
+            // past `..`, an existing link to a folder is followed
+            std::fs::create_dir(root.join("real")).unwrap();
+            symlink(root.join("real"), root.join("linkdir")).unwrap();
+            assert_eq!(
+                canonical_for_compare(&root.join("new/../linkdir/x.png")),
+                root.join("real/x.png")
+            );
+        }
     }
 }

@@ -9,7 +9,8 @@ use depthgraph_graph::registry::RegistryError;
 use crate::kit::checks::{fits_intrinsics, same_size, sane_intrinsics};
 
 /// Unprojects every valid pixel: `X = (u - cx) z / fx`, `Y = (v - cy) z / fy`, `Z = z`
-/// (3d-editing eq. 1), with `(u, v)` the pixel centre `(x + 0.5, y + 0.5)`.
+/// (3d-editing eq. 1), with `(u, v)` the pixel centre `(x + 0.5, y + 0.5)`;
+/// a point beyond f32's range (a huge depth far from the centre) is left out.
 /// Colors are attached when given (same size as the depth).
 ///
 /// ```
@@ -105,7 +106,7 @@ depthgraph_graph::ports! {
 depthgraph_graph::ports! {
     /// Outputs of `Unproject`.
     outputs struct UnprojectOut {
-        /// one point per valid pixel
+        /// one point per valid pixel (none where it would leave f32's range)
         points: PointCloud,
     }
 }
@@ -199,19 +200,7 @@ pub fn reproject_depth(
     let (w, h) = depth.dims();
     fits_intrinsics("intrinsics", k_depth, "depth map", (w, h))?;
     sane_intrinsics("target", k_target)?;
-    if (p.width == 0) != (p.height == 0) {
-        let (set, unset) = if p.width == 0 {
-            ("height", "width")
-        } else {
-            ("width", "height")
-        };
-        return Err(NodeError::param(
-            unset,
-            format!(
-                "is 0 while {set} is set: give both (the result's size) or neither (the target's)"
-            ),
-        ));
-    }
+    half_size(p)?;
     let [rx, ry, rz] = p.rotation_deg.map(f64::to_radians);
     let rot = glam::DMat3::from_rotation_z(rz)
         * glam::DMat3::from_rotation_y(ry)
@@ -245,6 +234,22 @@ pub fn reproject_depth(
     }
     let conf = out.map(|&z| if DepthMap::is_valid(z) { 1.0 } else { 0.0 });
     Ok((out, conf))
+}
+
+/// `width` and `height` are both set or both 0.
+fn half_size(p: &ReprojectParams) -> Result<(), NodeError> {
+    if (p.width == 0) == (p.height == 0) {
+        return Ok(());
+    }
+    let (set, unset) = if p.width == 0 {
+        ("height", "width")
+    } else {
+        ("width", "height")
+    };
+    Err(NodeError::param(
+        unset,
+        format!("is 0 while {set} is set: give both (the result's size) or neither (the target's)"),
+    ))
 }
 
 /// The camera of [`reproject_depth`]'s result: the target, rescaled when
@@ -286,9 +291,13 @@ fn reproject_eval(
     i: ReprojectIn,
     p: &ReprojectParams,
 ) -> Result<Produced<ReprojectOut>, NodeError> {
+    half_size(p)?;
     let k = output_camera(&i.target, p);
-    let from = if p.width > 0 { "width" } else { "target" };
-    crate::kit::checks::output_fits(ctx, from, k.width, k.height)?;
+    if p.width > 0 {
+        crate::kit::checks::output_fits_param(ctx, "width", k.width, k.height)?;
+    } else {
+        crate::kit::checks::output_fits(ctx, "target", k.width, k.height)?;
+    }
     let (depth, confidence) = reproject_depth(&i.depth, &i.intrinsics, &i.target, p)?;
     Ok(ReprojectOut {
         depth,
@@ -576,6 +585,10 @@ mod tests {
         };
         let e = reproject(&wide).unwrap_err();
         assert!(e.to_string().contains("100x100"), "{e}");
+        assert!(
+            matches!(&e, NodeError::Param { param, .. } if param == "width"),
+            "{e}"
+        );
         let half = ReprojectParams {
             width: 16,
             ..Default::default()

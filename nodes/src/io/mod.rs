@@ -785,7 +785,9 @@ fn preview_range(depth: &DepthMap, p: &SaveDepthParams) -> Result<(f32, f32), No
         auto_lo
     };
     // min_m alone, beyond the data's far end: every pixel one colour
-    if p.min_m > 0.0 && p.max_m <= 0.0 && (hi.is_nan() || hi <= lo) {
+    // (a map without a valid pixel, or one depth equal to min_m, maps to
+    // the first colour as before: nothing lies beyond what is shown)
+    if p.min_m > 0.0 && p.max_m <= 0.0 && hi < lo && depth.hole_count() < depth.len() {
         return Err(NodeError::param(
             "min_m",
             format!(
@@ -1332,6 +1334,13 @@ mod tests {
         // min_m alone beyond the data's far end: an error, not one colour
         let e = at(20.0, 0.0).unwrap_err().to_string();
         assert!(e.contains("min_m"), "{e}");
+        // a map without a valid pixel still previews (all black)
+        let empty = DepthMap::filled(4, 1, 0.0);
+        let p = SaveDepthParams {
+            min_m: 2.0,
+            ..Default::default()
+        };
+        assert!(preview_range(&empty, &p).is_ok());
     }
 
     /// SaveDepth writes what its file's name says (a .pfm or .tif got PNG

@@ -43,6 +43,15 @@ pub fn output_fits(ctx: &EvalCtx, what: &str, w: usize, h: usize) -> Result<(), 
     }
 }
 
+/// [`output_fits`] for a size a parameter (`param`) asks for: the error
+/// is the parameter's (a usage error), not the input's.
+pub fn output_fits_param(ctx: &EvalCtx, param: &str, w: usize, h: usize) -> Result<(), NodeError> {
+    output_fits(ctx, param, w, h).map_err(|e| match e {
+        NodeError::Input { message, .. } => NodeError::param(param, message),
+        other => other,
+    })
+}
+
 /// The intrinsics `k` on input `k_port` must be usable: finite, positive
 /// focal lengths and a finite principal point.
 pub fn sane_intrinsics(k_port: &str, k: &Intrinsics) -> Result<(), NodeError> {

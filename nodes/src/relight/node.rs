@@ -61,16 +61,22 @@ depthgraph_graph::ports! {
 /// terabyte and abort the process.
 pub const MAX_SHADOW_TEXELS: u128 = 1 << 30;
 
-/// Refuses a VPL count and map resolutions whose shadow maps together
-/// exceed [`MAX_SHADOW_TEXELS`], naming the parameters to lower.
-pub fn shadow_maps_fit(vpls: usize, p: &RelightParams) -> Result<(), NodeError> {
+/// Refuses a VPL count (and capture VPLs, whose object maps live beside
+/// the scene's) and map resolutions whose shadow maps together exceed
+/// [`MAX_SHADOW_TEXELS`], naming the parameters to lower.
+pub fn shadow_maps_fit(vpls: usize, capture: usize, p: &RelightParams) -> Result<(), NodeError> {
     let sq = |r: usize| (r as u128) * (r as u128);
     let n = vpls as u128;
     let (maps, what) = match p.visibility {
-        // a scene map and an object map per VPL
-        Visibility::Paired => (2 * n * sq(p.ism_resolution), "ism_resolution"),
+        // a scene map and an object map per VPL, an object map per capture
+        // VPL
+        Visibility::Paired => (
+            2 * n * sq(p.ism_resolution) + capture as u128 * sq(p.object_ism_resolution),
+            "ism_resolution",
+        ),
         Visibility::SceneCached => (
-            n * (sq(p.ism_resolution) + sq(p.object_ism_resolution)),
+            n * (sq(p.ism_resolution) + sq(p.object_ism_resolution))
+                + capture as u128 * sq(p.object_ism_resolution),
             "ism_resolution and object_ism_resolution",
         ),
         Visibility::Raycast => (0, ""),
@@ -92,7 +98,7 @@ pub fn shadow_maps_fit(vpls: usize, p: &RelightParams) -> Result<(), NodeError> 
     } else {
         (
             "ism_resolution",
-            format!("lower {what} or the VPL count (VplSample.count)"),
+            format!("lower {what} or the VPL count (VplSample.count, capture VPLs included)"),
         )
     };
     Err(NodeError::param(
@@ -122,7 +128,7 @@ pub fn eval_with(
         Some(c) => Some(checked_vpls(c, "capture_vpls")?),
         None => None,
     };
-    shadow_maps_fit(vpls.len(), p)?;
+    shadow_maps_fit(vpls.len(), capture.as_ref().map_or(0, |c| c.len()), p)?;
     let inp = RelightInputs {
         photo: &i.photo,
         depth: &i.depth,
@@ -202,13 +208,20 @@ mod tests {
     #[test]
     fn shadow_maps_beyond_the_budget_are_refused() {
         let p = RelightParams::default();
-        assert!(shadow_maps_fit(256, &p).is_ok());
-        assert!(shadow_maps_fit(65536, &p).is_ok());
+        assert!(shadow_maps_fit(256, 0, &p).is_ok());
+        assert!(shadow_maps_fit(65536, 0, &p).is_ok());
+        // capture VPLs' object maps count too
+        let fine = RelightParams {
+            object_ism_resolution: 2048,
+            ..Default::default()
+        };
+        assert!(shadow_maps_fit(64, 0, &fine).is_ok());
+        assert!(shadow_maps_fit(64, 4096, &fine).is_err());
         let big = RelightParams {
             ism_resolution: 1024,
             ..Default::default()
         };
-        let e = shadow_maps_fit(4096, &big).unwrap_err().to_string();
+        let e = shadow_maps_fit(4096, 0, &big).unwrap_err().to_string();
         assert!(
             e.contains("ism_resolution") && e.contains("4096 VPLs"),
             "{e}"
@@ -218,7 +231,7 @@ mod tests {
             ism_resolution: 2048,
             ..Default::default()
         };
-        assert!(shadow_maps_fit(200, &paired).is_err());
+        assert!(shadow_maps_fit(200, 0, &paired).is_err());
         let bounce = RelightParams {
             bounce_shadows: true,
             bounce_vpls: 65536,
@@ -226,7 +239,7 @@ mod tests {
             bounce_ism_resolution: 1024,
             ..Default::default()
         };
-        let e = shadow_maps_fit(64, &bounce).unwrap_err().to_string();
+        let e = shadow_maps_fit(64, 0, &bounce).unwrap_err().to_string();
         assert!(e.contains("bounce_ism_resolution"), "{e}");
         // the reference casts rays: no maps
         let raycast = RelightParams {
@@ -234,6 +247,6 @@ mod tests {
             ism_resolution: 2048,
             ..Default::default()
         };
-        assert!(shadow_maps_fit(65536, &raycast).is_ok());
+        assert!(shadow_maps_fit(65536, 0, &raycast).is_ok());
     }
 }
