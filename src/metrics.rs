@@ -53,9 +53,7 @@ pub enum MetricError {
     Dims(usize, usize, usize, usize),
     #[error("{0} values cannot be compared numerically")]
     Unsupported(ValueType),
-    #[error(
-        "--metric {metric} compares colour images only, not {found} values (rmse, mae and psnr take depth and masks)"
-    )]
+    #[error("--metric {metric} compares colour images only, not {found} values")]
     ColourOnly {
         /// The metric's name.
         metric: &'static str,
