@@ -183,6 +183,22 @@ pub fn joint_bilateral(
     color: &ColorImage,
     p: &BilateralParams,
 ) -> Result<DepthMap, NodeError> {
+    joint_bilateral_with(depth, color, p, |_| Ok(()))
+}
+
+/// Rows [`joint_bilateral_with`] filters between two calls of its
+/// progress callback (a few milliseconds at 640 px and r = 4).
+const BAND_ROWS: usize = 32;
+
+/// [`joint_bilateral`] that calls `on_progress(fraction)` between bands of
+/// rows and stops with its error when it returns one (cancellation): a
+/// large radius on a large map runs for minutes. The same bits.
+pub fn joint_bilateral_with(
+    depth: &DepthMap,
+    color: &ColorImage,
+    p: &BilateralParams,
+    mut on_progress: impl FnMut(f32) -> Result<(), NodeError>,
+) -> Result<DepthMap, NodeError> {
     check_color(depth, color)?;
     check_params(p)?;
     let (w, h) = depth.dims();
@@ -191,9 +207,15 @@ pub fn joint_bilateral(
     }
     let ctx = planes(depth, color, p);
     let mut out = vec![0.0f32; w * h];
-    out.par_chunks_mut(w)
-        .enumerate()
-        .for_each(|(y, row)| ctx.filter_row(y, row));
+    // bands of rows, each filtered in parallel (several per thread)
+    let band = BAND_ROWS * rayon::current_num_threads().max(1);
+    for (b, rows) in out.chunks_mut(band * w).enumerate() {
+        rows.par_chunks_mut(w)
+            .enumerate()
+            .for_each(|(k, row)| ctx.filter_row(b * band + k, row));
+        // guard: h > 0 here
+        on_progress(((b + 1) * band).min(h) as f32 / h as f32)?;
+    }
     Ok(Image::from_vec(w, h, out)?)
 }
 
@@ -397,7 +419,7 @@ depthgraph_graph::ports! {
 }
 
 fn eval(
-    _: &EvalCtx,
+    ctx: &EvalCtx,
     i: BilateralIn,
     p: &BilateralParams,
 ) -> Result<Produced<BilateralOut>, NodeError> {
@@ -410,7 +432,10 @@ fn eval(
             ALL_HOLES,
         ));
     }
-    let depth = Arc::new(joint_bilateral(&i.depth, &i.color, p)?);
+    let depth = Arc::new(joint_bilateral_with(&i.depth, &i.color, p, |f| {
+        ctx.progress(f);
+        ctx.check_cancelled()
+    })?);
     Ok(BilateralOut { depth }.into())
 }
 
@@ -708,6 +733,43 @@ mod tests {
                 .zip(three.as_slice())
                 .all(|(a, b)| a.to_bits() == b.to_bits())
         );
+    }
+
+    /// The banded filter reports rising progress up to 1, gives the same
+    /// bits as without a callback, and stops at the callback's error
+    /// (cancellation) before the rest of the rows.
+    #[test]
+    fn progress_rises_and_cancellation_stops_the_filter() {
+        let (_, noisy, inside) = step_scene(64, 300, 0.02);
+        let c = inside.map(|&b| if b { [0.7, 0.2, 0.2] } else { [0.2, 0.2, 0.7] });
+        let p = BilateralParams::default();
+        let whole = joint_bilateral(&noisy, &c, &p).unwrap();
+        let mut seen = Vec::new();
+        let banded = crate::test_support::with_threads(2, || {
+            joint_bilateral_with(&noisy, &c, &p, |f| {
+                seen.push(f);
+                Ok(())
+            })
+            .unwrap()
+        });
+        assert_eq!(banded, whole);
+        assert!(seen.len() >= 3, "{seen:?}");
+        assert!(seen.windows(2).all(|w| w[0] < w[1]), "{seen:?}");
+        assert_eq!(seen.last(), Some(&1.0));
+        let mut calls = 0;
+        let e = crate::test_support::with_threads(2, || {
+            joint_bilateral_with(&noisy, &c, &p, |_| {
+                calls += 1;
+                if calls == 2 {
+                    Err(NodeError::Cancelled)
+                } else {
+                    Ok(())
+                }
+            })
+        })
+        .unwrap_err();
+        assert!(matches!(e, NodeError::Cancelled));
+        assert_eq!(calls, 2);
     }
 
     #[test]
