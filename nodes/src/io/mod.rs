@@ -339,7 +339,7 @@ node_params! {
         pub path: String = "", ParamKind::InputPath;
         /// "depth": values are distances along z; "disparity": values are stereo disparities;
         /// "nyu_raw": NYU Depth v2 raw Kinect dump (16-bit PGM whose samples are little-endian raw
-        /// disparity): z = 351.3 / (1092.5 - raw) metres, raw >= 1093 or 0 a hole; scale is unused.
+        /// disparity): z = 351.3 / (1092.5 - raw) metres, raw >= 1093 or 0 a hole, beyond 10 m (the NYU toolbox's maxDepth) a hole; scale is unused.
         pub encoding: DepthEncoding = DepthEncoding::Depth, ParamKind::Choice(DepthEncoding::NAMES);
         /// Stored units per metre (depth) or per pixel of disparity. 0 = auto: depth 1000 (millimetres)
         /// from integer files, 1 from float files; disparity 1 (pixels) from either. TUM uses 5000;
@@ -470,6 +470,11 @@ const NYU_RAW_FB: f64 = 351.3;
 const NYU_RAW_DOFFS: f64 = 1092.5;
 /// Raw values at or above this are no measurement (2047 is the Kinect's "none").
 const NYU_RAW_INVALID: f64 = 1093.0;
+/// The farthest depth a raw value means, metres: the toolbox's `maxDepth`.
+/// Raw values near `NYU_RAW_DOFFS` give any depth (1092 gives 702 m); the
+/// toolbox clamps them to 10 m, here they are holes (no reading that far),
+/// so they stretch no range and enter no fill.
+const NYU_RAW_MAX_M: f64 = 10.0;
 
 /// Reads a depth map in metres (0 = no measurement) from a file.
 ///
@@ -551,7 +556,7 @@ pub fn decode_depth(
                 // NYU toolbox: z = 351.3 / (1092.5 - raw); raw >= 1093 (2047 included) is no measurement
                 let d = NYU_RAW_DOFFS - v as f64;
                 // guard: d > 0.5 for every raw < 1093 that gets here
-                if v as f64 >= NYU_RAW_INVALID {
+                if v as f64 >= NYU_RAW_INVALID || NYU_RAW_FB / d > NYU_RAW_MAX_M {
                     0.0
                 } else {
                     NYU_RAW_FB / d
@@ -999,7 +1004,7 @@ pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(
         PortedNode::new(
             "LoadDepth",
-            1,
+            2,
             "Reads depth in metres from a 16-bit PNG (with a scale), Middlebury PFM or 8-bit disparity (with focal length, baseline, doffs), or float EXR.",
             load_depth_eval,
         )
@@ -1083,6 +1088,17 @@ mod tests {
         let d = super::load_depth(&pgm, &p).unwrap();
         assert!((*d.get(0, 0) - (351.3 / (1092.5 - 839.0)) as f32).abs() < 1e-5);
         assert_eq!((*d.get(1, 0), *d.get(2, 0)), (0.0, 0.0));
+        // raw values whose depth is beyond the toolbox's 10 m are holes
+        // (1092 meant 702 m): 1057 is 9.9 m, 1058 10.2 m
+        let mut b = b"P5\n2 1\n65535\n".to_vec();
+        for v in [1057u16, 1058] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        let far = dir.path().join("far.pgm");
+        std::fs::write(&far, b).unwrap();
+        let d = super::load_depth(&far, &p).unwrap();
+        assert!((*d.get(0, 0) - (351.3 / 35.5) as f32).abs() < 1e-5);
+        assert_eq!(*d.get(1, 0), 0.0);
         // nyu_raw names the parameter on a non-PGM file; truncated data names the file
         let e = super::load_depth(&dir.path().join("x.png"), &p).unwrap_err();
         assert!(e.to_string().contains("encoding"), "{e}");
