@@ -460,3 +460,72 @@ fn a_panicking_node_is_named_and_its_siblings_are_kept() {
     assert_eq!(status(&r.trace, "a"), Status::Cached);
     assert_eq!(status(&r.trace, "z"), Status::Cached);
 }
+
+/// What the probe nodes of the next test saw (a test's own record; nodes
+/// of the library keep no state).
+static SEEN: std::sync::Mutex<Vec<std::sync::Weak<DepthMap>>> = std::sync::Mutex::new(Vec::new());
+static LIVE_AT_END: std::sync::atomic::AtomicUsize =
+    std::sync::atomic::AtomicUsize::new(usize::MAX);
+
+fn note(_: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
+    let d = i.depth("depth")?;
+    SEEN.lock().unwrap().push(Arc::downgrade(d));
+    Ok(Outputs::new().with("depth", d.map_same(|v| v * 2.0)))
+}
+
+fn count_live(_: &EvalCtx, i: &Inputs, _: &NoParams) -> Result<Outputs, NodeError> {
+    let live = SEEN
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|w| w.upgrade().is_some())
+        .count();
+    LIVE_AT_END.store(live, std::sync::atomic::Ordering::SeqCst);
+    Ok(Outputs::new().with("depth", Value::Depth(i.depth("depth")?.clone())))
+}
+
+/// A value no node still to run reads is let go during the run: when the
+/// last node runs, the first node's value (read only by the second) is no
+/// longer held (it was, with every other, until the run ended), while the
+/// trace still reports its size.
+#[test]
+fn values_nobody_still_reads_are_let_go_during_the_run() {
+    let mut reg = registry();
+    let d = |n| PortSpec::required(n, ValueType::Depth, "depth");
+    let o = || vec![PortSpec::output("depth", ValueType::Depth, "depth")];
+    reg.register(TypedNode::new(
+        "Note",
+        1,
+        "note",
+        vec![d("depth")],
+        o(),
+        note,
+    ))
+    .unwrap();
+    reg.register(TypedNode::new(
+        "Live",
+        1,
+        "live",
+        vec![d("depth")],
+        o(),
+        count_live,
+    ))
+    .unwrap();
+    let text = r#"(version: 1, nodes: {
+        "src": (kind: "Source", params: (size: 16)),
+        "a": (kind: "Note", inputs: (depth: "src.depth")),
+        "b": (kind: "Scale", params: (factor: 3.0), inputs: (depth: "a.depth")),
+        "c": (kind: "Live", inputs: (depth: "b.depth")),
+    }, outputs: ["c.depth"])"#;
+    let p = Pipeline::check(&Document::parse(text, "doc.ron").unwrap(), &reg).unwrap();
+    let engine = Engine::new(EngineOptions {
+        memory_budget_bytes: 0,
+        ..EngineOptions::default()
+    })
+    .unwrap();
+    let r = engine.run(&p, &RunOptions::default()).unwrap();
+    assert_eq!(SEEN.lock().unwrap().len(), 1);
+    assert_eq!(LIVE_AT_END.load(std::sync::atomic::Ordering::SeqCst), 0);
+    assert_eq!(r.trace.get("src").unwrap().bytes, 16 * 16 * 4);
+    assert!(matches!(r.outputs.get("c.depth"), Some(Value::Depth(_))));
+}
