@@ -327,8 +327,10 @@ fn main() {
             scene: s.name.clone(),
             method: "sensor input (no fill)".into(),
             ms: 0.0,
-            holes: depth_errors(&input, &s.depth, hole),
-            all: depth_errors(&input, &s.depth, in_range),
+            holes: depth_errors(&input, &s.depth, hole)
+                .expect("the scene's input has its truth's size"),
+            all: depth_errors(&input, &s.depth, in_range)
+                .expect("the scene's input has its truth's size"),
         });
         for (name, f) in methods() {
             // the bench's own baselines run once (they are slow and not the product)
@@ -342,8 +344,8 @@ fn main() {
                 scene: s.name.clone(),
                 method: name.into(),
                 ms,
-                holes: depth_errors(&out, &s.depth, hole),
-                all: depth_errors(&out, &s.depth, in_range),
+                holes: depth_errors(&out, &s.depth, hole).expect("a filler keeps the size"),
+                all: depth_errors(&out, &s.depth, in_range).expect("a filler keeps the size"),
             });
         }
         if let Some(dir) = &peer_dir {
@@ -399,8 +401,10 @@ fn main() {
                             scene: s.name.clone(),
                             method: label.into(),
                             ms: json["ms"][key].as_f64().unwrap_or(f64::NAN),
-                            holes: depth_errors(&out, &s.depth, hole),
-                            all: depth_errors(&out, &s.depth, in_range),
+                            holes: depth_errors(&out, &s.depth, hole)
+                                .expect("a filler keeps the size"),
+                            all: depth_errors(&out, &s.depth, in_range)
+                                .expect("a filler keeps the size"),
                         });
                     }
                     if let Some(ms) = json["ms"]["opencv_jbf_only"].as_f64() {
@@ -774,7 +778,8 @@ fn upsampling(data: &Path) -> String {
             // RMSE (mm) of bilinear, joint bilateral and our default
             let mut anchors = [f64::NAN; 3];
             for (name, ms, out) in rows {
-                let e = depth_errors(&out, &truth, |_| true);
+                let e = depth_errors(&out, &truth, |_| true)
+                    .expect("an upsampler gives the truth's size");
                 let slot = if name == "bilinear" {
                     Some(0)
                 } else if name.starts_with("joint bilateral") {

@@ -24,12 +24,19 @@ pub struct DepthErrors {
 
 /// Errors over the pixels where `select(i)` holds and the truth is valid.
 /// Unfilled estimates are counted in `unfilled` and as bad pixels, and left
-/// out of RMSE/MAE. Sums in f64.
+/// out of RMSE/MAE. Sums in f64. An estimate of another size than the truth
+/// is an error naming both (pixel by pixel they would pair wrongly).
 pub fn depth_errors(
     estimate: &DepthMap,
     truth: &DepthMap,
     select: impl Fn(usize) -> bool,
-) -> DepthErrors {
+) -> Result<DepthErrors, String> {
+    if estimate.dims() != truth.dims() {
+        let ((a, b), (c, d)) = (estimate.dims(), truth.dims());
+        return Err(format!(
+            "the estimate is {a}x{b} and the truth {c}x{d}: they cannot be compared"
+        ));
+    }
     let mut e = DepthErrors::default();
     let (mut sq, mut abs, mut bad) = (0.0f64, 0.0f64, 0usize);
     for (i, (x, t)) in estimate.as_slice().iter().zip(truth.as_slice()).enumerate() {
@@ -58,7 +65,7 @@ pub fn depth_errors(
     if all > 0 {
         e.bad_rate = bad as f64 / all as f64;
     }
-    e
+    Ok(e)
 }
 
 /// The relative depth difference within which a neighbour supports a
@@ -147,6 +154,24 @@ pub fn park2011_intrinsics(width: usize, height: usize) -> Intrinsics {
     }
 }
 
+/// Why a scene of `dir` is left out: its folder is missing, or what its
+/// colour or depth file said (a damaged file is not "not found").
+fn load_failure(
+    dir: &Path,
+    color: Option<depthgraph_graph::error::NodeError>,
+    depth: Option<depthgraph_graph::error::NodeError>,
+) -> String {
+    if !dir.exists() {
+        return format!("{} (not found)", dir.display());
+    }
+    let why: Vec<String> = color
+        .into_iter()
+        .chain(depth)
+        .map(|e| e.to_string())
+        .collect();
+    format!("{} ({})", dir.display(), why.join("; "))
+}
+
 /// Middlebury scenes with ground-truth disparity converted to metres with the
 /// calibration given in each SOURCE.txt. Returns the scenes found and a note
 /// for each one that is missing.
@@ -182,7 +207,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
                     intrinsics,
                 });
             }
-            _ => missing.push(format!("{} (not found)", dir.display())),
+            (c, d) => missing.push(load_failure(&dir, c.err(), d.err())),
         }
     }
     // MiddEval3 ArtL half size: Z[m] = 0.160 * 1870 / (d + 100), PFM, +inf = unknown.
@@ -216,7 +241,7 @@ pub fn middlebury_scenes(data: &Path) -> (Vec<TruthScene>, Vec<String>) {
                 intrinsics,
             });
         }
-        _ => missing.push(format!("{} (not found)", dir.display())),
+        (c, d) => missing.push(load_failure(&dir, c.err(), d.err())),
     }
     (scenes, missing)
 }
@@ -381,7 +406,7 @@ mod tests {
     fn errors_on_known_values() {
         let truth = Image::from_vec(5, 1, vec![1.0f32, 2.0, 2.0, 0.0, 4.0]).unwrap();
         let est = Image::from_vec(5, 1, vec![1.0f32, 2.1, 0.0, 5.0, 4.02]).unwrap();
-        let e = depth_errors(&est, &truth, |_| true);
+        let e = depth_errors(&est, &truth, |_| true).unwrap();
         assert_eq!((e.count, e.unfilled), (3, 1));
         assert!(
             (e.rmse_m - ((0.01f64 + 0.0004) / 3.0).sqrt()).abs() < 1e-6,
@@ -390,7 +415,11 @@ mod tests {
         assert!((e.mae_m - 0.12 / 3.0).abs() < 1e-6);
         // bad: 2.1 vs 2 (5%), the unfilled pixel; 4.02 vs 4 is 0.5%: good
         assert!((e.bad_rate - 0.5).abs() < 1e-12);
-        let none = depth_errors(&est, &truth, |_| false);
+        let none = depth_errors(&est, &truth, |_| false).unwrap();
+        // another size is an error naming both
+        let small = DepthMap::filled(1, 1, 1.0);
+        let e = depth_errors(&small, &truth, |_| true).unwrap_err();
+        assert!(e.contains("1x1"), "{e}");
         assert_eq!(none.count, 0);
         assert_eq!(none.rmse_m, 0.0);
     }

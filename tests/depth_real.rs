@@ -37,7 +37,7 @@ fn stepped_upsampling_wins_at_x8_on_park_books() {
             ..Default::default()
         };
         let d = nlmeans_upsample(&low, &low_k, &color, &p).unwrap().0;
-        depth_errors(&d, &truth, |_| true).rmse_m
+        depth_errors(&d, &truth, |_| true).unwrap().rmse_m
     };
     let d = NLMeansUpsampleParams::default();
     let steps = rmse(d.max_step_factor, d.spatial_sigma);
