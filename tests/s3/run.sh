@@ -11,11 +11,18 @@ work="$(mktemp -d /tmp/depthgraph-s3-test.XXXXXX)"
 port="${DEPTHGRAPH_S3_TEST_PORT:-5123}"
 moto_server -H 127.0.0.1 -p "$port" >"$work/moto.log" 2>&1 &
 moto=$!
-trap 'kill $moto 2>/dev/null || true; rm -rf "$work"' EXIT
-for _ in $(seq 1 100); do
-  curl -sf "http://127.0.0.1:$port/" >/dev/null 2>&1 && break
+# on failure the server's log is shown before the folder goes
+trap 'rc=$?; kill $moto 2>/dev/null || true; if [ "$rc" -ne 0 ] && [ -s "$work/moto.log" ]; then echo "moto_server log:"; tail -20 "$work/moto.log"; fi; rm -rf "$work"' EXIT
+ready=0
+for _ in $(seq 1 300); do
+  if curl -sf "http://127.0.0.1:$port/" >/dev/null 2>&1; then ready=1; break; fi
+  kill -0 $moto 2>/dev/null || break
   sleep 0.2
 done
+if [ "$ready" -ne 1 ]; then
+  echo "s3 test: moto_server did not answer on port $port (taken? set DEPTHGRAPH_S3_TEST_PORT)"
+  exit 1
+fi
 curl -sf -X PUT "http://127.0.0.1:$port/depthgraph-cache" >/dev/null
 export AWS_ACCESS_KEY_ID=test AWS_SECRET_ACCESS_KEY=test AWS_DEFAULT_REGION=us-east-1
 export AWS_ENDPOINT="http://127.0.0.1:$port" AWS_ALLOW_HTTP=true
