@@ -82,7 +82,10 @@ pub fn shadow_maps_fit(vpls: usize, capture: usize, p: &RelightParams) -> Result
         Visibility::Raycast => (0, ""),
     };
     let bounce = if p.bounce_shadows {
-        (p.bounce_vpls as u128 + p.scene_vpls as u128) * sq(p.bounce_ism_resolution)
+        // the scene VPLs, and as many again on the support plane when it is
+        // extended (`support_vpls`)
+        let scene = p.scene_vpls as u128 * (1 + u128::from(p.extend_support));
+        (p.bounce_vpls as u128 + scene) * sq(p.bounce_ism_resolution)
     } else {
         0
     };
@@ -128,6 +131,13 @@ pub fn eval_with(
         Some(c) => Some(checked_vpls(c, "capture_vpls")?),
         None => None,
     };
+    if capture.is_some() && p.visibility == Visibility::Paired {
+        return Err(NodeError::param(
+            "visibility",
+            "\"paired\" does not take capture_vpls (its capture side is the target's VPLs): \
+             use \"scene_cached\" or \"raycast\", or leave capture_vpls unconnected",
+        ));
+    }
     shadow_maps_fit(vpls.len(), capture.as_ref().map_or(0, |c| c.len()), p)?;
     let inp = RelightInputs {
         photo: &i.photo,
@@ -165,7 +175,7 @@ pub fn eval_with(
             let reason = if vpls.iter().all(|v| luminance_clamped(v.power) <= 0.0) {
                 "no VPL carries energy (black environment map): nothing to relight"
             } else {
-                "nothing pasted: the alpha is 0 everywhere"
+                "nothing pasted: the pasted depth has no valid pixel"
             };
             let out = RelightOut {
                 color: i.photo.clone(),
@@ -181,7 +191,7 @@ pub fn eval_with(
 pub fn register(reg: &mut Registry) -> Result<(), RegistryError> {
     reg.register(PortedNode::new(
         "Relight",
-        12,
+        13,
         "Differential rendering of a pasted object (3d-editing §IV.A, eq. 5-6): instant radiosity with the \
          directional VPLs of an environment map, imperfect shadow maps, one bounce each way with clamped \
          1/r² (object to scene; scene to object through secondary VPLs read off the photo, the floor it stands \
@@ -241,6 +251,21 @@ mod tests {
         };
         let e = shadow_maps_fit(64, 0, &bounce).unwrap_err().to_string();
         assert!(e.contains("bounce_ism_resolution"), "{e}");
+        // the support plane's VPLs count with the scene's
+        let support = RelightParams {
+            bounce_shadows: true,
+            bounce_vpls: 0,
+            scene_vpls: 600,
+            bounce_ism_resolution: 1024,
+            ..Default::default()
+        };
+        assert!(support.extend_support);
+        assert!(shadow_maps_fit(0, 0, &support).is_err());
+        let no_support = RelightParams {
+            extend_support: false,
+            ..support
+        };
+        assert!(shadow_maps_fit(0, 0, &no_support).is_ok());
         // the reference casts rays: no maps
         let raycast = RelightParams {
             visibility: Visibility::Raycast,

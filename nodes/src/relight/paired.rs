@@ -259,7 +259,12 @@ pub fn relight(
     let (w, h) = (k.width, k.height);
     let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
     let (vpls, dirs, e_ref) = lit_vpls(vpls);
-    if vpls.is_empty() || !e_ref.is_finite() || alpha.iter().all(|a| *a <= 0.0) {
+    // an object hidden whole (alpha 0 after the depth test) still casts
+    // its shadow: nothing to do only when nothing was pasted at all
+    if vpls.is_empty()
+        || !e_ref.is_finite()
+        || crate::relight::shading::nothing_pasted(inp.pasted_depth)
+    {
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * e_ref;
@@ -271,17 +276,24 @@ pub fn relight(
     let object: Vec<Option<Surf>> = (0..w * h)
         .map(|i| (alpha[i] > 0.0).then(|| inp.object_surface(i)))
         .collect();
-    let mut obj_pts: Vec<DVec3> = object.iter().flatten().map(|s| s.pos).collect();
+    // the whole object, hidden parts included (they cast shadows and
+    // block fill light as the maps see them): its centre and reach
+    let unproject_valid = |d: &DepthMap| -> Vec<DVec3> {
+        (0..w * h)
+            .filter_map(|i| {
+                let z = d.as_slice()[i];
+                DepthMap::is_valid(z)
+                    .then(|| k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, f64::from(z)))
+            })
+            .collect()
+    };
+    let mut obj_pts = unproject_valid(inp.pasted_depth);
     // the closed object (its back mirrored, `close_back`): shadows only
     let back = inp.back_depth(p);
     if let Some(b) = &back {
-        obj_pts.extend((0..w * h).filter(|&i| alpha[i] > 0.0).filter_map(|i| {
-            let z = b.as_slice()[i];
-            DepthMap::is_valid(z)
-                .then(|| k.unproject((i % w) as f64 + 0.5, (i / w) as f64 + 0.5, f64::from(z)))
-        }));
+        obj_pts.extend(unproject_valid(b));
     }
-    // at least one alpha > 0 pixel, which has a valid pasted depth
+    // at least one valid pasted depth (checked above)
     let (c, radius) = centre_and_radius(&obj_pts);
     let volume = inp.volume(back.as_ref(), c, radius);
 
@@ -297,10 +309,13 @@ pub fn relight(
             match &target[i] {
                 None => false,
                 Some(s) => {
-                    (p.bounce_vpls > 0 && (s.pos - c).length() <= bounce_reach) || {
-                        let cone = Cone::new(s.pos, c, reach);
-                        dirs.iter().any(|d| cone.contains(*d))
-                    }
+                    // near: the bounce, or the fill light the object blocks
+                    ((p.bounce_vpls > 0 || (p.fill_light && p.scene_vpls > 0))
+                        && (s.pos - c).length() <= bounce_reach)
+                        || {
+                            let cone = Cone::new(s.pos, c, reach);
+                            dirs.iter().any(|d| cone.contains(*d))
+                        }
                 }
             }
         })
@@ -419,7 +434,7 @@ pub fn relight(
     for (&i, sh) in cand_idx.iter().zip(&shadowed) {
         let near = target[i]
             .as_ref()
-            .is_some_and(|s| !bounce.is_empty() && (s.pos - c).length() <= bounce_reach);
+            .is_some_and(|s| (!bounce.is_empty() || fill) && (s.pos - c).length() <= bounce_reach);
         in_region[i] = alpha[i] > 0.0 || *sh || near;
     }
 
@@ -583,19 +598,21 @@ mod tests {
         let node = reg.get("Relight").unwrap();
         let test_ctx = crate::test_support::TestCtx::new("relight");
         let ctx = test_ctx.ctx();
-        let run = |a: &Mask, vpls: &[Vpl]| {
+        let run_with = |a: &Mask, pasted: &DepthMap, vpls: &[Vpl]| {
             let mut inputs = Inputs::new();
             inputs.insert("photo", Value::from(photo.clone()));
             inputs.insert("depth", Value::from(floor.clone()));
             inputs.insert("pasted_color", Value::from(photo.clone()));
-            inputs.insert("pasted_depth", Value::from(slab.clone()));
+            inputs.insert("pasted_depth", Value::from(pasted.clone()));
             inputs.insert("alpha", Value::Mask(Arc::new(a.clone())));
             inputs.insert("intrinsics", Value::from(k));
             inputs.insert("vpls", Value::from(vpls.to_vec()));
             node.eval(&ctx, &inputs, &RelightParams::default().to_values())
                 .unwrap()
         };
-        let out = run(&zero, &overhead());
+        let run = |a: &Mask, vpls: &[Vpl]| run_with(a, &slab, vpls);
+        // no pasted depth: nothing pasted
+        let out = run_with(&zero, &DepthMap::filled(w, h, 0.0), &overhead());
         assert!(
             out.passthrough
                 .as_deref()
@@ -603,6 +620,9 @@ mod tests {
                 .contains("nothing pasted")
         );
         assert_eq!(out.values["color"], Value::from(photo.clone()));
+        // (an object hidden whole, alpha 0 over a pasted depth, is pasted:
+        // it still casts its shadow)
+        assert!(run(&zero, &overhead()).passthrough.is_none());
         let out = run(&alpha, &[]);
         assert!(out.passthrough.as_deref().unwrap().contains("no VPL"));
         assert_eq!(out.values["color"], Value::from(photo.clone()));

@@ -31,9 +31,10 @@ use rayon::prelude::*;
 use crate::depth::mesh::{MeshParams, depth_to_mesh};
 use crate::relight::raycast::Bvh;
 use crate::relight::shading::{
-    Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, centre_and_radius, clean_alpha,
-    composite, lit_vpls, object_bounce_vpls, object_radiance, pixel_areas, received,
-    scene_bounce_vpls, scene_fill, support_vpls, target_albedo, target_surfaces,
+    Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, capture_ref, centre_and_radius,
+    clean_alpha, composite, lit_vpls, nothing_pasted, object_bounce_vpls, object_radiance,
+    pixel_areas, received, scene_bounce_vpls, scene_fill, support_vpls, target_albedo,
+    target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 
@@ -69,12 +70,13 @@ pub fn relight_reference(
         let (v, d, _) = lit_vpls(cv);
         (v, d)
     });
-    if vpls.is_empty() || !e_ref.is_finite() || alpha.iter().all(|a| *a <= 0.0) {
+    // an object hidden whole still casts its shadow (`nothing_pasted`)
+    if vpls.is_empty() || !e_ref.is_finite() || nothing_pasted(inp.pasted_depth) {
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * e_ref;
     // the capture side's floor (module docs of `paired`)
-    let cap_floor = p.min_capture_rel * e_ref;
+    let cap_floor = p.min_capture_rel * capture_ref(inp.capture_vpls, e_ref)?;
     let r2_min = p.clamp_distance_m * p.clamp_distance_m;
     let mp = MeshParams { max_edge_rel: 0.1 };
     let scene_bvh = Bvh::new(&depth_to_mesh(inp.depth, k, None, &mp)?);
@@ -271,7 +273,8 @@ pub fn relight_reference_image(
         return Ok(None);
     };
     let photo = inp.photo.as_slice();
-    let alpha = inp.alpha.as_slice();
+    // the alpha the render used (none where the pasted depth has a hole)
+    let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
     let region: Vec<f32> = px
         .iter()
         .enumerate()

@@ -64,9 +64,9 @@ use crate::relight::object_mesh::{ObjectMesh, pooled};
 pub use crate::relight::shading::SceneInputs;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
-    centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
-    pixel_areas, received, scene_bounce_vpls, scene_fill, support_vpls, target_albedo,
-    target_surfaces,
+    capture_ref, centre_and_radius, clean_alpha, composite, lit_vpls, nothing_pasted,
+    object_bounce_vpls, object_radiance, pixel_areas, received, scene_bounce_vpls, scene_fill,
+    support_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 use depthgraph_graph::bytes::{ByteReader, ByteWriter};
@@ -819,12 +819,13 @@ pub fn relight_moved_with(
     }
     let (w, h) = (k.width, k.height);
     let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
-    if scene.vpls.is_empty() || !scene.e_ref.is_finite() || alpha.iter().all(|a| *a <= 0.0) {
+    // an object hidden whole still casts its shadow (`nothing_pasted`)
+    if scene.vpls.is_empty() || !scene.e_ref.is_finite() || nothing_pasted(inp.pasted_depth) {
         return Ok(None);
     }
     let e_floor = p.min_shading_rel * scene.e_ref;
     // the capture side's floor (module docs of `paired`)
-    let cap_floor = p.min_capture_rel * scene.e_ref;
+    let cap_floor = p.min_capture_rel * capture_ref(inp.capture_vpls, scene.e_ref)?;
     let r2_min = p.clamp_distance_m * p.clamp_distance_m;
     // the lattices' tolerance (`crate::relight::lattice`)
     let agree = Agreement {
@@ -1841,12 +1842,133 @@ mod tests {
             ..inp
         };
         assert!(relight_moved(&scene, &bad, &p).is_err());
-        // nothing pasted: nothing to do
+        // nothing pasted (no pasted depth): nothing to do
         let zero = Image::filled(w, h, 0.0f32);
+        let no_depth = DepthMap::filled(w, h, 0.0);
         let none = RelightInputs {
             alpha: &zero,
+            pasted_depth: &no_depth,
             ..inp
         };
         assert!(relight_moved(&scene, &none, &p).unwrap().is_none());
+    }
+
+    /// The capture side follows the capture map's own brightness: capture
+    /// VPLs 100 times dimmer make the object 100 times brighter (its
+    /// pasted colour was seen under less light), face by face. The floor
+    /// was the target's: every face of a dim capture sat on it and the
+    /// object's shading was lost. Capture VPLs that carry no light are an
+    /// error naming the port.
+    #[test]
+    fn the_capture_side_follows_the_capture_maps_own_scale() {
+        use crate::sim::pathtrace::PathTraceParams;
+        use crate::sim::relight_truth::{Room, relight_case};
+        let quick = PathTraceParams {
+            samples: 1,
+            bounces: 1,
+            seed: 1,
+        };
+        let c = relight_case(Room::Open, None, 96, 72, 32, &quick).unwrap();
+        let vpls = c.vpls(64);
+        let p = RelightParams::default();
+        let base = c.inputs();
+        let scene = RelightScene::new(&base.scene(), &vpls, &p).unwrap();
+        let run = |cap: &[Vpl]| {
+            let mut inp = c.inputs();
+            inp.capture_vpls = Some(cap);
+            relight_moved(&scene, &inp, &p).map(|r| r.unwrap().color)
+        };
+        let dim: Vec<Vpl> = vpls
+            .iter()
+            .map(|v| Vpl {
+                power: v.power.map(|x| x * 0.01),
+                ..*v
+            })
+            .collect();
+        let (full, dimmed) = (run(&vpls).unwrap(), run(&dim).unwrap());
+        let mut checked = 0;
+        for (i, a) in c.alpha.as_slice().iter().enumerate() {
+            if *a < 1.0 {
+                continue;
+            }
+            let (f, d) = (full.as_slice()[i], dimmed.as_slice()[i]);
+            for ch in 0..3 {
+                if f[ch] > 1e-4 {
+                    let ratio = d[ch] / f[ch];
+                    assert!((ratio - 100.0).abs() < 0.05, "pixel {i}: {ratio}");
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 100, "{checked}");
+        let black: Vec<Vpl> = vpls
+            .iter()
+            .map(|v| Vpl {
+                power: [0.0; 3],
+                ..*v
+            })
+            .collect();
+        let e = run(&black).unwrap_err().to_string();
+        assert!(e.contains("capture_vpls"), "{e}");
+    }
+
+    /// An object the scene hides whole (alpha 0 after the depth test, its
+    /// pasted depth still there) casts the shadow it casts when a part of
+    /// it shows, in both map schemes: the node passed the photo through
+    /// ("nothing pasted") and the shadow vanished with the last pixel.
+    #[test]
+    fn an_object_hidden_whole_still_casts_its_shadow() {
+        use crate::sim::pathtrace::PathTraceParams;
+        use crate::sim::relight_truth::{Room, relight_case};
+        let quick = PathTraceParams {
+            samples: 1,
+            bounces: 1,
+            seed: 1,
+        };
+        let c = relight_case(Room::Open, None, 96, 72, 32, &quick).unwrap();
+        let vpls = c.vpls(64);
+        let p = RelightParams::default();
+        let hidden = Mask::filled(96, 72, 0.0);
+        let lum = |v: [f32; 3]| v[0] + v[1] + v[2];
+        let photo = c.photo.as_slice();
+        let check = |vis: &ColorImage, hid: &ColorImage, scheme: &str| {
+            let shadow: Vec<usize> = (0..96 * 72)
+                .filter(|&i| c.alpha.as_slice()[i] == 0.0)
+                .filter(|&i| lum(vis.as_slice()[i]) < 0.8 * lum(photo[i]))
+                .collect();
+            assert!(
+                shadow.len() > 20,
+                "{scheme}: {} shadow pixels",
+                shadow.len()
+            );
+            let kept = shadow
+                .iter()
+                .filter(|&&i| lum(hid.as_slice()[i]) < 0.9 * lum(photo[i]))
+                .count();
+            assert!(
+                kept * 10 >= shadow.len() * 9,
+                "{scheme}: {kept} of {}",
+                shadow.len()
+            );
+            assert!(hid.as_slice().iter().flatten().all(|v| v.is_finite()));
+        };
+        let base = c.inputs();
+        let scene = RelightScene::new(&base.scene(), &vpls, &p).unwrap();
+        let mut inp = c.inputs();
+        let vis = relight_moved(&scene, &inp, &p).unwrap().unwrap().color;
+        inp.alpha = &hidden;
+        let hid = relight_moved(&scene, &inp, &p).unwrap().unwrap().color;
+        check(&vis, &hid, "scene_cached");
+        let mut inp = c.inputs();
+        let vis = crate::relight::paired::relight(&inp, &vpls, &p)
+            .unwrap()
+            .unwrap()
+            .color;
+        inp.alpha = &hidden;
+        let hid = crate::relight::paired::relight(&inp, &vpls, &p)
+            .unwrap()
+            .unwrap()
+            .color;
+        check(&vis, &hid, "paired");
     }
 }

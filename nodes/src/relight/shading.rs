@@ -412,6 +412,39 @@ pub(crate) fn lit_vpls(vpls: &[Vpl]) -> (Vec<Vpl>, Vec<DVec3>, f64) {
     (vpls, dirs, e_ref)
 }
 
+/// Whether nothing was pasted: no valid pasted depth. An object hidden
+/// whole by the scene (alpha 0 everywhere after the depth test) is
+/// pasted: it still casts its shadow and blocks light.
+pub(crate) fn nothing_pasted(pasted_depth: &DepthMap) -> bool {
+    pasted_depth
+        .as_slice()
+        .iter()
+        .all(|z| !DepthMap::is_valid(*z))
+}
+
+/// The irradiance scale of the capture side's floor (`min_capture_rel`
+/// times it): the capture VPLs' own total when they are given (the floor
+/// follows the map the object was captured under, whatever its brightness
+/// against the target's), else the target's `e_ref`. Capture VPLs that
+/// carry no light are an error naming the port: the object's capture
+/// lighting would be nothing, and every face would be brightened to the
+/// floor's bound.
+pub(crate) fn capture_ref(capture: Option<&[Vpl]>, e_ref: f64) -> Result<f64, NodeError> {
+    let Some(cv) = capture else {
+        return Ok(e_ref);
+    };
+    let e_cap: f64 = cv.iter().map(|v| luminance_clamped(v.power)).sum();
+    if e_cap > 0.0 && e_cap.is_finite() {
+        Ok(e_cap)
+    } else {
+        Err(NodeError::input(
+            "capture_vpls",
+            "carry no light (a black map?): the object's capture lighting would be nothing; \
+             leave capture_vpls unconnected to take the target's VPLs",
+        ))
+    }
+}
+
 /// Centre (mean) of the object's points and their largest distance from
 /// it (at least 1 mm).
 pub(crate) fn centre_and_radius(pts: &[DVec3]) -> (DVec3, f64) {

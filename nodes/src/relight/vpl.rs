@@ -211,17 +211,19 @@ pub fn checked_vpls(vpls: &[Vpl], port: &str) -> Result<Vec<Vpl>, NodeError> {
                 format!("VPL {i}: direction {d:?} / power {c:?} must be finite, power >= 0"),
             ));
         }
-        let v = glam::Vec3::from_array(*d);
+        // the length in f64: a direction of 1e20 (whose square overflows
+        // f32) or 1e-23 (whose square underflows) is still a direction
+        let v = glam::DVec3::from_array(d.map(f64::from));
         let len = v.length();
         if len > 0.0 {
             // guard: len > 0; unit directions (to f32 rounding) are kept bit for bit
             let d = if (len - 1.0).abs() <= 1e-5 {
-                v
+                *d
             } else {
-                v / len
+                (v / len).as_vec3().to_array()
             };
             out.push(Vpl {
-                direction: d.to_array(),
+                direction: d,
                 power: *c,
             });
         }
@@ -459,5 +461,12 @@ mod tests {
         let out = checked_vpls(&c, "vpls").unwrap();
         assert_eq!(out.len(), v.len() - 1);
         assert_eq!(out[0].direction, [1.0, 0.0, 0.0]);
+        // directions whose square leaves f32's range are still directions
+        c[1].direction = [0.0, -1e20, 0.0];
+        c[2].direction = [1e-23, 0.0, 0.0];
+        let out = checked_vpls(&c, "vpls").unwrap();
+        assert_eq!(out.len(), v.len() - 1);
+        assert_eq!(out[0].direction, [0.0, -1.0, 0.0]);
+        assert_eq!(out[1].direction, [1.0, 0.0, 0.0]);
     }
 }
