@@ -451,11 +451,21 @@ impl ManifestWriter {
         if let Some(d) = path.parent() {
             std::fs::create_dir_all(d).map_err(io)?;
         }
-        let file = std::fs::OpenOptions::new()
+        let mut file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
+            .read(true)
             .open(path)
             .map_err(io)?;
+        // a record an earlier writer left cut off (no newline at the end)
+        // is cut away, so the next record starts a line of its own
+        use std::io::Read;
+        let mut held = Vec::new();
+        file.read_to_end(&mut held).map_err(io)?;
+        if held.last().is_some_and(|b| *b != b'\n') {
+            let keep = held.iter().rposition(|b| *b == b'\n').map_or(0, |i| i + 1);
+            file.set_len(keep as u64).map_err(io)?;
+        }
         Ok(Self {
             file: Mutex::new(file),
             path: path.to_path_buf(),
@@ -551,10 +561,13 @@ fn write_text(path: &Path, text: &str) -> Result<(), BatchError> {
 
 /// Reads a manifest (or a part of one).
 pub fn read_manifest(path: &Path) -> Result<Vec<FrameRecord>, BatchError> {
-    let text = std::fs::read_to_string(path).map_err(|error| BatchError::Io {
+    let bytes = std::fs::read(path).map_err(|error| BatchError::Io {
         path: path.to_path_buf(),
         error,
     })?;
+    // (a record cut mid-character is not valid UTF-8: its line then fails
+    // to parse, as any cut record does)
+    let text = String::from_utf8_lossy(&bytes);
     let mut out = Vec::new();
     let lines: Vec<&str> = text.lines().collect();
     for (i, line) in lines.iter().enumerate() {
@@ -961,10 +974,26 @@ mod tests {
         let again = merge_manifest(&p, &rs).unwrap().unwrap();
         assert_ne!(again, moved);
         assert_eq!(read_manifest(&p).unwrap(), rs);
-        // the live writer appends: a second writer adds to the first's
+        // the live writer appends: a second writer adds to the first's,
+        // after cutting away a record the first left cut off
         let live = dir.path().join("live.jsonl");
         ManifestWriter::create(&live).unwrap().append(&rs[0]);
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&live)
+            .unwrap();
+        f.write_all("{\"frame\": 7, \"st\u{e9}".as_bytes()[..16].as_ref())
+            .unwrap();
+        drop(f);
         ManifestWriter::create(&live).unwrap().append(&rs[1]);
         assert_eq!(read_manifest(&live).unwrap(), rs);
+        // a record cut mid-character at the end is left out
+        let cut = dir.path().join("cut.jsonl");
+        write_manifest(&cut, &rs).unwrap();
+        let mut f = std::fs::OpenOptions::new().append(true).open(&cut).unwrap();
+        f.write_all(&"{\"frame\": 7, \"\u{e9}".as_bytes()[..15])
+            .unwrap();
+        drop(f);
+        assert_eq!(read_manifest(&cut).unwrap(), rs);
     }
 }

@@ -198,7 +198,12 @@ impl DiskCache {
             return self.trim();
         };
         let size = bytes.len() as u64;
-        if let Some((old, _)) = index.insert(path, (size, SystemTime::now())) {
+        // the file's own time, the clock the scans read (a network folder's
+        // clock may differ from this machine's)
+        let stamp = fs::metadata(&path)
+            .and_then(|m| m.modified())
+            .unwrap_or_else(|_| SystemTime::now());
+        if let Some((old, _)) = index.insert(path, (size, stamp)) {
             t.bytes = t.bytes.saturating_sub(old);
         }
         t.bytes = t.bytes.saturating_add(size);
@@ -211,15 +216,21 @@ impl DiskCache {
             .map(|(p, (s, u))| (p.clone(), *s, *u))
             .collect();
         by_age.sort_by_key(|(_, _, u)| *u);
+        // an entry that cannot be removed (another user's file, one held
+        // open) leaves the index all the same and the next one goes; the
+        // first failure is returned once the store is within budget
+        let mut result = Ok(());
         for (p, s, _) in by_age {
             if t.bytes <= self.budget_bytes {
                 break;
             }
-            remove_if_present(&p)?;
+            if let Err(e) = remove_if_present(&p) {
+                result = result.and(Err(e));
+            }
             index.remove(&p);
             t.bytes = t.bytes.saturating_sub(s);
         }
-        Ok(())
+        result
     }
     /// How many times this store (and its clones) read its folders to
     /// trim them.
@@ -284,25 +295,29 @@ impl DiskCache {
     pub fn trim(&self) -> std::io::Result<()> {
         let (mut entries, tmps) = self.files();
         let now = SystemTime::now();
+        // a failure is remembered and the trim goes on (one file that
+        // cannot be removed must not stop eviction for good); the first is
+        // returned at the end
+        let mut result = Ok(());
         for (p, t) in tmps {
-            if now.duration_since(t).is_ok_and(|age| age >= STALE_TMP) {
-                remove_if_present(&p)?;
+            if now.duration_since(t).is_ok_and(|age| age >= STALE_TMP)
+                && let Err(e) = remove_if_present(&p)
+            {
+                result = result.and(Err(e));
             }
         }
         let mut total: u64 = entries.iter().map(|(_, s, _)| s).sum();
         entries.sort_by_key(|(_, _, t)| *t);
         let mut kept = entries.len();
-        let mut result = Ok(());
         for (k, (p, s, _)) in entries.iter().enumerate() {
             if total <= self.budget_bytes {
                 kept = k;
                 break;
             }
             if let Err(e) = remove_if_present(p) {
-                result = Err(e);
-                kept = k;
-                break;
+                result = result.and(Err(e));
             }
+            // counted as gone either way: the next oldest goes next
             total -= s;
             kept = k + 1;
         }
@@ -562,8 +577,7 @@ mod tests {
         }
         assert!(c.used_bytes() <= budget);
         // this process's own writes keep it within budget at each put, and
-        // a full store is not scanned at each: one scan per 20 writes (the
-        // 10 % of the budget a trim frees) or per RESCAN_EVERY
+        // a full store is not scanned at each: one scan per RESCAN_EVERY
         let before = c.scans();
         for k in 5000..5300u64 {
             c.put(&wide(k), &out(100)).unwrap();
@@ -574,6 +588,27 @@ mod tests {
             scans <= 300 / u64::from(RESCAN_EVERY),
             "{scans} scans for 300 writes"
         );
+    }
+
+    /// An entry that cannot be removed (here a folder in its place) does
+    /// not stop eviction: the next oldest go, the newest stay.
+    #[test]
+    fn an_entry_that_cannot_be_removed_does_not_stop_eviction() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = codec::encode(&out(100)).len() as u64;
+        let c = DiskCache::new(dir.path(), one * 3);
+        let stuck = c.path(&key(9));
+        fs::create_dir_all(stuck.join("inside")).unwrap();
+        for k in 1..=8u8 {
+            let _ = c.put(&key(k), &out(100));
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let _ = c.trim();
+        assert!(stuck.exists());
+        assert!(c.get(&key(8), &Default::default()).is_some());
+        assert!(c.get(&key(7), &Default::default()).is_some());
+        assert!(c.get(&key(1), &Default::default()).is_none());
+        assert!(c.get(&key(4), &Default::default()).is_none());
     }
 
     #[test]

@@ -263,6 +263,12 @@ pub fn resolve_output(out_dir: &std::path::Path, path: &str) -> PathBuf {
 /// `new` is). `out/../photo.png` before `out` exists is therefore
 /// `photo.png`, as the write that would create `out` finds it.
 pub fn canonical_for_compare(p: &std::path::Path) -> PathBuf {
+    canonical_within(p, 40)
+}
+
+/// [`canonical_for_compare`] with at most `budget` more rounds through a
+/// `..` (a link `l -> new/../l` resolves to itself: no endless recursion).
+fn canonical_within(p: &std::path::Path, budget: u32) -> PathBuf {
     use std::path::Component;
     if let Ok(c) = p.canonicalize() {
         return c;
@@ -310,8 +316,8 @@ pub fn canonical_for_compare(p: &std::path::Path) -> PathBuf {
             }
             // `new/../link/x`: past the `..` the path may run through
             // folders and links that exist; once more, now without `..`
-            return if went_up {
-                canonical_for_compare(&c)
+            return if went_up && budget > 0 {
+                canonical_within(&c, budget - 1)
             } else {
                 c
             };
@@ -641,6 +647,13 @@ mod tests {
             assert_eq!(
                 canonical_for_compare(&root.join("new/../linkdir/x.png")),
                 root.join("real/x.png")
+            );
+            // a link that leads back to itself through a folder not made
+            // yet ends (it recursed until the stack overflowed)
+            symlink("new/../selfish.png", root.join("selfish.png")).unwrap();
+            assert_eq!(
+                canonical_for_compare(&root.join("selfish.png")),
+                root.join("selfish.png")
             );
         }
     }

@@ -326,6 +326,13 @@ impl Engine {
         }
         let returned: std::collections::HashSet<usize> = p.outputs.iter().map(|o| o.node).collect();
         let mut value_bytes: Vec<Option<usize>> = vec![None; n];
+        // cache hits that no node to run reads (and the run does not
+        // return) go at once
+        for (j, &left) in readers_left.iter().enumerate() {
+            if left == 0 && !returned.contains(&j) {
+                let_go(j, &mut results, &mut state, &mut value_bytes);
+            }
+        }
         let position: HashMap<usize, usize> =
             p.order.iter().enumerate().map(|(k, &i)| (i, k)).collect();
         for l in 0..=max_level {
@@ -398,18 +405,8 @@ impl Engine {
                 for src in p.nodes[i].inputs.values() {
                     let j = src.node;
                     readers_left[j] = readers_left[j].saturating_sub(1);
-                    if readers_left[j] == 0
-                        && !returned.contains(&j)
-                        && let Some(o) = results[j].take()
-                    {
-                        value_bytes[j] = Some(o.bytes());
-                        results[j] = Some(Arc::new(Outputs {
-                            values: BTreeMap::new(),
-                            passthrough: o.passthrough.clone(),
-                            report: o.report.clone(),
-                            origin: o.origin.clone(),
-                            transfers: o.transfers,
-                        }));
+                    if readers_left[j] == 0 && !returned.contains(&j) {
+                        let_go(j, &mut results, &mut state, &mut value_bytes);
                     }
                 }
             }
@@ -644,6 +641,32 @@ impl Engine {
             .unwrap_or_else(|e| e.into_inner());
         Ok((out, ms, records))
     }
+}
+
+/// Lets go of node `j`'s values (see `readers_left` in `Engine::run`):
+/// its result, and its cache hit's, become a shell with what the trace
+/// shows (pass-through, report, origin, transfers) and its size is noted.
+fn let_go(
+    j: usize,
+    results: &mut [Option<Arc<Outputs>>],
+    state: &mut [State],
+    value_bytes: &mut [Option<usize>],
+) {
+    let Some(o) = results[j].take() else {
+        return;
+    };
+    value_bytes[j] = Some(o.bytes());
+    let shell = Arc::new(Outputs {
+        values: BTreeMap::new(),
+        passthrough: o.passthrough.clone(),
+        report: o.report.clone(),
+        origin: o.origin.clone(),
+        transfers: o.transfers,
+    });
+    if let State::Hit(held, _) = &mut state[j] {
+        *held = shell.clone();
+    }
+    results[j] = Some(shell);
 }
 
 /// What one node's evaluation shares with the run: the files the pipeline

@@ -19,7 +19,8 @@ for _ in $(seq 1 300); do
   kill -0 $moto 2>/dev/null || break
   sleep 0.2
 done
-if [ "$ready" -ne 1 ]; then
+# (our own server: another one on the port answers too, and ours died)
+if [ "$ready" -ne 1 ] || ! kill -0 $moto 2>/dev/null; then
   echo "s3 test: moto_server did not answer on port $port (taken? set DEPTHGRAPH_S3_TEST_PORT)"
   exit 1
 fi

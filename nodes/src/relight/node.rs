@@ -38,7 +38,7 @@ depthgraph_graph::ports! {
         intrinsics: Intrinsics,
         /// VplSample.vpls
         vpls: Arc<VplSet>,
-        /// VplSample.vpls of the map the object was captured under (else the target's)
+        /// VplSample.vpls of the map the object was captured under (else the target's; visibility scene_cached or raycast)
         capture_vpls: Option<Arc<VplSet>>,
     }
 }
@@ -70,10 +70,8 @@ pub fn shadow_maps_fit(vpls: usize, capture: usize, p: &RelightParams) -> Result
     let (maps, what) = match p.visibility {
         // a scene map and an object map per VPL, an object map per capture
         // VPL
-        Visibility::Paired => (
-            2 * n * sq(p.ism_resolution) + capture as u128 * sq(p.object_ism_resolution),
-            "ism_resolution",
-        ),
+        // (paired refuses capture VPLs)
+        Visibility::Paired => (2 * n * sq(p.ism_resolution), "ism_resolution"),
         Visibility::SceneCached => (
             n * (sq(p.ism_resolution) + sq(p.object_ism_resolution))
                 + capture as u128 * sq(p.object_ism_resolution),
@@ -95,7 +93,7 @@ pub fn shadow_maps_fit(vpls: usize, capture: usize, p: &RelightParams) -> Result
     let (param, advice) = if bounce > maps {
         (
             "bounce_ism_resolution",
-            "lower bounce_ism_resolution, bounce_vpls or scene_vpls, or turn bounce_shadows off"
+            "lower bounce_ism_resolution, bounce_vpls or scene_vpls, or turn bounce_shadows or extend_support off"
                 .to_string(),
         )
     } else {

@@ -38,12 +38,14 @@
 //! **The object's own shading.** The object's pasted colour `P_o` is
 //! radiance it sent where it was captured. There it received
 //! `E_cap = Σ_k Φ^cap_k max(0, n·ω_k) V^o_k`: the capture map's VPLs (the
-//! `capture_vpls` input, else the target's) with only its own shadows
+//! `capture_vpls` input in the scene-cached and ray-cast schemes; this one
+//! takes the target's and refuses the input) with only its own shadows
 //! (`V^o`; its capture surroundings are unknown, so nothing bounced onto
 //! it there). In the target it receives `E^{s+t} + B_s`: the target's VPLs
 //! with the scene's and its own shadows, and the scene's bounce `B_s`
 //! (below). It shows `P_o (E^{s+t} + B_s) / max(E_cap, c_floor)`, with
-//! `c_floor = min_capture_rel * E_ref` (a face the capture map barely lit
+//! `c_floor = min_capture_rel * E_cap,ref`, the capture VPLs' total
+//! (the target's `E_ref` without them) (a face the capture map barely lit
 //! carries little but noise of its colour, which an unbounded ratio would
 //! amplify; with few VPLs some normals get none at all): with the
 //! same map on both sides and nothing around it the ratio is 1, and the
@@ -116,9 +118,10 @@
 //! visibility of at least one VPL there (`V^{s+t}_k != V^t_k`: only the
 //! VPLs of its cone are looked up) or the bounce reaches it; only kept
 //! pixels are shaded with all VPLs. Elsewhere `I_{s+t} - I_t` is exactly 0
-//! and the photo's pixels are kept bit for bit. With nothing pasted
-//! (`α = 0` everywhere) or no VPL carrying energy, the node passes the photo
-//! through and says why.
+//! and the photo's pixels are kept bit for bit. With nothing pasted (no
+//! valid pasted depth; an object the scene hides whole, `α = 0` over its
+//! depth, still casts its shadow) or no VPL carrying energy, the node passes
+//! the photo through and says why.
 //!
 //! # Visibility schemes (the `visibility` parameter)
 //!
