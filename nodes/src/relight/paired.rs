@@ -648,6 +648,30 @@ mod tests {
             Value::Color(c) => assert!(c.as_slice().iter().flatten().all(|v| v.is_finite())),
             other => panic!("{other:?}"),
         }
+        // this scheme takes no capture VPLs: refused, not ignored
+        let mut inputs = Inputs::new();
+        inputs.insert("photo", Value::from(photo.clone()));
+        inputs.insert("depth", Value::from(floor.clone()));
+        inputs.insert("pasted_color", Value::from(photo.clone()));
+        inputs.insert("pasted_depth", Value::from(slab.clone()));
+        inputs.insert("alpha", Value::Mask(Arc::new(alpha.clone())));
+        inputs.insert("intrinsics", Value::from(k));
+        inputs.insert("vpls", Value::from(overhead()));
+        inputs.insert("capture_vpls", Value::from(overhead()));
+        let paired = RelightParams {
+            visibility: crate::relight::shading::Visibility::Paired,
+            ..Default::default()
+        };
+        let e = node.eval(&ctx, &inputs, &paired.to_values()).unwrap_err();
+        assert!(
+            matches!(&e, NodeError::Param { param, .. } if param == "visibility"),
+            "{e}"
+        );
+        // the default scheme takes them
+        assert!(
+            node.eval(&ctx, &inputs, &RelightParams::default().to_values())
+                .is_ok()
+        );
     }
 
     /// The same result, bit for bit, on 1 and 2 threads; and the uniform
