@@ -266,6 +266,30 @@ pub fn canonical_for_compare(p: &std::path::Path) -> PathBuf {
     canonical_within(p, 40)
 }
 
+/// Where `path` leads: itself, or, where it is a symbolic link (a chain of
+/// them, at most 40 as the kernel allows), the path the last one names,
+/// whether or not that exists. Writers that keep links (the atomic writer
+/// of the nodes) and the output checks follow links alike with it. A
+/// longer chain (a loop) or an unreadable link is an error.
+pub fn follow_links(path: &std::path::Path) -> std::io::Result<PathBuf> {
+    let mut at = path.to_path_buf();
+    for _ in 0..40 {
+        match std::fs::symlink_metadata(&at) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let to = std::fs::read_link(&at)?;
+                at = match at.parent() {
+                    Some(dir) if to.is_relative() => dir.join(to),
+                    _ => to,
+                };
+            }
+            _ => return Ok(at),
+        }
+    }
+    Err(std::io::Error::other(
+        "more than 40 symbolic links in a chain",
+    ))
+}
+
 /// [`canonical_for_compare`] with at most `budget` more rounds through a
 /// `..` (a link `l -> new/../l` resolves to itself: no endless recursion).
 fn canonical_within(p: &std::path::Path, budget: u32) -> PathBuf {
@@ -274,23 +298,8 @@ fn canonical_within(p: &std::path::Path, budget: u32) -> PathBuf {
         return c;
     }
     // a link to a file not made yet: where the write lands (the atomic
-    // writer follows links), at most 40 in a chain as the kernel allows
-    let mut p = p.to_path_buf();
-    for _ in 0..40 {
-        match std::fs::symlink_metadata(&p) {
-            Ok(m) if m.file_type().is_symlink() => match std::fs::read_link(&p) {
-                Ok(to) => {
-                    p = match p.parent() {
-                        Some(dir) if to.is_relative() => dir.join(to),
-                        _ => to,
-                    };
-                }
-                Err(_) => break,
-            },
-            _ => break,
-        }
-    }
-    let p = p.as_path();
+    // writer follows links the same way)
+    let p = &follow_links(p).unwrap_or_else(|_| p.to_path_buf());
     if let Ok(c) = p.canonicalize() {
         return c;
     }

@@ -49,33 +49,6 @@ impl From<exr::error::Error> for WriteFailure {
     }
 }
 
-/// Where a write to `path` lands: `path` itself, or, where it is a
-/// symbolic link (a chain of them, at most 40 as the kernel allows), the
-/// file it points to, so that replacing the file keeps the link. A link
-/// to nowhere is followed too: the write creates its target.
-fn write_target(path: &Path) -> Result<PathBuf, NodeError> {
-    let mut at = path.to_path_buf();
-    for _ in 0..40 {
-        match fs::symlink_metadata(&at) {
-            Ok(m) if m.file_type().is_symlink() => {
-                let to = fs::read_link(&at).map_err(|error| NodeError::Io {
-                    path: at.clone(),
-                    error,
-                })?;
-                at = match at.parent() {
-                    Some(dir) if to.is_relative() => dir.join(to),
-                    _ => to,
-                };
-            }
-            _ => return Ok(at),
-        }
-    }
-    Err(NodeError::Io {
-        path: path.to_path_buf(),
-        error: std::io::Error::other("more than 40 symbolic links in a chain"),
-    })
-}
-
 /// Writes the file `write` produces to `path` atomically: a temporary file
 /// in the same directory, synced to the disk, then renamed over the target.
 /// On any failure the temporary file is removed and `path` is untouched.
@@ -85,7 +58,11 @@ pub fn write_atomic<E: Into<WriteFailure>>(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), E>,
 ) -> Result<PathBuf, NodeError> {
-    let path = &write_target(path)?;
+    // a link stays one: the file it points to is replaced
+    let path = &depthgraph_graph::node::follow_links(path).map_err(|error| NodeError::Io {
+        path: path.to_path_buf(),
+        error,
+    })?;
     let parent = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),

@@ -601,7 +601,12 @@ mod tests {
         let node = reg.get("Relight").unwrap();
         let test_ctx = crate::test_support::TestCtx::new("relight");
         let ctx = test_ctx.ctx();
-        let run_with = |a: &Mask, pasted: &DepthMap, vpls: &[Vpl]| {
+        // the node on these inputs, capture VPLs when given, parameters `p`
+        let eval = |a: &Mask,
+                    pasted: &DepthMap,
+                    vpls: &[Vpl],
+                    capture: Option<&[Vpl]>,
+                    p: &RelightParams| {
             let mut inputs = Inputs::new();
             inputs.insert("photo", Value::from(photo.clone()));
             inputs.insert("depth", Value::from(floor.clone()));
@@ -610,8 +615,13 @@ mod tests {
             inputs.insert("alpha", Value::Mask(Arc::new(a.clone())));
             inputs.insert("intrinsics", Value::from(k));
             inputs.insert("vpls", Value::from(vpls.to_vec()));
-            node.eval(&ctx, &inputs, &RelightParams::default().to_values())
-                .unwrap()
+            if let Some(c) = capture {
+                inputs.insert("capture_vpls", Value::from(c.to_vec()));
+            }
+            node.eval(&ctx, &inputs, &p.to_values())
+        };
+        let run_with = |a: &Mask, pasted: &DepthMap, vpls: &[Vpl]| {
+            eval(a, pasted, vpls, None, &RelightParams::default()).unwrap()
         };
         let run = |a: &Mask, vpls: &[Vpl]| run_with(a, &slab, vpls);
         // no pasted depth: nothing pasted
@@ -649,28 +659,26 @@ mod tests {
             other => panic!("{other:?}"),
         }
         // this scheme takes no capture VPLs: refused, not ignored
-        let mut inputs = Inputs::new();
-        inputs.insert("photo", Value::from(photo.clone()));
-        inputs.insert("depth", Value::from(floor.clone()));
-        inputs.insert("pasted_color", Value::from(photo.clone()));
-        inputs.insert("pasted_depth", Value::from(slab.clone()));
-        inputs.insert("alpha", Value::Mask(Arc::new(alpha.clone())));
-        inputs.insert("intrinsics", Value::from(k));
-        inputs.insert("vpls", Value::from(overhead()));
-        inputs.insert("capture_vpls", Value::from(overhead()));
         let paired = RelightParams {
             visibility: crate::relight::shading::Visibility::Paired,
             ..Default::default()
         };
-        let e = node.eval(&ctx, &inputs, &paired.to_values()).unwrap_err();
+        let lights = overhead();
+        let e = eval(&alpha, &slab, &lights, Some(&lights), &paired).unwrap_err();
         assert!(
             matches!(&e, NodeError::Param { param, .. } if param == "visibility"),
             "{e}"
         );
         // the default scheme takes them
         assert!(
-            node.eval(&ctx, &inputs, &RelightParams::default().to_values())
-                .is_ok()
+            eval(
+                &alpha,
+                &slab,
+                &lights,
+                Some(&lights),
+                &RelightParams::default()
+            )
+            .is_ok()
         );
     }
 

@@ -1853,6 +1853,19 @@ mod tests {
         assert!(relight_moved(&scene, &none, &p).unwrap().is_none());
     }
 
+    /// The open room of `sim::relight_truth` at 96x72, one path per pixel
+    /// (the photo's exact values do not matter to the tests using it).
+    fn quick_open_room() -> crate::sim::relight_truth::RelightCase {
+        use crate::sim::pathtrace::PathTraceParams;
+        use crate::sim::relight_truth::{Room, relight_case};
+        let quick = PathTraceParams {
+            samples: 1,
+            bounces: 1,
+            seed: 1,
+        };
+        relight_case(Room::Open, None, 96, 72, 32, &quick).unwrap()
+    }
+
     /// The capture side follows the capture map's own brightness: capture
     /// VPLs 100 times dimmer make the object 100 times brighter (its
     /// pasted colour was seen under less light), face by face. The floor
@@ -1861,14 +1874,7 @@ mod tests {
     /// error naming the port.
     #[test]
     fn the_capture_side_follows_the_capture_maps_own_scale() {
-        use crate::sim::pathtrace::PathTraceParams;
-        use crate::sim::relight_truth::{Room, relight_case};
-        let quick = PathTraceParams {
-            samples: 1,
-            bounces: 1,
-            seed: 1,
-        };
-        let c = relight_case(Room::Open, None, 96, 72, 32, &quick).unwrap();
+        let c = quick_open_room();
         let vpls = c.vpls(64);
         let p = RelightParams::default();
         let base = c.inputs();
@@ -1918,14 +1924,7 @@ mod tests {
     /// ("nothing pasted") and the shadow vanished with the last pixel.
     #[test]
     fn an_object_hidden_whole_still_casts_its_shadow() {
-        use crate::sim::pathtrace::PathTraceParams;
-        use crate::sim::relight_truth::{Room, relight_case};
-        let quick = PathTraceParams {
-            samples: 1,
-            bounces: 1,
-            seed: 1,
-        };
-        let c = relight_case(Room::Open, None, 96, 72, 32, &quick).unwrap();
+        let c = quick_open_room();
         let vpls = c.vpls(64);
         let p = RelightParams::default();
         let hidden = Mask::filled(96, 72, 0.0);
