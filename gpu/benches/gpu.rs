@@ -22,7 +22,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use depthgraph_gpu::relight::DirectStats;
+use depthgraph_gpu::relight::DeviceSums;
 use depthgraph_gpu::session::Session;
 use depthgraph_gpu::{AdapterRequest, GpuContext};
 use depthgraph_graph::node::{CancelToken, Transfers};
@@ -164,12 +164,9 @@ fn relight_move_row(ctx: &GpuContext, room: Room, repeats: usize) -> Option<Row>
         })
         .collect();
     let device = |s: &mut Session| {
-        let mut stats = DirectStats::default();
         let t = Instant::now();
-        relight_moved_with(&scene, &inp, &p, &mut |plan| {
-            depthgraph_gpu::relight::direct(s, plan, &mut stats)
-        })
-        .expect("relight move on the device");
+        relight_moved_with(&scene, &inp, &p, &mut DeviceSums::new(s))
+            .expect("relight move on the device");
         t.elapsed().as_secs_f64() * 1e3
     };
     let cold = device(&mut Session::new(ctx));

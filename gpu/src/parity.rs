@@ -264,3 +264,25 @@ pub fn direct_within(
     }
     Ok(DirectAgreement { hits, max_rel })
 }
+
+/// The object's received light of two backends bit for bit (the device's
+/// decisions with the host's f64 sums are the CPU's, [`crate::relight`]):
+/// the surfaces compared, or the first that differs.
+pub fn object_light_equal(
+    cpu: &[depthgraph_nodes::relight::object_light::ObjectLightSum],
+    gpu: &[depthgraph_nodes::relight::object_light::ObjectLightSum],
+) -> Result<usize, String> {
+    if cpu.len() != gpu.len() {
+        return Err(format!("{} surfaces vs {}", cpu.len(), gpu.len()));
+    }
+    let bits = |v: &[f64; 3]| v.map(f64::to_bits);
+    for (k, (a, b)) in cpu.iter().zip(gpu).enumerate() {
+        if bits(&a.est) != bits(&b.est) || bits(&a.ecap) != bits(&b.ecap) {
+            return Err(format!(
+                "surface {k}: cpu E^(s+t) {:?} E^o {:?}, gpu {:?} {:?}",
+                a.est, a.ecap, b.est, b.ecap
+            ));
+        }
+    }
+    Ok(cpu.len())
+}

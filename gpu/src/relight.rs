@@ -1,13 +1,28 @@
-//! `Relight` on the device: the direct term of a scene-cached object move
-//! (`shaders/relight_direct.wgsl`), the sum over the VPLs of each pixel's
-//! cone of the light the object takes away
-//! ([`depthgraph_nodes::relight::direct`]). The plan (which tiles, which
-//! VPLs in which order, which maps share a frame), the scene's part (cached
-//! by the engine), the object's maps, its shading, the bounces and the
-//! composite stay on the CPU; `visibility` `paired` and `raycast` run on
-//! the CPU whole (the trace says so).
+//! `Relight` on the device: the two long sums over the VPLs of a
+//! scene-cached object move ([`DeviceSums`]):
 //!
-//! **Agreement with the CPU** (checked by the parity tests): every pixel's
+//! - the direct term (`shaders/relight_direct.wgsl`), the sum over the VPLs
+//!   of each pixel's cone of the light the object takes away
+//!   ([`depthgraph_nodes::relight::direct`]);
+//! - the object's received light (`shaders/relight_object.wgsl`), its
+//!   visibility of every VPL through its own maps and the scene's
+//!   ([`depthgraph_nodes::relight::object_light`]).
+//!
+//! The plans (which tiles, which VPLs in which order, which maps share a
+//! frame, the lattices' nodes), the scene's part (cached by the engine),
+//! the object's maps, the bounces and the composite stay on the CPU; the
+//! shadow maps are uploaded once per move and serve both kernels;
+//! `visibility` `paired` and `raycast` run on the CPU whole (the trace
+//! says so).
+//!
+//! **The object's light agrees with the CPU bit for bit** (checked by the
+//! parity tests): the device makes the decisions (two bits per surface and
+//! VPL), the host adds the CPU's own f64 terms in the CPU's order; a
+//! decision f32 cannot settle makes the host decide the surface whole, and
+//! a contact march is the host's. So the lattices blend and test the same
+//! values on both backends.
+//!
+//! **The direct term's agreement** (checked by the parity tests): every pixel's
 //! decisions are the CPU's — each visibility test whose f32 value lies
 //! within its rounding bound of the threshold marks the pixel, and the host
 //! recomputes marked pixels with the CPU's own
@@ -20,11 +35,16 @@
 use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::relight::direct::{DirectPlan, DirectSum, evaluate_pixel};
+use depthgraph_nodes::relight::direct::{DirectLight, DirectPlan, DirectSum, evaluate_pixel};
 use depthgraph_nodes::relight::ism::ShadowMap;
 use depthgraph_nodes::relight::node::{RelightIn, RelightOut, eval_with};
-use depthgraph_nodes::relight::shading::{RelightParams, Visibility};
+use depthgraph_nodes::relight::object_light::{
+    ObjectLightPlan, ObjectLightSum, Seen, sums_from_decisions,
+};
+use depthgraph_nodes::relight::scene_cached::MoveSums;
+use depthgraph_nodes::relight::shading::{RelightParams, Surf, Visibility};
 use glam::DVec3;
+use rayon::prelude::*;
 
 use crate::session::{Session, bytes_of, u32s};
 use crate::shaders;
@@ -145,6 +165,102 @@ impl Packed {
     }
 }
 
+/// Shadow maps on the device for one move: the object's maps (one per
+/// group) and the scene's, with the index of each VPL's scene map.
+pub struct MoveMaps {
+    maps: crate::context::PooledBuffer,
+    texels: crate::context::PooledBuffer,
+    /// Per VPL: its scene map's index in `maps` ([`NONE`]: none uploaded).
+    scene_index: Vec<u32>,
+    /// Object maps uploaded (the first headers).
+    groups: usize,
+    /// The origin the coordinates are relative to.
+    origin: DVec3,
+    /// The photo's depth for the contact march, once uploaded.
+    depth: Option<crate::context::PooledBuffer>,
+}
+
+/// Uploads the object's maps and the scene maps of the VPLs `want` picks,
+/// relative to `origin`.
+fn upload_maps(
+    s: &mut Session,
+    object_maps: &[Option<ShadowMap>],
+    scene_maps: &[Option<ShadowMap>],
+    origin: DVec3,
+    want: impl Fn(usize) -> bool,
+) -> Result<MoveMaps, NodeError> {
+    let mut packed = Packed {
+        maps: Vec::new(),
+        texels: Vec::new(),
+    };
+    for m in object_maps {
+        if let Err(why) = packed.push(m.as_ref(), origin) {
+            return Err(s.too_large(&why));
+        }
+    }
+    let mut scene_index = Vec::with_capacity(scene_maps.len());
+    for (j, m) in scene_maps.iter().enumerate() {
+        scene_index.push(match m {
+            Some(m) if want(j) => match packed.push(Some(m), origin) {
+                Ok(i) => i,
+                Err(why) => return Err(s.too_large(&why)),
+            },
+            _ => NONE,
+        });
+    }
+    Ok(MoveMaps {
+        maps: s.upload(bytes_of(&packed.maps))?,
+        texels: s.upload(bytes_of(&packed.texels))?,
+        scene_index,
+        groups: object_maps.len(),
+        origin,
+        depth: None,
+    })
+}
+
+/// One dispatch of `kernel` over a `grid` of workgroups with `inputs`
+/// bound in order and the output buffer last; the output's words.
+fn run_flat(
+    s: &mut Session,
+    kernel: &wgpu::ComputePipeline,
+    inputs: &[&wgpu::Buffer],
+    (out, bytes): (&crate::context::PooledBuffer, u64),
+    (gx, gy): (u32, u32),
+) -> Result<Vec<u32>, NodeError> {
+    let mut buffers = inputs.to_vec();
+    buffers.push(out);
+    let bg = s.bind(kernel, &buffers);
+    let mut encoder = s.encoder();
+    {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(kernel);
+        pass.set_bind_group(0, &bg, &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
+    }
+    let back = s.finish(encoder, &[(out, bytes)])?;
+    Ok(u32s(&back[0]))
+}
+
+/// A light as the kernels read it (its object map's bias constant for the
+/// kernel's receivers); `groups`: the object maps uploaded.
+fn gpu_light(l: &DirectLight, scene_map: u32, groups: usize) -> GpuLight {
+    GpuLight {
+        dir: f3(l.dir),
+        bias_object: l.bias_object as f32,
+        power: l.power.map(|v| v as f32),
+        bias_scene: l.bias_scene as f32,
+        // a VPL without an object map: none (the object shadows nothing)
+        group: if l.group < groups {
+            l.group as u32
+        } else {
+            NONE
+        },
+        scene_map,
+        shared: u32::from(l.shared),
+        _pad: 0,
+    }
+}
+
 /// The direct term of `plan` on the device (module docs): one sum per
 /// pixel of the plan, tile after tile, the marked pixels recomputed here.
 pub fn direct(
@@ -152,6 +268,33 @@ pub fn direct(
     plan: &DirectPlan,
     stats: &mut DirectStats,
 ) -> Result<Vec<DirectSum>, NodeError> {
+    let mut used = vec![false; plan.lights.len()];
+    for tile in &plan.tiles {
+        for &j in &tile.vpls {
+            if let Some(u) = used.get_mut(j) {
+                *u = true;
+            }
+        }
+    }
+    let maps = upload_maps(s, plan.object_maps, plan.scene_maps, plan.centre, |j| {
+        used.get(j).copied().unwrap_or(false)
+    })?;
+    direct_with(s, plan, &maps, stats)
+}
+
+/// [`direct`] with the maps already on the device (`maps` must hold every
+/// scene map the plan's tiles read, relative to the plan's centre).
+pub fn direct_with(
+    s: &mut Session,
+    plan: &DirectPlan,
+    maps: &MoveMaps,
+    stats: &mut DirectStats,
+) -> Result<Vec<DirectSum>, NodeError> {
+    if maps.origin != plan.centre || maps.groups != plan.object_maps.len() {
+        return Err(NodeError::Internal(
+            "the device's shadow maps belong to another move".into(),
+        ));
+    }
     let origin = plan.centre;
     // the pixels of tiles with VPLs, their lists one after another
     let mut pixels = Vec::new();
@@ -193,40 +336,22 @@ pub fn direct(
             pixels.len()
         )));
     };
-    // the object maps (one per group), then the scene maps the lists read
-    let mut packed = Packed {
-        maps: Vec::new(),
-        texels: Vec::new(),
-    };
-    for m in plan.object_maps {
-        if let Err(why) = packed.push(m.as_ref(), origin) {
-            return Err(s.too_large(&why));
-        }
-    }
-    let mut used = vec![false; plan.lights.len()];
+    let mut read = vec![false; plan.lights.len()];
     for &j in &list {
-        used[j as usize] = true;
+        if let Some(r) = read.get_mut(j as usize) {
+            *r = true;
+        }
     }
     let mut lights = Vec::with_capacity(plan.lights.len());
     for (j, l) in plan.lights.iter().enumerate() {
-        let scene_map = match plan.scene_maps.get(j).and_then(Option::as_ref) {
-            Some(m) if used[j] => match packed.push(Some(m), origin) {
-                Ok(i) => i,
-                Err(why) => return Err(s.too_large(&why)),
-            },
-            _ => NONE,
-        };
-        lights.push(GpuLight {
-            dir: f3(l.dir),
-            bias_object: l.bias_object as f32,
-            power: l.power.map(|v| v as f32),
-            bias_scene: l.bias_scene as f32,
-            // a VPL without an object map is in no list
-            group: u32::try_from(l.group).unwrap_or(NONE),
-            scene_map,
-            shared: u32::from(l.shared),
-            _pad: 0,
-        });
+        let scene_map = maps.scene_index.get(j).copied().unwrap_or(NONE);
+        // a tile reads VPL j: its scene map must be there
+        if scene_map == NONE && read[j] && plan.scene_maps.get(j).is_some_and(Option::is_some) {
+            return Err(NodeError::Internal(format!(
+                "the scene map of VPL {j} is not on the device"
+            )));
+        }
+        lights.push(gpu_light(l, scene_map, maps.groups));
     }
     let n = pixels.len();
     let kernel = s.kernel(&shaders::RELIGHT_DIRECT)?;
@@ -239,24 +364,21 @@ pub fn direct(
     let b_pixels = s.upload(bytes_of(&pixels))?;
     let b_list = s.upload(bytes_of(&list))?;
     let b_lights = s.upload(bytes_of(&lights))?;
-    let b_maps = s.upload(bytes_of(&packed.maps))?;
-    let b_texels = s.upload(bytes_of(&packed.texels))?;
     let out = s.scratch(16 * n as u64)?;
-    let bg = s.bind(
+    let words = run_flat(
+        s,
         &kernel,
         &[
-            &uniform, &b_pixels, &b_list, &b_lights, &b_maps, &b_texels, &out,
+            &uniform,
+            &b_pixels,
+            &b_list,
+            &b_lights,
+            &maps.maps,
+            &maps.texels,
         ],
-    );
-    let mut encoder = s.encoder();
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&kernel);
-        pass.set_bind_group(0, &bg, &[]);
-        pass.dispatch_workgroups(gx, gy, 1);
-    }
-    let back = s.finish(encoder, &[(&out, 16 * n as u64)])?;
-    let words = u32s(&back[0]);
+        (&out, 16 * n as u64),
+        (gx, gy),
+    )?;
     if words.len() != 4 * n {
         return Err(NodeError::Internal(format!(
             "the device returned {} words for {n} pixels",
@@ -280,6 +402,272 @@ pub fn direct(
     Ok(sums)
 }
 
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct ObjectParams {
+    count: u32,
+    /// Invocations per row of the 2-D dispatch.
+    row: u32,
+    lights: u32,
+    /// Words of two-bit decisions per surface.
+    words: u32,
+    contact: u32,
+    width: u32,
+    height: u32,
+    max_steps: u32,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    thickness: f32,
+    _pad: [f32; 3],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct GpuSurface {
+    pos: [f32; 3],
+    _p0: f32,
+    n: [f32; 3],
+    _p1: f32,
+    at: [f32; 3],
+    _p2: f32,
+}
+
+/// What the object's light did on the device.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ObjectLightStats {
+    /// Surfaces the device decided.
+    pub surfaces: usize,
+    /// Decisions of one surface and VPL left to the host (a test f32
+    /// could not settle).
+    pub asked: usize,
+}
+
+/// Code-2 pairs ([`Seen::Ask`]) among the sixteen of a word.
+fn asked_in(w: u32) -> usize {
+    let (hi, lo) = ((w >> 1) & 0x5555_5555, w & 0x5555_5555);
+    (hi & !lo).count_ones() as usize
+}
+
+/// The object's received light at `surfs` on the device (module docs):
+/// the device's decisions, the host's f64 sums.
+pub fn object_light(
+    s: &mut Session,
+    plan: &ObjectLightPlan,
+    surfs: &[Surf],
+    stats: &mut ObjectLightStats,
+) -> Result<Vec<ObjectLightSum>, NodeError> {
+    let maps = upload_maps(s, plan.object_maps, plan.scene_maps, plan.centre, |_| true)?;
+    object_light_with(s, plan, surfs, &maps, stats)
+}
+
+/// [`object_light`] with the maps already on the device (`maps` must
+/// hold every scene map, relative to the plan's centre).
+pub fn object_light_with(
+    s: &mut Session,
+    plan: &ObjectLightPlan,
+    surfs: &[Surf],
+    maps: &MoveMaps,
+    stats: &mut ObjectLightStats,
+) -> Result<Vec<ObjectLightSum>, NodeError> {
+    if maps.origin != plan.centre || maps.groups != plan.object_maps.len() {
+        return Err(NodeError::Internal(
+            "the device's shadow maps belong to another move".into(),
+        ));
+    }
+    let n = surfs.len();
+    let nl = plan.lights.len();
+    if n == 0 || nl == 0 {
+        return Ok(vec![ObjectLightSum::default(); n]);
+    }
+    let words = nl.div_ceil(16);
+    let stride = words;
+    let too_many = || format!("{n} surfaces of {nl} VPLs are more than the device indexes");
+    let (Ok(count), Ok(lights_u32), Some(total)) = (
+        u32::try_from(n),
+        u32::try_from(nl),
+        n.checked_mul(stride).filter(|&t| u32::try_from(t).is_ok()),
+    ) else {
+        return Err(s.too_large(&too_many()));
+    };
+    let Some((gx, gy)) = s.ctx().flat_grid(n, WORKGROUP) else {
+        return Err(s.too_large(&too_many()));
+    };
+    let origin = plan.centre;
+    let mut lights = Vec::with_capacity(nl);
+    for (j, l) in plan.lights.iter().enumerate() {
+        let scene_map = maps.scene_index.get(j).copied().unwrap_or(NONE);
+        if scene_map == NONE && plan.scene_maps.get(j).is_some_and(Option::is_some) {
+            return Err(NodeError::Internal(format!(
+                "the scene map of VPL {j} is not on the device"
+            )));
+        }
+        lights.push(gpu_light(l, scene_map, maps.groups));
+    }
+    let surfaces: Vec<GpuSurface> = surfs
+        .iter()
+        .map(|q| GpuSurface {
+            pos: f3(q.pos - origin),
+            _p0: 0.0,
+            n: f3(q.n),
+            _p1: 0.0,
+            at: f3(q.pos),
+            _p2: 0.0,
+        })
+        .collect();
+    // the photo's depth for the contact march (the move's upload, else
+    // one here; one word when the march is off)
+    let mut upload = None;
+    let march = match &plan.contact {
+        Some(c) => {
+            let (w, h) = c.depth.dims();
+            let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
+                return Err(s.too_large("a depth map larger than the device indexes"));
+            };
+            if maps.depth.is_none() {
+                upload = Some(s.upload(bytes_of(c.depth.as_slice()))?);
+            }
+            Some((w, h, c))
+        }
+        None => {
+            upload = Some(s.upload(&[0u8; 4])?);
+            None
+        }
+    };
+    let depth = match (&upload, &maps.depth) {
+        (Some(b), _) | (None, Some(b)) => b,
+        (None, None) => {
+            return Err(NodeError::Internal("no depth buffer for the march".into()));
+        }
+    };
+    let kernel = s.kernel(&shaders::RELIGHT_OBJECT)?;
+    let params = ObjectParams {
+        count,
+        row: gx * WORKGROUP,
+        lights: lights_u32,
+        words: words as u32,
+        contact: u32::from(march.is_some()),
+        width: march.map_or(0, |m| m.0),
+        height: march.map_or(0, |m| m.1),
+        max_steps: march.map_or(0, |m| {
+            u32::try_from(m.2.params.max_steps).unwrap_or(u32::MAX)
+        }),
+        fx: march.map_or(1.0, |m| m.2.k.fx as f32),
+        fy: march.map_or(1.0, |m| m.2.k.fy as f32),
+        cx: march.map_or(0.0, |m| m.2.k.cx as f32),
+        cy: march.map_or(0.0, |m| m.2.k.cy as f32),
+        thickness: march.map_or(0.0, |m| m.2.params.thickness_m as f32),
+        _pad: [0.0; 3],
+    };
+    let uniform = s.uniform(bytemuck::bytes_of(&params))?;
+    let b_surfaces = s.upload(bytes_of(&surfaces))?;
+    let b_lights = s.upload(bytes_of(&lights))?;
+    let bytes = 4 * total as u64;
+    let out = s.scratch(bytes)?;
+    let all = run_flat(
+        s,
+        &kernel,
+        &[
+            &uniform,
+            &b_surfaces,
+            &b_lights,
+            &maps.maps,
+            &maps.texels,
+            depth,
+        ],
+        (&out, bytes),
+        (gx, gy),
+    )?;
+    if all.len() != total {
+        return Err(NodeError::Internal(format!(
+            "the device returned {} words for {n} surfaces of {nl} VPLs",
+            all.len()
+        )));
+    }
+    let sums: Vec<(ObjectLightSum, usize)> = all
+        .par_chunks_exact(stride)
+        .zip(surfs)
+        .map(|(w, q)| {
+            let seen = |j: usize| Seen::from_bits(w[j / 16] >> (2 * (j % 16)));
+            let asked = w.iter().map(|&x| asked_in(x)).sum();
+            (sums_from_decisions(plan, q, seen), asked)
+        })
+        .collect();
+    stats.surfaces += n;
+    Ok(sums
+        .into_iter()
+        .map(|(sum, asked)| {
+            stats.asked += asked;
+            sum
+        })
+        .collect())
+}
+
+/// Both long sums of a move on the device ([`MoveSums`]), the shadow
+/// maps uploaded once for the move; what each did.
+pub struct DeviceSums<'s, 'a> {
+    session: &'s mut Session<'a>,
+    maps: Option<MoveMaps>,
+    /// The direct term's work.
+    pub direct: DirectStats,
+    /// The object's light's work.
+    pub object: ObjectLightStats,
+}
+
+impl<'s, 'a> DeviceSums<'s, 'a> {
+    /// Sums of one move in `session`.
+    pub fn new(session: &'s mut Session<'a>) -> Self {
+        DeviceSums {
+            session,
+            maps: None,
+            direct: DirectStats::default(),
+            object: ObjectLightStats::default(),
+        }
+    }
+
+    /// The move's maps (every scene map), uploaded on first use.
+    fn maps(
+        &mut self,
+        object_maps: &[Option<ShadowMap>],
+        scene_maps: &[Option<ShadowMap>],
+        origin: DVec3,
+    ) -> Result<MoveMaps, NodeError> {
+        match self.maps.take() {
+            Some(m) if m.origin == origin && m.groups == object_maps.len() => Ok(m),
+            _ => upload_maps(self.session, object_maps, scene_maps, origin, |_| true),
+        }
+    }
+}
+
+impl MoveSums for DeviceSums<'_, '_> {
+    fn begin_move(&mut self) {
+        self.maps = None;
+    }
+
+    fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
+        let maps = self.maps(plan.object_maps, plan.scene_maps, plan.centre)?;
+        let r = direct_with(self.session, plan, &maps, &mut self.direct);
+        self.maps = Some(maps);
+        r
+    }
+
+    fn object_light(
+        &mut self,
+        plan: &ObjectLightPlan,
+        surfs: &[Surf],
+    ) -> Result<Vec<ObjectLightSum>, NodeError> {
+        let mut maps = self.maps(plan.object_maps, plan.scene_maps, plan.centre)?;
+        // the photo's depth once per move too
+        if let (Some(c), None) = (&plan.contact, &maps.depth) {
+            maps.depth = Some(self.session.upload(bytes_of(c.depth.as_slice()))?);
+        }
+        let r = object_light_with(self.session, plan, surfs, &maps, &mut self.object);
+        self.maps = Some(maps);
+        r
+    }
+}
+
 /// The device evaluation of `Relight` (module docs).
 pub fn eval(
     s: &mut Session,
@@ -293,12 +681,14 @@ pub fn eval(
             p.visibility.name()
         )));
     }
-    let mut stats = DirectStats::default();
-    let mut r = eval_with(ctx, i, p, &mut |plan| direct(s, plan, &mut stats))?;
+    let mut sums = DeviceSums::new(s);
+    let mut r = eval_with(ctx, i, p, &mut sums)?;
     if r.passthrough.is_none() {
+        let (d, o) = (sums.direct, sums.object);
         let line = format!(
-            "direct term on the device: {} pixels, {} recomputed on the host",
-            stats.pixels, stats.recomputed
+            "direct term on the device: {} pixels, {} recomputed on the host; \
+             object light on the device: {} surfaces, {} decisions left to the host",
+            d.pixels, d.recomputed, o.surfaces, o.asked
         );
         r.report = Some(match r.report.take() {
             Some(prev) => format!("{prev}; {line}"),

@@ -1,8 +1,10 @@
 //! The WGSL sources, each prefixed with `common.wgsl` (and the NL-means
-//! kernels with `nlmeans_acc.wgsl`, the running sums they share).
+//! kernels with `nlmeans_acc.wgsl`, the running sums they share; the
+//! relighting kernels with `relight_maps.wgsl`, their shadow-map lookups).
 
 const COMMON: &str = include_str!("shaders/common.wgsl");
 const NLMEANS_ACC: &str = include_str!("shaders/nlmeans_acc.wgsl");
+const RELIGHT_MAPS: &str = include_str!("shaders/relight_maps.wgsl");
 
 /// A kernel's source and entry point.
 #[derive(Debug, Clone, Copy)]
@@ -58,7 +60,8 @@ kernel!(FEATHER_VERTICAL, "feather.wgsl", "vertical");
 kernel!(EDGES, "edges.wgsl", "main");
 kernel!(COMPOSITE, "composite.wgsl", "main");
 kernel!(NLMEANS, "nlmeans.wgsl", "main", NLMEANS_ACC);
-kernel!(RELIGHT_DIRECT, "relight_direct.wgsl", "main");
+kernel!(RELIGHT_DIRECT, "relight_direct.wgsl", "main", RELIGHT_MAPS);
+kernel!(RELIGHT_OBJECT, "relight_object.wgsl", "main", RELIGHT_MAPS);
 kernel!(
     NLMEANS_UPSAMPLE,
     "nlmeans_upsample.wgsl",
@@ -89,4 +92,5 @@ pub const ALL: &[Kernel] = &[
     NLMEANS,
     NLMEANS_UPSAMPLE,
     RELIGHT_DIRECT,
+    RELIGHT_OBJECT,
 ];

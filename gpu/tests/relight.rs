@@ -1,20 +1,23 @@
-//! Relight: the device's direct term of a scene-cached move against the
-//! CPU's, on the path-traced rooms of `sim::relight_truth`, and the whole
-//! node on both backends.
+//! Relight: the device's direct term and object light of a scene-cached
+//! move against the CPU's, on the path-traced rooms of
+//! `sim::relight_truth`, and the whole node on both backends.
 
 mod common;
 
 use std::sync::Arc;
 
 use common::*;
-use depthgraph_gpu::parity::{direct_within, display_psnr};
-use depthgraph_gpu::relight::{DE_TOL, DirectStats, direct};
+use depthgraph_gpu::parity::{direct_within, display_psnr, object_light_equal};
+use depthgraph_gpu::relight::{DE_TOL, DeviceSums, DirectStats, ObjectLightStats};
 use depthgraph_gpu::session::Session;
 use depthgraph_gpu::{AdapterRequest, GpuContext};
 use depthgraph_graph::prelude::*;
-use depthgraph_nodes::relight::direct::{DirectSum, evaluate};
-use depthgraph_nodes::relight::scene_cached::{RelightScene, relight_moved_with};
-use depthgraph_nodes::relight::shading::RelightParams;
+use depthgraph_nodes::relight::direct::{DirectPlan, DirectSum, evaluate};
+use depthgraph_nodes::relight::object_light::{
+    ObjectLightPlan, ObjectLightSum, evaluate as evaluate_light, sums_from_seen,
+};
+use depthgraph_nodes::relight::scene_cached::{MoveSums, RelightScene, relight_moved_with};
+use depthgraph_nodes::relight::shading::{RelightParams, Surf};
 use depthgraph_nodes::relight::vpl::Vpl;
 use depthgraph_nodes::sim::pathtrace::PathTraceParams;
 use depthgraph_nodes::sim::relight_truth::{RelightCase, Room, Sky, relight_case};
@@ -38,6 +41,110 @@ fn total_power(vpls: &[Vpl]) -> [f64; 3] {
     t
 }
 
+/// Both backends' sums of one move: the CPU's go on (the move is the
+/// CPU's), the device's are kept beside them; with a perturbed copy of
+/// the first object light in which a surface loses one lit VPL.
+struct Both<'s, 'a> {
+    dev: DeviceSums<'s, 'a>,
+    direct: Option<(Vec<DirectSum>, Vec<DirectSum>)>,
+    light: Vec<(Vec<ObjectLightSum>, Vec<ObjectLightSum>)>,
+    perturbed: Option<Vec<ObjectLightSum>>,
+    /// Decisions the contact march turned from lit to blocked.
+    marched: usize,
+}
+
+impl MoveSums for Both<'_, '_> {
+    fn begin_move(&mut self) {
+        self.dev.begin_move();
+    }
+
+    fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
+        let cpu = evaluate(plan);
+        let dev = self.dev.direct(plan)?;
+        self.direct = Some((cpu.clone(), dev));
+        Ok(cpu)
+    }
+
+    fn object_light(
+        &mut self,
+        plan: &ObjectLightPlan,
+        surfs: &[Surf],
+    ) -> Result<Vec<ObjectLightSum>, NodeError> {
+        let cpu = evaluate_light(plan, surfs);
+        let dev = self.dev.object_light(plan, surfs)?;
+        let unmarched = ObjectLightPlan {
+            contact: None,
+            ..plan.clone()
+        };
+        for q in surfs {
+            for (j, l) in plan.lights.iter().enumerate() {
+                let cos = q.n.dot(l.dir);
+                if cos > 0.0 && plan.seen(j, q, cos) != unmarched.seen(j, q, cos) {
+                    self.marched += 1;
+                }
+            }
+        }
+        if self.perturbed.is_none() {
+            // the first surface a VPL lights: that VPL taken away
+            let lit = surfs.iter().enumerate().find_map(|(k, q)| {
+                (0..plan.lights.len()).find_map(|j| {
+                    let cos = q.n.dot(plan.lights[j].dir);
+                    (cos > 0.0 && plan.seen(j, q, cos).1).then_some((k, j))
+                })
+            });
+            if let Some((k, lost)) = lit {
+                let mut bad = dev.clone();
+                bad[k] = sums_from_seen(plan, &surfs[k], |j, cos| {
+                    if j == lost {
+                        (true, false)
+                    } else {
+                        plan.seen(j, &surfs[k], cos)
+                    }
+                });
+                self.perturbed = Some(bad);
+            }
+        }
+        self.light.push((cpu.clone(), dev));
+        Ok(cpu)
+    }
+}
+
+/// What both backends gave for one move, and what the device did.
+struct Sums {
+    direct: (Vec<DirectSum>, Vec<DirectSum>),
+    light: Vec<(Vec<ObjectLightSum>, Vec<ObjectLightSum>)>,
+    perturbed: Option<Vec<ObjectLightSum>>,
+    marched: usize,
+    direct_stats: DirectStats,
+    light_stats: ObjectLightStats,
+}
+
+/// Both backends' sums of one move on a given device context.
+fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
+    let p = RelightParams::default();
+    let inp = c.inputs();
+    let scene = RelightScene::new(&inp.scene(), vpls, &p).unwrap();
+    let mut s = Session::new(ctx);
+    let mut both = Both {
+        dev: DeviceSums::new(&mut s),
+        direct: None,
+        light: Vec::new(),
+        perturbed: None,
+        marched: 0,
+    };
+    relight_moved_with(&scene, &inp, &p, &mut both)
+        .unwrap()
+        .unwrap();
+    Sums {
+        direct: both.direct.unwrap(),
+        light: both.light,
+        perturbed: both.perturbed,
+        marched: both.marched,
+        direct_stats: both.dev.direct,
+        light_stats: both.dev.object,
+    }
+}
+
 /// The CPU's and the device's direct terms of one move (the same plan),
 /// and what the device did.
 fn both_direct(c: &RelightCase, vpls: &[Vpl]) -> (Vec<DirectSum>, Vec<DirectSum>, DirectStats) {
@@ -50,22 +157,80 @@ fn both_direct_on(
     c: &RelightCase,
     vpls: &[Vpl],
 ) -> (Vec<DirectSum>, Vec<DirectSum>, DirectStats) {
-    let p = RelightParams::default();
-    let inp = c.inputs();
-    let scene = RelightScene::new(&inp.scene(), vpls, &p).unwrap();
-    let mut s = Session::new(ctx);
-    let mut stats = DirectStats::default();
-    let mut seen = None;
-    relight_moved_with(&scene, &inp, &p, &mut |plan| {
-        let cpu = evaluate(plan);
-        let dev = direct(&mut s, plan, &mut stats)?;
-        seen = Some((cpu.clone(), dev));
-        Ok(cpu)
-    })
-    .unwrap()
-    .unwrap();
-    let (cpu, dev) = seen.unwrap();
-    (cpu, dev, stats)
+    let s = both_sums_on(ctx, c, vpls);
+    (s.direct.0, s.direct.1, s.direct_stats)
+}
+
+/// Every object light of the move the same bits on both; the surfaces.
+fn light_equal(light: &[(Vec<ObjectLightSum>, Vec<ObjectLightSum>)]) -> Result<usize, String> {
+    let mut n = 0;
+    for (cpu, dev) in light {
+        n += object_light_equal(cpu, dev)?;
+    }
+    Ok(n)
+}
+
+#[test]
+fn the_object_light_on_the_device_is_the_cpus_bit_for_bit() {
+    for (room, sky) in [
+        (Room::Open, None),
+        (Room::NearWall, None),
+        (Room::Occluded, Some(Sky::Overcast)),
+    ] {
+        let c = case(room, sky);
+        let vpls = c.vpls(256);
+        let sums = both_sums_on(&gpu(), &c, &vpls);
+        let n = light_equal(&sums.light).unwrap_or_else(|e| panic!("{}: {e}", c.name));
+        let st = sums.light_stats;
+        let decisions = n * vpls.len();
+        eprintln!(
+            "{}: {} calls, {n} surfaces, {} of {decisions} decisions left to the host, \
+             {} blocked by the contact march",
+            c.name,
+            sums.light.len(),
+            st.asked,
+            sums.marched
+        );
+        // beside the wall the march blocks light the maps let through: the
+        // device's marches decide those sums
+        if room == Room::NearWall {
+            assert!(sums.marched >= 100, "{}: {} marched", c.name, sums.marched);
+        }
+        // the lattices ask for the object's surfaces (nodes, then the rest)
+        assert!(n >= 50, "{}: {n} surfaces", c.name);
+        assert_eq!(st.surfaces, n, "{}", c.name);
+        // the device settles nearly every decision itself (its contact
+        // marches included), and the lit surfaces are lit by it
+        assert!(
+            st.asked * 50 <= decisions,
+            "{}: {} of {decisions} decisions left to the host",
+            c.name,
+            st.asked
+        );
+        let lit = sums
+            .light
+            .iter()
+            .flat_map(|(_, d)| d)
+            .filter(|l| l.est.iter().any(|&e| e > 0.0))
+            .count();
+        assert!(lit * 2 >= n, "{}: {lit} of {n} surfaces lit", c.name);
+    }
+}
+
+#[test]
+fn a_perturbed_object_light_fails_the_check() {
+    let c = case(Room::Open, None);
+    let vpls = c.vpls(256);
+    let sums = both_sums_on(&gpu(), &c, &vpls);
+    let (cpu, dev) = &sums.light[0];
+    object_light_equal(cpu, dev).unwrap();
+    // one surface without one lit VPL's light
+    let bad = sums.perturbed.expect("a lit surface");
+    assert!(object_light_equal(cpu, &bad).is_err());
+    // one ulp off in one channel
+    let mut bad = dev.clone();
+    bad[0].ecap[2] = f64::from_bits(bad[0].ecap[2].to_bits() + 1);
+    assert!(object_light_equal(cpu, &bad).is_err());
 }
 
 #[test]
@@ -110,14 +275,19 @@ fn a_direct_term_dispatched_in_rows_agrees_with_the_cpu() {
     .unwrap();
     let c = case(Room::Open, None);
     let vpls = c.vpls(64);
-    let (cpu, dev, stats) = both_direct_on(&narrow, &c, &vpls);
+    let sums = both_sums_on(&narrow, &c, &vpls);
+    let ((cpu, dev), stats) = (&sums.direct, sums.direct_stats);
     // many rows: the plan is far more than 3 x 64 pixels
     assert!(stats.pixels > 20 * 3 * 64, "{} pixels", stats.pixels);
     let (x, y) = narrow.flat_grid(stats.pixels, 64).unwrap();
     assert_eq!(x, 3);
     assert!(y > 20);
-    let a = direct_within(&cpu, &dev, total_power(&vpls), DE_TOL).unwrap();
+    let a = direct_within(cpu, dev, total_power(&vpls), DE_TOL).unwrap();
     assert!(a.hits >= 50, "{} shaded pixels", a.hits);
+    // the object light's calls too: one of them spans rows
+    let largest = sums.light.iter().map(|(c, _)| c.len()).max().unwrap_or(0);
+    assert!(largest > 3 * 64, "{largest} surfaces");
+    light_equal(&sums.light).unwrap();
 }
 
 #[test]
@@ -166,6 +336,7 @@ fn the_relight_node_on_the_device_gives_the_cpus_picture() {
     assert_eq!(cpu.values.get("region"), dev.values.get("region"));
     let report = dev.report.clone().unwrap_or_default();
     assert!(report.contains("direct term on the device"), "{report}");
+    assert!(report.contains("object light on the device"), "{report}");
     // a perturbed picture fails the same bound
     let mut worse = (*b).clone();
     for px in worse.as_mut_slice().iter_mut().step_by(7) {

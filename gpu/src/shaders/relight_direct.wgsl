@@ -29,36 +29,6 @@ struct Pixel {
     last: u32,
 }
 
-struct Light {
-    dir: vec3<f32>,
-    bias_object: f32,
-    power: vec3<f32>,
-    bias_scene: f32,
-    group: u32,           // its object map (index into maps)
-    scene_map: u32,       // its scene map, or NONE
-    same_frame: u32,      // the scene map has the object map's frame
-    _pad: u32,
-}
-
-struct Map {
-    eu: vec3<f32>,
-    u0: f32,              // window origin, relative to the origin
-    ev: vec3<f32>,
-    v0: f32,
-    dir: vec3<f32>,
-    z0: f32,              // origin . dir
-    inv_texel: f32,
-    res: u32,             // 0: no map
-    offset: u32,          // first texel in `texels`
-    _pad: u32,
-}
-
-const NONE: u32 = 0xffffffffu;
-// An empty texel (the CPU's -inf) is stored as -1e30; at or below: empty.
-const EMPTY: f32 = -1.0e30;
-// Relative rounding allowance of a test (about 16 f32 ulps).
-const REL: f32 = 1.0e-6;
-
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> pixels: array<Pixel>;
 @group(0) @binding(2) var<storage, read> list: array<u32>;
@@ -67,55 +37,6 @@ const REL: f32 = 1.0e-6;
 @group(0) @binding(5) var<storage, read> texels: array<f32>;
 // per pixel: the sums' bits (r, g, b) and flags (1: hit, 2: unsure)
 @group(0) @binding(6) var<storage, read_write> out: array<vec4<u32>>;
-
-var<private> unsure: bool;
-
-// The texel index along one axis of a map (-1 outside); `mag` bounds the
-// magnitude of the point's relative coordinates.
-fn axis_index(l: f32, o: f32, inv: f32, res: u32, mag: f32) -> i32 {
-    let u = (l - o) * inv;
-    let e = REL * (inv * (mag + abs(o)) + abs(u) + 1.0);
-    if (u < 0.0) {
-        if (u > -e) {
-            unsure = true;
-        }
-        return -1;
-    }
-    let f = floor(u);
-    if (u - f < e || (f + 1.0) - u < e) {
-        unsure = true;
-    }
-    if (f >= f32(res)) {
-        return -1;
-    }
-    return i32(f);
-}
-
-// The occluder at light coordinates `lc` of map `m` (EMPTY outside).
-fn lookup(m: Map, lc: vec3<f32>, mag: f32) -> f32 {
-    let x = axis_index(lc.x, m.u0, m.inv_texel, m.res, mag);
-    let y = axis_index(lc.y, m.v0, m.inv_texel, m.res, mag);
-    if (x < 0 || y < 0) {
-        return EMPTY;
-    }
-    return texels[m.offset + u32(y) * m.res + u32(x)];
-}
-
-fn light_coords(m: Map, p: vec3<f32>) -> vec3<f32> {
-    return vec3<f32>(dot(p, m.eu), dot(p, m.ev), dot(p, m.dir));
-}
-
-// The ISM bias's slope factor 1 + min(tan, 10) (direct.rs `slope`).
-fn slope(cos: f32) -> f32 {
-    let c = max(cos, 1.0e-6);
-    return 1.0 + min(sqrt(max(1.0 - c * c, 0.0)) / c, 10.0);
-}
-
-// Whether `d` (occluder minus receiver, plus bias) is within the rounding
-// of its terms of 0: then the f64 test may go the other way.
-fn near_zero(d: f32, scale: f32) -> bool {
-    return abs(d) < REL * scale + 1.0e-12;
-}
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -187,9 +108,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             continue;
         }
         let sl = slope(cos);
+        // the slope's own error (near normal incidence, far above rounding)
+        let se = slope_err(cos);
         let bo = l.bias_object * sl;
         let d2 = d1 - bo;
-        if (near_zero(d2, scale + 16.0 * bo)) {
+        if (near_zero(d2, scale + 16.0 * bo) || abs(d2) <= l.bias_object * se) {
             unsure = true;
         }
         if (d2 <= 0.0) {
@@ -207,7 +130,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (so > EMPTY) {
                 let bs = l.bias_scene * sl;
                 let d3 = (so - sm.z0) - (slc.z + bs);
-                if (near_zero(d3, abs(so) + abs(sm.z0) + 4.0 * mag + 16.0 * bs)) {
+                if (near_zero(d3, abs(so) + abs(sm.z0) + 4.0 * mag + 16.0 * bs)
+                    || abs(d3) <= l.bias_scene * se) {
                     unsure = true;
                 }
                 visible = d3 <= 0.0;

@@ -10,6 +10,7 @@ pub mod ism;
 pub mod lattice;
 pub mod lighting;
 pub mod node;
+pub mod object_light;
 pub mod object_mesh;
 pub mod paired;
 pub mod raycast;

@@ -8,9 +8,8 @@ use depthgraph_graph::prelude::*;
 use depthgraph_graph::registry::RegistryError;
 
 use crate::kit::color::luminance_clamped;
-use crate::relight::direct::evaluate as evaluate_direct;
 use crate::relight::scene_cached::{
-    DirectEvaluator, RelightScene, SCENE_PORTS, relight_moved_with, scene_key_params,
+    CpuSums, MoveSums, RelightScene, SCENE_PORTS, relight_moved_with, scene_key_params,
 };
 use crate::relight::vpl::checked_vpls;
 
@@ -113,16 +112,16 @@ pub fn shadow_maps_fit(vpls: usize, capture: usize, p: &RelightParams) -> Result
 }
 
 fn eval(ctx: &EvalCtx, i: RelightIn, p: &RelightParams) -> Result<Produced<RelightOut>, NodeError> {
-    eval_with(ctx, i, p, &mut |plan| Ok(evaluate_direct(plan)))
+    eval_with(ctx, i, p, &mut CpuSums)
 }
 
-/// `Relight` with the direct term of a scene-cached move from `direct`
-/// (a device's evaluator; the CPU's is [`crate::relight::direct::evaluate`]).
+/// `Relight` with the long sums of a scene-cached move from `sums` (a
+/// device's evaluators; the CPU's are [`CpuSums`]).
 pub fn eval_with(
     ctx: &EvalCtx,
     i: RelightIn,
     p: &RelightParams,
-    direct: &mut DirectEvaluator,
+    sums: &mut dyn MoveSums,
 ) -> Result<Produced<RelightOut>, NodeError> {
     let vpls = checked_vpls(&i.vpls, "vpls")?;
     let capture = match &i.capture_vpls {
@@ -158,7 +157,7 @@ pub fn eval_with(
                 RelightScene::new(&inp.scene(), &vpls, p)
             })?;
             ctx.check_cancelled()?;
-            relight_moved_with(&scene, &inp, p, direct)?
+            relight_moved_with(&scene, &inp, p, sums)?
         }
     };
     match result {

@@ -52,7 +52,7 @@ use rayon::prelude::*;
 
 use crate::kit::checks::fits_intrinsics;
 use crate::kit::color::luminance_clamped;
-use crate::relight::contact::{ContactParams, occluded as contact_occluded};
+use crate::relight::contact::ContactParams;
 use crate::relight::direct::{
     DirectLight, DirectPixel, DirectPlan, DirectSum, DirectTile, evaluate as evaluate_direct, slope,
 };
@@ -60,6 +60,9 @@ use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, Window, build_single_in, windows,
 };
 use crate::relight::lattice::{Agreement, Lattice, Nested};
+use crate::relight::object_light::{
+    Contact, ObjectLightPlan, ObjectLightSum, evaluate as evaluate_object_light,
+};
 use crate::relight::object_mesh::{ObjectMesh, pooled};
 pub use crate::relight::shading::SceneInputs;
 use crate::relight::shading::{
@@ -688,6 +691,10 @@ fn same_surface(s: &Surf, q: &Surf) -> bool {
 /// 1.7 dB, staying above 53 dB (`docs/relight-truth.md`).
 type Irradiances = [[f64; 3]; 2];
 
+/// The exact irradiances of a list of surfaces (the lattices' nodes and
+/// the pixels no lattice serves).
+type ExactIrradiances<'e> = dyn FnMut(&[Surf]) -> Result<Vec<Irradiances>, NodeError> + 'e;
+
 /// [`Irradiances`] as one row of six.
 fn flat(v: &Irradiances) -> [f64; 6] {
     std::array::from_fn(|i| v[i / 3][i % 3])
@@ -706,8 +713,8 @@ fn lattice_irradiance(
     h: usize,
     step: usize,
     agree: Agreement,
-    exact: &(dyn Fn(&[Surf]) -> Vec<Irradiances> + Sync),
-) -> Vec<Irradiances> {
+    exact: &mut ExactIrradiances,
+) -> Result<Vec<Irradiances>, NodeError> {
     if step <= 1 {
         return exact(surfs);
     }
@@ -744,7 +751,7 @@ fn lattice_irradiance(
         }
         let nodes: Vec<usize> = (0..obj_idx.len()).filter(|&q| need[q]).collect();
         let node_surfs: Vec<Surf> = nodes.iter().map(|&q| surfs[q]).collect();
-        for (&q, v) in nodes.iter().zip(exact(&node_surfs)) {
+        for (&q, v) in nodes.iter().zip(exact(&node_surfs)?) {
             known[q] = Some(flat(&v));
         }
         let eval = |i: usize| place(i).and_then(|q| known[q]);
@@ -762,15 +769,16 @@ fn lattice_irradiance(
     }
     let rest: Vec<usize> = (0..obj_idx.len()).filter(|&j| out[j].is_none()).collect();
     let rest_surfs: Vec<Surf> = rest.iter().map(|&j| surfs[j]).collect();
-    for (&j, v) in rest.iter().zip(exact(&rest_surfs)) {
+    for (&j, v) in rest.iter().zip(exact(&rest_surfs)?) {
         out[j] = Some(flat(&v));
     }
-    out.into_iter()
+    Ok(out
+        .into_iter()
         .map(|v| {
             let v = v.unwrap_or([0.0; 6]);
             std::array::from_fn(|t| [v[3 * t], v[3 * t + 1], v[3 * t + 2]])
         })
-        .collect()
+        .collect())
 }
 
 /// `Relight` with the scene's part from `scene` (module docs): the same
@@ -782,20 +790,53 @@ pub fn relight_moved(
     inp: &RelightInputs,
     p: &RelightParams,
 ) -> Result<Option<Relit>, NodeError> {
-    relight_moved_with(scene, inp, p, &mut |plan| Ok(evaluate_direct(plan)))
+    relight_moved_with(scene, inp, p, &mut CpuSums)
 }
 
-/// The direct term's evaluator: one [`DirectSum`] per pixel of the plan,
-/// tile after tile ([`crate::relight::direct::evaluate`] on the CPU).
-pub type DirectEvaluator<'e> = dyn FnMut(&DirectPlan) -> Result<Vec<DirectSum>, NodeError> + 'e;
+/// The evaluators of a move's two long sums over the VPLs: the direct
+/// term at the target's pixels ([`crate::relight::direct`]) and the
+/// object's received light ([`crate::relight::object_light`]). The CPU's
+/// ([`CpuSums`]) or a device's; every discrete choice around them (which
+/// pixels, which surfaces, which VPLs, the lattices) is made here.
+pub trait MoveSums {
+    /// A new move begins (its maps and plans are new): forget what the
+    /// last one left (a device's uploaded maps, say).
+    fn begin_move(&mut self) {}
+    /// One [`DirectSum`] per pixel of the plan, tile after tile.
+    fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError>;
+    /// One [`ObjectLightSum`] per surface of `surfs`, in order.
+    fn object_light(
+        &mut self,
+        plan: &ObjectLightPlan,
+        surfs: &[Surf],
+    ) -> Result<Vec<ObjectLightSum>, NodeError>;
+}
 
-/// [`relight_moved`] with the direct term's sums from `direct` (the
-/// device's, say); everything else on the CPU.
+/// Both sums on the CPU.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CpuSums;
+
+impl MoveSums for CpuSums {
+    fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
+        Ok(evaluate_direct(plan))
+    }
+
+    fn object_light(
+        &mut self,
+        plan: &ObjectLightPlan,
+        surfs: &[Surf],
+    ) -> Result<Vec<ObjectLightSum>, NodeError> {
+        Ok(evaluate_object_light(plan, surfs))
+    }
+}
+
+/// [`relight_moved`] with the long sums from `sums` (the device's, say);
+/// everything else on the CPU.
 pub fn relight_moved_with(
     scene: &RelightScene,
     inp: &RelightInputs,
     p: &RelightParams,
-    direct: &mut DirectEvaluator,
+    sums: &mut dyn MoveSums,
 ) -> Result<Option<Relit>, NodeError> {
     let k = inp.k;
     if *k != scene.k {
@@ -817,6 +858,7 @@ pub fn relight_moved_with(
             "connected differently from when the cached scene was built",
         ));
     }
+    sums.begin_move();
     let (w, h) = (k.width, k.height);
     let alpha = clean_alpha(inp.alpha, inp.pasted_depth);
     // an object hidden whole still casts its shadow (`nothing_pasted`)
@@ -941,28 +983,39 @@ pub fn relight_moved_with(
             (q, nq, flux)
         })
         .collect();
-    // The scene's visibility of an object surface along `d`: the map's,
-    // except where its occluder lies within the bias of the surface (a
-    // wall a few centimetres away): there the photo's depth decides
-    // (`contact`). `occ` and `z` in the map's light coordinates.
-    let contact = ContactParams::default();
-    // The march reaches the map's occluder (`occ - z` along `d`) and a
-    // texel beyond it (the texel's extent across `d`).
-    let scene_sees = |occ: f64, z: f64, bias: f64, texel: f64, pos: DVec3, d: DVec3| -> bool {
-        if occ.is_nan() || occ <= z {
-            return true;
-        }
-        if occ > z + bias {
-            return false;
-        }
-        let reach = (occ - z + texel).min(bias);
-        !p.contact || !contact_occluded(inp.depth, k, pos, d, reach, &contact)
+    // The object's received light from the environment's VPLs (the
+    // evaluator's: `crate::relight::object_light`): the scene's test is
+    // the map's, the contact march deciding where the map's occluder lies
+    // within the bias of the surface (`p.contact`).
+    // The VPLs as the two sums read them, with the object maps' bias
+    // constants `bias_object` per VPL; per VPL with an object map: whether
+    // its scene map shares the frame.
+    let move_lights = |bias_object: &[f64]| -> Vec<DirectLight> {
+        (0..scene.vpls.len())
+            .map(|j| DirectLight {
+                dir: scene.dirs[j],
+                power: scene.vpls[j].power.map(f64::from),
+                group: om.of.get(j).copied().unwrap_or(usize::MAX),
+                bias_object: bias_object[j],
+                bias_scene: scene.bias_t[j],
+                shared: match (&scene.maps[j], om.get(j)) {
+                    (Some(a), Some(b)) => a.same_frame(b),
+                    _ => false,
+                },
+            })
+            .collect()
     };
-    // chunks of surfaces, VPL-major inside (one pair of maps in cache at a
-    // time); every surface sums its VPLs in order. 64, not more: the fine
-    // lattice's and the exact rest's lists are a few hundred surfaces, and
-    // larger chunks left one of the two threads idle on them.
-    const CHUNK: usize = 64;
+    let light_plan = ObjectLightPlan {
+        lights: move_lights(&bias_oo),
+        object_maps: &om.maps,
+        scene_maps: &scene.maps,
+        contact: p.contact.then_some(Contact {
+            depth: inp.depth,
+            k,
+            params: ContactParams::default(),
+        }),
+        centre: c,
+    };
     // the bounce VPLs' paraboloid maps (bounce_shadows): scene and object
     // samples, each with its own radius
     let m_obj = (p.bounce_ism_points / 4).max(16);
@@ -989,104 +1042,28 @@ pub fn relight_moved_with(
         _ => Vec::new(),
     };
     let scene_shadows = PointVplShadows::new(&scene_vpls, &bounce_samples, p, p.seed ^ 0x5EC0);
-    let irradiance = |surfs: &[Surf]| -> Vec<Irradiances> {
-        surfs
-            .par_chunks(CHUNK)
-            .flat_map_iter(|chunk| {
-                let mut acc = vec![([0.0f64; 3], [0.0f64; 3]); chunk.len()];
-                for (j, (v, d)) in scene.vpls.iter().zip(&scene.dirs).enumerate() {
-                    let power = v.power.map(f64::from);
-                    let (sm, omap) = (scene.maps[j].as_ref(), om.get(j));
-                    let shared = match (sm, omap) {
-                        (Some(a), Some(b)) => a.same_frame(b),
-                        _ => false,
-                    };
-                    for (s, (est, ecap)) in chunk.iter().zip(acc.iter_mut()) {
-                        let cos = s.n.dot(*d);
-                        if cos <= 0.0 {
-                            continue;
-                        }
-                        // (V^o, V^t): the object's own shadow, the scene's
-                        let (vo, vt) = match (sm, omap) {
-                            (Some(a), Some(b)) if shared => {
-                                // the slope (a square root, a division) only
-                                // where a texel holds an occluder
-                                let lc = a.light_coords(s.pos);
-                                let (oo, os) =
-                                    (f64::from(b.occluder_lc(lc)), f64::from(a.occluder_lc(lc)));
-                                if oo == f64::NEG_INFINITY && os == f64::NEG_INFINITY {
-                                    (true, true)
-                                } else {
-                                    let sl = slope(cos);
-                                    let see =
-                                        |occ: f64, bias: f64| occ.is_nan() || occ <= lc.z + bias;
-                                    let vo = see(oo, bias_oo[j] * sl);
-                                    // the scene's test (a march, maybe) only
-                                    // where the object lets the light through:
-                                    // its light counts only then
-                                    (
-                                        vo,
-                                        vo && scene_sees(
-                                            os,
-                                            lc.z,
-                                            scene.bias_t[j] * sl,
-                                            a.texel_m,
-                                            s.pos,
-                                            *d,
-                                        ),
-                                    )
-                                }
-                            }
-                            _ => {
-                                let sl = slope(cos);
-                                let vo = omap.is_none_or(|m| m.visible(s.pos, bias_oo[j] * sl));
-                                // the scene's test (a march, maybe) only
-                                // where the object lets the light through
-                                (
-                                    vo,
-                                    vo && sm.is_none_or(|m| {
-                                        let lc = m.light_coords(s.pos);
-                                        let os = f64::from(m.occluder_lc(lc));
-                                        scene_sees(
-                                            os,
-                                            lc.z,
-                                            scene.bias_t[j] * sl,
-                                            m.texel_m,
-                                            s.pos,
-                                            *d,
-                                        )
-                                    }),
-                                )
-                            }
-                        };
-                        for ch in 0..3 {
-                            let e = power[ch] * cos;
-                            if vo {
-                                ecap[ch] += e;
-                                if vt {
-                                    est[ch] += e;
-                                }
-                            }
-                        }
-                    }
-                }
-                // the scene's bounce onto the object, per surface
-                acc.into_iter().zip(chunk).map(|((est, ecap), s)| {
-                    let bs = if scene_vpls.is_empty() {
-                        [0.0; 3]
-                    } else {
-                        scene_shadows.bounce(
-                            s.pos,
-                            s.n,
-                            r_obj,
-                            scene_lit.iter().enumerate(),
-                            r2_min,
-                        )
-                    };
-                    [received(est, bs), ecap]
-                })
+    let mut irradiance = |surfs: &[Surf]| -> Result<Vec<Irradiances>, NodeError> {
+        let light = sums.object_light(&light_plan, surfs)?;
+        if light.len() != surfs.len() {
+            return Err(NodeError::Internal(format!(
+                "the object light's evaluator gave {} sums for {} surfaces",
+                light.len(),
+                surfs.len()
+            )));
+        }
+        // the scene's bounce onto the object, per surface
+        Ok(light
+            .par_iter()
+            .zip(surfs)
+            .map(|(l, s)| {
+                let bs = if scene_vpls.is_empty() {
+                    [0.0; 3]
+                } else {
+                    scene_shadows.bounce(s.pos, s.n, r_obj, scene_lit.iter().enumerate(), r2_min)
+                };
+                [received(l.est, bs), l.ecap]
             })
-            .collect()
+            .collect())
     };
     let irr = lattice_irradiance(
         &obj_idx,
@@ -1100,8 +1077,8 @@ pub fn relight_moved_with(
             whole: true,
             ..agree
         },
-        &irradiance,
-    );
+        &mut irradiance,
+    )?;
     // the capture side: the same VPLs, or the capture map's with maps of
     // the object alone in their directions
     let ecap: Vec<[f64; 3]> = match inp.capture_vpls {
@@ -1228,20 +1205,7 @@ pub fn relight_moved_with(
         tiles.push(t);
         near_bounce.push((near, b));
     }
-    // per VPL with an object map: whether its scene map shares the frame
-    let lights: Vec<DirectLight> = (0..scene.vpls.len())
-        .map(|j| DirectLight {
-            dir: scene.dirs[j],
-            power: scene.vpls[j].power.map(f64::from),
-            group: om.of.get(j).copied().unwrap_or(usize::MAX),
-            bias_object: bias_os[j],
-            bias_scene: scene.bias_t[j],
-            shared: match (&scene.maps[j], om.get(j)) {
-                (Some(a), Some(b)) => a.same_frame(b),
-                _ => false,
-            },
-        })
-        .collect();
+    let lights = move_lights(&bias_os);
     let plan = DirectPlan {
         tiles,
         lights,
@@ -1251,7 +1215,7 @@ pub fn relight_moved_with(
     };
     // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
     // pixel's cone (the evaluator's), plus the bounce within its reach
-    let sums = direct(&plan)?;
+    let sums = sums.direct(&plan)?;
     if sums.len() != plan.pixel_count() {
         return Err(NodeError::Internal(format!(
             "the direct term's evaluator gave {} sums for {} pixels",
@@ -1571,11 +1535,11 @@ mod tests {
         };
         for (swing, blends) in [(0.02, true), (0.2, false)] {
             let summed = AtomicUsize::new(0);
-            let exact = |ss: &[Surf]| -> Vec<Irradiances> {
+            let mut exact = |ss: &[Surf]| -> Result<Vec<Irradiances>, NodeError> {
                 summed.fetch_add(ss.len(), Ordering::Relaxed);
-                ss.iter().map(|s| value(s, swing)).collect()
+                Ok(ss.iter().map(|s| value(s, swing)).collect())
             };
-            let irr = lattice_irradiance(&obj_idx, &surfs, w, h, 2, agree, &exact);
+            let irr = lattice_irradiance(&obj_idx, &surfs, w, h, 2, agree, &mut exact).unwrap();
             let n = summed.load(Ordering::Relaxed);
             if blends {
                 assert_eq!(n, 25, "swing {swing}: {n} surfaces summed");

@@ -326,10 +326,13 @@ impl Cone {
     }
 }
 
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Surf {
-    pub(crate) pos: DVec3,
-    pub(crate) n: DVec3,
+/// A surface sample: a point and its normal.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Surf {
+    /// Camera space, metres.
+    pub pos: DVec3,
+    /// Unit normal.
+    pub n: DVec3,
 }
 
 /// The target's surfaces, per pixel: unprojected centre and unit normal
