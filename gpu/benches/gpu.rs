@@ -30,8 +30,10 @@ use depthgraph_graph::pipeline::OutputRef;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::camera::refocus::RefocusParams;
 use depthgraph_nodes::depth::bilateral::BilateralParams;
-use depthgraph_nodes::relight::scene_cached::{RelightScene, relight_moved, relight_moved_with};
-use depthgraph_nodes::relight::shading::RelightParams;
+use depthgraph_nodes::relight::scene_cached::{
+    MoveSums, RelightScene, relight_moved, relight_moved_with,
+};
+use depthgraph_nodes::relight::shading::{RelightInputs, RelightParams};
 use depthgraph_nodes::sim::pathtrace::PathTraceParams;
 use depthgraph_nodes::sim::relight_truth::{Room, relight_case};
 use depthgraph_nodes::sim::synthetic::{RenderOptions, Scene, render};
@@ -140,7 +142,9 @@ fn node_row(
 
 /// A `Relight` object move (scene kept) at 640x480 with 256 VPLs on a
 /// path-traced room: the CPU's move against the move with the device's
-/// direct term, the scene built once for both.
+/// two long sums (the direct term, the object's light), the scene built
+/// once for both and named to the device as the node names it (its maps
+/// and the photo's depth stay on the device between moves).
 fn relight_move_row(ctx: &GpuContext, room: Room, repeats: usize) -> Option<Row> {
     let quick = PathTraceParams {
         samples: 1,
@@ -153,9 +157,13 @@ fn relight_move_row(ctx: &GpuContext, room: Room, repeats: usize) -> Option<Row>
         return None;
     }
     let vpls = case.vpls(256);
-    let inp = case.inputs();
+    let depth = Arc::new(case.depth.clone());
+    let inp = RelightInputs {
+        depth: &depth,
+        ..case.inputs()
+    };
     let p = RelightParams::default();
-    let scene = RelightScene::new(&inp.scene(), &vpls, &p).expect("relight scene");
+    let scene = Arc::new(RelightScene::new(&inp.scene(), &vpls, &p).expect("relight scene"));
     let cpu: Vec<f64> = (0..repeats)
         .map(|_| {
             let t = Instant::now();
@@ -165,8 +173,9 @@ fn relight_move_row(ctx: &GpuContext, room: Room, repeats: usize) -> Option<Row>
         .collect();
     let device = |s: &mut Session| {
         let t = Instant::now();
-        relight_moved_with(&scene, &inp, &p, &mut DeviceSums::new(s))
-            .expect("relight move on the device");
+        let mut sums = DeviceSums::new(s).with_depth(depth.clone());
+        sums.scene(&scene);
+        relight_moved_with(&scene, &inp, &p, &mut sums).expect("relight move on the device");
         t.elapsed().as_secs_f64() * 1e3
     };
     let cold = device(&mut Session::new(ctx));

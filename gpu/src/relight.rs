@@ -11,7 +11,9 @@
 //! The plans (which tiles, which VPLs in which order, which maps share a
 //! frame, the lattices' nodes), the scene's part (cached by the engine),
 //! the object's maps, the bounces and the composite stay on the CPU; the
-//! shadow maps are uploaded once per move and serve both kernels;
+//! shadow maps are uploaded once per move and serve both kernels, the
+//! scene's kept on the device with the cached scene and the photo's depth
+//! with its value (the next move finds them there);
 //! `visibility` `paired` and `raycast` run on the CPU whole (the trace
 //! says so).
 //!
@@ -32,6 +34,9 @@
 //! `|Δ| <= DE_TOL * (Σ_k Φ_k + ΔE)` of the CPU's f64 sums ([`DE_TOL`]:
 //! each term's `cos` carries a few ulps of its f32 normal and direction).
 
+use std::any::Any;
+use std::sync::Arc;
+
 use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
@@ -41,7 +46,7 @@ use depthgraph_nodes::relight::node::{RelightIn, RelightOut, eval_with};
 use depthgraph_nodes::relight::object_light::{
     ObjectLightPlan, ObjectLightSum, Seen, sums_from_decisions,
 };
-use depthgraph_nodes::relight::scene_cached::MoveSums;
+use depthgraph_nodes::relight::scene_cached::{MoveSums, RelightScene};
 use depthgraph_nodes::relight::shading::{RelightParams, Surf, Visibility};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -105,7 +110,8 @@ struct GpuMap {
     inv_texel: f32,
     res: u32,
     offset: u32,
-    _pad: u32,
+    /// 0: the object's texels, 1: the scene's.
+    pool: u32,
 }
 
 fn f3(v: DVec3) -> [f32; 3] {
@@ -121,55 +127,68 @@ pub struct DirectStats {
     pub recomputed: usize,
 }
 
-/// Maps packed for the device: headers and one texel pool.
-struct Packed {
-    maps: Vec<GpuMap>,
-    texels: Vec<f32>,
-}
-
-impl Packed {
-    /// Appends `m` (relative to `origin`); `None` gives an empty header.
-    /// `Err` for a texel the device cannot hold exactly (NaN, +inf or a
-    /// finite value at the sentinel's magnitude).
-    fn push(&mut self, m: Option<&ShadowMap>, origin: DVec3) -> Result<u32, String> {
-        let index = self.maps.len() as u32;
-        let Some(m) = m else {
-            self.maps.push(GpuMap::zeroed());
-            return Ok(index);
-        };
-        let f = m.frame();
-        let offset = u32::try_from(self.texels.len())
-            .map_err(|_| "more shadow-map texels than the device indexes".to_string())?;
-        for &t in &m.t {
-            if t == f32::NEG_INFINITY {
-                self.texels.push(EMPTY);
-            } else if t.is_finite() && t.abs() < 1e29 {
-                self.texels.push(t);
-            } else {
-                return Err(format!("a shadow-map texel holds {t}"));
-            }
-        }
-        self.maps.push(GpuMap {
-            eu: f3(f.eu),
-            u0: (f.u0 - origin.dot(f.eu)) as f32,
-            ev: f3(f.ev),
-            v0: (f.v0 - origin.dot(f.ev)) as f32,
-            dir: f3(f.dir),
-            z0: origin.dot(f.dir) as f32,
-            inv_texel: f.inv_texel as f32,
-            res: m.res as u32,
-            offset,
-            _pad: 0,
-        });
-        Ok(index)
+/// The header of map `m` relative to `origin`, its texels at `offset` of
+/// texel pool `pool` (0: the object's, 1: the scene's).
+fn header(m: &ShadowMap, origin: DVec3, offset: u32, pool: u32) -> GpuMap {
+    let f = m.frame();
+    GpuMap {
+        eu: f3(f.eu),
+        u0: (f.u0 - origin.dot(f.eu)) as f32,
+        ev: f3(f.ev),
+        v0: (f.v0 - origin.dot(f.ev)) as f32,
+        dir: f3(f.dir),
+        z0: origin.dot(f.dir) as f32,
+        inv_texel: f.inv_texel as f32,
+        res: m.res as u32,
+        offset,
+        pool,
     }
 }
 
-/// Shadow maps on the device for one move: the object's maps (one per
-/// group) and the scene's, with the index of each VPL's scene map.
+/// Appends `m`'s texels to `texels`, the CPU's `-inf` as [`EMPTY`]; `Err`
+/// for a texel the device cannot hold exactly (NaN, +inf or a finite value
+/// at the sentinel's magnitude).
+fn push_texels(m: &ShadowMap, texels: &mut Vec<f32>) -> Result<(), String> {
+    for &t in &m.t {
+        if t == f32::NEG_INFINITY {
+            texels.push(EMPTY);
+        } else if t.is_finite() && t.abs() < 1e29 {
+            texels.push(t);
+        } else {
+            return Err(format!("a shadow-map texel holds {t}"));
+        }
+    }
+    Ok(())
+}
+
+/// Where each map of `maps` starts in a pool holding all of them in order
+/// (`None` for a missing map), and the pool's texel count.
+fn offsets(maps: &[Option<ShadowMap>]) -> Result<(Vec<Option<u32>>, usize), String> {
+    let mut at = 0usize;
+    let mut out = Vec::with_capacity(maps.len());
+    for m in maps {
+        out.push(match m {
+            Some(m) => {
+                let o = u32::try_from(at)
+                    .map_err(|_| "more shadow-map texels than the device indexes".to_string())?;
+                at += m.t.len();
+                Some(o)
+            }
+            None => None,
+        });
+    }
+    u32::try_from(at).map_err(|_| "more shadow-map texels than the device indexes".to_string())?;
+    Ok((out, at))
+}
+
+/// Shadow maps on the device for one move: the headers of the object's
+/// maps (one per group) and of the scene's, the object's texels, and the
+/// scene's texels (kept on the device with the cached scene when the move
+/// names it), with the index of each VPL's scene map.
 pub struct MoveMaps {
     maps: crate::context::PooledBuffer,
     texels: crate::context::PooledBuffer,
+    scene_texels: Arc<crate::context::PooledBuffer>,
     /// Per VPL: its scene map's index in `maps` ([`NONE`]: none uploaded).
     scene_index: Vec<u32>,
     /// Object maps uploaded (the first headers).
@@ -177,40 +196,87 @@ pub struct MoveMaps {
     /// The origin the coordinates are relative to.
     origin: DVec3,
     /// The photo's depth for the contact march, once uploaded.
-    depth: Option<crate::context::PooledBuffer>,
+    depth: Option<Arc<crate::context::PooledBuffer>>,
 }
 
-/// Uploads the object's maps and the scene maps of the VPLs `want` picks,
-/// relative to `origin`.
+/// The scene's maps as the device keeps them: all of them, one after
+/// another, under the cached scene's value (`scene`: its identity; `None`
+/// uploads the maps `want` picks for this move alone). The texel offset of
+/// each map (`None`: not uploaded).
+fn scene_pool(
+    s: &mut Session,
+    scene_maps: &[Option<ShadowMap>],
+    scene: Option<&Arc<dyn Any + Send + Sync>>,
+    want: impl Fn(usize) -> bool,
+) -> Result<(Arc<crate::context::PooledBuffer>, Vec<Option<u32>>), NodeError> {
+    if let Some(key) = scene {
+        let (at, total) = offsets(scene_maps).map_err(|why| s.too_large(&why))?;
+        if let Some(b) = s.ctx().resident(key) {
+            s.stats.resident_hits += 1;
+            return Ok((b, at));
+        }
+        let mut texels = Vec::with_capacity(total);
+        for m in scene_maps.iter().flatten() {
+            push_texels(m, &mut texels).map_err(|why| s.too_large(&why))?;
+        }
+        let b = Arc::new(s.upload(bytes_of(&texels))?);
+        s.ctx()
+            .keep_resident(key, b.clone(), (4 * texels.len()) as u64);
+        return Ok((b, at));
+    }
+    let mut texels = Vec::new();
+    let mut at = Vec::with_capacity(scene_maps.len());
+    for (j, m) in scene_maps.iter().enumerate() {
+        at.push(match m {
+            Some(m) if want(j) => {
+                let o = u32::try_from(texels.len())
+                    .map_err(|_| s.too_large("more shadow-map texels than the device indexes"))?;
+                push_texels(m, &mut texels).map_err(|why| s.too_large(&why))?;
+                Some(o)
+            }
+            _ => None,
+        });
+    }
+    Ok((Arc::new(s.upload(bytes_of(&texels))?), at))
+}
+
+/// Uploads the object's maps and the scene's (the scene's pool from
+/// [`scene_pool`]), relative to `origin`.
 fn upload_maps(
     s: &mut Session,
     object_maps: &[Option<ShadowMap>],
     scene_maps: &[Option<ShadowMap>],
     origin: DVec3,
+    scene: Option<&Arc<dyn Any + Send + Sync>>,
     want: impl Fn(usize) -> bool,
 ) -> Result<MoveMaps, NodeError> {
-    let mut packed = Packed {
-        maps: Vec::new(),
-        texels: Vec::new(),
-    };
+    let mut headers = Vec::with_capacity(object_maps.len() + scene_maps.len());
+    let mut texels = Vec::new();
     for m in object_maps {
-        if let Err(why) = packed.push(m.as_ref(), origin) {
-            return Err(s.too_large(&why));
-        }
+        let Some(m) = m else {
+            headers.push(GpuMap::zeroed());
+            continue;
+        };
+        let offset = u32::try_from(texels.len())
+            .map_err(|_| s.too_large("more shadow-map texels than the device indexes"))?;
+        push_texels(m, &mut texels).map_err(|why| s.too_large(&why))?;
+        headers.push(header(m, origin, offset, 0));
     }
+    let (scene_texels, at) = scene_pool(s, scene_maps, scene, want)?;
     let mut scene_index = Vec::with_capacity(scene_maps.len());
-    for (j, m) in scene_maps.iter().enumerate() {
-        scene_index.push(match m {
-            Some(m) if want(j) => match packed.push(Some(m), origin) {
-                Ok(i) => i,
-                Err(why) => return Err(s.too_large(&why)),
-            },
+    for (m, offset) in scene_maps.iter().zip(&at) {
+        scene_index.push(match (m, offset) {
+            (Some(m), Some(offset)) => {
+                headers.push(header(m, origin, *offset, 1));
+                (headers.len() - 1) as u32
+            }
             _ => NONE,
         });
     }
     Ok(MoveMaps {
-        maps: s.upload(bytes_of(&packed.maps))?,
-        texels: s.upload(bytes_of(&packed.texels))?,
+        maps: s.upload(bytes_of(&headers))?,
+        texels: s.upload(bytes_of(&texels))?,
+        scene_texels,
         scene_index,
         groups: object_maps.len(),
         origin,
@@ -276,9 +342,14 @@ pub fn direct(
             }
         }
     }
-    let maps = upload_maps(s, plan.object_maps, plan.scene_maps, plan.centre, |j| {
-        used.get(j).copied().unwrap_or(false)
-    })?;
+    let maps = upload_maps(
+        s,
+        plan.object_maps,
+        plan.scene_maps,
+        plan.centre,
+        None,
+        |j| used.get(j).copied().unwrap_or(false),
+    )?;
     direct_with(s, plan, &maps, stats)
 }
 
@@ -375,6 +446,7 @@ pub fn direct_with(
             &b_lights,
             &maps.maps,
             &maps.texels,
+            &maps.scene_texels,
         ],
         (&out, 16 * n as u64),
         (gx, gy),
@@ -458,7 +530,14 @@ pub fn object_light(
     surfs: &[Surf],
     stats: &mut ObjectLightStats,
 ) -> Result<Vec<ObjectLightSum>, NodeError> {
-    let maps = upload_maps(s, plan.object_maps, plan.scene_maps, plan.centre, |_| true)?;
+    let maps = upload_maps(
+        s,
+        plan.object_maps,
+        plan.scene_maps,
+        plan.centre,
+        None,
+        |_| true,
+    )?;
     object_light_with(s, plan, surfs, &maps, stats)
 }
 
@@ -535,8 +614,9 @@ pub fn object_light_with(
             None
         }
     };
-    let depth = match (&upload, &maps.depth) {
-        (Some(b), _) | (None, Some(b)) => b,
+    let depth: &wgpu::Buffer = match (&upload, &maps.depth) {
+        (Some(b), _) => b,
+        (None, Some(b)) => b,
         (None, None) => {
             return Err(NodeError::Internal("no depth buffer for the march".into()));
         }
@@ -574,6 +654,7 @@ pub fn object_light_with(
             &b_lights,
             &maps.maps,
             &maps.texels,
+            &maps.scene_texels,
             depth,
         ],
         (&out, bytes),
@@ -605,10 +686,14 @@ pub fn object_light_with(
 }
 
 /// Both long sums of a move on the device ([`MoveSums`]), the shadow
-/// maps uploaded once for the move; what each did.
+/// maps uploaded once for the move (the scene's kept on the device with
+/// the cached scene, the photo's depth with its value, when named); what
+/// each did.
 pub struct DeviceSums<'s, 'a> {
     session: &'s mut Session<'a>,
     maps: Option<MoveMaps>,
+    scene: Option<Arc<RelightScene>>,
+    depth: Option<Arc<DepthMap>>,
     /// The direct term's work.
     pub direct: DirectStats,
     /// The object's light's work.
@@ -621,12 +706,23 @@ impl<'s, 'a> DeviceSums<'s, 'a> {
         DeviceSums {
             session,
             maps: None,
+            scene: None,
+            depth: None,
             direct: DirectStats::default(),
             object: ObjectLightStats::default(),
         }
     }
 
-    /// The move's maps (every scene map), uploaded on first use.
+    /// The photo's depth as a value: its upload is kept on the device with
+    /// it (the next move finds it there), where the march reads this map.
+    pub fn with_depth(mut self, depth: Arc<DepthMap>) -> Self {
+        self.depth = Some(depth);
+        self
+    }
+
+    /// The move's maps (every scene map), uploaded on first use; the
+    /// scene's texels found on the device when the named scene's maps are
+    /// the plan's.
     fn maps(
         &mut self,
         object_maps: &[Option<ShadowMap>],
@@ -635,7 +731,21 @@ impl<'s, 'a> DeviceSums<'s, 'a> {
     ) -> Result<MoveMaps, NodeError> {
         match self.maps.take() {
             Some(m) if m.origin == origin && m.groups == object_maps.len() => Ok(m),
-            _ => upload_maps(self.session, object_maps, scene_maps, origin, |_| true),
+            _ => {
+                let key: Option<Arc<dyn Any + Send + Sync>> = self
+                    .scene
+                    .as_ref()
+                    .filter(|sc| std::ptr::eq(sc.scene_maps(), scene_maps))
+                    .map(|sc| sc.clone() as Arc<dyn Any + Send + Sync>);
+                upload_maps(
+                    self.session,
+                    object_maps,
+                    scene_maps,
+                    origin,
+                    key.as_ref(),
+                    |_| true,
+                )
+            }
         }
     }
 }
@@ -643,6 +753,10 @@ impl<'s, 'a> DeviceSums<'s, 'a> {
 impl MoveSums for DeviceSums<'_, '_> {
     fn begin_move(&mut self) {
         self.maps = None;
+    }
+
+    fn scene(&mut self, scene: &Arc<RelightScene>) {
+        self.scene = Some(scene.clone());
     }
 
     fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
@@ -658,9 +772,13 @@ impl MoveSums for DeviceSums<'_, '_> {
         surfs: &[Surf],
     ) -> Result<Vec<ObjectLightSum>, NodeError> {
         let mut maps = self.maps(plan.object_maps, plan.scene_maps, plan.centre)?;
-        // the photo's depth once per move too
+        // the photo's depth once per move, or found on the device
         if let (Some(c), None) = (&plan.contact, &maps.depth) {
-            maps.depth = Some(self.session.upload(bytes_of(c.depth.as_slice()))?);
+            let bytes = bytes_of(c.depth.as_slice());
+            maps.depth = Some(match &self.depth {
+                Some(d) if std::ptr::eq(&**d, c.depth) => self.session.image(d, bytes)?,
+                _ => Arc::new(self.session.upload(bytes)?),
+            });
         }
         let r = object_light_with(self.session, plan, surfs, &maps, &mut self.object);
         self.maps = Some(maps);
@@ -681,7 +799,7 @@ pub fn eval(
             p.visibility.name()
         )));
     }
-    let mut sums = DeviceSums::new(s);
+    let mut sums = DeviceSums::new(s).with_depth(i.depth.clone());
     let mut r = eval_with(ctx, i, p, &mut sums)?;
     if r.passthrough.is_none() {
         let (d, o) = (sums.direct, sums.object);

@@ -344,3 +344,64 @@ fn the_relight_node_on_the_device_gives_the_cpus_picture() {
     }
     assert!(display_psnr(&a, &worse).unwrap() < 80.0);
 }
+
+/// The node names the cached scene before each move: the first move
+/// uploads the scene's maps and keeps them on the device with the scene,
+/// the next finds them there (and the photo's depth with its value); both
+/// give the same picture, the CPU's within the node's bound.
+#[test]
+fn a_second_move_finds_the_scenes_maps_on_the_device() {
+    let c = case(Room::NearWall, None);
+    let vpls = c.vpls(128);
+    let p = RelightParams::default();
+    let inp = c.inputs();
+    let scene = Arc::new(RelightScene::new(&inp.scene(), &vpls, &p).unwrap());
+    let depth = Arc::new(c.depth.clone());
+    let inp = depthgraph_nodes::relight::shading::RelightInputs {
+        depth: &depth,
+        ..inp
+    };
+    let scene_bytes: usize = scene
+        .scene_maps()
+        .iter()
+        .flatten()
+        .map(|m| 4 * m.t.len())
+        .sum();
+    let depth_bytes = 4 * depth.as_slice().len();
+    let ctx = gpu();
+    let run = |scene: &Arc<RelightScene>| {
+        let mut s = Session::new(&ctx);
+        let mut sums = DeviceSums::new(&mut s).with_depth(depth.clone());
+        sums.scene(scene);
+        let r = relight_moved_with(scene, &inp, &p, &mut sums)
+            .unwrap()
+            .unwrap();
+        (r, s.stats)
+    };
+    let (first, up1) = run(&scene);
+    let (second, up2) = run(&scene);
+    eprintln!(
+        "uploads: first move {} B, second {} B (scene maps {scene_bytes} B, depth {depth_bytes} B), resident hits {} then {}",
+        up1.upload_bytes, up2.upload_bytes, up1.resident_hits, up2.resident_hits
+    );
+    assert!(scene_bytes > 100_000, "{scene_bytes} B of scene maps");
+    assert!(up1.upload_bytes >= scene_bytes + depth_bytes);
+    assert!(up2.upload_bytes + scene_bytes + depth_bytes <= up1.upload_bytes);
+    assert!(up2.resident_hits >= 2, "{} hits", up2.resident_hits);
+    assert_eq!(first.color, second.color);
+    let cpu = relight_moved_with(
+        &scene,
+        &inp,
+        &p,
+        &mut depthgraph_nodes::relight::scene_cached::CpuSums,
+    )
+    .unwrap()
+    .unwrap();
+    let psnr = display_psnr(&Arc::new(cpu.color), &Arc::new(second.color)).unwrap();
+    assert!(psnr >= 80.0, "{psnr} dB against the CPU");
+    // another scene value (the same maps, another identity) is uploaded
+    // again, never read from the first one's buffer
+    let other = Arc::new((*scene).clone());
+    let (_, up3) = run(&other);
+    assert!(up3.upload_bytes >= scene_bytes, "{} B", up3.upload_bytes);
+}

@@ -35,8 +35,9 @@ struct Pixel {
 @group(0) @binding(3) var<storage, read> lights: array<Light>;
 @group(0) @binding(4) var<storage, read> maps: array<Map>;
 @group(0) @binding(5) var<storage, read> texels: array<f32>;
+@group(0) @binding(6) var<storage, read> stexels: array<f32>;
 // per pixel: the sums' bits (r, g, b) and flags (1: hit, 2: unsure)
-@group(0) @binding(6) var<storage, read_write> out: array<vec4<u32>>;
+@group(0) @binding(7) var<storage, read_write> out: array<vec4<u32>>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {

@@ -1,7 +1,9 @@
 // Shadow maps of the scene-cached relighting, shared by its kernels
 // (relight_direct.wgsl, relight_object.wgsl): the lights and maps as the
 // host packs them (gpu/src/relight.rs), the texel lookup and the tests'
-// rounding allowances. Lookups read `texels`, which each kernel binds.
+// rounding allowances. Lookups read `texels` (the object's maps, per move)
+// or `stexels` (the scene's, kept on the device with the cached scene),
+// which each kernel binds.
 
 struct Light {
     dir: vec3<f32>,
@@ -23,8 +25,8 @@ struct Map {
     z0: f32,              // origin . dir
     inv_texel: f32,
     res: u32,             // 0: no map
-    offset: u32,          // first texel in `texels`
-    _pad: u32,
+    offset: u32,          // first texel in its pool
+    pool: u32,            // 0: `texels`, 1: `stexels`
 }
 
 const NONE: u32 = 0xffffffffu;
@@ -63,7 +65,15 @@ fn lookup(m: Map, lc: vec3<f32>, mag: f32) -> f32 {
     if (x < 0 || y < 0) {
         return EMPTY;
     }
-    return texels[m.offset + u32(y) * m.res + u32(x)];
+    return texel_of(m, u32(y) * m.res + u32(x));
+}
+
+// Texel `i` of map `m`, from its pool.
+fn texel_of(m: Map, i: u32) -> f32 {
+    if (m.pool == 1u) {
+        return stexels[m.offset + i];
+    }
+    return texels[m.offset + i];
 }
 
 fn light_coords(m: Map, p: vec3<f32>) -> vec3<f32> {

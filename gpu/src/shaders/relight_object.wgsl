@@ -60,11 +60,12 @@ const TIGHT: f32 = 2.5e-7;
 @group(0) @binding(2) var<storage, read> lights: array<Light>;
 @group(0) @binding(3) var<storage, read> maps: array<Map>;
 @group(0) @binding(4) var<storage, read> texels: array<f32>;
+@group(0) @binding(5) var<storage, read> stexels: array<f32>;
 // the photo's depth, row by row (one word when the march is off)
-@group(0) @binding(5) var<storage, read> depth: array<f32>;
+@group(0) @binding(6) var<storage, read> depth: array<f32>;
 // per surface: `words` words of decisions (VPL j in bits 2 (j % 16) of
 // word j / 16)
-@group(0) @binding(6) var<storage, read_write> out: array<u32>;
+@group(0) @binding(7) var<storage, read_write> out: array<u32>;
 
 // The cell of a map's axis holding coordinate `u` in texels (-1 outside:
 // the CPU's `!(u >= 0)` and `x >= res`).
@@ -100,7 +101,7 @@ fn occluder_span(m: Map, lc: vec3<f32>, mag: f32) -> vec2<f32> {
             let y = ys[b];
             var t = EMPTY;
             if (x >= 0 && y >= 0) {
-                t = texels[m.offset + u32(y) * m.res + u32(x)];
+                t = texel_of(m, u32(y) * m.res + u32(x));
             }
             lo = min(lo, t);
             hi = max(hi, t);

@@ -157,6 +157,7 @@ pub fn eval_with(
                 RelightScene::new(&inp.scene(), &vpls, p)
             })?;
             ctx.check_cancelled()?;
+            sums.scene(&scene);
             relight_moved_with(&scene, &inp, p, sums)?
         }
     };

@@ -313,6 +313,11 @@ impl RelightScene {
         self.vpls.len()
     }
 
+    /// Per VPL: the scene's own shadow map (`None`: it occludes nothing).
+    pub fn scene_maps(&self) -> &[Option<ShadowMap>] {
+        &self.maps
+    }
+
     /// `E^t = Σ_k Φ_k max(0, n·ω_k) V^t_k` of every target pixel, chunks of
     /// pixels in parallel, VPL-major inside a chunk (one map at a time stays
     /// in cache), each pixel summing its VPLs in order.
@@ -802,6 +807,9 @@ pub trait MoveSums {
     /// A new move begins (its maps and plans are new): forget what the
     /// last one left (a device's uploaded maps, say).
     fn begin_move(&mut self) {}
+    /// The cached scene the next move reads, as the engine keeps it (a
+    /// device keeps its maps beside it; the node names it before each move).
+    fn scene(&mut self, _scene: &Arc<RelightScene>) {}
     /// One [`DirectSum`] per pixel of the plan, tile after tile.
     fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError>;
     /// One [`ObjectLightSum`] per surface of `surfs`, in order.
