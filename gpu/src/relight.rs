@@ -19,10 +19,10 @@
 //!
 //! **The object's light agrees with the CPU bit for bit** (checked by the
 //! parity tests): the device makes the decisions (two bits per surface and
-//! VPL), the host adds the CPU's own f64 terms in the CPU's order; a
-//! decision f32 cannot settle makes the host decide the surface whole, and
-//! a contact march is the host's. So the lattices blend and test the same
-//! values on both backends.
+//! VPL, the contact march included), the host adds the CPU's own f64
+//! terms in the CPU's order; a decision whose f32 tests cannot settle it
+//! is left to the host for that VPL (the CPU's own decision). So the
+//! lattices blend and test the same values on both backends.
 //!
 //! **The direct term's agreement** (checked by the parity tests): every pixel's
 //! decisions are the CPU's — each visibility test whose f32 value lies

@@ -51,6 +51,8 @@ struct Both<'s, 'a> {
     perturbed: Option<Vec<ObjectLightSum>>,
     /// Decisions the contact march turned from lit to blocked.
     marched: usize,
+    /// VPLs of the object light's plan.
+    lights: usize,
 }
 
 impl MoveSums for Both<'_, '_> {
@@ -72,6 +74,7 @@ impl MoveSums for Both<'_, '_> {
     ) -> Result<Vec<ObjectLightSum>, NodeError> {
         let cpu = evaluate_light(plan, surfs);
         let dev = self.dev.object_light(plan, surfs)?;
+        self.lights = plan.lights.len();
         let unmarched = ObjectLightPlan {
             contact: None,
             ..plan.clone()
@@ -115,13 +118,19 @@ struct Sums {
     light: Vec<(Vec<ObjectLightSum>, Vec<ObjectLightSum>)>,
     perturbed: Option<Vec<ObjectLightSum>>,
     marched: usize,
+    lights: usize,
     direct_stats: DirectStats,
     light_stats: ObjectLightStats,
 }
 
 /// Both backends' sums of one move on a given device context.
 fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
-    let p = RelightParams::default();
+    both_sums_with(ctx, c, vpls, &RelightParams::default())
+}
+
+/// [`both_sums_on`] with parameters `p`.
+fn both_sums_with(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl], p: &RelightParams) -> Sums {
+    let p = p.clone();
     let inp = c.inputs();
     let scene = RelightScene::new(&inp.scene(), vpls, &p).unwrap();
     let mut s = Session::new(ctx);
@@ -131,6 +140,7 @@ fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
         light: Vec::new(),
         perturbed: None,
         marched: 0,
+        lights: 0,
     };
     relight_moved_with(&scene, &inp, &p, &mut both)
         .unwrap()
@@ -140,6 +150,7 @@ fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
         light: both.light,
         perturbed: both.perturbed,
         marched: both.marched,
+        lights: both.lights,
         direct_stats: both.dev.direct,
         light_stats: both.dev.object,
     }
@@ -159,6 +170,15 @@ fn both_direct_on(
 ) -> (Vec<DirectSum>, Vec<DirectSum>, DirectStats) {
     let s = both_sums_on(ctx, c, vpls);
     (s.direct.0, s.direct.1, s.direct_stats)
+}
+
+/// Surfaces the device's object light lights (some `E^{s+t}` > 0).
+fn lit_surfaces(sums: &Sums) -> usize {
+    sums.light
+        .iter()
+        .flat_map(|(_, d)| d)
+        .filter(|l| l.est.iter().any(|&e| e > 0.0))
+        .count()
 }
 
 /// Every object light of the move the same bits on both; the surfaces.
@@ -207,14 +227,28 @@ fn the_object_light_on_the_device_is_the_cpus_bit_for_bit() {
             c.name,
             st.asked
         );
-        let lit = sums
-            .light
-            .iter()
-            .flat_map(|(_, d)| d)
-            .filter(|l| l.est.iter().any(|&e| e > 0.0))
-            .count();
+        let lit = lit_surfaces(&sums);
         assert!(lit * 2 >= n, "{}: {lit} of {n} surfaces lit", c.name);
     }
+}
+
+/// A VPL count that leaves the last word of decisions partly filled, and
+/// the march switched off (the scene's band then lit, as on the CPU).
+#[test]
+fn the_object_light_without_the_march_and_with_a_partial_word_is_the_cpus() {
+    let c = case(Room::NearWall, None);
+    let vpls = c.vpls(250);
+    let p = RelightParams {
+        contact: false,
+        ..RelightParams::default()
+    };
+    let sums = both_sums_with(&gpu(), &c, &vpls, &p);
+    assert!(!sums.lights.is_multiple_of(16), "{} VPLs", sums.lights);
+    let n = light_equal(&sums.light).unwrap();
+    assert!(n >= 50, "{n} surfaces");
+    assert_eq!(sums.marched, 0);
+    let lit = lit_surfaces(&sums);
+    assert!(lit * 2 >= n, "{lit} of {n} surfaces lit");
 }
 
 #[test]
