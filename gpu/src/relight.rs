@@ -197,6 +197,19 @@ pub struct MoveMaps {
     origin: DVec3,
     /// The photo's depth for the contact march, once uploaded.
     depth: Option<Arc<crate::context::PooledBuffer>>,
+    /// The map lists uploaded ([`list_key`]).
+    key: [usize; 4],
+}
+
+/// Which two map lists a plan reads: their addresses and lengths (lists
+/// that live through the move: the engine's scene and the move's maps).
+fn list_key(object_maps: &[Option<ShadowMap>], scene_maps: &[Option<ShadowMap>]) -> [usize; 4] {
+    [
+        object_maps.as_ptr() as usize,
+        object_maps.len(),
+        scene_maps.as_ptr() as usize,
+        scene_maps.len(),
+    ]
 }
 
 /// The scene's maps as the device keeps them: all of them, one after
@@ -281,6 +294,7 @@ fn upload_maps(
         groups: object_maps.len(),
         origin,
         depth: None,
+        key: list_key(object_maps, scene_maps),
     })
 }
 
@@ -720,18 +734,22 @@ impl<'s, 'a> DeviceSums<'s, 'a> {
         self
     }
 
-    /// The move's maps (every scene map), uploaded on first use; the
-    /// scene's texels found on the device when the named scene's maps are
-    /// the plan's.
+    /// The maps a plan reads: the move's (its object maps and every scene
+    /// map), uploaded on first use and kept for the move's other kernel;
+    /// the scene's texels found on the device when the named scene's maps
+    /// are the plan's. Another plan's lists (the capture map's object maps,
+    /// with no scene) are uploaded for that plan alone ([`Self::keep`]).
     fn maps(
         &mut self,
         object_maps: &[Option<ShadowMap>],
         scene_maps: &[Option<ShadowMap>],
         origin: DVec3,
     ) -> Result<MoveMaps, NodeError> {
+        let key = list_key(object_maps, scene_maps);
         match self.maps.take() {
-            Some(m) if m.origin == origin && m.groups == object_maps.len() => Ok(m),
-            _ => {
+            Some(m) if m.origin == origin && m.key == key => Ok(m),
+            other => {
+                self.maps = other;
                 let key: Option<Arc<dyn Any + Send + Sync>> = self
                     .scene
                     .as_ref()
@@ -750,6 +768,17 @@ impl<'s, 'a> DeviceSums<'s, 'a> {
     }
 }
 
+impl DeviceSums<'_, '_> {
+    /// Keeps `maps` for the move's next kernel when they are the move's
+    /// own (they carry the scene's maps) and none are kept yet; a plan's
+    /// own upload (no scene maps) is dropped.
+    fn keep(&mut self, maps: MoveMaps) {
+        if self.maps.is_none() && maps.key[3] > 0 {
+            self.maps = Some(maps);
+        }
+    }
+}
+
 impl MoveSums for DeviceSums<'_, '_> {
     fn begin_move(&mut self) {
         self.maps = None;
@@ -762,7 +791,7 @@ impl MoveSums for DeviceSums<'_, '_> {
     fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
         let maps = self.maps(plan.object_maps, plan.scene_maps, plan.centre)?;
         let r = direct_with(self.session, plan, &maps, &mut self.direct);
-        self.maps = Some(maps);
+        self.keep(maps);
         r
     }
 
@@ -781,7 +810,7 @@ impl MoveSums for DeviceSums<'_, '_> {
             });
         }
         let r = object_light_with(self.session, plan, surfs, &maps, &mut self.object);
-        self.maps = Some(maps);
+        self.keep(maps);
         r
     }
 }

@@ -130,8 +130,20 @@ fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
 
 /// [`both_sums_on`] with parameters `p`.
 fn both_sums_with(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl], p: &RelightParams) -> Sums {
+    both_sums_captured(ctx, c, vpls, p, None)
+}
+
+/// [`both_sums_with`] with the capture map's VPLs `capture`.
+fn both_sums_captured(
+    ctx: &Arc<GpuContext>,
+    c: &RelightCase,
+    vpls: &[Vpl],
+    p: &RelightParams,
+    capture: Option<&[Vpl]>,
+) -> Sums {
     let p = p.clone();
-    let inp = c.inputs();
+    let mut inp = c.inputs();
+    inp.capture_vpls = capture;
     let scene = RelightScene::new(&inp.scene(), vpls, &p).unwrap();
     let mut s = Session::new(ctx);
     let mut both = Both {
@@ -249,6 +261,31 @@ fn the_object_light_without_the_march_and_with_a_partial_word_is_the_cpus() {
     assert_eq!(sums.marched, 0);
     let lit = lit_surfaces(&sums);
     assert!(lit * 2 >= n, "{lit} of {n} surfaces lit");
+}
+
+/// With a capture map the object's capture side (`E_cap` over the capture
+/// VPLs, the object's maps in their directions, no scene) is the object
+/// light's fourth call: the CPU's bits too, on its own maps.
+#[test]
+fn the_capture_side_on_the_device_is_the_cpus_bit_for_bit() {
+    let c = case(Room::Open, None);
+    let vpls = c.vpls(128);
+    let other = case(Room::NearWall, Some(Sky::Overcast));
+    let capture = other.vpls(100);
+    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), Some(&capture));
+    assert_eq!(sums.light.len(), 4, "{} calls", sums.light.len());
+    let n = light_equal(&sums.light).unwrap();
+    let (cpu, _) = &sums.light[3];
+    let lit = cpu
+        .iter()
+        .filter(|l| l.ecap.iter().any(|&e| e > 0.0))
+        .count();
+    assert!(
+        lit * 2 >= cpu.len(),
+        "{lit} of {} capture surfaces lit",
+        cpu.len()
+    );
+    assert!(n > cpu.len(), "{n} surfaces in all");
 }
 
 #[test]

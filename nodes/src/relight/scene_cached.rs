@@ -642,39 +642,6 @@ fn object_stride(radius: f64, z: f64, k: &Intrinsics, res: usize) -> usize {
     }
 }
 
-/// `E_cap = Σ_k Φ_k max(0, n·ω_k) V^o_k` of every object surface for the
-/// capture map's VPLs, with the object's maps `om` in their directions.
-fn capture_irradiance(
-    surfs: &[Surf],
-    vpls: &[Vpl],
-    dirs: &[DVec3],
-    om: &ObjectMaps,
-    bias_scale: f64,
-) -> Vec<[f64; 3]> {
-    surfs
-        .par_iter()
-        .map(|s| {
-            let mut e = [0.0f64; 3];
-            for (j, (v, d)) in vpls.iter().zip(dirs).enumerate() {
-                let m = om.get(j);
-                let cos = s.n.dot(*d);
-                if cos <= 0.0 {
-                    continue;
-                }
-                let bias = m.map_or(0.0, |m| {
-                    bias_scale * m.texel_m.max(om.margin(j)) * slope(cos)
-                });
-                if m.is_none_or(|m| m.visible(s.pos, bias)) {
-                    for (e, pw) in e.iter_mut().zip(v.power) {
-                        *e += f64::from(pw) * cos;
-                    }
-                }
-            }
-            e
-        })
-        .collect()
-}
-
 /// Whether the object surface `q` lies on `s`'s surface for the lattices'
 /// blend: normals within about 26° (cosine > 0.9), `q` within 1 % of
 /// `s`'s depth of its tangent plane and within 10 % of it in all.
@@ -1092,9 +1059,38 @@ pub fn relight_moved_with(
     let ecap: Vec<[f64; 3]> = match inp.capture_vpls {
         None => irr.iter().map(|v| v[1]).collect(),
         Some(cv) => {
+            // `E_cap = Σ_k Φ_k max(0, n·ω_k) V^o_k` of every object surface
+            // for the capture map's VPLs: the object light's `E^o` with the
+            // object's maps in their directions and no scene
             let (cv, cdirs, _) = lit_vpls(cv);
             let cm = object_maps(&meshes, &cdirs, &cv, p);
-            capture_irradiance(&obj_surfs, &cv, &cdirs, &cm, scene.bias_scale)
+            let plan = ObjectLightPlan {
+                lights: (0..cv.len())
+                    .map(|j| DirectLight {
+                        dir: cdirs[j],
+                        power: cv[j].power.map(f64::from),
+                        group: cm.of.get(j).copied().unwrap_or(usize::MAX),
+                        bias_object: cm
+                            .get(j)
+                            .map_or(0.0, |m| scene.bias_scale * m.texel_m.max(cm.margin(j))),
+                        bias_scene: 0.0,
+                        shared: false,
+                    })
+                    .collect(),
+                object_maps: &cm.maps,
+                scene_maps: &[],
+                contact: None,
+                centre: c,
+            };
+            let light = sums.object_light(&plan, &obj_surfs)?;
+            if light.len() != obj_surfs.len() {
+                return Err(NodeError::Internal(format!(
+                    "the object light's evaluator gave {} sums for {} surfaces",
+                    light.len(),
+                    obj_surfs.len()
+                )));
+            }
+            light.into_iter().map(|l| l.ecap).collect()
         }
     };
     let obj_rad: Vec<Rgb> = obj_idx
