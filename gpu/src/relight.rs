@@ -1,12 +1,16 @@
-//! `Relight` on the device: the two long sums over the VPLs of a
-//! scene-cached object move ([`DeviceSums`]):
+//! `Relight` on the device: the long sums over the VPLs of a scene-cached
+//! object move ([`DeviceSums`]):
 //!
 //! - the direct term (`shaders/relight_direct.wgsl`), the sum over the VPLs
 //!   of each pixel's cone of the light the object takes away
 //!   ([`depthgraph_nodes::relight::direct`]);
 //! - the object's received light (`shaders/relight_object.wgsl`), its
 //!   visibility of every VPL through its own maps and the scene's
-//!   ([`depthgraph_nodes::relight::object_light`]).
+//!   ([`depthgraph_nodes::relight::object_light`]);
+//! - the fill light (`shaders/relight_fill.wgsl`), the scene's own bounce
+//!   at the composite's pixels and what of it the object's closed volume
+//!   blocks ([`depthgraph_nodes::relight::fill`]), decided on the device
+//!   and summed on the host like the object's light.
 //!
 //! The plans (which tiles, which VPLs in which order, which maps share a
 //! frame, the lattices' nodes), the scene's part (cached by the engine),
@@ -41,6 +45,9 @@ use bytemuck::{Pod, Zeroable};
 use depthgraph_graph::ports::Produced;
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::relight::direct::{DirectLight, DirectPlan, DirectSum, evaluate_pixel};
+use depthgraph_nodes::relight::fill::{
+    FillPlan, FillSeen, FillSum, sums_from_decisions as fill_from_decisions,
+};
 use depthgraph_nodes::relight::ism::ShadowMap;
 use depthgraph_nodes::relight::node::{RelightIn, RelightOut, eval_with};
 use depthgraph_nodes::relight::object_light::{
@@ -699,6 +706,187 @@ pub fn object_light_with(
         .collect())
 }
 
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct FillParams {
+    count: u32,
+    /// Invocations per row of the 2-D dispatch.
+    row: u32,
+    vpls: u32,
+    /// Words of two-bit decisions per surface.
+    words: u32,
+    width: u32,
+    height: u32,
+    _pad: [u32; 2],
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    centre: [f32; 3],
+    radius: f32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct GpuPoint {
+    pos: [f32; 3],
+    _p0: f32,
+    n: [f32; 3],
+    _p1: f32,
+}
+
+/// What the fill did on the device.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FillStats {
+    /// Surfaces the device decided.
+    pub surfaces: usize,
+    /// Decisions of one surface and VPL left to the host.
+    pub asked: usize,
+}
+
+/// The object's volume on the device: its front and back depth maps.
+pub struct VolumeMaps {
+    front: crate::context::PooledBuffer,
+    back: crate::context::PooledBuffer,
+    /// The depth maps uploaded (their addresses and lengths).
+    key: [usize; 4],
+}
+
+/// Uploads the front and back depth maps of `plan`'s volume.
+fn upload_volume(s: &mut Session, plan: &FillPlan) -> Result<VolumeMaps, NodeError> {
+    let (_, front, back, _, _) = plan.volume.parts();
+    Ok(VolumeMaps {
+        front: s.upload(bytes_of(front.as_slice()))?,
+        back: s.upload(bytes_of(back.as_slice()))?,
+        key: volume_key(plan),
+    })
+}
+
+fn volume_key(plan: &FillPlan) -> [usize; 4] {
+    let (_, front, back, _, _) = plan.volume.parts();
+    [
+        front.as_slice().as_ptr() as usize,
+        front.as_slice().len(),
+        back.as_slice().as_ptr() as usize,
+        back.as_slice().len(),
+    ]
+}
+
+/// The fill at `surfs` on the device (module docs of
+/// [`depthgraph_nodes::relight::fill`]): the device's decisions, the
+/// host's f64 sums.
+pub fn fill(
+    s: &mut Session,
+    plan: &FillPlan,
+    surfs: &[Surf],
+    stats: &mut FillStats,
+) -> Result<Vec<FillSum>, NodeError> {
+    let volume = upload_volume(s, plan)?;
+    fill_with(s, plan, surfs, &volume, stats)
+}
+
+/// [`fill`] with the volume's maps already on the device.
+pub fn fill_with(
+    s: &mut Session,
+    plan: &FillPlan,
+    surfs: &[Surf],
+    volume: &VolumeMaps,
+    stats: &mut FillStats,
+) -> Result<Vec<FillSum>, NodeError> {
+    if volume.key != volume_key(plan) {
+        return Err(NodeError::Internal(
+            "the device's volume maps belong to another move".into(),
+        ));
+    }
+    let n = surfs.len();
+    let nv = plan.vpls.len();
+    if n == 0 || nv == 0 {
+        return Ok(vec![[0.0; 6]; n]);
+    }
+    let (k, front, _, centre, radius) = plan.volume.parts();
+    let (w, h) = front.dims();
+    let words = nv.div_ceil(16);
+    let too_many = || format!("{n} surfaces of {nv} fill VPLs are more than the device indexes");
+    let (Ok(count), Ok(vpls_u32), Ok(w32), Ok(h32), Some(total)) = (
+        u32::try_from(n),
+        u32::try_from(nv),
+        u32::try_from(w),
+        u32::try_from(h),
+        n.checked_mul(words).filter(|&t| u32::try_from(t).is_ok()),
+    ) else {
+        return Err(s.too_large(&too_many()));
+    };
+    let Some((gx, gy)) = s.ctx().flat_grid(n, WORKGROUP) else {
+        return Err(s.too_large(&too_many()));
+    };
+    let point = |pos: DVec3, n: DVec3| GpuPoint {
+        pos: f3(pos),
+        _p0: 0.0,
+        n: f3(n),
+        _p1: 0.0,
+    };
+    // positions relative to the ball's centre (subtracted in f64): the
+    // chord's closest approach then needs no f32 difference of metres-away
+    // points
+    let surfaces: Vec<GpuPoint> = surfs.iter().map(|q| point(q.pos - centre, q.n)).collect();
+    let vpls: Vec<GpuPoint> = plan
+        .vpls
+        .iter()
+        .map(|(q, nq, _)| point(*q - centre, *nq))
+        .collect();
+    let kernel = s.kernel(&shaders::RELIGHT_FILL)?;
+    let params = FillParams {
+        count,
+        row: gx * WORKGROUP,
+        vpls: vpls_u32,
+        words: words as u32,
+        width: w32,
+        height: h32,
+        _pad: [0; 2],
+        fx: k.fx as f32,
+        fy: k.fy as f32,
+        cx: k.cx as f32,
+        cy: k.cy as f32,
+        centre: f3(centre),
+        radius: radius as f32,
+    };
+    let uniform = s.uniform(bytemuck::bytes_of(&params))?;
+    let b_surfaces = s.upload(bytes_of(&surfaces))?;
+    let b_vpls = s.upload(bytes_of(&vpls))?;
+    let bytes = 4 * total as u64;
+    let out = s.scratch(bytes)?;
+    let all = run_flat(
+        s,
+        &kernel,
+        &[&uniform, &b_surfaces, &b_vpls, &volume.front, &volume.back],
+        (&out, bytes),
+        (gx, gy),
+    )?;
+    if all.len() != total {
+        return Err(NodeError::Internal(format!(
+            "the device returned {} words for {n} surfaces of {nv} fill VPLs",
+            all.len()
+        )));
+    }
+    let sums: Vec<(FillSum, usize)> = all
+        .par_chunks_exact(words)
+        .zip(surfs)
+        .map(|(w, q)| {
+            let seen = |j: usize| FillSeen::from_bits(w[j / 16] >> (2 * (j % 16)));
+            let asked = w.iter().map(|&x| asked_in(x)).sum();
+            (fill_from_decisions(plan, q, seen), asked)
+        })
+        .collect();
+    stats.surfaces += n;
+    Ok(sums
+        .into_iter()
+        .map(|(sum, asked)| {
+            stats.asked += asked;
+            sum
+        })
+        .collect())
+}
+
 /// Both long sums of a move on the device ([`MoveSums`]), the shadow
 /// maps uploaded once for the move (the scene's kept on the device with
 /// the cached scene, the photo's depth with its value, when named); what
@@ -706,12 +894,15 @@ pub fn object_light_with(
 pub struct DeviceSums<'s, 'a> {
     session: &'s mut Session<'a>,
     maps: Option<MoveMaps>,
+    volume: Option<VolumeMaps>,
     scene: Option<Arc<RelightScene>>,
     depth: Option<Arc<DepthMap>>,
     /// The direct term's work.
     pub direct: DirectStats,
     /// The object's light's work.
     pub object: ObjectLightStats,
+    /// The fill's work.
+    pub fill: FillStats,
 }
 
 impl<'s, 'a> DeviceSums<'s, 'a> {
@@ -720,10 +911,12 @@ impl<'s, 'a> DeviceSums<'s, 'a> {
         DeviceSums {
             session,
             maps: None,
+            volume: None,
             scene: None,
             depth: None,
             direct: DirectStats::default(),
             object: ObjectLightStats::default(),
+            fill: FillStats::default(),
         }
     }
 
@@ -782,6 +975,18 @@ impl DeviceSums<'_, '_> {
 impl MoveSums for DeviceSums<'_, '_> {
     fn begin_move(&mut self) {
         self.maps = None;
+        self.volume = None;
+    }
+
+    fn fill(&mut self, plan: &FillPlan, surfs: &[Surf]) -> Result<Vec<FillSum>, NodeError> {
+        // the volume's maps once per move
+        let volume = match self.volume.take() {
+            Some(v) if v.key == volume_key(plan) => v,
+            _ => upload_volume(self.session, plan)?,
+        };
+        let r = fill_with(self.session, plan, surfs, &volume, &mut self.fill);
+        self.volume = Some(volume);
+        r
     }
 
     fn scene(&mut self, scene: &Arc<RelightScene>) {
@@ -831,11 +1036,12 @@ pub fn eval(
     let mut sums = DeviceSums::new(s).with_depth(i.depth.clone());
     let mut r = eval_with(ctx, i, p, &mut sums)?;
     if r.passthrough.is_none() {
-        let (d, o) = (sums.direct, sums.object);
+        let (d, o, f) = (sums.direct, sums.object, sums.fill);
         let line = format!(
             "direct term on the device: {} pixels, {} recomputed on the host; \
-             object light on the device: {} surfaces, {} decisions left to the host",
-            d.pixels, d.recomputed, o.surfaces, o.asked
+             object light on the device: {} surfaces, {} decisions left to the host; \
+             fill on the device: {} surfaces, {} decisions left to the host",
+            d.pixels, d.recomputed, o.surfaces, o.asked, f.surfaces, f.asked
         );
         r.report = Some(match r.report.take() {
             Some(prev) => format!("{prev}; {line}"),

@@ -62,6 +62,7 @@ kernel!(COMPOSITE, "composite.wgsl", "main");
 kernel!(NLMEANS, "nlmeans.wgsl", "main", NLMEANS_ACC);
 kernel!(RELIGHT_DIRECT, "relight_direct.wgsl", "main", RELIGHT_MAPS);
 kernel!(RELIGHT_OBJECT, "relight_object.wgsl", "main", RELIGHT_MAPS);
+kernel!(RELIGHT_FILL, "relight_fill.wgsl", "main");
 kernel!(
     NLMEANS_UPSAMPLE,
     "nlmeans_upsample.wgsl",
@@ -93,4 +94,5 @@ pub const ALL: &[Kernel] = &[
     NLMEANS_UPSAMPLE,
     RELIGHT_DIRECT,
     RELIGHT_OBJECT,
+    RELIGHT_FILL,
 ];

@@ -8,11 +8,15 @@ use std::sync::Arc;
 
 use common::*;
 use depthgraph_gpu::parity::{direct_within, display_psnr, object_light_equal};
-use depthgraph_gpu::relight::{DE_TOL, DeviceSums, DirectStats, ObjectLightStats};
+use depthgraph_gpu::relight::{DE_TOL, DeviceSums, DirectStats, FillStats, ObjectLightStats};
 use depthgraph_gpu::session::Session;
 use depthgraph_gpu::{AdapterRequest, GpuContext};
 use depthgraph_graph::prelude::*;
 use depthgraph_nodes::relight::direct::{DirectPlan, DirectSum, evaluate};
+use depthgraph_nodes::relight::fill::{
+    FillPlan, FillSeen, FillSum, evaluate as evaluate_fill,
+    sums_from_decisions as fill_from_decisions,
+};
 use depthgraph_nodes::relight::object_light::{
     ObjectLightPlan, ObjectLightSum, evaluate as evaluate_light, sums_from_seen,
 };
@@ -53,11 +57,32 @@ struct Both<'s, 'a> {
     marched: usize,
     /// VPLs of the object light's plan.
     lights: usize,
+    fill: Vec<(Vec<FillSum>, Vec<FillSum>)>,
+    /// Surfaces times VPLs of the fill's batches.
+    fill_decisions: usize,
+    /// A partly blocked surface's fill, and what a device that saw every
+    /// VPL lit would give.
+    fill_perturbed: Option<(FillSum, FillSum)>,
 }
 
 impl MoveSums for Both<'_, '_> {
     fn begin_move(&mut self) {
         self.dev.begin_move();
+    }
+
+    fn fill(&mut self, plan: &FillPlan, surfs: &[Surf]) -> Result<Vec<FillSum>, NodeError> {
+        let cpu = evaluate_fill(plan, surfs);
+        let dev = self.dev.fill(plan, surfs)?;
+        self.fill_decisions += surfs.len() * plan.vpls.len();
+        // a perturbed device: every VPL of a partly blocked surface lit
+        if self.fill_perturbed.is_none()
+            && let Some(k) = cpu.iter().position(|f| f[3] > 0.0)
+        {
+            let bad = fill_from_decisions(plan, &surfs[k], |_| FillSeen::Lit);
+            self.fill_perturbed = Some((cpu[k], bad));
+        }
+        self.fill.push((cpu.clone(), dev));
+        Ok(cpu)
     }
 
     fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
@@ -119,6 +144,10 @@ struct Sums {
     perturbed: Option<Vec<ObjectLightSum>>,
     marched: usize,
     lights: usize,
+    fill: Vec<(Vec<FillSum>, Vec<FillSum>)>,
+    fill_stats: FillStats,
+    fill_decisions: usize,
+    fill_perturbed: Option<(FillSum, FillSum)>,
     direct_stats: DirectStats,
     light_stats: ObjectLightStats,
 }
@@ -153,6 +182,9 @@ fn both_sums_captured(
         perturbed: None,
         marched: 0,
         lights: 0,
+        fill: Vec::new(),
+        fill_decisions: 0,
+        fill_perturbed: None,
     };
     relight_moved_with(&scene, &inp, &p, &mut both)
         .unwrap()
@@ -163,6 +195,10 @@ fn both_sums_captured(
         perturbed: both.perturbed,
         marched: both.marched,
         lights: both.lights,
+        fill: both.fill,
+        fill_stats: both.dev.fill,
+        fill_decisions: both.fill_decisions,
+        fill_perturbed: both.fill_perturbed,
         direct_stats: both.dev.direct,
         light_stats: both.dev.object,
     }
@@ -286,6 +322,60 @@ fn the_capture_side_on_the_device_is_the_cpus_bit_for_bit() {
         cpu.len()
     );
     assert!(n > cpu.len(), "{n} surfaces in all");
+}
+
+/// The fill light's sums at the composite's pixels: the CPU's bits, the
+/// object's volume blocking part of it.
+#[test]
+fn the_fill_on_the_device_is_the_cpus_bit_for_bit() {
+    for (room, sky) in [
+        (Room::Open, None),
+        (Room::NearWall, None),
+        (Room::Occluded, Some(Sky::Overcast)),
+    ] {
+        let c = case(room, sky);
+        let vpls = c.vpls(128);
+        let sums = both_sums_on(&gpu(), &c, &vpls);
+        let (mut n, mut blocked) = (0usize, 0usize);
+        for (k, (cpu, dev)) in sums.fill.iter().enumerate() {
+            assert_eq!(cpu.len(), dev.len());
+            for (i, (a, b)) in cpu.iter().zip(dev).enumerate() {
+                assert_eq!(
+                    a.map(f64::to_bits),
+                    b.map(f64::to_bits),
+                    "{}: batch {k}, surface {i}: cpu {a:?} gpu {b:?}",
+                    c.name
+                );
+                blocked += usize::from(a[3] > 0.0);
+            }
+            n += cpu.len();
+        }
+        let (st, all) = (sums.fill_stats, sums.fill_decisions);
+        eprintln!(
+            "{}: {} batches, {n} surfaces, {blocked} partly blocked, {} of {all} decisions left to the host",
+            c.name,
+            sums.fill.len(),
+            st.asked
+        );
+        assert!(n >= 50, "{}: {n} surfaces", c.name);
+        assert_eq!(st.surfaces, n, "{}", c.name);
+        assert!(
+            blocked >= 5,
+            "{}: {blocked} surfaces partly blocked",
+            c.name
+        );
+        // the volume's tests (the expensive part) stay on the device for
+        // at least 95 % of the pairs
+        assert!(
+            st.asked * 20 <= all,
+            "{}: {} of {all} asked",
+            c.name,
+            st.asked
+        );
+        // the bit check fails on a device that misses the volume
+        let (good, bad) = sums.fill_perturbed.expect("a partly blocked surface");
+        assert_ne!(good.map(f64::to_bits), bad.map(f64::to_bits), "{}", c.name);
+    }
 }
 
 #[test]

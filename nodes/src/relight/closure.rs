@@ -283,7 +283,7 @@ pub struct ObjectVolume<'a> {
 /// Points tested along the part of a segment inside the object's ball
 /// (8 over a chord of at most `2R`: a body at least `R/4` thick along the
 /// segment is never missed).
-const VOLUME_STEPS: usize = 8;
+pub const VOLUME_STEPS: usize = 8;
 
 impl<'a> ObjectVolume<'a> {
     /// The volume between `front` and `back` (both `k`'s size), inside the
@@ -302,6 +302,12 @@ impl<'a> ObjectVolume<'a> {
             centre,
             radius,
         }
+    }
+
+    /// The camera, the front and back depth maps, the ball's centre and
+    /// radius (what a device needs to test the same volume).
+    pub fn parts(&self) -> (&'a Intrinsics, &'a DepthMap, &'a DepthMap, DVec3, f64) {
+        (self.k, self.front, self.back, self.centre, self.radius)
     }
 
     /// Whether `p` is inside the volume.

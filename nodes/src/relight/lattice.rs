@@ -26,6 +26,10 @@
 //! differ by at most the tolerance, so it is within that of each of them.
 
 use std::sync::OnceLock;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use depthgraph_graph::prelude::NodeError;
+use rayon::prelude::*;
 
 /// The interpolation's tolerance: nodes within `rel · max|v| + abs` of
 /// each other per component are blended (module docs).
@@ -144,6 +148,32 @@ impl<const N: usize> Lattice<N> {
         Some(*self.cells[ny * self.cols + nx].get_or_init(|| eval(i)))
     }
 
+    /// The cell of the node at pixel index `i` (`None`: not a node).
+    fn cell(&self, i: usize) -> Option<&OnceLock<Option<[f64; N]>>> {
+        // guard: w > 0 whenever a pixel index exists
+        let (x, y) = (i % self.w.max(1), i / self.w.max(1));
+        if !self.is_node(x, y) {
+            return None;
+        }
+        let (nx, ny) = (x.div_ceil(self.step), y.div_ceil(self.step));
+        self.cells.get(ny * self.cols + nx)
+    }
+
+    /// Whether the node at pixel index `i` has its value yet (`false` for
+    /// a pixel that is not a node).
+    pub fn is_known(&self, i: usize) -> bool {
+        self.cell(i).is_some_and(|c| c.get().is_some())
+    }
+
+    /// Gives the node at pixel index `i` the value `v` (a batch evaluated
+    /// it), unless it has one already; nothing for a pixel that is not a
+    /// node.
+    pub fn preset(&self, i: usize, v: Option<[f64; N]>) {
+        if let Some(c) = self.cell(i) {
+            let _ = c.set(v);
+        }
+    }
+
     /// Whether pixel `(x, y)` is a node.
     pub fn is_node(&self, x: usize, y: usize) -> bool {
         x < self.w
@@ -214,6 +244,11 @@ impl<const N: usize> Lattice<N> {
     }
 }
 
+/// A batch evaluation of a term: pixel indices to their values (`None`
+/// where the term has none).
+pub type Batch<'e, const N: usize> =
+    dyn FnMut(&[usize]) -> Result<Vec<Option<[f64; N]>>, NodeError> + 'e;
+
 /// Two lattices of one term, every `2 step` and every `step` pixels: a
 /// pixel takes the coarse blend where the coarse nodes allow it (module
 /// docs), else the fine one's, else it is the caller's. A smooth term far
@@ -252,6 +287,112 @@ impl<const N: usize> Nested<N> {
         self.coarse
             .at(x, y, eval, &same, tol)
             .or_else(|| self.fine.at(x, y, &fine_eval, &same, tol))
+    }
+
+    /// [`Nested::at`] at each pixel index of `pixels`, falling back to the
+    /// pixel's own value, with every value evaluated in batches by `many`
+    /// (pixel indices to their values, `None` where the term has none):
+    /// the coarse nodes the pixels read, then the fine nodes of the pixels
+    /// the coarse lattice does not serve, then the pixels neither serves.
+    /// Each node once; the same values as `at` (and the pixel's own value
+    /// where it gives none) with `many` asked one pixel at a time, whatever
+    /// the batches. `same(pixel, node)`: whether the node lies on the
+    /// pixel's surface.
+    pub fn batch(
+        &self,
+        pixels: &[usize],
+        many: &mut Batch<N>,
+        same: &(dyn Fn(usize, usize) -> bool + Sync),
+        tol: Agreement,
+    ) -> Result<Vec<Option<[f64; N]>>, NodeError> {
+        let w = self.fine.w.max(1);
+        let mut ask = |list: &[usize]| -> Result<Vec<Option<[f64; N]>>, NodeError> {
+            let v = many(list)?;
+            if v.len() != list.len() {
+                return Err(NodeError::Internal(format!(
+                    "a lattice batch gave {} values for {} pixels",
+                    v.len(),
+                    list.len()
+                )));
+            }
+            Ok(v)
+        };
+        // the nodes are all evaluated before the lattices read them
+        let missed = AtomicBool::new(false);
+        let never = |_: usize| {
+            missed.store(true, Ordering::Relaxed);
+            None
+        };
+        // the coarse nodes the pixels read
+        let mut need: Vec<usize> = pixels
+            .iter()
+            .flat_map(|&i| self.coarse.corners(i % w, i / w))
+            .filter(|&n| !self.coarse.is_known(n))
+            .collect();
+        need.sort_unstable();
+        need.dedup();
+        for (&n, v) in need.iter().zip(ask(&need)?) {
+            self.coarse.preset(n, v);
+        }
+        let coarse: Vec<Option<[f64; N]>> = pixels
+            .par_iter()
+            .map(|&i| self.coarse.at(i % w, i / w, &never, |n| same(i, n), tol))
+            .collect();
+        // the fine nodes of the pixels left (a coarse node's value is the
+        // coarse lattice's)
+        let open: Vec<usize> = (0..pixels.len()).filter(|&k| coarse[k].is_none()).collect();
+        let mut need: Vec<usize> = open
+            .iter()
+            .flat_map(|&k| self.fine.corners(pixels[k] % w, pixels[k] / w))
+            .filter(|&n| {
+                let (x, y) = (n % w, n / w);
+                if self.coarse.is_node(x, y) {
+                    !self.coarse.is_known(n)
+                } else {
+                    !self.fine.is_known(n)
+                }
+            })
+            .collect();
+        need.sort_unstable();
+        need.dedup();
+        for (&n, v) in need.iter().zip(ask(&need)?) {
+            if self.coarse.is_node(n % w, n / w) {
+                self.coarse.preset(n, v);
+            } else {
+                self.fine.preset(n, v);
+            }
+        }
+        let fine_eval = |i: usize| {
+            self.coarse
+                .node_value(i, &never)
+                .unwrap_or_else(|| never(i))
+        };
+        let mut out: Vec<Option<[f64; N]>> = coarse;
+        let fine: Vec<Option<[f64; N]>> = open
+            .par_iter()
+            .map(|&k| {
+                let i = pixels[k];
+                self.fine.at(i % w, i / w, &fine_eval, |n| same(i, n), tol)
+            })
+            .collect();
+        let mut rest = Vec::new();
+        for (&k, v) in open.iter().zip(fine) {
+            match v {
+                Some(v) => out[k] = Some(v),
+                None => rest.push(k),
+            }
+        }
+        // the pixels neither lattice serves: their own values
+        let own: Vec<usize> = rest.iter().map(|&k| pixels[k]).collect();
+        for (&k, v) in rest.iter().zip(ask(&own)?) {
+            out[k] = v;
+        }
+        if missed.load(Ordering::Relaxed) {
+            return Err(NodeError::Internal(
+                "a lattice read a node its batch did not evaluate".into(),
+            ));
+        }
+        Ok(out)
     }
 }
 
@@ -433,5 +574,57 @@ mod tests {
         assert_eq!(a.len(), all, "a node was evaluated twice");
         // the fine lattice was used (its nodes at odd multiples of 2)
         assert!(a.contains(&2));
+    }
+
+    /// Batches give what `at` gives pixel by pixel (with the pixel's own
+    /// value where no lattice serves it), each node and pixel asked once,
+    /// in three batches: a term smooth on the left half and stepping on
+    /// the right, a depth edge (`same`) down the middle.
+    #[test]
+    fn batches_give_what_at_gives() {
+        let (w, h) = (29, 21);
+        let f = |i: usize| -> Option<[f64; 2]> {
+            let (x, y) = ((i % w) as f64, (i / w) as f64);
+            let step = if x > 14.0 && (y as usize).is_multiple_of(3) {
+                5.0
+            } else {
+                0.0
+            };
+            (i != 3 * w + 7).then_some([1.0 + 0.01 * x + 0.02 * y + step, 2.0])
+        };
+        let same = |p: usize, n: usize| (p % w < 12) == (n % w < 12);
+        let tol = Agreement {
+            rel: 0.05,
+            abs: 0.0,
+            whole: false,
+        };
+        let pixels: Vec<usize> = (0..w * h).filter(|i| i % 5 != 1).collect();
+        let want: Vec<Option<[f64; 2]>> = {
+            let grid = Nested::<2>::new(w, h, 2);
+            pixels
+                .iter()
+                .map(|&i| {
+                    grid.at(i % w, i / w, &f, |n| same(i, n), tol)
+                        .or_else(|| f(i))
+                })
+                .collect()
+        };
+        let grid = Nested::<2>::new(w, h, 2);
+        let mut asked: Vec<Vec<usize>> = Vec::new();
+        let mut many = |list: &[usize]| -> Result<Vec<Option<[f64; 2]>>, NodeError> {
+            asked.push(list.to_vec());
+            Ok(list.iter().map(|&i| f(i)).collect())
+        };
+        let got = grid.batch(&pixels, &mut many, &same, tol).unwrap();
+        assert_eq!(got, want);
+        assert_eq!(asked.len(), 3, "{} batches", asked.len());
+        // nodes once: the two lattices' batches share nothing
+        let mut nodes: Vec<usize> = asked[0].iter().chain(&asked[1]).copied().collect();
+        let n = nodes.len();
+        nodes.sort_unstable();
+        nodes.dedup();
+        assert_eq!(nodes.len(), n, "a node was asked twice");
+        // the stepping half needed the fine lattice and pixels of its own
+        assert!(!asked[1].is_empty() && !asked[2].is_empty());
     }
 }

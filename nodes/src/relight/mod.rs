@@ -6,6 +6,7 @@ pub mod closure;
 pub mod contact;
 pub mod direct;
 pub mod envmap;
+pub mod fill;
 pub mod ism;
 pub mod lattice;
 pub mod lighting;

@@ -145,11 +145,11 @@ use rayon::prelude::*;
 use crate::relight::ism::{IsmParams, PointSet, ShadowMap, build_pair_in, windows};
 use crate::relight::vpl::Vpl;
 
+use crate::relight::fill::scene_fill;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, Importance, PointVplShadows, RelightInputs, RelightParams, Relit,
     Surf, centre_and_radius, clean_alpha, composite, lit_vpls, object_bounce_vpls, object_radiance,
-    pixel_areas, received, scene_bounce_vpls, scene_fill, support_vpls, target_albedo,
-    target_surfaces,
+    pixel_areas, received, scene_bounce_vpls, support_vpls, target_albedo, target_surfaces,
 };
 
 /// Irradiance `(E^t, E^{s+t}, E_cap)` per surface (module docs).

@@ -29,12 +29,12 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::depth::mesh::{MeshParams, depth_to_mesh};
+use crate::relight::fill::scene_fill;
 use crate::relight::raycast::Bvh;
 use crate::relight::shading::{
     Cone, RelightInputs, RelightParams, Relit, Surf, bounce_sum, capture_ref, centre_and_radius,
     clean_alpha, composite, lit_vpls, nothing_pasted, object_bounce_vpls, object_radiance,
-    pixel_areas, received, scene_bounce_vpls, scene_fill, support_vpls, target_albedo,
-    target_surfaces,
+    pixel_areas, received, scene_bounce_vpls, support_vpls, target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 

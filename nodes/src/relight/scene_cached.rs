@@ -56,6 +56,7 @@ use crate::relight::contact::ContactParams;
 use crate::relight::direct::{
     DirectLight, DirectPixel, DirectPlan, DirectSum, DirectTile, evaluate as evaluate_direct, slope,
 };
+use crate::relight::fill::{FillPlan, FillSum, evaluate as evaluate_fill};
 use crate::relight::ism::{
     IsmParams, ParaboloidSamples, PointSet, ShadowMap, Window, build_single_in, windows,
 };
@@ -68,8 +69,8 @@ pub use crate::relight::shading::SceneInputs;
 use crate::relight::shading::{
     BOUNCE_SPLAT_SCALE, Cone, PointVplShadows, RelightInputs, RelightParams, Relit, Surf,
     capture_ref, centre_and_radius, clean_alpha, composite, lit_vpls, nothing_pasted,
-    object_bounce_vpls, object_radiance, pixel_areas, received, scene_bounce_vpls, scene_fill,
-    support_vpls, target_albedo, target_surfaces,
+    object_bounce_vpls, object_radiance, pixel_areas, received, scene_bounce_vpls, support_vpls,
+    target_albedo, target_surfaces,
 };
 use crate::relight::vpl::Vpl;
 use depthgraph_graph::bytes::{ByteReader, ByteWriter};
@@ -785,6 +786,8 @@ pub trait MoveSums {
         plan: &ObjectLightPlan,
         surfs: &[Surf],
     ) -> Result<Vec<ObjectLightSum>, NodeError>;
+    /// One [`FillSum`] per surface of `surfs`, in order.
+    fn fill(&mut self, plan: &FillPlan, surfs: &[Surf]) -> Result<Vec<FillSum>, NodeError>;
 }
 
 /// Both sums on the CPU.
@@ -802,6 +805,10 @@ impl MoveSums for CpuSums {
         surfs: &[Surf],
     ) -> Result<Vec<ObjectLightSum>, NodeError> {
         Ok(evaluate_object_light(plan, surfs))
+    }
+
+    fn fill(&mut self, plan: &FillPlan, surfs: &[Surf]) -> Result<Vec<FillSum>, NodeError> {
+        Ok(evaluate_fill(plan, surfs))
     }
 }
 
@@ -1135,9 +1142,10 @@ pub fn relight_moved_with(
         ((s.pos - c).length() <= bounce_reach)
             .then(|| bounce_shadows.bounce(s.pos, s.n, r_scene, bounce.iter().enumerate(), r2_min))
     };
-    let fill_here = |s: &Surf| {
-        let (e, b) = scene_fill(s.pos, s.n, &scene_vpls, r2_min, &volume);
-        [e[0], e[1], e[2], b[0], b[1], b[2]]
+    let fill_plan = FillPlan {
+        vpls: &scene_vpls,
+        r2_min,
+        volume: &volume,
     };
     // (step 1: every term at every pixel)
     let fill_step = if p.lattice_step <= 1 {
@@ -1146,7 +1154,6 @@ pub fn relight_moved_with(
         2 * p.lattice_step
     };
     let fill_grid = Nested::<6>::new(w, h, fill_step);
-    let fill_node = |i: usize| scene.target[i].as_ref().map(fill_here);
     // Per tile: the VPLs its cone meets and whose object map may shadow it
     // (`ObjectMaps::may_shadow`: the others' lookups find empty texels
     // at every pixel of the tile; the direct term's plan), whether it is
@@ -1219,15 +1226,62 @@ pub fn relight_moved_with(
     };
     // ---- the target: -Σ Φ cos V^t (1 - V^o) over the VPLs of each
     // pixel's cone (the evaluator's), plus the bounce within its reach
-    let sums = sums.direct(&plan)?;
-    if sums.len() != plan.pixel_count() {
+    let direct = sums.direct(&plan)?;
+    if direct.len() != plan.pixel_count() {
         return Err(NodeError::Internal(format!(
             "the direct term's evaluator gave {} sums for {} pixels",
-            sums.len(),
+            direct.len(),
             plan.pixel_count()
         )));
     }
     let starts = plan.tile_starts();
+    // The fill at the pixels the composite rewrites (those the object
+    // shades, those within the bounce's reach and the object's own),
+    // evaluated in batches by the evaluator: the lattices' nodes, then
+    // the pixels they do not serve.
+    let fill_pixels: Vec<usize> = if fill {
+        let mut v: Vec<usize> = plan
+            .tiles
+            .iter()
+            .zip(&near_bounce)
+            .zip(&starts)
+            .flat_map(|((tile, (tile_near, _)), &start)| {
+                tile.pixels
+                    .iter()
+                    .zip(&direct[start..])
+                    .filter(|(px, sum)| {
+                        let near = *tile_near && (px.pos - c).length() <= bounce_reach;
+                        sum.hit || near || alpha[px.index] > 0.0
+                    })
+                    .map(|(px, _)| px.index)
+            })
+            .collect();
+        v.sort_unstable();
+        v
+    } else {
+        Vec::new()
+    };
+    let fill_values: Vec<Option<FillSum>> = if fill_pixels.is_empty() {
+        Vec::new()
+    } else {
+        let mut many = |list: &[usize]| -> Result<Vec<Option<FillSum>>, NodeError> {
+            let surfs: Vec<Surf> = list.iter().filter_map(|&i| scene.target[i]).collect();
+            let mut got = sums.fill(&fill_plan, &surfs)?.into_iter();
+            if got.len() != surfs.len() {
+                return Err(NodeError::Internal(format!(
+                    "the fill's evaluator gave {} sums for {} surfaces",
+                    got.len(),
+                    surfs.len()
+                )));
+            }
+            Ok(list
+                .iter()
+                .map(|&i| scene.target[i].and_then(|_| got.next()))
+                .collect())
+        };
+        let same = |i: usize, node: usize| scene.target[i].is_some_and(|s| on_surface(&s, node));
+        fill_grid.batch(&fill_pixels, &mut many, &same, fill_agree)?
+    };
     let diffs: Vec<(usize, [f64; 3], Rgb)> = plan
         .tiles
         .par_iter()
@@ -1235,7 +1289,7 @@ pub fn relight_moved_with(
         .zip(starts.par_iter())
         .flat_map_iter(|((tile, (tile_near, tile_bounce)), &start)| {
             let mut out = Vec::new();
-            for (px, sum) in tile.pixels.iter().zip(&sums[start..]) {
+            for (px, sum) in tile.pixels.iter().zip(&direct[start..]) {
                 let (i, de, hit) = (px.index, sum.de, sum.hit);
                 let s = Surf {
                     pos: px.pos,
@@ -1258,13 +1312,13 @@ pub fn relight_moved_with(
                     [0.0; 3]
                 };
                 // the scene's own bounce here, and what of it the object blocks
-                let (e_ind, blocked) = if fill {
-                    let f = fill_grid
-                        .at(x, y, &fill_node, same, fill_agree)
-                        .unwrap_or_else(|| fill_here(&s));
-                    ([f[0], f[1], f[2]], [f[3], f[4], f[5]])
-                } else {
-                    ([0.0; 3], [0.0; 3])
+                let f = fill_pixels
+                    .binary_search(&i)
+                    .ok()
+                    .and_then(|k| fill_values.get(k).copied().flatten());
+                let (e_ind, blocked) = match f {
+                    Some(f) => ([f[0], f[1], f[2]], [f[3], f[4], f[5]]),
+                    None => ([0.0; 3], [0.0; 3]),
                 };
                 let et = match &scene.e_t {
                     Some(e) => std::array::from_fn(|ch| e[i][ch] + e_ind[ch]),

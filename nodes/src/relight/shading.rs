@@ -489,39 +489,6 @@ pub(crate) fn object_radiance(pc: Rgb, received: [f64; 3], ecap: [f64; 3], cap_f
     })
 }
 
-/// The scene's own bounce at a target surface `(x, n)` from the secondary
-/// VPLs read off the photo ([`scene_bounce_vpls`]), and the part of it the
-/// object's closed volume blocks (module docs of
-/// [`crate::relight::paired`], "Shadows with their fill light"): both with
-/// the clamped `1 / max(r², r2_min)` of [`bounce_at`].
-pub(crate) fn scene_fill(
-    x: DVec3,
-    n: DVec3,
-    vpls: &[(DVec3, DVec3, [f64; 3])],
-    r2_min: f64,
-    volume: &crate::relight::closure::ObjectVolume,
-) -> ([f64; 3], [f64; 3]) {
-    let (mut all, mut blocked) = ([0.0f64; 3], [0.0f64; 3]);
-    for (q, nq, l) in vpls {
-        let v = *q - x;
-        let r2 = v.length_squared();
-        let (cr, cq) = (n.dot(v), -nq.dot(v));
-        if r2 < 1e-18 || cr <= 0.0 || cq <= 0.0 {
-            continue;
-        }
-        // guard: r2 >= 1e-18 > 0 and r2_min >= 0
-        let g = cr * cq / (r2 * r2.max(r2_min));
-        let hidden = volume.blocks(x, *q);
-        for ch in 0..3 {
-            all[ch] += l[ch] * g;
-            if hidden {
-                blocked[ch] += l[ch] * g;
-            }
-        }
-    }
-    (all, blocked)
-}
-
 /// Up to `count` object pixels (a stratified subset of `obj_idx`) as
 /// bounce VPLs `(position, normal, L a)`: each stands for `step` pixels of
 /// outgoing radiance `L` (the shaded colour: a pixel value is radiance). `surf(j)` and `radiance(j)` give the
