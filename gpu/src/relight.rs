@@ -681,29 +681,43 @@ pub fn object_light_with(
         (&out, bytes),
         (gx, gy),
     )?;
-    if all.len() != total {
+    let (sums, asked) = host_sums(&all, stride, surfs, |w, q| {
+        sums_from_decisions(plan, q, |j| Seen::from_bits(code(w, j)))
+    })?;
+    stats.surfaces += n;
+    stats.asked += asked;
+    Ok(sums)
+}
+
+/// VPL `j`'s two-bit decision in a surface's words.
+#[inline]
+fn code(w: &[u32], j: usize) -> u32 {
+    w[j / 16] >> (2 * (j % 16))
+}
+
+/// The host's part of a decisions kernel: `words` words of two-bit
+/// decisions per surface of `surfs` in `all`, summed by `sum` (in
+/// parallel); the sums and the decisions left to the host (code 2).
+fn host_sums<T: Send>(
+    all: &[u32],
+    words: usize,
+    surfs: &[Surf],
+    sum: impl Fn(&[u32], &Surf) -> T + Sync,
+) -> Result<(Vec<T>, usize), NodeError> {
+    if all.len() != words * surfs.len() {
         return Err(NodeError::Internal(format!(
-            "the device returned {} words for {n} surfaces of {nl} VPLs",
-            all.len()
+            "the device returned {} words for {} surfaces of {words} words",
+            all.len(),
+            surfs.len()
         )));
     }
-    let sums: Vec<(ObjectLightSum, usize)> = all
-        .par_chunks_exact(stride)
+    let out: Vec<(T, usize)> = all
+        .par_chunks_exact(words)
         .zip(surfs)
-        .map(|(w, q)| {
-            let seen = |j: usize| Seen::from_bits(w[j / 16] >> (2 * (j % 16)));
-            let asked = w.iter().map(|&x| asked_in(x)).sum();
-            (sums_from_decisions(plan, q, seen), asked)
-        })
+        .map(|(w, q)| (sum(w, q), w.iter().map(|&x| asked_in(x)).sum()))
         .collect();
-    stats.surfaces += n;
-    Ok(sums
-        .into_iter()
-        .map(|(sum, asked)| {
-            stats.asked += asked;
-            sum
-        })
-        .collect())
+    let asked = out.iter().map(|(_, a)| a).sum();
+    Ok((out.into_iter().map(|(t, _)| t).collect(), asked))
 }
 
 #[repr(C)]
@@ -862,29 +876,12 @@ pub fn fill_with(
         (&out, bytes),
         (gx, gy),
     )?;
-    if all.len() != total {
-        return Err(NodeError::Internal(format!(
-            "the device returned {} words for {n} surfaces of {nv} fill VPLs",
-            all.len()
-        )));
-    }
-    let sums: Vec<(FillSum, usize)> = all
-        .par_chunks_exact(words)
-        .zip(surfs)
-        .map(|(w, q)| {
-            let seen = |j: usize| FillSeen::from_bits(w[j / 16] >> (2 * (j % 16)));
-            let asked = w.iter().map(|&x| asked_in(x)).sum();
-            (fill_from_decisions(plan, q, seen), asked)
-        })
-        .collect();
+    let (sums, asked) = host_sums(&all, words, surfs, |w, q| {
+        fill_from_decisions(plan, q, |j| FillSeen::from_bits(code(w, j)))
+    })?;
     stats.surfaces += n;
-    Ok(sums
-        .into_iter()
-        .map(|(sum, asked)| {
-            stats.asked += asked;
-            sum
-        })
-        .collect())
+    stats.asked += asked;
+    Ok(sums)
 }
 
 /// Both long sums of a move on the device ([`MoveSums`]), the shadow
