@@ -286,3 +286,21 @@ pub fn object_light_equal(
     }
     Ok(cpu.len())
 }
+
+/// The fill light of two backends bit for bit (the device's decisions with
+/// the host's f64 sums are the CPU's): the surfaces compared, or the first
+/// that differs.
+pub fn fill_equal(
+    cpu: &[depthgraph_nodes::relight::fill::FillSum],
+    gpu: &[depthgraph_nodes::relight::fill::FillSum],
+) -> Result<usize, String> {
+    if cpu.len() != gpu.len() {
+        return Err(format!("{} surfaces vs {}", cpu.len(), gpu.len()));
+    }
+    for (k, (a, b)) in cpu.iter().zip(gpu).enumerate() {
+        if a.map(f64::to_bits) != b.map(f64::to_bits) {
+            return Err(format!("surface {k}: cpu {a:?}, gpu {b:?}"));
+        }
+    }
+    Ok(cpu.len())
+}

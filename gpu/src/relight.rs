@@ -571,6 +571,33 @@ pub fn object_light_with(
     maps: &MoveMaps,
     stats: &mut ObjectLightStats,
 ) -> Result<Vec<ObjectLightSum>, NodeError> {
+    let per = chunk_surfaces(s, plan.lights.len());
+    let mut out = Vec::with_capacity(surfs.len());
+    for chunk in surfs.chunks(per) {
+        out.extend(object_light_chunk(s, plan, chunk, maps, stats)?);
+    }
+    Ok(out)
+}
+
+/// Surfaces per dispatch of a decisions kernel over `vpls` VPLs: their
+/// decisions within the largest buffer the device binds, and at most
+/// 65 536 (a dispatch's run time stays short: a driver's watchdog ends
+/// long ones).
+fn chunk_surfaces(s: &Session, vpls: usize) -> usize {
+    let bytes = 4 * vpls.div_ceil(16).max(1) as u64;
+    usize::try_from(s.ctx().max_buffer() / bytes)
+        .unwrap_or(usize::MAX)
+        .clamp(1, 1 << 16)
+}
+
+/// [`object_light_with`] of one dispatch.
+fn object_light_chunk(
+    s: &mut Session,
+    plan: &ObjectLightPlan,
+    surfs: &[Surf],
+    maps: &MoveMaps,
+    stats: &mut ObjectLightStats,
+) -> Result<Vec<ObjectLightSum>, NodeError> {
     if maps.origin != plan.centre || maps.groups != plan.object_maps.len() {
         return Err(NodeError::Internal(
             "the device's shadow maps belong to another move".into(),
@@ -807,6 +834,22 @@ pub fn fill_with(
     volume: &VolumeMaps,
     stats: &mut FillStats,
 ) -> Result<Vec<FillSum>, NodeError> {
+    let per = chunk_surfaces(s, plan.vpls.len());
+    let mut out = Vec::with_capacity(surfs.len());
+    for chunk in surfs.chunks(per) {
+        out.extend(fill_chunk(s, plan, chunk, volume, stats)?);
+    }
+    Ok(out)
+}
+
+/// [`fill_with`] of one dispatch.
+fn fill_chunk(
+    s: &mut Session,
+    plan: &FillPlan,
+    surfs: &[Surf],
+    volume: &VolumeMaps,
+    stats: &mut FillStats,
+) -> Result<Vec<FillSum>, NodeError> {
     if volume.key != volume_key(plan) {
         return Err(NodeError::Internal(
             "the device's volume maps belong to another move".into(),
@@ -884,10 +927,13 @@ pub fn fill_with(
     Ok(sums)
 }
 
-/// Both long sums of a move on the device ([`MoveSums`]), the shadow
-/// maps uploaded once for the move (the scene's kept on the device with
-/// the cached scene, the photo's depth with its value, when named); what
-/// each did.
+/// The long sums of a move on the device ([`MoveSums`]), the shadow maps
+/// and the object's volume uploaded once for the move (the scene's maps
+/// kept on the device with the cached scene, the photo's depth with its
+/// value, when named); what each did. One move at a time: what a move
+/// uploaded is known by its lists' addresses, so a caller that drives the
+/// evaluators itself calls [`MoveSums::begin_move`] between moves, as
+/// `relight_moved_with` does.
 pub struct DeviceSums<'s, 'a> {
     session: &'s mut Session<'a>,
     maps: Option<MoveMaps>,
@@ -976,6 +1022,9 @@ impl MoveSums for DeviceSums<'_, '_> {
     }
 
     fn fill(&mut self, plan: &FillPlan, surfs: &[Surf]) -> Result<Vec<FillSum>, NodeError> {
+        if surfs.is_empty() || plan.vpls.is_empty() {
+            return Ok(vec![[0.0; 6]; surfs.len()]);
+        }
         // the volume's maps once per move
         let volume = match self.volume.take() {
             Some(v) if v.key == volume_key(plan) => v,

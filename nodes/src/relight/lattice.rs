@@ -323,10 +323,16 @@ impl<const N: usize> Nested<N> {
             missed.store(true, Ordering::Relaxed);
             None
         };
-        // the coarse nodes the pixels read
+        // the coarse nodes the pixels read (`at` reads a corner on the
+        // pixel's surface, or the pixel itself where it is a node)
+        let reads = |i: usize, n: usize| n == i || same(i, n);
         let mut need: Vec<usize> = pixels
             .iter()
-            .flat_map(|&i| self.coarse.corners(i % w, i / w))
+            .flat_map(|&i| {
+                self.coarse
+                    .corners(i % w, i / w)
+                    .filter(move |&n| reads(i, n))
+            })
             .filter(|&n| !self.coarse.is_known(n))
             .collect();
         need.sort_unstable();
@@ -343,7 +349,12 @@ impl<const N: usize> Nested<N> {
         let open: Vec<usize> = (0..pixels.len()).filter(|&k| coarse[k].is_none()).collect();
         let mut need: Vec<usize> = open
             .iter()
-            .flat_map(|&k| self.fine.corners(pixels[k] % w, pixels[k] / w))
+            .flat_map(|&k| {
+                let i = pixels[k];
+                self.fine
+                    .corners(i % w, i / w)
+                    .filter(move |&n| reads(i, n))
+            })
             .filter(|&n| {
                 let (x, y) = (n % w, n / w);
                 if self.coarse.is_node(x, y) {
