@@ -28,15 +28,13 @@
 //! is left to the host for that VPL (the CPU's own decision). So the
 //! lattices blend and test the same values on both backends.
 //!
-//! **The direct term's agreement** (checked by the parity tests): every pixel's
-//! decisions are the CPU's — each visibility test whose f32 value lies
-//! within its rounding bound of the threshold marks the pixel, and the host
-//! recomputes marked pixels with the CPU's own
-//! [`evaluate_pixel`] —
-//! so the pixels the object shades (`hit`) are the same set; the sums are
-//! compensated f32 sums of f32 terms `Φ cos`, within
-//! `|Δ| <= DE_TOL * (Σ_k Φ_k + ΔE)` of the CPU's f64 sums ([`DE_TOL`]:
-//! each term's `cos` carries a few ulps of its f32 normal and direction).
+//! **The direct term is the CPU's bit for bit too** (checked by the parity
+//! tests): the device marks, per pixel, which places of its tile's VPL
+//! list the object takes, and the host adds those VPLs' f64 terms `Φ cos`
+//! in the list's order, as the CPU does; a pixel with a visibility test
+//! whose f32 value lies within its rounding bound of the threshold is
+//! recomputed with the CPU's own [`evaluate_pixel`]. ([`DE_TOL`] is 0: the
+//! parity check's bound.)
 
 use std::any::Any;
 use std::sync::Arc;
@@ -61,8 +59,9 @@ use rayon::prelude::*;
 use crate::session::{Session, bytes_of, u32s};
 use crate::shaders;
 
-/// The bound of the device's direct term against the CPU's (module docs).
-pub const DE_TOL: f64 = 1e-6;
+/// The bound of the device's direct term against the CPU's, relative to
+/// `Σ_k Φ_k + ΔE` (module docs): none, the sums are the CPU's bits.
+pub const DE_TOL: f64 = 0.0;
 
 /// Empty texel on the device (the CPU's `-inf`).
 const EMPTY: f32 = -1.0e30;
@@ -78,7 +77,9 @@ struct Params {
     /// Invocations per row of the 2-D dispatch (a row's workgroups times
     /// [`WORKGROUP`]): pixel `k` is invocation `(k % row, k / row)`.
     row: u32,
-    _pad: [u32; 2],
+    /// Words of bits per pixel (the longest tile list, 32 places a word).
+    words: u32,
+    _pad: u32,
 }
 
 #[repr(C)]
@@ -446,18 +447,37 @@ pub fn direct_with(
         lights.push(gpu_light(l, scene_map, maps.groups));
     }
     let n = pixels.len();
+    // a bit per place of the longest list; the flags after them
+    let words = plan
+        .tiles
+        .iter()
+        .map(|t| t.vpls.len().div_ceil(32))
+        .max()
+        .unwrap_or(0)
+        .max(1);
+    let stride = words + 1;
+    let (Ok(words_u32), Some(total)) = (
+        u32::try_from(words),
+        n.checked_mul(stride).filter(|&t| u32::try_from(t).is_ok()),
+    ) else {
+        return Err(s.too_large(&format!(
+            "{n} pixels of the direct term are more than the device indexes"
+        )));
+    };
     let kernel = s.kernel(&shaders::RELIGHT_DIRECT)?;
     let params = Params {
         count: n as u32,
         row: gx * WORKGROUP,
-        _pad: [0; 2],
+        words: words_u32,
+        _pad: 0,
     };
     let uniform = s.uniform(bytemuck::bytes_of(&params))?;
     let b_pixels = s.upload(bytes_of(&pixels))?;
     let b_list = s.upload(bytes_of(&list))?;
     let b_lights = s.upload(bytes_of(&lights))?;
-    let out = s.scratch(16 * n as u64)?;
-    let words = run_flat(
+    let bytes = 4 * total as u64;
+    let out = s.scratch(bytes)?;
+    let all = run_flat(
         s,
         &kernel,
         &[
@@ -469,27 +489,45 @@ pub fn direct_with(
             &maps.texels,
             &maps.scene_texels,
         ],
-        (&out, 16 * n as u64),
+        (&out, bytes),
         (gx, gy),
     )?;
-    if words.len() != 4 * n {
+    if all.len() != total {
         return Err(NodeError::Internal(format!(
             "the device returned {} words for {n} pixels",
-            words.len()
+            all.len()
         )));
     }
     let starts = plan.tile_starts();
     stats.pixels += n;
-    for (w, &(t, k)) in words.chunks_exact(4).zip(&at) {
-        let sum = if w[3] & 2 != 0 {
-            stats.recomputed += 1;
-            evaluate_pixel(plan, &plan.tiles[t], k)
-        } else {
-            DirectSum {
-                de: [0, 1, 2].map(|c| f64::from(f32::from_bits(w[c]))),
-                hit: w[3] & 1 != 0,
+    // the host's sums: the CPU's terms of the VPLs the device marked, in
+    // the list's order (in parallel)
+    let decided: Vec<(DirectSum, bool)> = all
+        .par_chunks_exact(stride)
+        .zip(at.par_iter())
+        .map(|(w, &(t, k))| {
+            let tile = &plan.tiles[t];
+            if w[words] & 2 != 0 {
+                return (evaluate_pixel(plan, tile, k), true);
             }
-        };
+            let px = &tile.pixels[k];
+            let mut sum = DirectSum::default();
+            for (b, &j) in tile.vpls.iter().enumerate() {
+                if w[b / 32] & (1 << (b % 32)) == 0 {
+                    continue;
+                }
+                let l = &plan.lights[j];
+                let cos = px.n.dot(l.dir);
+                sum.hit = true;
+                for (e, power) in sum.de.iter_mut().zip(l.power) {
+                    *e += power * cos;
+                }
+            }
+            (sum, false)
+        })
+        .collect();
+    for ((sum, again), &(t, k)) in decided.into_iter().zip(&at) {
+        stats.recomputed += usize::from(again);
         sums[starts[t] + k] = sum;
     }
     Ok(sums)

@@ -463,9 +463,10 @@ fn a_perturbed_direct_term_fails_the_check() {
     let total = total_power(&vpls);
     direct_within(&cpu, &dev, total, DE_TOL).unwrap();
     let k = cpu.iter().position(|s| s.hit).unwrap();
-    // a sum off by twice the bound
+    // a sum one ulp off (the bound is the CPU's bits)
+    assert_eq!(DE_TOL, 0.0);
     let mut bad = dev.clone();
-    bad[k].de[1] += 2.0 * DE_TOL * (total[1] + cpu[k].de[1]);
+    bad[k].de[1] = f64::from_bits(bad[k].de[1].to_bits() + 1);
     assert!(direct_within(&cpu, &bad, total, DE_TOL).is_err());
     // a pixel whose decision differs
     let mut bad = dev;
@@ -497,6 +498,17 @@ fn the_relight_node_on_the_device_gives_the_cpus_picture() {
     let psnr = display_psnr(&a, &b).unwrap();
     eprintln!("Relight color: display PSNR {psnr:.1} dB against the CPU");
     assert!(psnr >= 80.0, "{psnr} dB");
+    // every sum the device takes part in is the CPU's bits: the picture too
+    let bits = |c: &ColorImage| -> Vec<u32> {
+        c.as_slice()
+            .iter()
+            .flat_map(|p| p.map(f32::to_bits))
+            .collect()
+    };
+    assert!(
+        bits(&a) == bits(&b),
+        "the device's picture differs from the CPU's"
+    );
     // the rendered region is decided alike
     assert_eq!(cpu.values.get("region"), dev.values.get("region"));
     let report = dev.report.clone().unwrap_or_default();

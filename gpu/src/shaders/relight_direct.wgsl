@@ -9,14 +9,16 @@
 // differences. Every discrete test (cos > 0, the cone, the texel a point
 // falls in, occluder against receiver) whose f32 value lies within its
 // rounding bound of the threshold marks the pixel unsure: the host then
-// recomputes it with the CPU's own f64 function. The sums are compensated
-// (Kahan): within 2 eps of the f32 terms' exact sum.
+// recomputes it with the CPU's own f64 function. The device writes which
+// VPLs the object takes (a bit per place of the tile's list); the host adds
+// their f64 terms in the list's order, so the sums are the CPU's bits.
 
 struct Params {
     count: u32,
     // invocations per row of the 2-D dispatch
     row: u32,
-    _p1: u32,
+    // words of bits per pixel (the longest tile list, 32 places a word)
+    words: u32,
     _p2: u32,
 }
 
@@ -37,7 +39,16 @@ struct Pixel {
 @group(0) @binding(5) var<storage, read> texels: array<f32>;
 @group(0) @binding(6) var<storage, read> stexels: array<f32>;
 // per pixel: the sums' bits (r, g, b) and flags (1: hit, 2: unsure)
-@group(0) @binding(7) var<storage, read_write> out: array<vec4<u32>>;
+// per pixel: `words` words with a bit per place of its tile's VPL list
+// (set: the object takes that VPL's light here), then a word of flags
+// (2: unsure)
+@group(0) @binding(7) var<storage, read_write> out: array<u32>;
+
+// Sets bit `b` of the pixel's words at `base`.
+fn take(base: u32, b: u32) {
+    let i = base + b / 32u;
+    out[i] = out[i] | (1u << (b % 32u));
+}
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -48,10 +59,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let px = pixels[k];
     unsure = false;
     let mag = length(px.pos);
-    var s_r = vec2<f32>(0.0, 0.0);
-    var s_g = vec2<f32>(0.0, 0.0);
-    var s_b = vec2<f32>(0.0, 0.0);
-    var hit = false;
+    let base = k * (P.words + 1u);
+    for (var i = 0u; i <= P.words; i = i + 1u) {
+        out[base + i] = 0u;
+    }
     var group = NONE;
     var skip_run = false;
     var looked = false;
@@ -139,18 +150,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
         if (visible) {
-            hit = true;
-            s_r = kahan_add(s_r, l.power.x * cos);
-            s_g = kahan_add(s_g, l.power.y * cos);
-            s_b = kahan_add(s_b, l.power.z * cos);
+            take(base, q - px.first);
         }
     }
-    var flags = 0u;
-    if (hit) {
-        flags = flags | 1u;
-    }
     if (unsure) {
-        flags = flags | 2u;
+        out[base + P.words] = 2u;
     }
-    out[k] = vec4<u32>(bitcast<u32>(s_r.x), bitcast<u32>(s_g.x), bitcast<u32>(s_b.x), flags);
 }
