@@ -132,7 +132,18 @@ pub struct AdapterRequest {
     /// dispatch into more rows, the same results: a test can reach the
     /// wrapped path without millions of pixels.
     pub max_groups_per_row: Option<u32>,
+    /// The most surfaces one dispatch of Relight's decision kernels (the
+    /// object's light, the fill) takes; `None` (or more than the largest
+    /// buffer holds) is [`DEFAULT_SURFACES_PER_DISPATCH`] within that
+    /// buffer. Smaller values only split a call into more dispatches, the
+    /// same sums: a test can reach the split path without 65 536 surfaces.
+    pub max_surfaces_per_dispatch: Option<usize>,
 }
+
+/// Surfaces per dispatch of Relight's decision kernels unless the request
+/// says fewer: a dispatch's run time stays short (a driver's watchdog ends
+/// long ones).
+pub const DEFAULT_SURFACES_PER_DISPATCH: usize = 1 << 16;
 
 /// Views `Refocus` renders per dispatch unless the request says otherwise:
 /// one dispatch has a fixed cost on the device and on the host (its
@@ -155,6 +166,8 @@ pub struct GpuContext {
     /// A flat dispatch's workgroups per row (at least 1, at most the
     /// device's limit per dimension).
     groups_per_row: u32,
+    /// Surfaces per dispatch of the decision kernels (at least 1).
+    surfaces_per_dispatch: usize,
     pipelines: Mutex<HashMap<&'static str, Arc<wgpu::ComputePipeline>>>,
     layouts: Mutex<HashMap<&'static str, Arc<Layout>>>,
     compile_ms: Mutex<f64>,
@@ -316,6 +329,10 @@ impl GpuContext {
                 .unwrap_or(u32::MAX)
                 .min(limits.max_compute_workgroups_per_dimension)
                 .max(1),
+            surfaces_per_dispatch: req
+                .max_surfaces_per_dispatch
+                .unwrap_or(DEFAULT_SURFACES_PER_DISPATCH)
+                .clamp(1, DEFAULT_SURFACES_PER_DISPATCH),
             pipelines: Mutex::new(HashMap::new()),
             layouts: Mutex::new(HashMap::new()),
             compile_ms: Mutex::new(0.0),
@@ -484,6 +501,12 @@ impl GpuContext {
     /// The largest buffer a kernel may bind, bytes.
     pub fn max_buffer(&self) -> u64 {
         self.max_storage
+    }
+
+    /// How many surfaces one dispatch of a decision kernel takes, at most
+    /// (see [`AdapterRequest::max_surfaces_per_dispatch`]).
+    pub fn surfaces_per_dispatch(&self) -> usize {
+        self.surfaces_per_dispatch
     }
 
     /// How many aperture views `Refocus` renders per dispatch, at most

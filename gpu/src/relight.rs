@@ -573,6 +573,10 @@ pub struct ObjectLightStats {
     /// Decisions of one surface and VPL left to the host (a test f32
     /// could not settle).
     pub asked: usize,
+    /// Dispatches of the decision kernel (a call larger than
+    /// [`GpuContext::surfaces_per_dispatch`](crate::GpuContext::surfaces_per_dispatch)
+    /// takes several).
+    pub dispatches: usize,
 }
 
 /// Code-2 pairs ([`Seen::Ask`]) among the sixteen of a word.
@@ -619,13 +623,15 @@ pub fn object_light_with(
 
 /// Surfaces per dispatch of a decisions kernel over `vpls` VPLs: their
 /// decisions within the largest buffer the device binds, and at most
-/// 65 536 (a dispatch's run time stays short: a driver's watchdog ends
-/// long ones).
+/// [`GpuContext::surfaces_per_dispatch`](crate::GpuContext::surfaces_per_dispatch)
+/// (65 536 unless the request asked fewer: a dispatch's run time stays
+/// short, as a driver's watchdog ends long ones).
 fn chunk_surfaces(s: &Session, vpls: usize) -> usize {
+    // guard: at least one word per surface, so no division by zero
     let bytes = 4 * vpls.div_ceil(16).max(1) as u64;
     usize::try_from(s.ctx().max_buffer() / bytes)
         .unwrap_or(usize::MAX)
-        .clamp(1, 1 << 16)
+        .clamp(1, s.ctx().surfaces_per_dispatch())
 }
 
 /// [`object_light_with`] of one dispatch.
@@ -751,6 +757,7 @@ fn object_light_chunk(
     })?;
     stats.surfaces += n;
     stats.asked += asked;
+    stats.dispatches += 1;
     Ok(sums)
 }
 
@@ -821,6 +828,8 @@ pub struct FillStats {
     pub surfaces: usize,
     /// Decisions of one surface and VPL left to the host.
     pub asked: usize,
+    /// Dispatches of the decision kernel.
+    pub dispatches: usize,
 }
 
 /// The object's volume on the device: its front and back depth maps.
@@ -962,6 +971,7 @@ fn fill_chunk(
     })?;
     stats.surfaces += n;
     stats.asked += asked;
+    stats.dispatches += 1;
     Ok(sums)
 }
 

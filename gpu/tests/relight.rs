@@ -455,6 +455,46 @@ fn a_direct_term_dispatched_in_rows_agrees_with_the_cpu() {
     light_equal(&sums.light).unwrap();
 }
 
+/// Calls split into many dispatches (at most 37 surfaces each here; a
+/// real device splits past 65 536) give the same bits as the CPU: the
+/// object's light and the fill, every dispatch of a call in its place.
+#[test]
+fn decisions_split_into_many_dispatches_are_the_cpus() {
+    let split = GpuContext::new(&AdapterRequest {
+        max_surfaces_per_dispatch: Some(37),
+        ..Default::default()
+    })
+    .unwrap();
+    assert_eq!(split.surfaces_per_dispatch(), 37);
+    let c = case(Room::NearWall, None);
+    let vpls = c.vpls(128);
+    let sums = both_sums_on(&split, &c, &vpls);
+    let calls = |lens: Vec<usize>| -> (usize, usize) {
+        // (the largest call, the dispatches the calls need at 37 a dispatch)
+        let largest = lens.iter().copied().max().unwrap_or(0);
+        (largest, lens.iter().map(|n| n.div_ceil(37)).sum())
+    };
+    let (largest, need) = calls(sums.light.iter().map(|(c, _)| c.len()).collect());
+    assert!(largest > 3 * 37, "{largest} surfaces");
+    assert_eq!(sums.light_stats.dispatches, need);
+    light_equal(&sums.light).unwrap();
+    let (largest, need) = calls(sums.fill.iter().map(|(c, _)| c.len()).collect());
+    assert!(largest > 3 * 37, "{largest} fill surfaces");
+    assert_eq!(sums.fill_stats.dispatches, need);
+    for (k, (cpu, dev)) in sums.fill.iter().enumerate() {
+        fill_equal(cpu, dev).unwrap_or_else(|e| panic!("batch {k}: {e}"));
+    }
+    // a device that put one dispatch's sums in another's place fails
+    let (cpu, dev) = sums
+        .light
+        .iter()
+        .find(|(c, _)| c.len() > 2 * 37 && c[..37] != c[37..74])
+        .expect("a call of two dispatches that differ");
+    let mut bad = dev.clone();
+    bad[..74].rotate_left(37);
+    assert!(object_light_equal(cpu, &bad).is_err());
+}
+
 #[test]
 fn a_perturbed_direct_term_fails_the_check() {
     let c = case(Room::Open, None);
