@@ -68,6 +68,64 @@ pub fn depth_errors(
     Ok(e)
 }
 
+/// How much of an estimate's squared error its worst pixels carry: over
+/// the filled pixels where `select(i)` holds and the truth is valid (as
+/// [`depth_errors`] counts them), the `share` of pixels with the largest
+/// errors (at least one where any pixel is measured).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
+pub struct WorstShare {
+    /// Pixels in the worst share.
+    pub worst: usize,
+    /// Their part of the summed squared error, in `[0, 1]` (0 when the
+    /// error is 0 everywhere).
+    pub sse_share: f64,
+    /// RMSE of the other pixels, metres (0 when none is left).
+    pub rmse_rest_m: f64,
+}
+
+/// [`WorstShare`] of `estimate` against `truth` over `select` (same sizes,
+/// else an error naming both). Sums in f64.
+pub fn worst_share(
+    estimate: &DepthMap,
+    truth: &DepthMap,
+    select: impl Fn(usize) -> bool,
+    share: f64,
+) -> Result<WorstShare, String> {
+    if estimate.dims() != truth.dims() {
+        let ((a, b), (c, d)) = (estimate.dims(), truth.dims());
+        return Err(format!(
+            "the estimate is {a}x{b} and the truth {c}x{d}: they cannot be compared"
+        ));
+    }
+    let mut sq: Vec<f64> = estimate
+        .as_slice()
+        .iter()
+        .zip(truth.as_slice())
+        .enumerate()
+        .filter(|(i, (x, t))| DepthMap::is_valid(**t) && DepthMap::is_valid(**x) && select(*i))
+        .map(|(_, (x, t))| (f64::from(*x) - f64::from(*t)).powi(2))
+        .collect();
+    if sq.is_empty() {
+        return Ok(WorstShare::default());
+    }
+    sq.sort_by(|a, b| b.total_cmp(a));
+    let n = sq.len();
+    let worst = ((share.clamp(0.0, 1.0) * n as f64).ceil() as usize).clamp(1, n);
+    let total: f64 = sq.iter().sum();
+    let top: f64 = sq[..worst].iter().sum();
+    Ok(WorstShare {
+        worst,
+        // guard: a zero total error has no share to give
+        sse_share: if total > 0.0 { top / total } else { 0.0 },
+        // guard: no pixel left, no rest
+        rmse_rest_m: if worst < n {
+            ((total - top).max(0.0) / (n - worst) as f64).sqrt()
+        } else {
+            0.0
+        },
+    })
+}
+
 /// The relative depth difference within which a neighbour supports a
 /// truth pixel ([`truth_spikes`]).
 pub const SPIKE_TOLERANCE: f64 = 0.05;
@@ -400,6 +458,27 @@ mod tests {
         // a lone valid pixel has nothing to compare: no spike
         let lone = Image::from_vec(3, 1, vec![0.0f32, 1.0, 0.0]).unwrap();
         assert_eq!(truth_spikes(&lone), vec![false; 3]);
+    }
+
+    #[test]
+    fn the_worst_share_is_the_largest_errors_part() {
+        // errors 0.3, 0.1, 0.1, 0.1 and an unfilled pixel and a hole in the truth
+        let truth = Image::from_vec(6, 1, vec![1.0f32, 1.0, 1.0, 1.0, 1.0, 0.0]).unwrap();
+        let est = Image::from_vec(6, 1, vec![1.3f32, 1.1, 0.9, 1.1, 0.0, 2.0]).unwrap();
+        let w = worst_share(&est, &truth, |_| true, 0.25).unwrap();
+        assert_eq!(w.worst, 1);
+        assert!((w.sse_share - 0.09 / 0.12).abs() < 1e-6, "{w:?}");
+        assert!((w.rmse_rest_m - 0.1).abs() < 1e-6, "{w:?}");
+        // at least one pixel; none selected gives zeros; sizes must match
+        assert_eq!(worst_share(&est, &truth, |_| true, 0.0).unwrap().worst, 1);
+        assert_eq!(
+            worst_share(&est, &truth, |_| false, 0.5).unwrap(),
+            WorstShare::default()
+        );
+        let all = worst_share(&est, &truth, |_| true, 1.0).unwrap();
+        assert_eq!((all.worst, all.rmse_rest_m), (4, 0.0));
+        let small = Image::from_vec(1, 1, vec![1.0f32]).unwrap();
+        assert!(worst_share(&small, &truth, |_| true, 0.5).is_err());
     }
 
     #[test]

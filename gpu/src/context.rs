@@ -133,10 +133,11 @@ pub struct AdapterRequest {
     /// wrapped path without millions of pixels.
     pub max_groups_per_row: Option<u32>,
     /// The most surfaces one dispatch of Relight's decision kernels (the
-    /// object's light, the fill) takes; `None` (or more than the largest
-    /// buffer holds) is [`DEFAULT_SURFACES_PER_DISPATCH`] within that
-    /// buffer. Smaller values only split a call into more dispatches, the
-    /// same sums: a test can reach the split path without 65 536 surfaces.
+    /// object's light, the fill) takes: at most (and with `None`)
+    /// [`DEFAULT_SURFACES_PER_DISPATCH`], larger values clamped to it, and
+    /// fewer where their decisions would exceed the largest buffer.
+    /// Smaller values only split a call into more dispatches, the same
+    /// sums: a test can reach the split path without 65 536 surfaces.
     pub max_surfaces_per_dispatch: Option<usize>,
 }
 

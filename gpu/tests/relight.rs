@@ -63,6 +63,10 @@ struct Both<'s, 'a> {
     /// A partly blocked surface's fill, and what a device that saw every
     /// VPL lit would give.
     fill_perturbed: Option<(FillSum, FillSum)>,
+    /// When set: the direct term again with one object map's VPLs left
+    /// without a map (group `usize::MAX`; the first such group that
+    /// changes the CPU's sums), on both (CPU, device).
+    cut: Option<Option<(Vec<DirectSum>, Vec<DirectSum>)>>,
 }
 
 impl MoveSums for Both<'_, '_> {
@@ -88,6 +92,32 @@ impl MoveSums for Both<'_, '_> {
     fn direct(&mut self, plan: &DirectPlan) -> Result<Vec<DirectSum>, NodeError> {
         let cpu = evaluate(plan);
         let dev = self.dev.direct(plan)?;
+        if let Some(slot) = &mut self.cut {
+            // the first group the tiles read whose VPLs, left without a
+            // map, change the CPU's sums
+            let cut_group = |g: usize| {
+                let mut cut = plan.clone();
+                for l in &mut cut.lights {
+                    if l.group == g {
+                        l.group = usize::MAX;
+                    }
+                }
+                cut
+            };
+            let found = plan
+                .tiles
+                .iter()
+                .flat_map(|t| &t.vpls)
+                .map(|&j| cut_group(plan.lights[j].group))
+                .map(|cut| {
+                    let sums = evaluate(&cut);
+                    (cut, sums)
+                })
+                .find(|(_, sums)| *sums != cpu);
+            if let Some((cut, cpu_cut)) = found {
+                *slot = Some((cpu_cut, self.dev.direct(&cut)?));
+            }
+        }
         self.direct = Some((cpu.clone(), dev));
         Ok(cpu)
     }
@@ -150,6 +180,7 @@ struct Sums {
     fill_perturbed: Option<(FillSum, FillSum)>,
     direct_stats: DirectStats,
     light_stats: ObjectLightStats,
+    cut: Option<(Vec<DirectSum>, Vec<DirectSum>)>,
 }
 
 /// Both backends' sums of one move on a given device context.
@@ -159,7 +190,7 @@ fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
 
 /// [`both_sums_on`] with parameters `p`.
 fn both_sums_with(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl], p: &RelightParams) -> Sums {
-    both_sums_captured(ctx, c, vpls, p, None)
+    both_sums_captured(ctx, c, vpls, p, None, false)
 }
 
 /// [`both_sums_with`] with the capture map's VPLs `capture`.
@@ -169,6 +200,7 @@ fn both_sums_captured(
     vpls: &[Vpl],
     p: &RelightParams,
     capture: Option<&[Vpl]>,
+    cut: bool,
 ) -> Sums {
     let p = p.clone();
     let mut inp = c.inputs();
@@ -185,6 +217,7 @@ fn both_sums_captured(
         fill: Vec::new(),
         fill_decisions: 0,
         fill_perturbed: None,
+        cut: cut.then_some(None),
     };
     relight_moved_with(&scene, &inp, &p, &mut both)
         .unwrap()
@@ -201,6 +234,7 @@ fn both_sums_captured(
         fill_perturbed: both.fill_perturbed,
         direct_stats: both.dev.direct,
         light_stats: both.dev.object,
+        cut: both.cut.flatten(),
     }
 }
 
@@ -308,7 +342,14 @@ fn the_capture_side_on_the_device_is_the_cpus_bit_for_bit() {
     let vpls = c.vpls(128);
     let other = case(Room::NearWall, Some(Sky::Overcast));
     let capture = other.vpls(100);
-    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), Some(&capture));
+    let sums = both_sums_captured(
+        &gpu(),
+        &c,
+        &vpls,
+        &RelightParams::default(),
+        Some(&capture),
+        false,
+    );
     assert_eq!(sums.light.len(), 4, "{} calls", sums.light.len());
     let n = light_equal(&sums.light).unwrap();
     let (cpu, _) = &sums.light[3];
@@ -493,6 +534,65 @@ fn decisions_split_into_many_dispatches_are_the_cpus() {
     let mut bad = dev.clone();
     bad[..74].rotate_left(37);
     assert!(object_light_equal(cpu, &bad).is_err());
+}
+
+/// VPLs without an object map in a tile's list (group `usize::MAX`: the
+/// object shadows nothing there) take nothing on the device either: the
+/// CPU's bits, the run skipped. (lavapipe reads zeros past a buffer's end,
+/// so there a kernel without the guard passes too; a device that clamps
+/// the index would read the last map.)
+#[test]
+fn a_run_of_vpls_without_an_object_map_takes_nothing_on_the_device() {
+    let c = case(Room::Open, None);
+    let vpls = c.vpls(64);
+    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), None, true);
+    // a group whose VPLs take light somewhere: leaving it out matters
+    let (cpu, dev) = sums.cut.expect("a group that takes light");
+    direct_within(&cpu, &dev, total_power(&vpls), DE_TOL).unwrap();
+}
+
+/// Buffers the pool hands out again hold what their last user left: every
+/// kernel clears (or writes) each word it reads back. Here the pool holds
+/// only buffers of all ones (two of every size class up to 32 MiB), and the
+/// move's three sums are still the CPU's bits.
+#[test]
+fn buffers_left_dirty_in_the_pool_change_no_sum() {
+    // a context of its own: its pool holds nothing else
+    let ctx = GpuContext::new(&AdapterRequest::default()).unwrap();
+    {
+        let mut dirty = Vec::new();
+        for class in (8..=25).map(|p| 1u64 << p) {
+            for _ in 0..2 {
+                let b = ctx.buffer(class, depthgraph_gpu::session::STORAGE).unwrap();
+                let ones = vec![0xFFu8; class as usize];
+                ctx.queue().write_buffer(b.get(), 0, &ones);
+                dirty.push(b);
+            }
+        }
+        ctx.queue().submit([]);
+        // dropped: back to the pool, all ones
+    }
+    let c = case(Room::NearWall, None);
+    let vpls = c.vpls(100);
+    let sums = both_sums_on(&ctx, &c, &vpls);
+    let (cpu, dev) = &sums.direct;
+    let a = direct_within(cpu, dev, total_power(&vpls), DE_TOL).unwrap();
+    assert!(a.hits >= 50, "{} shaded pixels", a.hits);
+    // and the device decided them (a dirty flag word would send every
+    // pixel back to the host, which gives the CPU's bits too)
+    let st = sums.direct_stats;
+    assert!(
+        st.recomputed * 20 <= st.pixels,
+        "{} of {} recomputed",
+        st.recomputed,
+        st.pixels
+    );
+    let st = sums.light_stats;
+    assert!(st.asked * 20 <= st.surfaces * sums.lights, "{st:?}");
+    light_equal(&sums.light).unwrap();
+    for (k, (cpu, dev)) in sums.fill.iter().enumerate() {
+        fill_equal(cpu, dev).unwrap_or_else(|e| panic!("batch {k}: {e}"));
+    }
 }
 
 #[test]

@@ -38,17 +38,11 @@ struct Pixel {
 @group(0) @binding(4) var<storage, read> maps: array<Map>;
 @group(0) @binding(5) var<storage, read> texels: array<f32>;
 @group(0) @binding(6) var<storage, read> stexels: array<f32>;
-// per pixel: the sums' bits (r, g, b) and flags (1: hit, 2: unsure)
 // per pixel: `words` words with a bit per place of its tile's VPL list
 // (set: the object takes that VPL's light here), then a word of flags
 // (2: unsure)
 @group(0) @binding(7) var<storage, read_write> out: array<u32>;
 
-// Sets bit `b` of the pixel's words at `base`.
-fn take(base: u32, b: u32) {
-    let i = base + b / 32u;
-    out[i] = out[i] | (1u << (b % 32u));
-}
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -68,6 +62,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var looked = false;
     var lc = vec3<f32>(0.0);
     var occ = EMPTY;
+    // the word of bits being gathered (places only grow along the list:
+    // each word is written once, when the next one starts or at the end)
+    var word = 0u;
+    var bits = 0u;
     for (var q = px.first; q < px.last; q = q + 1u) {
         let j = list[q];
         let l = lights[j];
@@ -77,6 +75,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             looked = false;
         }
         if (skip_run) {
+            continue;
+        }
+        // a VPL without an object map: the object shadows nothing there
+        // (the CPU skips its run too)
+        if (l.group == NONE) {
+            skip_run = true;
             continue;
         }
         let m = maps[l.group];
@@ -150,9 +154,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
         if (visible) {
-            take(base, q - px.first);
+            let b = q - px.first;
+            if (b / 32u != word) {
+                out[base + word] = bits;
+                word = b / 32u;
+                bits = 0u;
+            }
+            bits = bits | (1u << (b % 32u));
         }
     }
+    out[base + word] = bits;
     if (unsure) {
         out[base + P.words] = 2u;
     }
