@@ -136,10 +136,28 @@ pub struct DirectStats {
 }
 
 /// The header of map `m` relative to `origin`, its texels at `offset` of
-/// texel pool `pool` (0: the object's, 1: the scene's).
-fn header(m: &ShadowMap, origin: DVec3, offset: u32, pool: u32) -> GpuMap {
+/// texel pool `pool` (0: the object's, 1: the scene's); `Err` for a frame
+/// the kernels cannot read as the CPU does (a non-finite axis, origin or
+/// depth offset, or a texel size that is not a positive finite number: a
+/// NaN coordinate would pass the kernels' range tests, which the CPU's
+/// `!(u >= 0)` rejects).
+fn header(m: &ShadowMap, origin: DVec3, offset: u32, pool: u32) -> Result<GpuMap, String> {
     let f = m.frame();
-    GpuMap {
+    let finite = f.eu.is_finite()
+        && f.ev.is_finite()
+        && f.dir.is_finite()
+        && f.u0.is_finite()
+        && f.v0.is_finite()
+        && (f.inv_texel as f32).is_finite()
+        && f.inv_texel > 0.0
+        && (origin.dot(f.dir) as f32).is_finite();
+    if !finite {
+        return Err(
+            "a shadow map whose frame the device cannot read (non-finite or a texel of size 0)"
+                .into(),
+        );
+    }
+    Ok(GpuMap {
         eu: f3(f.eu),
         u0: (f.u0 - origin.dot(f.eu)) as f32,
         ev: f3(f.ev),
@@ -150,7 +168,7 @@ fn header(m: &ShadowMap, origin: DVec3, offset: u32, pool: u32) -> GpuMap {
         res: m.res as u32,
         offset,
         pool,
-    }
+    })
 }
 
 /// Appends `m`'s texels to `texels`, the CPU's `-inf` as [`EMPTY`]; `Err`
@@ -281,14 +299,14 @@ fn upload_maps(
         let offset = u32::try_from(texels.len())
             .map_err(|_| s.too_large("more shadow-map texels than the device indexes"))?;
         push_texels(m, &mut texels).map_err(|why| s.too_large(&why))?;
-        headers.push(header(m, origin, offset, 0));
+        headers.push(header(m, origin, offset, 0).map_err(|why| s.too_large(&why))?);
     }
     let (scene_texels, at) = scene_pool(s, scene_maps, scene, want)?;
     let mut scene_index = Vec::with_capacity(scene_maps.len());
     for (m, offset) in scene_maps.iter().zip(&at) {
         scene_index.push(match (m, offset) {
             (Some(m), Some(offset)) => {
-                headers.push(header(m, origin, *offset, 1));
+                headers.push(header(m, origin, *offset, 1).map_err(|why| s.too_large(&why))?);
                 (headers.len() - 1) as u32
             }
             _ => NONE,
@@ -565,6 +583,10 @@ struct GpuSurface {
     _p2: f32,
 }
 
+/// The most steps of one contact march on the device (the CPU's default
+/// is 8); a plan asking more runs on the CPU.
+pub const MAX_MARCH_STEPS: u32 = 4096;
+
 /// What the object's light did on the device.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct ObjectLightStats {
@@ -713,6 +735,20 @@ fn object_light_chunk(
             return Err(NodeError::Internal("no depth buffer for the march".into()));
         }
     };
+    // a march of more steps than MAX_MARCH_STEPS stays on the CPU (one
+    // dispatch must end well within a driver's watchdog)
+    let max_steps = match march {
+        Some(m) => match u32::try_from(m.2.params.max_steps) {
+            Ok(n) if n <= MAX_MARCH_STEPS => n,
+            _ => {
+                return Err(s.too_large(&format!(
+                    "a contact march of {} steps (the device marches at most {MAX_MARCH_STEPS})",
+                    m.2.params.max_steps
+                )));
+            }
+        },
+        None => 0,
+    };
     let kernel = s.kernel(&shaders::RELIGHT_OBJECT)?;
     let params = ObjectParams {
         count,
@@ -722,10 +758,9 @@ fn object_light_chunk(
         contact: u32::from(march.is_some()),
         width: march.map_or(0, |m| m.0),
         height: march.map_or(0, |m| m.1),
-        max_steps: march.map_or(0, |m| {
-            u32::try_from(m.2.params.max_steps).unwrap_or(u32::MAX)
-        }),
-        fx: march.map_or(1.0, |m| m.2.k.fx as f32),
+        max_steps,
+        // the CPU's footprint guard (`contact::occluded`: fx at least 1e-9)
+        fx: march.map_or(1.0, |m| m.2.k.fx.max(1e-9) as f32),
         fy: march.map_or(1.0, |m| m.2.k.fy as f32),
         cx: march.map_or(0.0, |m| m.2.k.cx as f32),
         cy: march.map_or(0.0, |m| m.2.k.cy as f32),

@@ -8,17 +8,21 @@ use std::sync::Arc;
 
 use common::*;
 use depthgraph_gpu::parity::{direct_within, display_psnr, fill_equal, object_light_equal};
-use depthgraph_gpu::relight::{DE_TOL, DeviceSums, DirectStats, FillStats, ObjectLightStats};
+use depthgraph_gpu::relight::{
+    DE_TOL, DeviceSums, DirectStats, FillStats, MAX_MARCH_STEPS, ObjectLightStats,
+    object_light as object_light_dev,
+};
 use depthgraph_gpu::session::Session;
 use depthgraph_gpu::{AdapterRequest, GpuContext};
 use depthgraph_graph::prelude::*;
+use depthgraph_nodes::relight::contact::ContactParams;
 use depthgraph_nodes::relight::direct::{DirectPlan, DirectSum, evaluate};
 use depthgraph_nodes::relight::fill::{
     FillPlan, FillSeen, FillSum, evaluate as evaluate_fill,
     sums_from_decisions as fill_from_decisions,
 };
 use depthgraph_nodes::relight::object_light::{
-    ObjectLightPlan, ObjectLightSum, evaluate as evaluate_light, sums_from_seen,
+    Contact, ObjectLightPlan, ObjectLightSum, evaluate as evaluate_light, sums_from_seen,
 };
 use depthgraph_nodes::relight::scene_cached::{MoveSums, RelightScene, relight_moved_with};
 use depthgraph_nodes::relight::shading::{RelightParams, Surf};
@@ -67,6 +71,10 @@ struct Both<'s, 'a> {
     /// without a map (group `usize::MAX`; the first such group that
     /// changes the CPU's sums), on both (CPU, device).
     cut: Option<Option<(Vec<DirectSum>, Vec<DirectSum>)>>,
+    /// When set: the first object light again on a session of this
+    /// context with a march of more steps than the device takes, and what
+    /// the device said.
+    long_march: Option<(Arc<GpuContext>, Option<Result<usize, NodeError>>)>,
 }
 
 impl MoveSums for Both<'_, '_> {
@@ -129,6 +137,21 @@ impl MoveSums for Both<'_, '_> {
     ) -> Result<Vec<ObjectLightSum>, NodeError> {
         let cpu = evaluate_light(plan, surfs);
         let dev = self.dev.object_light(plan, surfs)?;
+        if let Some((ctx, slot @ None)) = &mut self.long_march
+            && let Some(c) = &plan.contact
+        {
+            let mut long = plan.clone();
+            long.contact = Some(Contact {
+                params: ContactParams {
+                    max_steps: MAX_MARCH_STEPS as usize + 1,
+                    ..c.params
+                },
+                ..*c
+            });
+            let mut s = Session::new(ctx);
+            let mut stats = ObjectLightStats::default();
+            *slot = Some(object_light_dev(&mut s, &long, surfs, &mut stats).map(|v| v.len()));
+        }
         self.lights = plan.lights.len();
         let unmarched = ObjectLightPlan {
             contact: None,
@@ -181,6 +204,16 @@ struct Sums {
     direct_stats: DirectStats,
     light_stats: ObjectLightStats,
     cut: Option<(Vec<DirectSum>, Vec<DirectSum>)>,
+    long_march: Option<Result<usize, NodeError>>,
+}
+
+/// What [`both_sums_captured`] does beside the move.
+#[derive(Debug, Clone, Copy, Default)]
+struct Extra {
+    /// The direct term again with one group's VPLs without a map.
+    cut: bool,
+    /// The first object light again with a march longer than the device's.
+    long_march: bool,
 }
 
 /// Both backends' sums of one move on a given device context.
@@ -190,7 +223,7 @@ fn both_sums_on(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl]) -> Sums {
 
 /// [`both_sums_on`] with parameters `p`.
 fn both_sums_with(ctx: &Arc<GpuContext>, c: &RelightCase, vpls: &[Vpl], p: &RelightParams) -> Sums {
-    both_sums_captured(ctx, c, vpls, p, None, false)
+    both_sums_captured(ctx, c, vpls, p, None, Extra::default())
 }
 
 /// [`both_sums_with`] with the capture map's VPLs `capture`.
@@ -200,7 +233,7 @@ fn both_sums_captured(
     vpls: &[Vpl],
     p: &RelightParams,
     capture: Option<&[Vpl]>,
-    cut: bool,
+    extra: Extra,
 ) -> Sums {
     let p = p.clone();
     let mut inp = c.inputs();
@@ -217,7 +250,8 @@ fn both_sums_captured(
         fill: Vec::new(),
         fill_decisions: 0,
         fill_perturbed: None,
-        cut: cut.then_some(None),
+        cut: extra.cut.then_some(None),
+        long_march: extra.long_march.then(|| (ctx.clone(), None)),
     };
     relight_moved_with(&scene, &inp, &p, &mut both)
         .unwrap()
@@ -235,6 +269,7 @@ fn both_sums_captured(
         direct_stats: both.dev.direct,
         light_stats: both.dev.object,
         cut: both.cut.flatten(),
+        long_march: both.long_march.and_then(|(_, r)| r),
     }
 }
 
@@ -348,7 +383,7 @@ fn the_capture_side_on_the_device_is_the_cpus_bit_for_bit() {
         &vpls,
         &RelightParams::default(),
         Some(&capture),
-        false,
+        Extra::default(),
     );
     assert_eq!(sums.light.len(), 4, "{} calls", sums.light.len());
     let n = light_equal(&sums.light).unwrap();
@@ -545,7 +580,11 @@ fn decisions_split_into_many_dispatches_are_the_cpus() {
 fn a_run_of_vpls_without_an_object_map_takes_nothing_on_the_device() {
     let c = case(Room::Open, None);
     let vpls = c.vpls(64);
-    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), None, true);
+    let extra = Extra {
+        cut: true,
+        ..Extra::default()
+    };
+    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), None, extra);
     // a group whose VPLs take light somewhere: leaving it out matters
     let (cpu, dev) = sums.cut.expect("a group that takes light");
     direct_within(&cpu, &dev, total_power(&vpls), DE_TOL).unwrap();
@@ -592,6 +631,30 @@ fn buffers_left_dirty_in_the_pool_change_no_sum() {
     light_equal(&sums.light).unwrap();
     for (k, (cpu, dev)) in sums.fill.iter().enumerate() {
         fill_equal(cpu, dev).unwrap_or_else(|e| panic!("batch {k}: {e}"));
+    }
+}
+
+/// A contact march longer than the device takes (one dispatch must end
+/// within a driver's watchdog) is refused before any dispatch: the node
+/// then runs on the CPU.
+#[test]
+fn a_march_longer_than_the_device_takes_is_refused() {
+    let c = case(Room::NearWall, None);
+    let vpls = c.vpls(64);
+    let extra = Extra {
+        long_march: true,
+        ..Extra::default()
+    };
+    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), None, extra);
+    match sums.long_march.expect("an object light with the march") {
+        Ok(n) => panic!("{n} surfaces marched {} steps", MAX_MARCH_STEPS + 1),
+        Err(e) => {
+            let msg = e.to_string();
+            assert!(
+                msg.contains(&format!("{} steps", MAX_MARCH_STEPS + 1)),
+                "{msg}"
+            );
+        }
     }
 }
 

@@ -42,7 +42,8 @@ var<private> unsure: bool;
 fn axis_index(l: f32, o: f32, inv: f32, res: u32, mag: f32) -> i32 {
     let u = (l - o) * inv;
     let e = REL * (inv * (mag + abs(o)) + abs(u) + 1.0);
-    if (u < 0.0) {
+    // outside (NaN too, as the CPU's `!(u >= 0)`)
+    if (!(u >= 0.0)) {
         if (u > -e) {
             unsure = true;
         }

@@ -70,7 +70,7 @@ const TIGHT: f32 = 2.5e-7;
 // The cell of a map's axis holding coordinate `u` in texels (-1 outside:
 // the CPU's `!(u >= 0)` and `x >= res`).
 fn cell(u: f32, res: u32) -> i32 {
-    if (u < 0.0) {
+    if (!(u >= 0.0)) {
         return -1;
     }
     let f = floor(u);
@@ -85,6 +85,10 @@ fn cell(u: f32, res: u32) -> i32 {
 fn axis_span(l: f32, o: f32, inv: f32, res: u32, mag: f32) -> vec2<i32> {
     let u = (l - o) * inv;
     let e = REL * (inv * (mag + abs(o)) + abs(u) + 1.0);
+    // a bound of a texel or more could skip a cell between the two: unsure
+    if (e >= 0.5) {
+        unsure = true;
+    }
     return vec2<i32>(cell(u - e, res), cell(u + e, res));
 }
 
@@ -349,6 +353,10 @@ fn decide(l: Light, s: Surface, cos: f32, mag: f32) -> u32 {
         return 3u;
     }
     let sm = maps[l.scene_map];
+    // an empty map occludes nothing (the CPU's `occluder_lc` is -inf)
+    if (sm.res == 0u) {
+        return 3u;
+    }
     let slc = light_coords(sm, s.pos);
     let span = occluder_span(sm, slc, mag);
     let bs = l.bias_scene * sl;

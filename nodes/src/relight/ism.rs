@@ -430,9 +430,20 @@ impl ShadowMap {
         })
     }
 
-    /// Whether the texel array is `res`² (a decoded map is indexed by it).
+    /// Whether the texel array is `res`² (a decoded map is indexed by it)
+    /// and the frame finite with a texel of positive size (a NaN coordinate
+    /// would pass a device's range tests where `!(u >= 0)` rejects it here).
     pub(crate) fn consistent(&self) -> bool {
         self.res.checked_mul(self.res) == Some(self.t.len())
+            && self.dir.is_finite()
+            && self.eu.is_finite()
+            && self.ev.is_finite()
+            && self.u0.is_finite()
+            && self.v0.is_finite()
+            && self.texel_m.is_finite()
+            && self.texel_m > 0.0
+            && self.inv_texel.is_finite()
+            && self.inv_texel > 0.0
     }
 
     /// Continuous texel coordinate of `p`.
@@ -1073,6 +1084,43 @@ mod tests {
 
     fn cam(w: usize, h: usize) -> Intrinsics {
         crate::sim::synthetic::kinect_like_intrinsics(w, h)
+    }
+
+    /// A decoded map whose frame is not finite (or whose texel has no
+    /// size) is inconsistent: the cache rebuilds the scene instead.
+    #[test]
+    fn a_decoded_map_with_a_bad_frame_is_inconsistent() {
+        let good = ShadowMap {
+            dir: DVec3::Z,
+            eu: DVec3::X,
+            ev: DVec3::Y,
+            u0: -1.0,
+            v0: -1.0,
+            texel_m: 0.5,
+            inv_texel: 2.0,
+            res: 2,
+            t: vec![f32::NEG_INFINITY, 1.0, 2.0, 3.0],
+        };
+        let mut w = depthgraph_graph::bytes::ByteWriter::default();
+        good.write(&mut w);
+        let bytes = w.0;
+        let read = |b: &[u8]| {
+            ShadowMap::read(&mut depthgraph_graph::bytes::ByteReader::new(b))
+                .expect("a whole map")
+                .consistent()
+        };
+        assert!(read(&bytes));
+        // u0 (after three vectors), then inv_texel, made NaN or 0
+        for (at, bad) in [
+            (72, f64::NAN),
+            (96, f64::NAN),
+            (96, 0.0),
+            (88, f64::INFINITY),
+        ] {
+            let mut b = bytes.clone();
+            b[at..at + 8].copy_from_slice(&bad.to_le_bytes());
+            assert!(!read(&b), "byte {at} = {bad}");
+        }
     }
 
     /// A floor (y = 0.4 m, seen from above at an angle: depth rows) and a
