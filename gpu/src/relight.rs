@@ -135,6 +135,14 @@ pub struct DirectStats {
     pub recomputed: usize,
 }
 
+/// A depth map's identity while it is borrowed: its address and size.
+type DepthId = (usize, (usize, usize));
+
+/// [`DepthId`] of `d`.
+fn depth_id(d: &DepthMap) -> DepthId {
+    (std::ptr::from_ref(d) as usize, d.dims())
+}
+
 /// The header of map `m` relative to `origin`, its texels at `offset` of
 /// texel pool `pool` (0: the object's, 1: the scene's); `Err` for a frame
 /// the kernels cannot read as the CPU does (a non-finite axis, origin or
@@ -223,6 +231,9 @@ pub struct MoveMaps {
     origin: DVec3,
     /// The photo's depth for the contact march, once uploaded.
     depth: Option<Arc<crate::context::PooledBuffer>>,
+    /// Which depth map `depth` holds ([`depth_id`]): a plan marching
+    /// another one uploads its own.
+    depth_of: Option<DepthId>,
     /// The map lists uploaded ([`list_key`]).
     key: [usize; 4],
 }
@@ -320,6 +331,7 @@ fn upload_maps(
         groups: object_maps.len(),
         origin,
         depth: None,
+        depth_of: None,
         key: list_key(object_maps, scene_maps),
     })
 }
@@ -718,7 +730,7 @@ fn object_light_chunk(
             let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
                 return Err(s.too_large("a depth map larger than the device indexes"));
             };
-            if maps.depth.is_none() {
+            if maps.depth_of != Some(depth_id(c.depth)) {
                 upload = Some(s.upload(bytes_of(c.depth.as_slice()))?);
             }
             Some((w, h, c))
@@ -1136,12 +1148,15 @@ impl MoveSums for DeviceSums<'_, '_> {
     ) -> Result<Vec<ObjectLightSum>, NodeError> {
         let mut maps = self.maps(plan.object_maps, plan.scene_maps, plan.centre)?;
         // the photo's depth once per move, or found on the device
-        if let (Some(c), None) = (&plan.contact, &maps.depth) {
+        if let Some(c) = &plan.contact
+            && maps.depth_of != Some(depth_id(c.depth))
+        {
             let bytes = bytes_of(c.depth.as_slice());
             maps.depth = Some(match &self.depth {
                 Some(d) if std::ptr::eq(&**d, c.depth) => self.session.image(d, bytes)?,
                 _ => Arc::new(self.session.upload(bytes)?),
             });
+            maps.depth_of = Some(depth_id(c.depth));
         }
         let r = object_light_with(self.session, plan, surfs, &maps, &mut self.object);
         self.keep(maps);

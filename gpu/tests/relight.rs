@@ -75,6 +75,10 @@ struct Both<'s, 'a> {
     /// context with a march of more steps than the device takes, and what
     /// the device said.
     long_march: Option<(Arc<GpuContext>, Option<Result<usize, NodeError>>)>,
+    /// When set: the first marching object light again on another depth
+    /// (the photo's, 10 % nearer) after the photo's is on the device: both
+    /// backends' sums, and whether the depth changed the CPU's.
+    other_depth: Option<Option<(Vec<ObjectLightSum>, Vec<ObjectLightSum>, bool)>>,
 }
 
 impl MoveSums for Both<'_, '_> {
@@ -137,6 +141,20 @@ impl MoveSums for Both<'_, '_> {
     ) -> Result<Vec<ObjectLightSum>, NodeError> {
         let cpu = evaluate_light(plan, surfs);
         let dev = self.dev.object_light(plan, surfs)?;
+        if let Some(slot @ None) = &mut self.other_depth
+            && let Some(c) = &plan.contact
+        {
+            let nearer: DepthMap = c.depth.map(|z| if *z > 0.0 { 0.9 * *z } else { *z });
+            let mut other = plan.clone();
+            other.contact = Some(Contact {
+                depth: &nearer,
+                ..*c
+            });
+            let cpu2 = evaluate_light(&other, surfs);
+            let dev2 = self.dev.object_light(&other, surfs)?;
+            let changed = cpu2 != cpu;
+            *slot = Some((cpu2, dev2, changed));
+        }
         if let Some((ctx, slot @ None)) = &mut self.long_march
             && let Some(c) = &plan.contact
         {
@@ -205,6 +223,7 @@ struct Sums {
     light_stats: ObjectLightStats,
     cut: Option<(Vec<DirectSum>, Vec<DirectSum>)>,
     long_march: Option<Result<usize, NodeError>>,
+    other_depth: Option<(Vec<ObjectLightSum>, Vec<ObjectLightSum>, bool)>,
 }
 
 /// What [`both_sums_captured`] does beside the move.
@@ -214,6 +233,8 @@ struct Extra {
     cut: bool,
     /// The first object light again with a march longer than the device's.
     long_march: bool,
+    /// The first marching object light again on another depth.
+    other_depth: bool,
 }
 
 /// Both backends' sums of one move on a given device context.
@@ -252,6 +273,7 @@ fn both_sums_captured(
         fill_perturbed: None,
         cut: extra.cut.then_some(None),
         long_march: extra.long_march.then(|| (ctx.clone(), None)),
+        other_depth: extra.other_depth.then_some(None),
     };
     relight_moved_with(&scene, &inp, &p, &mut both)
         .unwrap()
@@ -270,6 +292,7 @@ fn both_sums_captured(
         light_stats: both.dev.object,
         cut: both.cut.flatten(),
         long_march: both.long_march.and_then(|(_, r)| r),
+        other_depth: both.other_depth.flatten(),
     }
 }
 
@@ -656,6 +679,22 @@ fn a_march_longer_than_the_device_takes_is_refused() {
             );
         }
     }
+}
+
+/// A plan that marches another depth than the one on the device uploads
+/// its own: the CPU's bits on the other depth, which changes the sums.
+#[test]
+fn a_plan_marching_another_depth_gets_its_own_on_the_device() {
+    let c = case(Room::NearWall, None);
+    let vpls = c.vpls(128);
+    let extra = Extra {
+        other_depth: true,
+        ..Extra::default()
+    };
+    let sums = both_sums_captured(&gpu(), &c, &vpls, &RelightParams::default(), None, extra);
+    let (cpu, dev, changed) = sums.other_depth.expect("an object light with the march");
+    assert!(changed, "a nearer photo changed no march");
+    object_light_equal(&cpu, &dev).unwrap();
 }
 
 #[test]
