@@ -49,6 +49,13 @@ fn total_power(vpls: &[Vpl]) -> [f64; 3] {
     t
 }
 
+/// What the device said to a march longer than it takes (surfaces, or why not).
+type Marched = Result<usize, NodeError>;
+
+/// An object light on another depth: the CPU's, the device's, and whether
+/// the depth changed the CPU's.
+type OtherDepth = (Vec<ObjectLightSum>, Vec<ObjectLightSum>, bool);
+
 /// Both backends' sums of one move: the CPU's go on (the move is the
 /// CPU's), the device's are kept beside them; with a perturbed copy of
 /// the first object light in which a surface loses one lit VPL.
@@ -74,11 +81,11 @@ struct Both<'s, 'a> {
     /// When set: the first object light again on a session of this
     /// context with a march of more steps than the device takes, and what
     /// the device said.
-    long_march: Option<(Arc<GpuContext>, Option<Result<usize, NodeError>>)>,
+    long_march: Option<(Arc<GpuContext>, Option<Marched>)>,
     /// When set: the first marching object light again on another depth
     /// (the photo's, 10 % nearer) after the photo's is on the device: both
     /// backends' sums, and whether the depth changed the CPU's.
-    other_depth: Option<Option<(Vec<ObjectLightSum>, Vec<ObjectLightSum>, bool)>>,
+    other_depth: Option<Option<OtherDepth>>,
 }
 
 impl MoveSums for Both<'_, '_> {
@@ -222,8 +229,8 @@ struct Sums {
     direct_stats: DirectStats,
     light_stats: ObjectLightStats,
     cut: Option<(Vec<DirectSum>, Vec<DirectSum>)>,
-    long_march: Option<Result<usize, NodeError>>,
-    other_depth: Option<(Vec<ObjectLightSum>, Vec<ObjectLightSum>, bool)>,
+    long_march: Option<Marched>,
+    other_depth: Option<OtherDepth>,
 }
 
 /// What [`both_sums_captured`] does beside the move.
