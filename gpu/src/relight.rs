@@ -77,8 +77,9 @@ struct Params {
     /// Invocations per row of the 2-D dispatch (a row's workgroups times
     /// [`WORKGROUP`]): pixel `k` is invocation `(k % row, k / row)`.
     row: u32,
-    /// Words of bits per pixel (the longest tile list, 32 places a word).
-    words: u32,
+    /// Where the pixels' output offsets start in the list buffer (after
+    /// the tiles' VPL lists).
+    offsets: u32,
     _pad: u32,
 }
 
@@ -477,28 +478,31 @@ pub fn direct_with(
         lights.push(gpu_light(l, scene_map, maps.groups));
     }
     let n = pixels.len();
-    // a bit per place of the longest list; the flags after them
-    let words = plan
-        .tiles
-        .iter()
-        .map(|t| t.vpls.len().div_ceil(32))
-        .max()
-        .unwrap_or(0)
-        .max(1);
-    let stride = words + 1;
-    let (Ok(words_u32), Some(total)) = (
-        u32::try_from(words),
-        n.checked_mul(stride).filter(|&t| u32::try_from(t).is_ok()),
+    // per pixel: a bit per place of its tile's list, then a word of flags,
+    // at its own offset (a pixel returns its tile's words, not the longest
+    // list's); the offsets follow the lists in the list buffer
+    let too_many = || format!("{n} pixels of the direct term are more than the device indexes");
+    let mut offsets: Vec<(usize, usize)> = Vec::with_capacity(n);
+    let mut total = 0usize;
+    for &(t, _) in &at {
+        let words = plan.tiles[t].vpls.len().div_ceil(32);
+        offsets.push((total, words));
+        total += words + 1;
+    }
+    let offsets_at = list.len();
+    let (Ok(count), Ok(offsets_u32), true) = (
+        u32::try_from(n),
+        u32::try_from(offsets_at),
+        u32::try_from(total).is_ok() && u32::try_from(offsets_at + n).is_ok(),
     ) else {
-        return Err(s.too_large(&format!(
-            "{n} pixels of the direct term are more than the device indexes"
-        )));
+        return Err(s.too_large(&too_many()));
     };
+    list.extend(offsets.iter().map(|&(o, _)| o as u32));
     let kernel = s.kernel(&shaders::RELIGHT_DIRECT)?;
     let params = Params {
-        count: n as u32,
+        count,
         row: gx * WORKGROUP,
-        words: words_u32,
+        offsets: offsets_u32,
         _pad: 0,
     };
     let uniform = s.uniform(bytemuck::bytes_of(&params))?;
@@ -532,10 +536,11 @@ pub fn direct_with(
     stats.pixels += n;
     // the host's sums: the CPU's terms of the VPLs the device marked, in
     // the list's order (in parallel)
-    let decided: Vec<(DirectSum, bool)> = all
-        .par_chunks_exact(stride)
+    let decided: Vec<(DirectSum, bool)> = offsets
+        .par_iter()
         .zip(at.par_iter())
-        .map(|(w, &(t, k))| {
+        .map(|(&(o, words), &(t, k))| {
+            let w = &all[o..=o + words];
             let tile = &plan.tiles[t];
             if w[words] & 2 != 0 {
                 return (evaluate_pixel(plan, tile, k), true);

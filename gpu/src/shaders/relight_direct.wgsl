@@ -17,8 +17,8 @@ struct Params {
     count: u32,
     // invocations per row of the 2-D dispatch
     row: u32,
-    // words of bits per pixel (the longest tile list, 32 places a word)
-    words: u32,
+    // where the pixels' output offsets start in `list`
+    offsets: u32,
     _p2: u32,
 }
 
@@ -38,9 +38,9 @@ struct Pixel {
 @group(0) @binding(4) var<storage, read> maps: array<Map>;
 @group(0) @binding(5) var<storage, read> texels: array<f32>;
 @group(0) @binding(6) var<storage, read> stexels: array<f32>;
-// per pixel: `words` words with a bit per place of its tile's VPL list
-// (set: the object takes that VPL's light here), then a word of flags
-// (2: unsure)
+// per pixel, at its offset (list[P.offsets + k]): a word per 32 places of
+// its tile's VPL list, a bit per place (set: the object takes that VPL's
+// light here), then a word of flags (2: unsure)
 @group(0) @binding(7) var<storage, read_write> out: array<u32>;
 
 
@@ -53,8 +53,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let px = pixels[k];
     unsure = false;
     let mag = length(px.pos);
-    let base = k * (P.words + 1u);
-    for (var i = 0u; i <= P.words; i = i + 1u) {
+    let base = list[P.offsets + k];
+    let words = (px.last - px.first + 31u) / 32u;
+    for (var i = 0u; i <= words; i = i + 1u) {
         out[base + i] = 0u;
     }
     var group = NONE;
@@ -165,6 +166,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     out[base + word] = bits;
     if (unsure) {
-        out[base + P.words] = 2u;
+        out[base + words] = 2u;
     }
 }
