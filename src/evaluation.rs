@@ -22,6 +22,18 @@ pub struct DepthErrors {
     pub unfilled: usize,
 }
 
+/// An error naming both sizes when `estimate` and `truth` differ (pixel by
+/// pixel they would pair wrongly).
+fn same_size(estimate: &DepthMap, truth: &DepthMap) -> Result<(), String> {
+    if estimate.dims() == truth.dims() {
+        return Ok(());
+    }
+    let ((a, b), (c, d)) = (estimate.dims(), truth.dims());
+    Err(format!(
+        "the estimate is {a}x{b} and the truth {c}x{d}: they cannot be compared"
+    ))
+}
+
 /// Errors over the pixels where `select(i)` holds and the truth is valid.
 /// Unfilled estimates are counted in `unfilled` and as bad pixels, and left
 /// out of RMSE/MAE. Sums in f64. An estimate of another size than the truth
@@ -31,12 +43,7 @@ pub fn depth_errors(
     truth: &DepthMap,
     select: impl Fn(usize) -> bool,
 ) -> Result<DepthErrors, String> {
-    if estimate.dims() != truth.dims() {
-        let ((a, b), (c, d)) = (estimate.dims(), truth.dims());
-        return Err(format!(
-            "the estimate is {a}x{b} and the truth {c}x{d}: they cannot be compared"
-        ));
-    }
+    same_size(estimate, truth)?;
     let mut e = DepthErrors::default();
     let (mut sq, mut abs, mut bad) = (0.0f64, 0.0f64, 0usize);
     for (i, (x, t)) in estimate.as_slice().iter().zip(truth.as_slice()).enumerate() {
@@ -91,12 +98,7 @@ pub fn worst_share(
     select: impl Fn(usize) -> bool,
     share: f64,
 ) -> Result<WorstShare, String> {
-    if estimate.dims() != truth.dims() {
-        let ((a, b), (c, d)) = (estimate.dims(), truth.dims());
-        return Err(format!(
-            "the estimate is {a}x{b} and the truth {c}x{d}: they cannot be compared"
-        ));
-    }
+    same_size(estimate, truth)?;
     let mut sq: Vec<f64> = estimate
         .as_slice()
         .iter()

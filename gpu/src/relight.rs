@@ -604,9 +604,10 @@ struct GpuSurface {
 /// is 8); a plan asking more runs on the CPU.
 pub const MAX_MARCH_STEPS: u32 = 4096;
 
-/// What the object's light did on the device.
+/// What a decisions kernel (the object's light, the fill) did on the
+/// device.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct ObjectLightStats {
+pub struct DecisionStats {
     /// Surfaces the device decided.
     pub surfaces: usize,
     /// Decisions of one surface and VPL left to the host (a test f32
@@ -617,6 +618,9 @@ pub struct ObjectLightStats {
     /// takes several).
     pub dispatches: usize,
 }
+
+/// What the object's light did on the device.
+pub type ObjectLightStats = DecisionStats;
 
 /// Code-2 pairs ([`Seen::Ask`]) among the sixteen of a word.
 fn asked_in(w: u32) -> usize {
@@ -652,12 +656,81 @@ pub fn object_light_with(
     maps: &MoveMaps,
     stats: &mut ObjectLightStats,
 ) -> Result<Vec<ObjectLightSum>, NodeError> {
-    let per = chunk_surfaces(s, plan.lights.len());
+    by_dispatch(s, plan.lights.len(), surfs, |s, chunk| {
+        object_light_chunk(s, plan, chunk, maps, stats)
+    })
+}
+
+/// `run` over `surfs` in dispatches of at most [`chunk_surfaces`]
+/// surfaces (of `vpls` VPLs' decisions), the results in order.
+fn by_dispatch<T>(
+    s: &mut Session,
+    vpls: usize,
+    surfs: &[Surf],
+    mut run: impl FnMut(&mut Session, &[Surf]) -> Result<Vec<T>, NodeError>,
+) -> Result<Vec<T>, NodeError> {
+    let per = chunk_surfaces(s, vpls);
     let mut out = Vec::with_capacity(surfs.len());
     for chunk in surfs.chunks(per) {
-        out.extend(object_light_chunk(s, plan, chunk, maps, stats)?);
+        out.extend(run(s, chunk)?);
     }
     Ok(out)
+}
+
+/// The size of one dispatch of a decisions kernel: `count` surfaces of
+/// `lights` VPLs, `words` words of two-bit codes each, on a grid of
+/// workgroups.
+struct Decisions {
+    count: u32,
+    lights: u32,
+    words: usize,
+    grid: (u32, u32),
+}
+
+/// [`Decisions`] of `n` surfaces and `nl` VPLs (`nl > 0`), or the device's
+/// refusal when it cannot index them (`what` names the VPLs).
+fn decisions(s: &mut Session, n: usize, nl: usize, what: &str) -> Result<Decisions, NodeError> {
+    let words = nl.div_ceil(16);
+    let too_many = || format!("{n} surfaces of {nl} {what} are more than the device indexes");
+    let (Ok(count), Ok(lights), true) = (
+        u32::try_from(n),
+        u32::try_from(nl),
+        n.checked_mul(words)
+            .is_some_and(|t| u32::try_from(t).is_ok()),
+    ) else {
+        return Err(s.too_large(&too_many()));
+    };
+    let Some(grid) = s.ctx().flat_grid(n, WORKGROUP) else {
+        return Err(s.too_large(&too_many()));
+    };
+    Ok(Decisions {
+        count,
+        lights,
+        words,
+        grid,
+    })
+}
+
+/// One dispatch of a decisions kernel with `inputs` bound in order (the
+/// output last) and the host's sums of its codes ([`host_sums`]), counted
+/// in `stats`.
+fn run_decisions<T: Send>(
+    s: &mut Session,
+    kernel: &wgpu::ComputePipeline,
+    inputs: &[&wgpu::Buffer],
+    d: &Decisions,
+    surfs: &[Surf],
+    stats: &mut DecisionStats,
+    sum: impl Fn(&[u32], &Surf) -> T + Sync,
+) -> Result<Vec<T>, NodeError> {
+    let bytes = 4 * (surfs.len() * d.words) as u64;
+    let out = s.scratch(bytes)?;
+    let all = run_flat(s, kernel, inputs, (&out, bytes), d.grid)?;
+    let (sums, asked) = host_sums(&all, d.words, surfs, sum)?;
+    stats.surfaces += surfs.len();
+    stats.asked += asked;
+    stats.dispatches += 1;
+    Ok(sums)
 }
 
 /// Surfaces per dispatch of a decisions kernel over `vpls` VPLs: their
@@ -691,19 +764,7 @@ fn object_light_chunk(
     if n == 0 || nl == 0 {
         return Ok(vec![ObjectLightSum::default(); n]);
     }
-    let words = nl.div_ceil(16);
-    let stride = words;
-    let too_many = || format!("{n} surfaces of {nl} VPLs are more than the device indexes");
-    let (Ok(count), Ok(lights_u32), Some(total)) = (
-        u32::try_from(n),
-        u32::try_from(nl),
-        n.checked_mul(stride).filter(|&t| u32::try_from(t).is_ok()),
-    ) else {
-        return Err(s.too_large(&too_many()));
-    };
-    let Some((gx, gy)) = s.ctx().flat_grid(n, WORKGROUP) else {
-        return Err(s.too_large(&too_many()));
-    };
+    let d = decisions(s, n, nl, "VPLs")?;
     let origin = plan.centre;
     let mut lights = Vec::with_capacity(nl);
     for (j, l) in plan.lights.iter().enumerate() {
@@ -768,10 +829,10 @@ fn object_light_chunk(
     };
     let kernel = s.kernel(&shaders::RELIGHT_OBJECT)?;
     let params = ObjectParams {
-        count,
-        row: gx * WORKGROUP,
-        lights: lights_u32,
-        words: words as u32,
+        count: d.count,
+        row: d.grid.0 * WORKGROUP,
+        lights: d.lights,
+        words: d.words as u32,
         contact: u32::from(march.is_some()),
         width: march.map_or(0, |m| m.0),
         height: march.map_or(0, |m| m.1),
@@ -787,30 +848,18 @@ fn object_light_chunk(
     let uniform = s.uniform(bytemuck::bytes_of(&params))?;
     let b_surfaces = s.upload(bytes_of(&surfaces))?;
     let b_lights = s.upload(bytes_of(&lights))?;
-    let bytes = 4 * total as u64;
-    let out = s.scratch(bytes)?;
-    let all = run_flat(
-        s,
-        &kernel,
-        &[
-            &uniform,
-            &b_surfaces,
-            &b_lights,
-            &maps.maps,
-            &maps.texels,
-            &maps.scene_texels,
-            depth,
-        ],
-        (&out, bytes),
-        (gx, gy),
-    )?;
-    let (sums, asked) = host_sums(&all, stride, surfs, |w, q| {
+    let inputs = [
+        &*uniform,
+        &b_surfaces,
+        &b_lights,
+        &maps.maps,
+        &maps.texels,
+        &maps.scene_texels,
+        depth,
+    ];
+    run_decisions(s, &kernel, &inputs, &d, surfs, stats, |w, q| {
         sums_from_decisions(plan, q, |j| Seen::from_bits(code(w, j)))
-    })?;
-    stats.surfaces += n;
-    stats.asked += asked;
-    stats.dispatches += 1;
-    Ok(sums)
+    })
 }
 
 /// VPL `j`'s two-bit decision in a surface's words.
@@ -874,15 +923,7 @@ struct GpuPoint {
 }
 
 /// What the fill did on the device.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct FillStats {
-    /// Surfaces the device decided.
-    pub surfaces: usize,
-    /// Decisions of one surface and VPL left to the host.
-    pub asked: usize,
-    /// Dispatches of the decision kernel.
-    pub dispatches: usize,
-}
+pub type FillStats = DecisionStats;
 
 /// The object's volume on the device: its front and back depth maps.
 pub struct VolumeMaps {
@@ -933,12 +974,9 @@ pub fn fill_with(
     volume: &VolumeMaps,
     stats: &mut FillStats,
 ) -> Result<Vec<FillSum>, NodeError> {
-    let per = chunk_surfaces(s, plan.vpls.len());
-    let mut out = Vec::with_capacity(surfs.len());
-    for chunk in surfs.chunks(per) {
-        out.extend(fill_chunk(s, plan, chunk, volume, stats)?);
-    }
-    Ok(out)
+    by_dispatch(s, plan.vpls.len(), surfs, |s, chunk| {
+        fill_chunk(s, plan, chunk, volume, stats)
+    })
 }
 
 /// [`fill_with`] of one dispatch.
@@ -961,19 +999,9 @@ fn fill_chunk(
     }
     let (k, front, _, centre, radius) = plan.volume.parts();
     let (w, h) = front.dims();
-    let words = nv.div_ceil(16);
-    let too_many = || format!("{n} surfaces of {nv} fill VPLs are more than the device indexes");
-    let (Ok(count), Ok(vpls_u32), Ok(w32), Ok(h32), Some(total)) = (
-        u32::try_from(n),
-        u32::try_from(nv),
-        u32::try_from(w),
-        u32::try_from(h),
-        n.checked_mul(words).filter(|&t| u32::try_from(t).is_ok()),
-    ) else {
-        return Err(s.too_large(&too_many()));
-    };
-    let Some((gx, gy)) = s.ctx().flat_grid(n, WORKGROUP) else {
-        return Err(s.too_large(&too_many()));
+    let d = decisions(s, n, nv, "fill VPLs")?;
+    let (Ok(w32), Ok(h32)) = (u32::try_from(w), u32::try_from(h)) else {
+        return Err(s.too_large("an object volume larger than the device indexes"));
     };
     let point = |pos: DVec3, n: DVec3| GpuPoint {
         pos: f3(pos),
@@ -992,10 +1020,10 @@ fn fill_chunk(
         .collect();
     let kernel = s.kernel(&shaders::RELIGHT_FILL)?;
     let params = FillParams {
-        count,
-        row: gx * WORKGROUP,
-        vpls: vpls_u32,
-        words: words as u32,
+        count: d.count,
+        row: d.grid.0 * WORKGROUP,
+        vpls: d.lights,
+        words: d.words as u32,
         width: w32,
         height: h32,
         _pad: [0; 2],
@@ -1009,22 +1037,10 @@ fn fill_chunk(
     let uniform = s.uniform(bytemuck::bytes_of(&params))?;
     let b_surfaces = s.upload(bytes_of(&surfaces))?;
     let b_vpls = s.upload(bytes_of(&vpls))?;
-    let bytes = 4 * total as u64;
-    let out = s.scratch(bytes)?;
-    let all = run_flat(
-        s,
-        &kernel,
-        &[&uniform, &b_surfaces, &b_vpls, &volume.front, &volume.back],
-        (&out, bytes),
-        (gx, gy),
-    )?;
-    let (sums, asked) = host_sums(&all, words, surfs, |w, q| {
+    let inputs = [&*uniform, &b_surfaces, &b_vpls, &volume.front, &volume.back];
+    run_decisions(s, &kernel, &inputs, &d, surfs, stats, |w, q| {
         fill_from_decisions(plan, q, |j| FillSeen::from_bits(code(w, j)))
-    })?;
-    stats.surfaces += n;
-    stats.asked += asked;
-    stats.dispatches += 1;
-    Ok(sums)
+    })
 }
 
 /// The long sums of a move on the device ([`MoveSums`]), the shadow maps
